@@ -1,0 +1,5 @@
+import sys
+
+from jaxcart.cli import main
+
+sys.exit(main())

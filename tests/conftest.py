@@ -1,0 +1,33 @@
+"""Strict JAX for every test: float64, rank promotion raises, two CPU devices for the sharded
+path; figures are closed after each test."""
+
+import os
+
+# Two host devices so the sharded batch path runs in CI (set before jax starts).
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+REALDATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "realdata")
+
+
+@pytest.fixture
+def realdata():
+    """Path of ../shared/realdata (the lab's real recordings); skips when absent."""
+    path = os.path.abspath(REALDATA)
+    if not os.path.isdir(path):
+        pytest.skip("../shared/realdata is not beside this checkout")
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    import matplotlib.pyplot as plt
+
+    plt.close("all")

@@ -1,0 +1,1 @@
+"""Tuning, fitting and analysis built on the jaxcart simulator."""
