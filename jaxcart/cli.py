@@ -43,6 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    # One XLA device per core, before jax starts, so batches shard over every core.
+    from jaxcart.batch import host_devices
+
+    host_devices()
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
