@@ -41,8 +41,7 @@ def host_devices(n: int | None = None) -> None:
 def _metrics_fn(plant, base, experiment, smoothing, substeps):
     def one(gains):
         controller = dataclasses.replace(base, kp=gains[0], kd=gains[1], ki=gains[2])
-        return step_metrics(plant, controller, experiment, smoothing=smoothing,
-                            substeps=substeps)
+        return step_metrics(plant, controller, experiment, smoothing=smoothing, substeps=substeps)
 
     return jax.vmap(one)
 
@@ -54,8 +53,14 @@ def _compiled(plant, base, experiment, smoothing, substeps, chunk, n_dev, dtype)
     """One jitted, sharded evaluator per static configuration (cached: no re-tracing)."""
     # Smoothing is baked in (not an argument): widths known to be 0 select the exact forms.
     widths = tuple(float(w) for w in jax.tree_util.tree_leaves(smoothing))
-    key = (jax.tree_util.tree_structure((plant, base, experiment)), widths, substeps, chunk,
-           n_dev, dtype)
+    key = (
+        jax.tree_util.tree_structure((plant, base, experiment)),
+        widths,
+        substeps,
+        chunk,
+        n_dev,
+        dtype,
+    )
     if key in _CACHE:
         return _CACHE[key]
     mesh = Mesh(np.array(jax.devices()[:n_dev]), ("batch",))
@@ -109,17 +114,19 @@ def step_metrics_batch(
     chunk = int(min(chunk, max(8, -(-total // n_dev))))
     unit = chunk * n_dev
     per_call = unit * 64
-    fn, sharding = _compiled(plant, controller, experiment, smoothing, substeps, chunk, n_dev,
-                             jnp.dtype(dtype).name)
+    fn, sharding = _compiled(
+        plant, controller, experiment, smoothing, substeps, chunk, n_dev, jnp.dtype(dtype).name
+    )
     pieces = []
     for start in range(0, total, per_call):
-        block = gains[start:start + per_call]
+        block = gains[start : start + per_call]
         padded = -(-block.shape[0] // unit) * unit
         block = np.concatenate([block, np.repeat(block[-1:], padded - block.shape[0], 0)])
         block = jax.device_put(jnp.asarray(block, dtype=dtype), sharding)
         out = fn(plant, controller, experiment, block)
-        pieces.append(jax.tree_util.tree_map(lambda a, n=min(per_call, total - start):
-                                             np.asarray(a)[:n], out))
+        pieces.append(
+            jax.tree_util.tree_map(lambda a, n=min(per_call, total - start): np.asarray(a)[:n], out)
+        )
         if progress is not None:
             progress(min(start + per_call, total), total)
     return StepInfo(*(np.concatenate(parts) for parts in zip(*pieces, strict=True)))

@@ -105,9 +105,7 @@ def reference_sequence(r, *, sample_time: float = 0.001, y0=0.0):
 def tap(velocity: float, *, horizon: float = 2.0, sample_time: float = 0.001, y0=0.0):
     """Tap test: the cart starts at ``y0`` [m] with ``velocity`` [m/s], motor unplugged."""
     t = _times(horizon, sample_time)
-    return Experiment(
-        jnp.zeros(t.shape), y0=y0, yd0=velocity, kind="tap", sample_time=sample_time
-    )
+    return Experiment(jnp.zeros(t.shape), y0=y0, yd0=velocity, kind="tap", sample_time=sample_time)
 
 
 def voltage_sequence(u, *, sample_time: float = 0.001, y0=0.0, yd0=0.0):
@@ -119,8 +117,9 @@ def voltage_sequence(u, *, sample_time: float = 0.001, y0=0.0, yd0=0.0):
 
 def voltage_step(amplitude: float, *, horizon: float = 2.0, sample_time: float = 0.001):
     """Open-loop voltage step to ``amplitude`` [V] at t = 0."""
-    return voltage_sequence(np.full(_times(horizon, sample_time).shape, float(amplitude)),
-                            sample_time=sample_time)
+    return voltage_sequence(
+        np.full(_times(horizon, sample_time).shape, float(amplitude)), sample_time=sample_time
+    )
 
 
 def voltage_ramp(slope: float, *, horizon: float = 20.0, sample_time: float = 0.001):

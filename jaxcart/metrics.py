@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcart.params import Plant
-from jaxcart.simulate import DIVERGED_POSITION, Response, Smoothing, loop
+from jaxcart.simulate import DIVERGED_POSITION, Response, loop
 
 SETTLING_BAND = 0.02
 # Two samples per loop iteration lets XLA fuse across them: ~1.4x faster on a CPU, measured.
@@ -90,8 +90,11 @@ def step_info(response: Response, *, v_limit: float = np.inf, band: float = SETT
     else:
         settling = t[outside[-1] + 1] - t[0]
     overshoot = max(0.0, (z.max() - 1.0) * 100.0)
-    command = np.asarray(response.command, dtype=float)
-    saturated = (np.abs(command) >= v_limit) | (np.abs(v) >= v_limit)
+    if response.unlimited is not None:
+        saturated = np.abs(np.asarray(response.unlimited, dtype=float)) > v_limit
+    else:  # a recording: the command was limited already
+        command = np.asarray(response.command, dtype=float)
+        saturated = (np.abs(command) >= v_limit * (1 - 1e-9)) | (np.abs(v) >= v_limit * (1 - 1e-9))
     return StepInfo(
         rise_time=float(t90 - t10),
         settling_time=float(settling),
@@ -120,7 +123,7 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
     inv_amplitude = 1.0 / amplitude
     band = SETTLING_BAND * jnp.abs(amplitude)
     limit = jnp.minimum(controller.v_limit, _plant_v_sat(plant))
-    dtype = jnp.result_type(float)
+    dtype = jnp.result_type(experiment.signal)
     inf = jnp.asarray(jnp.inf, dtype)
 
     def body(carry, xs):
@@ -143,9 +146,7 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
     zero = jnp.zeros((), dtype)
     acc0 = (inf, inf, jnp.asarray(-1, jnp.int32), -inf, zero, zero, jnp.asarray(False), zero)
     steps = jnp.arange(n, dtype=jnp.int32)
-    (_, acc), _ = jax.lax.scan(
-        body, (init, acc0), (steps, experiment.signal), unroll=_UNROLL
-    )
+    (_, acc), _ = jax.lax.scan(body, (init, acc0), (steps, experiment.signal), unroll=_UNROLL)
     t10, t90, last_out, peak, n_sat, peak_v, bad, y_last = acc
     settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
     bad = bad | ~jnp.isfinite(y_last)

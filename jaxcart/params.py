@@ -100,12 +100,7 @@ class Plant:
     def gamma(self):
         """Force per volt at the cart [N/V]."""
         return (
-            self.gamma_scale
-            * self.eta_g
-            * self.Kg
-            * self.eta_m
-            * self.Kt
-            / (self.Rm * self.r_mp)
+            self.gamma_scale * self.eta_g * self.Kg * self.eta_m * self.Kt / (self.Rm * self.r_mp)
         )
 
     # Parameters by name, across the plant and its effects (used by fitting and files).
@@ -120,9 +115,7 @@ class Plant:
         for effect in self.effects:
             if name in effect.param_names:
                 return getattr(effect, name)
-        raise KeyError(
-            f"unknown plant parameter {name!r}; known: {', '.join(self.param_names())}"
-        )
+        raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.param_names())}")
 
     def replace(self, **values) -> Plant:
         """A copy with named parameters changed (plant fields or effect parameters)."""
@@ -144,9 +137,7 @@ class Plant:
         return next((e for e in self.effects if isinstance(e, kind)), None)
 
 
-_OWN = frozenset(
-    f.name for f in fields(Plant) if f.name not in ("effects", "motor_connected")
-)
+_OWN = frozenset(f.name for f in fields(Plant) if f.name not in ("effects", "motor_connected"))
 
 
 def handout_plant(*, f_c: float = 0.0, v_sat: float = 6.0, **overrides) -> Plant:

@@ -42,7 +42,8 @@ class Response:
     time [s]; position y_k [m]; velocity [m/s]; reference r_k [m];
     error e_k = r_k - y_k [m]; command u_k [V] (after the software limit, what the software
     sends); voltage [V] (applied to the motor, after the amplifier); diverged: True where the
-    run blew up (|y| > 1 km or not finite), in which case the other fields are meaningless.
+    run blew up (|y| > 1 km or not finite), in which case the other fields are meaningless;
+    unlimited: the controller output v_k before any limit [V] (None for recordings).
     """
 
     time: jax.Array
@@ -53,6 +54,7 @@ class Response:
     command: jax.Array
     voltage: jax.Array
     diverged: jax.Array
+    unlimited: jax.Array | None = None
     kind: str = field(default="closed_loop", metadata={"static": True})
 
 
@@ -177,7 +179,7 @@ def loop(plant, controller, experiment, *, smoothing=None, substeps=None):
     def clip(v, limit):
         return smooth_clip(v, limit, smoothing.voltage)
 
-    y0 = jnp.asarray(experiment.y0, dtype=jnp.result_type(float))
+    y0 = jnp.asarray(experiment.y0, dtype=jnp.result_type(experiment.signal))
     yd0 = jnp.asarray(experiment.yd0, dtype=y0.dtype)
     if experiment.kind == "closed_loop":
         r0 = experiment.signal[0]
@@ -233,5 +235,6 @@ def simulate(
         command=s.command,
         voltage=s.voltage,
         diverged=jnp.any(bad),
+        unlimited=s.unlimited,
         kind=experiment.kind,
     )

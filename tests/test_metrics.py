@@ -1,0 +1,75 @@
+"""Step metrics: exact numpy, streamed JAX and python-control's step_info agree."""
+
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart.batch import step_metrics_batch
+
+TS = 0.001
+
+
+@pytest.mark.parametrize("kp, kd", [(20.0, 1.0), (60.0, 0.5), (30.0, 4.0)])
+def test_step_info_matches_python_control_on_linear_responses(kp, kd):
+    plant = jc.Plant(effects=())
+    res = jc.simulate(plant, jc.PID(kp=kp, kd=kd), jc.step(0.05, horizon=3.0))
+    ours = jc.step_info(res)
+    ref = control.step_info(np.asarray(res.position), np.asarray(res.time), yfinal=0.05)
+    assert ours.rise_time == pytest.approx(ref["RiseTime"], abs=TS * 1.01)
+    assert ours.settling_time == pytest.approx(ref["SettlingTime"], abs=TS * 1.01)
+    # Amplitudes to 0.5 % of the step.
+    assert ours.overshoot == pytest.approx(ref["Overshoot"], abs=0.5)
+
+
+def test_streamed_metrics_equal_exact_metrics_of_the_stored_run():
+    plant = jc.handout_plant(f_c=0.4)
+    pid = jc.PID(kp=45.0, kd=4.0, ki=3.0, v_limit=6.0)
+    exp = jc.step(0.5)
+    stored = jc.step_info(jc.simulate(plant, pid, exp), v_limit=6.0)
+    streamed = jax.jit(jc.step_metrics)(plant, pid, exp)
+    for name in (
+        "rise_time",
+        "settling_time",
+        "overshoot",
+        "steady_state_error",
+        "peak_voltage",
+        "saturation_time",
+    ):
+        assert float(getattr(streamed, name)) == pytest.approx(getattr(stored, name), abs=1e-9)
+
+
+def test_unsettled_run_has_infinite_settling_time():
+    res = jc.simulate(jc.handout_plant(), jc.PID(kp=5.0), jc.step(0.5, horizon=0.5))
+    info = jc.step_info(res)
+    assert info.settling_time == np.inf and not info.meets()
+
+
+def test_batch_sharded_matches_single_runs():
+    assert len(jax.devices()) == 2  # conftest asks for two host devices
+    rng = np.random.default_rng(3)
+    gains = np.stack([rng.uniform(10, 100, 37), rng.uniform(0, 8, 37), rng.uniform(0, 20, 37)], 1)
+    plant, base, exp = jc.handout_plant(), jc.PID(v_limit=6.0), jc.step(0.5, horizon=1.5)
+    info = step_metrics_batch(plant, base, exp, gains, chunk=8)
+    for i in (0, 17, 36):
+        pid = jc.PID(kp=gains[i, 0], kd=gains[i, 1], ki=gains[i, 2], v_limit=6.0)
+        ref = jc.step_info(jc.simulate(plant, pid, exp, smoothing=jc.EXACT_FORMS), v_limit=6.0)
+        assert info.settling_time[i] == pytest.approx(ref.settling_time, abs=1e-9)
+        assert info.overshoot[i] == pytest.approx(ref.overshoot, abs=1e-9)
+        assert info.saturation_time[i] == pytest.approx(ref.saturation_time, abs=1e-9)
+
+
+def test_batch_float32_close_to_float64():
+    gains = np.array([[40.0, 5.0, 0.0], [80.0, 8.0, 2.0]])
+    plant, base, exp = jc.handout_plant(), jc.PID(v_limit=6.0), jc.step(0.5)
+    f64 = step_metrics_batch(plant, base, exp, gains)
+    f32 = step_metrics_batch(plant, base, exp, gains, dtype=jnp.float32)
+    assert np.allclose(f32.settling_time, f64.settling_time, atol=2 * TS)
+    assert np.allclose(f32.overshoot, f64.overshoot, atol=0.05)
+
+
+def test_batch_rejects_badly_shaped_gains():
+    with pytest.raises(ValueError, match="shape"):
+        step_metrics_batch(jc.handout_plant(), jc.PID(), jc.step(0.5), np.zeros((4, 2)))
