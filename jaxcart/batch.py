@@ -124,9 +124,8 @@ def step_metrics_batch(
         block = np.concatenate([block, np.repeat(block[-1:], padded - block.shape[0], 0)])
         block = jax.device_put(jnp.asarray(block, dtype=dtype), sharding)
         out = fn(plant, controller, experiment, block)
-        pieces.append(
-            jax.tree_util.tree_map(lambda a, n=min(per_call, total - start): np.asarray(a)[:n], out)
-        )
+        n = min(per_call, total - start)
+        pieces.append([np.asarray(a)[:n] for a in out])
         if progress is not None:
             progress(min(start + per_call, total), total)
     return StepInfo(*(np.concatenate(parts) for parts in zip(*pieces, strict=True)))
