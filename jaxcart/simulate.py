@@ -138,6 +138,7 @@ def _plant_step(plant: Plant, smoothing: Smoothing, h: float, substeps: int):
             accel = (drive + f0 - slope * yd) / m
             return _linear_step(y, yd, accel, a, hs)
 
+        # Unrolled: a nested loop costs ~5x more under reverse mode on a CPU (measured).
         return jax.lax.fori_loop(0, substeps, sub, (y, yd), unroll=True)
 
     return advance
@@ -154,9 +155,14 @@ def _voltage_chain(plant: Plant, smoothing: Smoothing):
     return apply
 
 
+#: Sub-steps per sample where force effects act: at the default widths the integration error
+#: is ~2 um against 200 sub-steps (a tenth of an encoder count), measured on P, PID and tap runs.
+FORCE_SUBSTEPS = 4
+
+
 def default_substeps(plant: Plant) -> int:
-    """Sub-steps per sample: 1 for a linear plant, 10 where force effects act."""
-    return 10 if _effects(plant, "force") else 1
+    """Sub-steps per sample: 1 for a linear plant, FORCE_SUBSTEPS where force effects act."""
+    return FORCE_SUBSTEPS if _effects(plant, "force") else 1
 
 
 def loop(plant, controller, experiment, *, smoothing=None, substeps=None):
@@ -218,7 +224,7 @@ def simulate(
     (ignored for tap and open-loop experiments); experiment: :class:`jaxcart.Experiment`.
     smoothing: widths of the smoothed nonlinearities (default :class:`Smoothing`);
     ``jaxcart.EXACT_FORMS`` uses hard clip (fine without friction). substeps: sub-steps per
-    sample where force effects act (static; default 10).
+    sample where force effects act (static; default FORCE_SUBSTEPS = 4).
 
     Pure JAX: wrap in ``jax.jit``, ``jax.vmap`` over gains or plant parameters, ``jax.grad``.
     """
