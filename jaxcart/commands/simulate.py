@@ -1,0 +1,311 @@
+"""``jaxcart simulate``: simulate an experiment file (or the lab's design problem) and write the
+result as an experiment file, so that the output of one command is the input of the next.
+
+    jaxcart simulate                               # lab default: step 0.5 m, kp 40, kd 5, ki 5
+    jaxcart simulate p50.toml --out p50-sim.csv --plot p50-sim.png
+    jaxcart simulate run.toml --kp 60 --kd 6 --exact
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from jaxcart.errors import SimulationDiverged, UserError
+
+#: The lab's design problem (DESIGN.md): step 0.5 m, handout plant, 6 V, the handout's gains.
+DEFAULT_STEP = 0.5
+DEFAULT_GAINS = {"kp": 40.0, "kd": 5.0, "ki": 5.0}
+DEFAULT_V_LIMIT = 6.0
+DEFAULT_HORIZON = 3.0
+OUT_DIR = Path("jaxcart-out")
+GAIN_OPTIONS = ("kp", "ki", "kd", "tau", "v_limit")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate",
+        help="simulate an experiment file (default: the lab's PID design problem)",
+        description=(
+            "Simulate EXPERIMENT.toml (or, without it, the lab's design problem: step 0.5 m, "
+            "kp=40, kd=5, ki=5, 6 V limit, handout plant, 3 s) and write the run as an "
+            "experiment file (CSV + TOML), with a figure. Without --out, files go to "
+            "./jaxcart-out/ under names that never overwrite."
+        ),
+    )
+    p.add_argument(
+        "experiment",
+        nargs="?",
+        metavar="EXPERIMENT.toml",
+        help="experiment file to simulate (default: the lab's design problem)",
+    )
+    p.add_argument(
+        "--out",
+        metavar="RUN.csv",
+        help="write RUN.csv and RUN.toml (default: ./jaxcart-out/run.csv, run-2.csv...)",
+    )
+    p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
+    p.add_argument(
+        "--exact", action="store_true", help="use the exact (nonsmooth, event-exact) simulator"
+    )
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.add_argument(
+        "--horizon",
+        type=float,
+        metavar="S",
+        help="simulated time [s] (default: the recording's length, or 3 s)",
+    )
+    p.add_argument("--kp", type=float, help="proportional gain [V/m] (overrides the file)")
+    p.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
+    p.add_argument("--kd", type=float, help="derivative gain [V s/m]")
+    p.add_argument("--tau", type=float, help="derivative filter time constant [s]")
+    p.add_argument(
+        "--v-limit", dest="v_limit", type=float, help="software voltage limit [V] (inf for none)"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxcart as jc
+    from jaxcart.files import read_experiment
+
+    recording = None
+    if args.experiment:
+        recording = read_experiment(args.experiment)
+        source = str(recording.path)
+        plant, controller = recording.plant(), recording.controller
+        experiment = (
+            recording.experiment_for(args.horizon)
+            if args.horizon is not None
+            else recording.experiment
+        )
+        overrides = recording.plant_overrides
+    else:
+        source = "the default experiment"
+        horizon = DEFAULT_HORIZON if args.horizon is None else args.horizon
+        if not (math.isfinite(horizon) and horizon > 0):
+            raise UserError(f"--horizon {horizon!r}: give a positive number of seconds")
+        plant = jc.handout_plant()
+        controller = jc.PID(v_limit=DEFAULT_V_LIMIT, **DEFAULT_GAINS)
+        experiment = jc.step(DEFAULT_STEP, horizon=horizon)
+        overrides = {}
+    controller = _with_options(args, controller, experiment, source)
+    csv_path, toml_path, png_path = _outputs(args, recording)
+
+    response = _simulate(args.exact, plant, controller, experiment)
+    if bool(np.asarray(response.diverged)):
+        raise SimulationDiverged(
+            f"simulation of {source} diverged (|y| > 1 km or not finite) with "
+            f"{_gains(controller) if controller else 'no controller'}; lower the gains, set a "
+            f"voltage limit (--v-limit 6) or check [plant]"
+        )
+    if recording is not None and recording.time[0] != 0:
+        # Keep the recording's clock so that the two files line up sample by sample.
+        response = dataclasses.replace(response, time=np.asarray(response.time) + recording.time[0])
+
+    method = "exact" if args.exact else "smooth"
+    from jaxcart.files import write_experiment
+
+    write_experiment(
+        toml_path,
+        response,
+        controller=controller if experiment.kind == "closed_loop" else None,
+        plant_overrides=overrides,
+        description=f"jaxcart simulate ({method} simulator) of {source}",
+        force=args.force,
+    )
+    if png_path is not None:
+        _plot(png_path, response, recording, controller, plant, source, method)
+    _summary(
+        source,
+        experiment,
+        method,
+        controller,
+        plant,
+        response,
+        recording,
+        (csv_path, toml_path, png_path),
+    )
+    return 0
+
+
+# ---------------------------------------------------------------- pieces
+
+
+def _with_options(args, controller, experiment, source):
+    """The controller with the command-line gains applied."""
+    given = {k: getattr(args, k) for k in GAIN_OPTIONS if getattr(args, k) is not None}
+    if experiment.kind != "closed_loop":
+        if given:
+            names = ", ".join("--" + k.replace("_", "-") for k in given)
+            raise UserError(
+                f"{names}: {source} is a {experiment.kind} experiment, which has no "
+                f"controller; drop the option(s)"
+            )
+        return None
+    if controller is None and not given:
+        raise UserError(
+            f"{source} has no [controller]; add one or give the gains with --kp/--ki/--kd"
+        )
+    import jaxcart as jc
+
+    base = controller or jc.PID(sample_time=experiment.sample_time)
+    for name, value in given.items():
+        flag = "--" + name.replace("_", "-")
+        if math.isnan(value) or (math.isinf(value) and name != "v_limit"):
+            raise UserError(f"{flag} {value!r}: give a finite number")
+        if name == "tau" and value < 0:
+            raise UserError(f"{flag} {value!r}: the filter time constant must be >= 0 s")
+        if name == "v_limit" and not value > 0:
+            raise UserError(f"{flag} {value!r}: give a positive limit [V] (inf for none)")
+    return dataclasses.replace(base, **given)
+
+
+def _outputs(args, recording):
+    """(csv, toml, png or None), refusing existing files unless --force, before simulating."""
+    from jaxcart.files import experiment_paths
+
+    if args.out:
+        out = Path(args.out)
+        if out.suffix.lower() not in (".csv", ".toml"):
+            raise UserError(
+                f"--out {args.out}: give a name ending in .csv (the TOML is written beside it)"
+            )
+        toml_path, csv_path = experiment_paths(out)
+        png_path = Path(args.plot) if args.plot else None
+    else:
+        stem = "run" if recording is None else f"{recording.path.stem}-sim"
+        csv_path, toml_path, auto_png = _free_names(OUT_DIR, stem)
+        png_path = Path(args.plot) if args.plot else auto_png
+    if not args.force:
+        for path in (csv_path, toml_path, png_path):
+            if path is not None and path.exists():
+                raise UserError(
+                    f"{path} exists; choose another name or pass --force to overwrite it"
+                )
+    return csv_path, toml_path, png_path
+
+
+def _free_names(folder: Path, stem: str):
+    """stem.csv/.toml/.png in folder, or stem-2, stem-3, ... where none of the three exists."""
+    i = 1
+    while True:
+        name = stem if i == 1 else f"{stem}-{i}"
+        paths = tuple(folder / f"{name}{ext}" for ext in (".csv", ".toml", ".png"))
+        if not any(p.exists() for p in paths):
+            return paths
+        i += 1
+
+
+def _simulate(exact, plant, controller, experiment):
+    import jax
+
+    import jaxcart as jc
+
+    pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
+    if not exact:
+        return jax.jit(jc.simulate)(plant, pid, experiment)
+    try:
+        from jaxcart.exact import simulate_exact
+    except ModuleNotFoundError as exc:
+        if exc.name != "jaxcart.exact":
+            raise
+        raise UserError(
+            "--exact: the exact simulator (jaxcart/exact.py) is not installed; run without --exact"
+        ) from None
+    return simulate_exact(plant, pid, experiment)
+
+
+def _gains(pid) -> str:
+    text = f"kp={float(pid.kp):g}, ki={float(pid.ki):g}, kd={float(pid.kd):g}"
+    return text + f", tau={float(pid.tau):g} s, v_limit={float(pid.v_limit):g} V"
+
+
+def _voltage_limit(plant, controller) -> float:
+    limits = [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
+    if controller is not None:
+        limits.append(float(controller.v_limit))
+    return min(limits, default=math.inf)
+
+
+def _plot(path, response, recording, controller, plant, source, method):
+    from jaxcart import plots
+
+    runs = []
+    if recording is not None:
+        runs.append(plots.run_from_recording(recording))
+    if response.kind == "closed_loop":
+        runs.append(plots.reference_run(response.time, response.reference))
+    runs.append(plots.run_from_response(response, f"simulated ({method})"))
+    title = Path(source).name if recording is not None else "default: step 0.5 m"
+    if controller is not None:
+        title += f" | {_gains(controller)}"
+    plots.plot_runs(
+        runs,
+        title=title,
+        path=path,
+        voltage=response.kind != "tap",
+        v_limit=_voltage_limit(plant, controller),
+    )
+
+
+def _is_step(response) -> bool:
+    r = np.asarray(response.reference)
+    return (
+        response.kind == "closed_loop"
+        and bool(np.all(r == r[-1]))
+        and r[-1] != np.asarray(response.position)[0]
+    )
+
+
+def _metrics_line(info) -> str:
+    def ms(x):
+        return "inf" if not math.isfinite(x) else f"{x:.3f} s"
+
+    return (
+        f"rise {ms(info.rise_time)}, settling {ms(info.settling_time)}, overshoot "
+        f"{info.overshoot:.2f} %, steady-state error {1e3 * info.steady_state_error:.2f} mm, "
+        f"peak {info.peak_voltage:.2f} V"
+    )
+
+
+def _summary(source, experiment, method, controller, plant, response, recording, paths):
+    import jaxcart as jc
+
+    n = experiment.n_samples
+    print(
+        f"simulated {source}: {experiment.kind}, {n} samples ({(n - 1) * experiment.sample_time:g}"
+        f" s), {method} simulator"
+    )
+    if controller is not None:
+        print(
+            f"  controller: {_gains(controller)}, derivative on {controller.derivative_on}, "
+            f"anti-windup {controller.anti_windup}"
+        )
+    if _is_step(response):
+        limit = _voltage_limit(plant, controller)
+        print(f"  simulated: {_metrics_line(jc.step_info(response, v_limit=limit))}")
+        if recording is not None and recording.reference is not None:
+            measured = recording.as_response()
+            print(f"  recorded:  {_metrics_line(jc.step_info(measured, v_limit=limit))}")
+    if experiment.kind == "tap":
+        print(
+            f"  tap from rest at y0 = {experiment.y0:g} m with initial_velocity = "
+            f"{float(experiment.yd0):g} m/s (the file's initial_velocity)"
+        )
+    if recording is not None:
+        k = min(recording.n_samples, n)
+        diff = np.asarray(response.position)[:k] - recording.position[:k]
+        print(
+            f"  position minus recording: rms {1e3 * np.sqrt(np.mean(diff**2)):.2f} mm, "
+            f"max |.| {1e3 * np.abs(diff).max():.2f} mm over {k} samples"
+        )
+    print("  wrote " + ", ".join(str(p) for p in paths if p is not None))
+    sys.stdout.flush()

@@ -1,0 +1,147 @@
+"""``jaxcart simulate`` end to end (files written, read back, never overwritten) and the shared
+plotting helper."""
+
+import importlib.util
+
+import jax
+import matplotlib.image
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart.cli import main
+from jaxcart.files import read_experiment
+from jaxcart.plots import Run, plot_runs, reference_run
+
+# One jitted simulator for the file, shared with the command's (same function, same cache).
+simulate = jax.jit(jc.simulate)
+
+#: The command and a direct call run the same float64 computation.
+SAME_RUN_TOL = 1e-12
+
+
+def _default_response(horizon=3.0):
+    pid = jc.PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0)
+    return pid, simulate(jc.handout_plant(), pid, jc.step(0.5, horizon=horizon))
+
+
+def test_default_run_writes_files_that_read_back_and_never_overwrite(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate"]) == 0
+    out = tmp_path / "jaxcart-out"
+    assert sorted(p.name for p in out.iterdir()) == ["run.csv", "run.png", "run.toml"]
+    printed = capsys.readouterr().out
+    assert "overshoot" in printed and "jaxcart-out/run.toml" in printed
+    rec = read_experiment(out / "run.toml")
+    pid, res = _default_response()
+    assert rec.kind == "closed_loop" and rec.controller == pid and rec.n_samples == 3001
+    np.testing.assert_array_equal(rec.reference, 0.5)
+    np.testing.assert_allclose(rec.position, np.asarray(res.position), rtol=0, atol=SAME_RUN_TOL)
+    np.testing.assert_allclose(rec.command, np.asarray(res.command), rtol=0, atol=SAME_RUN_TOL)
+    first = (out / "run.csv").read_bytes()
+
+    assert main(["simulate", "--horizon", "1", "--kp", "20"]) == 0
+    assert (out / "run.csv").read_bytes() == first
+    again = read_experiment(out / "run-2.toml")
+    assert again.n_samples == 1001 and again.controller.kp == 20.0 and again.controller.kd == 5.0
+    assert (out / "run-2.png").is_file()
+
+
+def test_output_of_one_run_is_input_of_the_next(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--horizon", "1.5", "--out", "a.csv"]) == 0
+    assert not (tmp_path / "a.png").exists()  # --out without --plot: no figure
+    assert main(["simulate", "a.toml", "--out", "b.csv", "--plot", "b.png"]) == 0
+    a, b = read_experiment("a.toml"), read_experiment("b.toml")
+    assert b.controller == a.controller
+    np.testing.assert_allclose(b.position, a.position, rtol=0, atol=SAME_RUN_TOL)
+    assert (tmp_path / "b.png").is_file()
+
+
+def test_refuses_existing_outputs_without_force(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.csv").write_text("precious\n")
+    (tmp_path / "fig.png").write_text("precious\n")
+    assert main(["simulate", "--horizon", "0.2", "--out", "mine.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "mine.csv exists" in err and "--force" in err and err.count("\n") == 1
+    assert main(["simulate", "--horizon", "0.2", "--out", "new.csv", "--plot", "fig.png"]) == 2
+    assert "fig.png exists" in capsys.readouterr().err
+    assert (tmp_path / "mine.csv").read_text() == "precious\n"
+    assert not (tmp_path / "new.csv").exists()
+    assert main(["simulate", "--horizon", "0.2", "--out", "mine.csv", "--force"]) == 0
+    assert read_experiment("mine.toml").n_samples == 201
+
+
+def test_simulate_real_p50_recording(tmp_path, monkeypatch, realdata, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = ["simulate", f"{realdata}/p50.toml", "--out", "p50.csv", "--plot", "p50.png"]
+    assert main(argv) == 0
+    assert "recorded:" in capsys.readouterr().out
+    rec, sim = read_experiment(f"{realdata}/p50.toml"), read_experiment("p50.toml")
+    assert sim.n_samples == 2705 and sim.controller == rec.controller
+    np.testing.assert_allclose(sim.time, rec.time, rtol=0, atol=1e-12)
+    # The handout's model has no friction: P control of a type-1 plant ends on the reference
+    # (within 1 mm after 2.7 s), where the real cart stopped ~3 mm short.
+    assert abs(sim.position[-1] - 0.4) < 1e-3
+    # And it follows the recording to within 15 mm rms (measured: 9.3 mm).
+    assert np.sqrt(np.mean((sim.position - rec.position) ** 2)) < 15e-3
+    image = matplotlib.image.imread(tmp_path / "p50.png")
+    assert image.shape[:2] == (780, 1040)  # 8 x 6 in at 130 dpi
+
+
+def test_options_that_do_not_apply_and_diverged_runs(tmp_path, monkeypatch, realdata, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", f"{realdata}/tap.toml", "--kp", "10", "--out", "t.csv"]) == 2
+    assert "--kp" in capsys.readouterr().err
+    t = np.arange(501) * 0.001
+    np.savetxt("d.csv", np.column_stack([t, 0 * t]), delimiter=",", header="t,y", comments="")
+    (tmp_path / "div.toml").write_text(
+        'kind = "closed_loop"\nsample_time = 0.001\ndata = "d.csv"\n[reference]\nkind = "step"\n'
+        "amplitude = 0.1\n[plant]\nv_sat = inf\n"
+    )
+    # kp < 0 without any voltage limit: y grows like exp(127 t), past 1 km within 0.5 s.
+    assert main(["simulate", "div.toml", "--kp=-10000", "--v-limit", "inf", "--out", "x.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "diverged" in err and "div.toml" in err and "kp=-10000" in err
+    assert err.count("\n") == 1 and not (tmp_path / "x.csv").exists()
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("jaxcart.exact") is None,
+    reason="jaxcart/exact.py (the exact simulator) is not written yet",
+)
+def test_exact_option(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--exact", "--horizon", "1.5", "--out", "e.csv"]) == 0
+    assert "exact simulator" in capsys.readouterr().out
+    rec = read_experiment("e.toml")
+    from jaxcart.exact import simulate_exact
+
+    pid, _ = _default_response()
+    res = simulate_exact(jc.handout_plant(), pid, jc.step(0.5, horizon=1.5))
+    np.testing.assert_allclose(rec.position, res.position, rtol=0, atol=SAME_RUN_TOL)
+    # The smooth simulator's 0.05 V corner on the 6 V clip moves the run by under 3 mm.
+    _, smooth = _default_response(1.5)
+    assert np.abs(rec.position - np.asarray(smooth.position)).max() < 3e-3
+    assert "exact" in rec.meta["description"]
+
+
+def test_plot_runs_styles_and_no_pyplot_state(tmp_path):
+    import matplotlib.pyplot as plt
+
+    t = np.linspace(0.0, 1.0, 201)
+    runs = [
+        Run("recorded", t, 0.5 * (1 - np.exp(-4 * t)), np.exp(-4 * t), role="experiment"),
+        reference_run(t, np.full_like(t, 0.5)),
+        Run("model A", t, 0.5 * (1 - np.exp(-5 * t)), 6 * np.exp(-5 * t)),
+        Run("model B", t, 0.5 * (1 - np.exp(-3 * t))),
+    ]
+    path = plot_runs(runs, title="demo", path=tmp_path / "sub" / "f.png", v_limit=6.0)
+    assert path == tmp_path / "sub" / "f.png"
+    assert matplotlib.image.imread(path).shape[:2] == (780, 1040)
+    small = plot_runs(runs, title="demo", path=tmp_path / "g.png", voltage=False, dpi=150)
+    assert matplotlib.image.imread(small).shape[:2] == (630, 1200)  # 8 x 4.2 in at 150 dpi
+    assert plt.get_fignums() == []
+    with pytest.raises(ValueError, match="role"):
+        Run("x", t, t, role="measurement")

@@ -1,0 +1,350 @@
+"""Experiment files: exact round trips, the lab's real recordings (checked against the control law
+and the encoder resolution), the Simulink .mat layouts, and one-line errors for bad input."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+import scipy.io
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from jaxcart.files import plant_from_overrides, read_experiment, write_experiment
+
+# One jitted simulator for the file, shared with the command's (same function, same cache).
+simulate = jax.jit(jc.simulate)
+
+#: A written file read back: the CSV holds 17 significant digits, so values agree to rounding.
+ROUND_TRIP_TOL = 1e-12
+#: Encoder resolution seen in the lab's recordings (README of realdata) [m/count].
+COUNT = 2.2735e-5
+
+
+# ---------------------------------------------------------------- round trips
+
+
+def _assert_same_run(rec, res):
+    for name, ours in (("time", rec.time), ("position", rec.position)):
+        np.testing.assert_allclose(
+            ours, np.asarray(getattr(res, name)), rtol=0, atol=ROUND_TRIP_TOL, err_msg=name
+        )
+
+
+def test_closed_loop_round_trip_keeps_every_setting(tmp_path):
+    pid = jc.PID(
+        kp=35.0,
+        ki=4.5,
+        kd=3.25,
+        tau=0.005,
+        v_limit=5.5,
+        kb=2.5,
+        sample_time=0.002,
+        derivative_on="measurement",
+        anti_windup="back_calculation",
+    )
+    overrides = {"M": 1.1, "B_eq": 4.8, "f_c": 0.3, "v_sat": 5.0, "gamma_scale": 0.97}
+    plant = plant_from_overrides(overrides)
+    res = simulate(plant, pid, jc.step(0.3, horizon=0.4, sample_time=0.002, y0=0.01))
+    path = write_experiment(
+        tmp_path / "run.toml",
+        res,
+        controller=pid,
+        plant_overrides=overrides,
+        description='a "quoted"\nrun \\ 1',
+    )
+    assert path == tmp_path / "run.toml" and (tmp_path / "run.csv").is_file()
+
+    rec = read_experiment(path)
+    assert rec.kind == "closed_loop" and rec.sample_time == 0.002 and rec.n_samples == 201
+    assert rec.controller == pid
+    assert rec.plant_overrides == overrides
+    assert rec.meta["description"] == 'a "quoted"\nrun \\ 1'
+    _assert_same_run(rec, res)
+    for ours, theirs in ((rec.command, res.command), (rec.reference, res.reference)):
+        np.testing.assert_allclose(ours, np.asarray(theirs), rtol=0, atol=ROUND_TRIP_TOL)
+    # The experiment read back simulates to the same run (same inputs, same controller).
+    again = simulate(rec.plant(), rec.controller, rec.experiment)
+    np.testing.assert_allclose(
+        np.asarray(again.position), np.asarray(res.position), rtol=0, atol=ROUND_TRIP_TOL
+    )
+
+
+def test_open_loop_and_tap_round_trips(tmp_path):
+    res = simulate(jc.handout_plant(), jc.PID(), jc.voltage_step(2.0, horizon=0.3))
+    rec = read_experiment(write_experiment(tmp_path / "ol.csv", res))
+    assert rec.kind == "open_loop" and rec.controller is None and rec.reference is None
+    np.testing.assert_allclose(rec.command, 2.0, rtol=0, atol=0)
+    np.testing.assert_allclose(np.asarray(rec.experiment.signal), 2.0, rtol=0, atol=0)
+    _assert_same_run(rec, res)
+
+    res = simulate(jc.tap_plant(), jc.PID(), jc.tap(0.8, horizon=0.5, y0=0.05))
+    rec = read_experiment(write_experiment(tmp_path / "tap", res))
+    assert rec.kind == "tap" and rec.command is None
+    assert rec.experiment.yd0 == 0.8 and rec.experiment.y0 == 0.05
+    assert rec.plant().motor_connected is False
+    again = simulate(rec.plant(), jc.PID(), rec.experiment)
+    np.testing.assert_allclose(
+        np.asarray(again.position), np.asarray(res.position), rtol=0, atol=ROUND_TRIP_TOL
+    )
+
+
+def test_write_refuses_to_overwrite_without_force(tmp_path):
+    res = simulate(jc.handout_plant(), jc.PID(kp=20.0), jc.step(0.1, horizon=0.05))
+    write_experiment(tmp_path / "a.toml", res, controller=jc.PID(kp=20.0))
+    # No software limit is written as an omitted v_limit and read back as inf.
+    assert "v_limit" not in (tmp_path / "a.toml").read_text()
+    assert read_experiment(tmp_path / "a.toml").controller == jc.PID(kp=20.0)
+    (tmp_path / "b.csv").write_text("mine\n")
+    for name, existing in (("a.toml", "a.toml"), ("b.toml", "b.csv")):
+        with pytest.raises(UserError, match=rf"{existing} exists.*--force"):
+            write_experiment(tmp_path / name, res)
+    assert (tmp_path / "b.csv").read_text() == "mine\n"
+    write_experiment(tmp_path / "b.toml", res, force=True)
+    assert (tmp_path / "b.csv").read_text().startswith("t,y,v,r,e\n")
+
+
+# ---------------------------------------------------------------- the real recordings
+
+
+def test_real_tap_recording(realdata):
+    rec = read_experiment(f"{realdata}/tap.toml")
+    assert rec.kind == "tap" and rec.sample_time == 0.001 and rec.n_samples == 6030
+    assert rec.time[0] == 0.0 and rec.time[-1] == pytest.approx(6.029, abs=1e-12)
+    np.testing.assert_allclose(np.diff(rec.time), 0.001, rtol=1e-9)
+    # Metres: every sample is a whole number of encoder counts (to 0.05 count over 22000 counts).
+    counts = rec.position / COUNT
+    assert np.abs(counts - np.round(counts)).max() < 0.05
+    # README: at rest (one spurious count near 2.09 s) until the tap at ~3.16 s, at rest by 4.4 s.
+    before, after = rec.position[rec.time < 3.15], rec.position[rec.time > 4.42]
+    assert np.abs(before).max() <= 1.5 * COUNT and np.ptp(after) == 0.0
+    assert after[0] == pytest.approx(0.5017, abs=1e-4)
+    assert rec.command is None and rec.reference is None and rec.controller is None
+    exp = rec.experiment
+    assert exp.kind == "tap" and exp.n_samples == 6030 and exp.y0 == 0.0
+    assert not np.any(np.asarray(exp.signal))
+    assert rec.plant().motor_connected is False and float(rec.plant().B_emf) == 0.0
+
+
+def test_real_p50_recording(realdata):
+    rec = read_experiment(f"{realdata}/p50.toml")
+    assert rec.kind == "closed_loop" and rec.n_samples == 2705 and rec.command.shape == (2705,)
+    assert rec.time[0] == 0.0 and rec.time[-1] == pytest.approx(2.704, abs=1e-12)
+    assert rec.controller == jc.PID(kp=50.0, v_limit=6.0)
+    np.testing.assert_array_equal(rec.reference, 0.4)
+    np.testing.assert_array_equal(np.asarray(rec.experiment.signal), 0.4)
+    # Independent check of units and alignment: the recorded volts are the P law (k = 50 V/m,
+    # 6 V limit) of the recorded metres, sample by sample, to rounding.
+    law = np.clip(50.0 * (0.4 - rec.position), -6.0, 6.0)
+    np.testing.assert_allclose(rec.command, law, rtol=0, atol=1e-12)
+    assert 0.4 - rec.position[-1] == pytest.approx(3.05e-3, abs=0.1e-3)  # "3 mm short"
+    counts = rec.position / COUNT
+    assert np.abs(counts - np.round(counts)).max() < 0.05
+
+
+# ---------------------------------------------------------------- data layouts
+
+
+def _toml(tmp_path, text, name="exp.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_mat_layouts_and_mapped_csv_columns(tmp_path):
+    n, ts = 50, 0.002
+    t = np.arange(n) * ts
+    y = 0.3 * (1 - np.exp(-t / 0.02))
+    scope = {"time": t[:, None], "signals": {"values": y[:, None], "dimensions": 1}}
+    scipy.io.savemat(
+        tmp_path / "s.mat", {"ys": scope, "vcol": (2 * y)[:, None], "yrow": np.vstack([t, y])}
+    )
+    np.savetxt(
+        tmp_path / "d.csv",
+        np.column_stack([t, y, -y]),
+        delimiter=",",
+        header="time,pos,volt",
+        comments="",
+        fmt="%.17g",
+    )
+    path = _toml(tmp_path, 'kind = "open_loop"\n[data]\ny = "s.mat:ys"\nv = "s.mat:vcol"\n')
+    rec = read_experiment(path)  # time from the structure; sample_time inferred from it
+    assert rec.sample_time == ts
+    np.testing.assert_array_equal(rec.time, t)
+    np.testing.assert_array_equal(rec.position, y)
+    np.testing.assert_array_equal(np.asarray(rec.experiment.signal), 2 * y)  # input = column v
+    rec = read_experiment(_toml(tmp_path, 'kind = "tap"\n[data]\ny = "s.mat:yrow"\n', "b.toml"))
+    np.testing.assert_array_equal(rec.time, t)  # MATLAB's 2 x N [t; value] form
+    text = 'kind = "open_loop"\nsample_time = 0.002\n[data]\nt = "d.csv:time"\ny = "d.csv:pos"\n'
+    rec = read_experiment(_toml(tmp_path, text + 'v = "d.csv:volt"\n', "c.toml"))
+    np.testing.assert_array_equal(rec.command, -y)
+
+
+def test_reference_and_input_kinds(tmp_path):
+    t = np.arange(11) * 0.01
+    np.savetxt(
+        tmp_path / "d.csv",
+        np.column_stack([t, 0.02 + 0 * t]),
+        delimiter=",",
+        header="t,y",
+        comments="",
+        fmt="%.17g",
+    )
+    base = 'sample_time = 0.01\ndata = "d.csv"\n'
+    ramp = read_experiment(
+        _toml(
+            tmp_path,
+            base + 'kind = "closed_loop"\n[controller]\nkp = 10\n'
+            '[reference]\nkind = "ramp"\nslope = 0.1\n',
+        )
+    )
+    np.testing.assert_allclose(ramp.reference, 0.02 + 0.1 * t, rtol=0, atol=1e-15)
+    assert ramp.controller == jc.PID(kp=10.0, sample_time=0.01)
+    longer = ramp.experiment_for(0.2)  # a ramp continues; here 21 samples
+    np.testing.assert_allclose(
+        np.asarray(longer.signal), 0.02 + 0.1 * np.arange(21) * 0.01, rtol=0, atol=1e-15
+    )
+    volts = read_experiment(
+        _toml(
+            tmp_path, base + 'kind = "open_loop"\n[input]\nkind = "ramp"\nslope = 0.1\n', "b.toml"
+        )
+    )
+    np.testing.assert_allclose(np.asarray(volts.experiment.signal), 0.1 * t, rtol=0, atol=1e-15)
+    step = read_experiment(
+        _toml(
+            tmp_path,
+            base + 'kind = "open_loop"\n[input]\nkind = "step"\namplitude = 1.5\n',
+            "c.toml",
+        )
+    )
+    assert step.experiment_for(0.05).n_samples == 6
+    np.testing.assert_array_equal(np.asarray(step.experiment_for(0.3).signal), 1.5)
+
+
+def test_plant_from_overrides():
+    p = plant_from_overrides({"M": 1.25})
+    assert float(p.m) == pytest.approx(1.25 + 0.1331, abs=1e-4)  # M + M_J (handout appendix)
+    assert p.effect(jc.Saturation).v_sat == 6.0 and p.effect(jc.Coulomb) is None
+    p = plant_from_overrides({"f_c": 0.4, "v_sat": 5.0})
+    assert p.effect(jc.Coulomb).f_c == 0.4 and p.effect(jc.Saturation).v_sat == 5.0
+    assert plant_from_overrides({"f_c": 0.0}).effect(jc.Coulomb) is None
+    p = plant_from_overrides({"B_eq": 3.0}, jc.tap_plant())
+    assert p.motor_connected is False and p.B_eq == 3.0 and p.effects == ()
+    with pytest.raises(UserError, match="unknown plant parameter 'Beq'"):
+        plant_from_overrides({"Beq": 3.0})
+
+
+# ---------------------------------------------------------------- bad input
+
+GOOD_CSV = "t,y,v\n0,0,1\n0.001,0.1,1\n0.002,0.2,1\n0.003,0.3,1\n"
+HEAD = 'kind = "open_loop"\nsample_time = 0.001\ndata = "run.csv"\n'
+
+
+def _mat(tmp_path):
+    scipy.io.savemat(
+        tmp_path / "a.mat", {"pos": np.zeros((4, 2)), "vv": np.zeros(3), "yy": np.zeros(4)}
+    )
+
+
+BAD = {
+    "missing column": (HEAD, "t,pos,v\n0,0,1\n0.001,0,1\n", ["'y'", "pos", "run.csv"]),
+    "misnamed column": (HEAD, "t,y,volt\n0,0,1\n0.001,0,1\n", ["'volt'", "run.csv", "[data]"]),
+    "missing data file": ('kind = "tap"\ndata = "nope.csv"\n', None, ["nope.csv", "not found"]),
+    "missing mat variable": (
+        'kind = "tap"\n[data]\ny = "a.mat:y"\n',
+        None,
+        ["'y'", "a.mat", "pos", "[data] y"],
+    ),
+    "mat length mismatch": (
+        'kind = "open_loop"\nsample_time = 0.001\n[data]\ny = "a.mat:yy"\nv = "a.mat:vv"\n',
+        None,
+        ["lengths", "a.mat:yy", "a.mat:vv", "4", "3"],
+    ),
+    "time not increasing": (HEAD, "t,y,v\n0,0,1\n0.001,0,1\n0.001,0,1\n", ["line 4", "t = 0.001"]),
+    "nan sample": (HEAD, "t,y,v\n0,0,1\n0.001,nan,1\n0.002,0,1\n", ["column y", "line 3", "nan"]),
+    "inf sample": (HEAD, "t,y,v\n0,0,1\n0.001,0,1\n0.002,0,inf\n", ["column v", "line 4", "inf"]),
+    "not a number": (HEAD, "t,y,v\n0,0,1\n0.001,0,x1\n", ["line 3", "column v", "'x1'"]),
+    "unknown key": ("sampletime = 0.001\n" + HEAD, GOOD_CSV, ["'sampletime'", "sample_time"]),
+    "unknown controller key": (
+        'kind = "closed_loop"\ndata = "run.csv"\n[controller]\nKp = 1\n'
+        '[reference]\nkind = "step"\namplitude = 0.1\n',
+        GOOD_CSV,
+        ["'Kp'", "[controller]", "kp"],
+    ),
+    "unknown data key": ('kind = "tap"\n[data]\npos = "a.mat:pos"\n', None, ["'pos'", "[data]"]),
+    "unknown reference key": (
+        'kind = "closed_loop"\ndata = "run.csv"\n[reference]\nkind = "step"'
+        "\namplitude = 0.1\nstart = 1\n",
+        GOOD_CSV,
+        ["'start'", "[reference]"],
+    ),
+    "unknown kind": ('kind = "closedloop"\ndata = "run.csv"\n', GOOD_CSV, ["kind", "'closedloop'"]),
+    "zero mass": (HEAD + "[plant]\nM = 0\n", GOOD_CSV, ["[plant]", "M = 0", "positive mass"]),
+    "negative mass": (HEAD + "[plant]\nM = -1.0\n", GOOD_CSV, ["[plant]", "M = -1.0"]),
+    "negative B_eq": (
+        HEAD + "[plant]\nB_eq = -2.0\n",
+        GOOD_CSV,
+        ["[plant]", "B_eq = -2.0", ">= 0"],
+    ),
+    "unknown plant parameter": (
+        HEAD + "[plant]\nBeq = 2.0\n",
+        GOOD_CSV,
+        ["[plant]", "'Beq'", "B_eq"],
+    ),
+    "zero sample_time": (HEAD.replace("0.001", "0"), GOOD_CSV, ["sample_time = 0.0", "positive"]),
+    "negative sample_time": (HEAD.replace("0.001", "-0.001"), GOOD_CSV, ["sample_time = -0.001"]),
+    "sample_time disagrees": (
+        HEAD.replace("0.001", "0.00102"),
+        GOOD_CSV,
+        ["sample_time = 0.00102", "1 %", "line 3"],
+    ),
+    "bad gain": (
+        'kind = "closed_loop"\ndata = "run.csv"\n[controller]\nkp = "fast"\n',
+        GOOD_CSV,
+        ["[controller] kp", "'fast'"],
+    ),
+    "bad derivative_on": (
+        'kind = "closed_loop"\ndata = "run.csv"\n[controller]\nderivative_on = "output"\n',
+        GOOD_CSV,
+        ["derivative_on", "'output'"],
+    ),
+    "step without amplitude": (
+        'kind = "closed_loop"\ndata = "run.csv"\n[reference]\nkind = "step"\n',
+        GOOD_CSV,
+        ["[reference]", "amplitude"],
+    ),
+    "no reference": ('kind = "closed_loop"\ndata = "run.csv"\n', GOOD_CSV, ["[reference]"]),
+    "controller in open loop": (HEAD + "[controller]\nkp = 1\n", GOOD_CSV, ["[controller]"]),
+    "toml syntax": ("kind = closed_loop\n", GOOD_CSV, ["not valid TOML", "line 1"]),
+    "mat file as data": ('kind = "tap"\ndata = "a.mat"\n', None, ["a.mat", "[data]"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD), ids=list(BAD))
+def test_bad_input_is_one_line_naming_file_and_field(tmp_path, case):
+    toml, csv, expected = BAD[case]
+    _mat(tmp_path)
+    if csv is not None:
+        (tmp_path / "run.csv").write_text(csv)
+    path = _toml(tmp_path, toml)
+    with pytest.raises(UserError) as info:
+        read_experiment(path)
+    message = str(info.value)
+    assert "\n" not in message and "exp.toml" in message
+    for text in expected:
+        assert text in message, (text, message)
+
+
+def test_missing_experiment_file(tmp_path):
+    with pytest.raises(UserError, match="nope.toml not found"):
+        read_experiment(tmp_path / "nope.toml")
+
+
+def test_write_rejects_bad_plant_overrides_and_batches(tmp_path):
+    res = simulate(jc.handout_plant(), jc.PID(kp=20.0), jc.step(0.1, horizon=0.05))
+    with pytest.raises(UserError, match=r"\[plant\].*M = -1.0"):
+        write_experiment(tmp_path / "x.toml", res, plant_overrides={"M": -1.0})
+    batch = dataclasses.replace(res, position=np.stack([res.position] * 2))
+    with pytest.raises(UserError, match="one run at a time"):
+        write_experiment(tmp_path / "y.toml", batch)
+    assert not list(tmp_path.iterdir())
