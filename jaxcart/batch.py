@@ -106,7 +106,15 @@ def step_metrics_batch(
     gains = np.asarray(gains)
     if gains.ndim != 2 or gains.shape[1] != 3:
         raise ValueError(f"gains must have shape (B, 3) for (kp, kd, ki); got {gains.shape}")
-    dtype = dtype or jnp.result_type(float)
+    dtype = jnp.dtype(dtype or jnp.result_type(float))
+    # float64 needs x64 on; enable it here rather than silently computing in float32.
+    with jax.enable_x64(dtype == jnp.float64 or bool(jax.config.jax_enable_x64)):
+        return _run(
+            plant, controller, experiment, gains, smoothing, substeps, chunk, dtype, progress
+        )
+
+
+def _run(plant, controller, experiment, gains, smoothing, substeps, chunk, dtype, progress):
     cast = _caster(dtype)
     plant, controller, experiment = cast(plant), cast(controller), cast(experiment)
     n_dev = len(jax.devices())

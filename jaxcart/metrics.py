@@ -96,7 +96,7 @@ def step_info(response: Response, *, v_limit: float = np.inf, band: float = SETT
         command = np.asarray(response.command, dtype=float)
         saturated = (np.abs(command) >= v_limit * (1 - 1e-9)) | (np.abs(v) >= v_limit * (1 - 1e-9))
     return StepInfo(
-        rise_time=float(t90 - t10),
+        rise_time=float(t90 - t10) if np.isfinite(t10) and np.isfinite(t90) else np.inf,
         settling_time=float(settling),
         overshoot=float(overshoot),
         steady_state_error=float(abs(r[-1] - y[-1])),
@@ -151,7 +151,7 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
     settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
     bad = bad | ~jnp.isfinite(y_last)
     return StepInfo(
-        rise_time=jnp.where(bad, inf, t90 - t10),
+        rise_time=jnp.where(bad | (t90 == inf), inf, t90 - t10),
         settling_time=jnp.where(bad, inf, settling),
         overshoot=jnp.where(bad, inf, jnp.maximum(0.0, (peak - 1.0) * 100.0)),
         steady_state_error=jnp.where(bad, inf, jnp.abs(r_final - y_last)),

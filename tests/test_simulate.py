@@ -101,12 +101,20 @@ def test_gradients_match_central_differences():
 
 
 def test_no_recompile_when_values_change():
-    sim = jax.jit(jc.simulate)
+    traces = []
+
+    @jax.jit
+    def sim(plant, pid, exp):
+        traces.append(1)  # runs only when jax traces (and so compiles) anew
+        return jc.simulate(plant, pid, exp)
+
     exp = jc.step(0.5, horizon=0.3)
     sim(jc.handout_plant(f_c=0.2), jc.PID(kp=40.0, v_limit=6.0), exp)
     sim(jc.handout_plant(f_c=0.7, B_eq=3.0), jc.PID(kp=10.0, kd=3.0, v_limit=5.0), exp)
     sim(jc.handout_plant(f_c=0.2), jc.PID(kp=40.0, v_limit=6.0), jc.step(0.2, horizon=0.3))
-    assert sim._cache_size() == 1
+    assert len(traces) == 1
+    sim(jc.handout_plant(f_c=0.2), jc.PID(kp=40.0, derivative_on="measurement"), exp)
+    assert len(traces) == 2  # a static setting does retrace: the counter can fail
 
 
 def test_vmap_over_gains_and_plants_agrees_with_single_runs():
