@@ -1,0 +1,914 @@
+"""Benchmark of workload W1 (DESIGN.md): jaxcart beside its peers, measured in one process.
+
+W1 is the lab's design problem as a batch job: the discrete PID (derivative on error, tau =
+0.01 s, software limit 6 V) drives the handout's cart (B_eq = 5.4 kg/s, amplifier saturation
+6 V) through a 0.5 m step for 3 s at Ts = 1 ms (3001 samples), for a batch of gain triples
+(kp, kd, ki) drawn from a fixed seed. One simulation is the closed loop plus its step metrics.
+
+Four implementations of that same loop are timed, and checked against each other first:
+
+    jaxcart            step_metrics_batch, float32, sharded over every XLA device
+    python-control     a discrete-time nlsys (dt = Ts) + input_output_response, one run at a time
+    scipy              solve_ivp over each hold interval, the PID updated at each sample
+    numpy-vectorized   the recursion over a batch in numpy, time loop in Python, metrics streamed
+
+The peers share nothing with jaxcart's simulator but the control law (hw.control_law, the
+code the hardware runs): the plant step is the exact zero-order hold computed here with
+scipy.linalg.expm (python-control, numpy) or integrated by solve_ivp, and the metrics are
+computed here in numpy. The reference is float64 ``jaxcart.simulate`` with EXACT_FORMS (hard
+clips); a float64 peer further than ``TOLERANCE`` [m] from it in position (or a sample off in
+a metric) raises :class:`PeerDisagreement` and no figure is reported.
+
+>>> result = run_bench(quick=True)              # doctest: +SKIP
+>>> print(format_table(result))                 # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from hw.control_law import PID, PIDState, pid_init, pid_update
+
+#: Workload W1 (DESIGN.md): the step [m], horizon [s], sample time [s], limits [V], filter [s].
+STEP = 0.5
+HORIZON = 3.0
+SAMPLE_TIME = 1e-3
+V_LIMIT = 6.0
+TAU = 0.01
+#: Ranges of the gains: kp [V/m], kd [V s/m], ki [V/(m s)]; and the seed that draws them.
+GAIN_RANGES = {"kp": (10.0, 120.0), "kd": (0.0, 12.0), "ki": (0.0, 30.0)}
+SEED = 364
+#: The default ranges of ``jaxcart grid`` (tuning/commands/grid.py; jaxcart never imports tuning).
+GRID_RANGES = {"kp": (10.0, 150.0), "kd": (0.0, 15.0), "ki": (0.0, 30.0)}
+#: Largest position difference [m] a float64 peer may show against float64 jaxcart.
+TOLERANCE = 1e-6
+#: solve_ivp tolerances: scipy's defaults. A 1 ms interval is 1/80 of the plant's time constant
+#: m/c: the traces stay within ~4e-13 m of the exact-hold reference over 3 s at these
+#: tolerances as at rtol 1e-9 (measured), which only costs time (~2x) and would flatter jaxcart.
+IVP_RTOL, IVP_ATOL = 1e-3, 1e-6
+METRICS = (
+    "rise_time",
+    "settling_time",
+    "overshoot",
+    "steady_state_error",
+    "peak_voltage",
+    "saturation_time",
+    "diverged",
+)
+
+PEERS = ("python-control", "scipy", "numpy-vectorized")
+
+
+class PeerDisagreement(RuntimeError):
+    """A peer computed a different loop than jaxcart: the comparison would be meaningless."""
+
+
+# ---------------------------------------------------------------- the workload
+
+
+def w1_gains(n: int, seed: int = SEED) -> np.ndarray:
+    """``n`` gain triples (columns kp [V/m], kd [V s/m], ki [V/(m s)]), float64, reproducible.
+
+    The first rows do not depend on ``n``, so a small batch is a prefix of a large one.
+    """
+    rng = np.random.default_rng(seed)
+    unit = rng.random((n, 3))
+    lo = np.array([GAIN_RANGES[k][0] for k in ("kp", "kd", "ki")])
+    hi = np.array([GAIN_RANGES[k][1] for k in ("kp", "kd", "ki")])
+    return lo + unit * (hi - lo)
+
+
+def w1_grid(points: int) -> np.ndarray:
+    """A ``points``^3 grid over the default ranges of ``jaxcart grid``, rows (kp, kd, ki)."""
+    axes = [np.linspace(*GRID_RANGES[k], points) for k in ("kp", "kd", "ki")]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def w1_problem(horizon: float = HORIZON):
+    """(plant, controller, experiment) of W1, built in the current JAX precision."""
+    import jaxcart
+
+    plant = jaxcart.handout_plant()
+    controller = PID(tau=TAU, v_limit=V_LIMIT, sample_time=SAMPLE_TIME)
+    experiment = jaxcart.step(STEP, horizon=horizon, sample_time=SAMPLE_TIME)
+    return plant, controller, experiment
+
+
+def zoh_matrices(plant, ts: float):
+    """Exact zero-order-hold step of m y'' + c y' = gamma u over ts [s]: x+ = Ad x + Bd u with
+    x = (y [m], y' [m/s]), from the matrix exponential of the augmented system (not jaxcart's
+    closed forms)."""
+    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    aug = np.zeros((3, 3))
+    aug[0, 1] = 1.0
+    aug[1, 1] = -c / m
+    aug[1, 2] = gamma / m
+    e = scipy.linalg.expm(aug * ts)
+    return e[:2, :2], e[:2, 2]
+
+
+def _voltage_stages(plant):
+    """The plant's exact voltage effects (the amplifier saturation) as one numpy function."""
+    stages = [e for e in plant.effects if e.stage == "voltage"]
+    if any(e.stage == "force" for e in plant.effects):
+        raise ValueError("the W1 peers model a linear plant; force effects are not supported")
+
+    def apply(u):
+        for effect in stages:
+            u = effect.exact(u)
+        return u
+
+    return apply
+
+
+def _limit(plant, controller) -> float:
+    sat = [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
+    return min([float(controller.v_limit), *sat])
+
+
+def trace_metrics(
+    y, unlimited, applied, *, r_final: float, y0: float, ts: float, limit: float
+) -> dict:
+    """Step metrics of one trace (numpy), the definitions of ``jaxcart.step_metrics``.
+
+    y: positions y_k [m]; unlimited: PID output v_k [V]; applied: voltage at the motor [V];
+    r_final [m], y0 [m], ts [s]; limit: the voltage limit [V] for saturation_time.
+    """
+    y = np.asarray(y, dtype=float)
+    n = y.size
+    amplitude = r_final - y0
+    bad = not np.all(np.abs(y) <= 1e3)
+    z = (y - y0) / amplitude
+    inf = math.inf
+
+    def first(mask):
+        return float(np.argmax(mask)) * ts if mask.any() else inf
+
+    out = np.nonzero(np.abs(y - r_final) > 0.02 * abs(amplitude))[0]
+    settling = 0.0 if out.size == 0 else (inf if out[-1] + 1 >= n else (out[-1] + 1) * ts)
+    info = {
+        # inf when the run never reaches 90 % (the peak is monotone: 90 % implies 10 %)
+        "rise_time": first(z >= 0.9) - first(z >= 0.1) if (z >= 0.9).any() else inf,
+        "settling_time": settling,
+        "overshoot": max(0.0, (z.max() - 1.0) * 100.0),
+        "steady_state_error": abs(r_final - y[-1]),
+        "peak_voltage": float(np.abs(applied).max()),
+        "saturation_time": float(np.count_nonzero(np.abs(unlimited) > limit)) * ts,
+        "diverged": bad,
+    }
+    if bad:
+        info.update(rise_time=inf, settling_time=inf, overshoot=inf, steady_state_error=inf)
+    return info
+
+
+# ---------------------------------------------------------------- peer: python-control
+
+
+def python_control_run(plant, controller, experiment, gains):
+    """One W1 run as a discrete-time ``control.nlsys`` (dt = Ts) whose update is the PID, the
+    clips and the exact ZOH plant step; returns (positions [m], metrics dict).
+
+    States: y [m], y' [m/s], the PID memory (I, d, s_prev) and the last v_k, u_k [V] (kept as
+    states so the response carries them). One extra sample gives v and u at the last sample.
+    """
+    import control
+
+    ts = experiment.sample_time
+    pid = dataclasses.replace(
+        controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
+    )
+    ad, bd = zoh_matrices(plant, ts)
+    voltage = _voltage_stages(plant)
+
+    def update(t, x, u, params):
+        state = PIDState(x[2], x[3], x[4])
+        command, unlimited, state = pid_update(pid, state, u[0], x[0], xp=np)
+        applied = voltage(command)
+        plant_next = ad @ x[:2] + bd * applied
+        return [
+            plant_next[0],
+            plant_next[1],
+            state.integral,
+            state.derivative,
+            state.previous,
+            unlimited,
+            applied,
+        ]
+
+    r = np.asarray(experiment.signal, dtype=float)
+    n = r.size
+    sys_ = control.nlsys(update, None, inputs=["r"], states=7, dt=ts, name="w1")
+    t = np.arange(n + 1) * ts
+    y0, yd0 = float(experiment.y0), float(experiment.yd0)
+    init = pid_init(pid, r[0], y0, xp=np)
+    x0 = [y0, yd0, init.integral, init.derivative, init.previous, 0.0, 0.0]
+    resp = control.input_output_response(sys_, t, np.append(r, r[-1]), x0, t_eval=t)
+    x = resp.states
+    y = x[0, :n]
+    info = trace_metrics(
+        y, x[5, 1:], x[6, 1:], r_final=float(r[-1]), y0=y0, ts=ts, limit=_limit(plant, pid)
+    )
+    return y, info
+
+
+# ---------------------------------------------------------------- peer: scipy
+
+
+def scipy_run(plant, controller, experiment, gains, *, rtol=IVP_RTOL, atol=IVP_ATOL):
+    """One W1 run: at each sample the PID (hw.control_law) computes u_k, then ``solve_ivp``
+    integrates the continuous plant over the hold interval; returns (positions, metrics)."""
+    from scipy.integrate import solve_ivp
+
+    ts = experiment.sample_time
+    pid = dataclasses.replace(
+        controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
+    )
+    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    voltage = _voltage_stages(plant)
+
+    def rhs(t, x, u):
+        return [x[1], (gamma * u - c * x[1]) / m]
+
+    r = np.asarray(experiment.signal, dtype=float)
+    n = r.size
+    y0 = float(experiment.y0)
+    x = np.array([y0, float(experiment.yd0)])
+    state = pid_init(pid, r[0], y0, xp=np)
+    y, unlimited, applied = np.empty(n), np.empty(n), np.empty(n)
+    for k in range(n):
+        y[k] = x[0]
+        command, unlimited[k], state = pid_update(pid, state, r[k], x[0], xp=np)
+        applied[k] = voltage(command)
+        if k + 1 < n:
+            sol = solve_ivp(
+                rhs, (k * ts, (k + 1) * ts), x, args=(applied[k],), rtol=rtol, atol=atol
+            )
+            x = sol.y[:, -1]
+    info = trace_metrics(
+        y, unlimited, applied, r_final=float(r[-1]), y0=y0, ts=ts, limit=_limit(plant, pid)
+    )
+    return y, info
+
+
+# ---------------------------------------------------------------- peer: vectorized numpy
+
+
+def numpy_batch(plant, controller, experiment, gains, *, dtype=np.float64, record: int = 0):
+    """W1 for a batch of gains (rows kp, kd, ki) in numpy: the same recursion on arrays, time
+    loop in Python, in-place updates, metrics streamed (nothing per sample is stored).
+
+    Returns (metrics dict of arrays, positions of the first ``record`` runs, shape (record, n)).
+    The exact ZOH step uses the structure of this plant (Ad[0, 0] = 1, Ad[1, 0] = 0).
+    """
+    if controller.derivative_on != "error" or controller.anti_windup != "none":
+        raise ValueError("the numpy peer implements W1's PID: derivative on error, no anti-windup")
+    ts = experiment.sample_time
+    ad, bd = zoh_matrices(plant, ts)
+    if ad[0, 0] != 1.0 or ad[1, 0] != 0.0:
+        raise ValueError("the numpy peer assumes a plant without a position-dependent force")
+    f = np.dtype(dtype).type
+    a01, a11, b0, b1 = f(ad[0, 1]), f(ad[1, 1]), f(bd[0]), f(bd[1])
+    sat = [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
+    v_lim, v_sat = f(controller.v_limit), f(min(sat, default=math.inf))
+    limit = f(_limit(plant, controller))
+    tau, inv = float(controller.tau), 1.0 / (float(controller.tau) + ts)
+    keep, gain = f(tau * inv), f(inv)
+    r = np.asarray(experiment.signal, dtype=float).astype(dtype)
+    n = r.size
+    r_final, y0 = f(r[-1]), f(experiment.y0)
+    inv_amp = f(1.0 / (float(r[-1]) - float(experiment.y0)))
+    band = f(0.02 * abs(float(r[-1]) - float(experiment.y0)))
+
+    b = gains.shape[0]
+    kp, kd, ki = (np.ascontiguousarray(gains[:, i], dtype=dtype) for i in range(3))
+    y = np.full(b, y0, dtype)
+    yd = np.full(b, f(experiment.yd0), dtype)
+    integral = np.zeros(b, dtype)
+    deriv = np.zeros(b, dtype)
+    prev = np.full(b, r[0] - y0, dtype)
+    e, v, u, tmp = (np.empty(b, dtype) for _ in range(4))
+    peak = np.full(b, -np.inf, dtype)
+    peak_v = np.zeros(b, dtype)
+    max_abs = np.zeros(b, dtype)
+    n10, n90, n_sat = (np.zeros(b, np.int32) for _ in range(3))
+    last_out = np.full(b, -1, np.int32)
+    mask = np.empty(b, bool)
+    trace = np.empty((record, n), dtype)
+    for k in range(n):
+        if record:
+            trace[:, k] = y[:record]
+        # The PID (hw.control_law.pid_update, derivative on error) and the two clips.
+        np.subtract(r[k], y, out=e)
+        np.subtract(e, prev, out=tmp)
+        tmp *= gain
+        deriv *= keep
+        deriv += tmp
+        np.multiply(kp, e, out=v)
+        np.multiply(ki, integral, out=tmp)
+        v += tmp
+        np.multiply(kd, deriv, out=tmp)
+        v += tmp
+        np.clip(v, -v_lim, v_lim, out=u)
+        np.clip(u, -v_sat, v_sat, out=u)
+        np.multiply(e, ts, out=tmp)
+        integral += tmp
+        prev, e = e, prev
+        # Streamed metrics of y_k. The running peak makes "first k with z_k >= 0.1" a count.
+        np.subtract(y, y0, out=tmp)
+        tmp *= inv_amp
+        np.maximum(peak, tmp, out=peak)
+        np.less(peak, 0.1, out=mask)
+        n10 += mask
+        np.less(peak, 0.9, out=mask)
+        n90 += mask
+        np.subtract(y, r_final, out=tmp)
+        np.abs(tmp, out=tmp)
+        np.greater(tmp, band, out=mask)
+        np.copyto(last_out, k, where=mask)
+        np.abs(v, out=tmp)
+        np.greater(tmp, limit, out=mask)
+        n_sat += mask
+        np.abs(u, out=tmp)
+        np.maximum(peak_v, tmp, out=peak_v)
+        np.abs(y, out=tmp)
+        np.maximum(max_abs, tmp, out=max_abs)  # NaN propagates: marks the run diverged
+        # Exact ZOH step of the plant (skipped after the last sample).
+        if k + 1 < n:
+            np.multiply(yd, a01, out=tmp)
+            y += tmp
+            np.multiply(u, b0, out=tmp)
+            y += tmp
+            yd *= a11
+            np.multiply(u, b1, out=tmp)
+            yd += tmp
+    bad = ~(max_abs <= 1e3)
+    inf = np.inf
+    settling = np.where(last_out < 0, 0.0, np.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
+    info = {
+        # inf when 90 % is never reached (n90 < n implies n10 <= n90: the peak is monotone)
+        "rise_time": np.where(bad | (n90 >= n), inf, (n90 - n10) * ts),
+        "settling_time": np.where(bad, inf, settling),
+        "overshoot": np.where(bad, inf, np.maximum(0.0, (peak.astype(float) - 1.0) * 100.0)),
+        "steady_state_error": np.where(bad, inf, np.abs(float(r_final) - y.astype(float))),
+        "peak_voltage": peak_v.astype(float),
+        "saturation_time": n_sat * ts,
+        "diverged": bad,
+    }
+    return info, trace
+
+
+# ---------------------------------------------------------------- jaxcart
+
+
+def reference_positions(plant, controller, experiment, gains) -> np.ndarray:
+    """Float64 ``jaxcart.simulate`` positions [m] with EXACT_FORMS (hard clips), one row per
+    gain triple. Builds its own float64 problem: pass the W1 setup built in any precision."""
+    import jaxcart
+
+    with jax.enable_x64(True):
+        experiment = dataclasses.replace(
+            experiment, signal=jnp.asarray(np.asarray(experiment.signal, dtype=float))
+        )
+
+        def one(g):
+            pid = dataclasses.replace(controller, kp=g[0], kd=g[1], ki=g[2])
+            return jaxcart.simulate(plant, pid, experiment, smoothing=jaxcart.EXACT_FORMS).position
+
+        return np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(gains, dtype=jnp.float64)))
+
+
+def jaxcart_metrics(plant, controller, experiment, gains, dtype) -> dict:
+    """``step_metrics_batch`` (EXACT_FORMS) in ``dtype``, as a dict of numpy arrays."""
+    from jaxcart.batch import step_metrics_batch
+
+    x64 = jnp.dtype(dtype) == jnp.float64
+    with jax.enable_x64(x64):
+        experiment = dataclasses.replace(
+            experiment, signal=jnp.asarray(np.asarray(experiment.signal, dtype=float))
+        )
+        info = step_metrics_batch(plant, controller, experiment, gains, dtype=dtype)
+    return {k: np.asarray(v) for k, v in info._asdict().items()}
+
+
+def smooth_loss(plant, controller, experiment, gains, smoothing=None):
+    """A smooth tuning loss of one run [-]: the integral of the squared error (normalized by
+    the step) plus a penalty on overshoot beyond 5 %, from ``jaxcart.simulate`` with the
+    default :class:`jaxcart.Smoothing`."""
+    import jaxcart
+    from jaxcart.smoothing import smooth_relu
+
+    pid = dataclasses.replace(controller, kp=gains[0], kd=gains[1], ki=gains[2])
+    res = jaxcart.simulate(plant, pid, experiment, smoothing=smoothing)
+    amplitude = experiment.signal[-1] - experiment.y0
+    z = (res.position - experiment.y0) / amplitude
+    ts = experiment.sample_time
+    ise = jnp.sum(jnp.square(res.error / amplitude)) * ts
+    over = smooth_relu(z - 1.05, 1e-3)
+    return ise + 100.0 * jnp.sum(jnp.square(over)) * ts
+
+
+def grad_evaluator(plant, controller, experiment, *, chunk: int):
+    """jit(f)(gains (B, 3)) -> (loss (B,), d loss / d gains (B, 3)): vmap(value_and_grad) in
+    chunks of ``chunk`` runs (lax.map bounds the memory of the backward pass), sharded over
+    all devices the way :mod:`jaxcart.batch` shards the metrics. B must be a multiple of
+    ``chunk * len(jax.devices())``."""
+    devices = jax.devices()
+    mesh = Mesh(np.array(devices), ("batch",))
+    vg = jax.vmap(
+        jax.value_and_grad(lambda g, p, c, e: smooth_loss(p, c, e, g)),
+        in_axes=(0, None, None, None),
+    )
+
+    def local(p, c, e, gains):
+        blocks = gains.reshape(-1, chunk, 3)
+        loss, grad = jax.lax.map(lambda blk: vg(blk, p, c, e), blocks)
+        return loss.reshape(-1), grad.reshape(-1, 3)
+
+    sharded = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P(), P(), P("batch")),
+        out_specs=(P("batch"), P("batch")),
+        check_vma=False,
+    )
+    fn = jax.jit(sharded)
+    sharding = NamedSharding(mesh, P("batch"))
+
+    def run(gains):
+        return fn(plant, controller, experiment, jax.device_put(gains, sharding))
+
+    return run
+
+
+# ---------------------------------------------------------------- measuring
+
+
+def _best(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), times
+
+
+def _max_diff(a: dict, b: dict, names=METRICS) -> dict:
+    """Largest |a - b| per metric; equal infinities count as 0, a one-sided inf as inf."""
+    out = {}
+    for name in names:
+        x = np.asarray(a[name], dtype=float)
+        y = np.asarray(b[name], dtype=float)
+        with np.errstate(invalid="ignore"):
+            d = np.where(x == y, 0.0, np.abs(x - y))
+        out[name] = float(np.nan_to_num(d, nan=np.inf).max()) if d.size else 0.0
+    return out
+
+
+def _stack(infos: list[dict]) -> dict:
+    return {k: np.array([i[k] for i in infos]) for k in infos[0]}
+
+
+def _stderr(message: str) -> None:
+    print(f"bench: {message}", file=sys.stderr, flush=True)
+
+
+def _check(
+    name: str,
+    positions: np.ndarray,
+    reference: np.ndarray,
+    metrics: dict,
+    ref_metrics: dict,
+    tolerance: float,
+) -> dict:
+    dy = float(np.max(np.abs(positions - reference))) if positions.size else 0.0
+    diffs = _max_diff(metrics, ref_metrics)
+    # Times are sample counts: equal unless a crossing sits within the position error.
+    time_ok = all(
+        diffs[k] <= SAMPLE_TIME * 1.001 for k in ("rise_time", "settling_time", "saturation_time")
+    )
+    if not (dy <= tolerance) or not time_ok or diffs["diverged"] > 0:
+        raise PeerDisagreement(
+            f"{name} disagrees with float64 jaxcart.simulate on the W1 runs: max |dy| = "
+            f"{dy:.3g} m (tolerance {tolerance:g} m), metric differences {diffs}"
+        )
+    return {"runs": int(positions.shape[0]), "max_position_diff_m": dy, "max_metric_diff": diffs}
+
+
+def run_bench(
+    *,
+    batch: int | None = None,
+    quick: bool = False,
+    slow_runs: int | None = None,
+    numpy_runs: int | None = None,
+    grad_runs: int | None = None,
+    grid_points: int | None = None,
+    repeats: int | None = None,
+    check_runs: int = 16,
+    progress: Callable[[str], None] | None = _stderr,
+    _horizon: float = HORIZON,
+) -> dict:
+    """Measure W1 for jaxcart and its peers in this process; returns the result as a dict
+    (the ``--json`` content).
+
+    batch: gain triples for jaxcart's float32 ``step_metrics_batch`` (default 131072);
+    slow_runs: runs of python-control and of scipy, each timed one at a time (3); numpy_runs:
+    batch of the vectorized numpy peer (32768); grad_runs: batch of the gradient measurement
+    (8192); grid_points: the grid is grid_points^3 (64); repeats: timed calls of each batched
+    stage, the best kept (3); check_runs: runs compared with the float64 reference (16).
+    ``quick`` lowers the defaults. ``_horizon`` [s] shortens the runs (tests only: the result
+    is then not W1 and says so).
+
+    Raises :class:`PeerDisagreement` when a float64 peer's positions differ from float64
+    jaxcart by more than ``TOLERANCE`` or its metrics by more than one sample.
+    """
+    say = progress or (lambda message: None)
+    n = {
+        "batch": batch or (16384 if quick else 131072),
+        "slow": slow_runs or (1 if quick else 3),
+        # numpy's per-call overhead amortizes up to ~32k lanes (measured: 4096 runs reach
+        # ~40 % of the float32 rate of 32768; larger batches gain nothing).
+        "numpy": numpy_runs or (8192 if quick else 32768),
+        "grad": grad_runs or (1024 if quick else 8192),
+        "grid": grid_points or (16 if quick else 64),
+        "repeats": repeats or (1 if quick else 3),
+    }
+    n["check"] = max(check_runs, n["slow"])  # the timed slow runs are checked too
+    if min(n.values()) < 1:
+        raise ValueError(f"bench sizes must be positive: {n}")
+    gains = w1_gains(max(n["batch"], n["numpy"], n["check"]))
+    result = _header(_horizon)
+    load_before = _load()
+
+    # Correctness first: the float64 reference, then each peer against it.
+    with jax.enable_x64(True):
+        problem = w1_problem(_horizon)
+    say(f"reference: float64 jaxcart.simulate (EXACT_FORMS) on {n['check']} runs")
+    ref = _reference(problem, gains[: n["check"]])
+    checks = {"jaxcart-metrics-vs-trace": ref.pop("own_check")}
+    rows = [
+        _slow_peer(name, fn, problem, gains, ref, n["slow"], checks, say)
+        for name, fn in (("python-control", python_control_run), ("scipy", scipy_run))
+    ]
+    numpy_row, numpy32 = _numpy_peer(problem, gains, ref, n, checks, say, quick)
+    rows.append(numpy_row)
+
+    with jax.enable_x64(False):  # exactly float32, whatever jax_enable_x64 says
+        problem32 = w1_problem(_horizon)
+        jax_row, jax32, compile_s = _jaxcart(problem32, gains[: n["batch"]], n["repeats"], say)
+        result["compile_s"] = compile_s
+        result["grid"] = _grid(problem32, n["grid"], n["repeats"], say)
+        result["grad"] = _grad(problem32, n["grad"], n["repeats"], say)
+    rows.insert(0, jax_row)
+    check = n["check"]
+    checks["jaxcart-float32-vs-float64"] = {
+        "runs": check,
+        "max_metric_diff": _max_diff(_head(jax32, check), ref["metrics"]),
+    }
+    m = min(n["numpy"], n["batch"])
+    checks["numpy-float32-vs-jaxcart-float32"] = {
+        "runs": m,
+        "max_metric_diff": _max_diff(_head(numpy32, m), _head(jax32, m)),
+        "note": "float32 rounding; times are counts of samples, so a crossing near a "
+        "threshold may move by a sample or more",
+    }
+
+    jax_rate = jax_row["sims_per_s"]
+    for row in rows:
+        row["jaxcart_ratio"] = jax_rate / row["sims_per_s"]
+    ratios = {row["name"]: row["jaxcart_ratio"] for row in rows[1:]}
+    result.update(
+        rows=rows,
+        ratios=ratios,
+        batch=n["batch"],
+        grad_sims_per_s=result["grad"]["sims_per_s"],
+        grid_sims_per_s=result["grid"]["sims_per_s"],
+        checks=checks,
+        max_peer_position_diff_m=max(checks[p]["max_position_diff_m"] for p in PEERS),
+        targets={
+            "jaxcart_sims_per_s >= 100000": jax_rate >= 1e5,
+            "ratio numpy-vectorized >= 30": ratios["numpy-vectorized"] >= 30,
+            "ratio python-control >= 30000": ratios["python-control"] >= 3e4,
+        },
+        load_average={
+            "before": load_before,
+            "after": _load(),
+            "note": "1-minute load of this machine; processes running beside the benchmark "
+            "lower every rate, jaxcart's (all cores) more than the single-threaded peers'",
+        },
+    )
+    return result
+
+
+def _header(horizon: float) -> dict:
+    devices = jax.devices()
+    name = "W1" if horizon == HORIZON else "W1 (shortened horizon: not the benchmark)"
+    return {
+        "workload": {
+            "name": name,
+            "step_m": STEP,
+            "horizon_s": horizon,
+            "sample_time_s": SAMPLE_TIME,
+            "samples": int(round(horizon / SAMPLE_TIME)) + 1,
+            "v_limit_V": V_LIMIT,
+            "v_sat_V": V_LIMIT,
+            "tau_s": TAU,
+            "derivative_on": "error",
+            "gain_ranges": GAIN_RANGES,
+            "seed": SEED,
+            "plant": "handout_plant()",
+        },
+        "backend": jax.default_backend(),
+        "devices": len(devices),
+        "device_kind": devices[0].device_kind,
+        "cpu_count": os.cpu_count(),
+        "versions": _versions(),
+        "tolerance_m": TOLERANCE,
+    }
+
+
+def _head(metrics: dict, k: int) -> dict:
+    return {name: v[:k] for name, v in metrics.items()}
+
+
+def _reference(problem, gains) -> dict:
+    """Float64 jaxcart positions and metrics of the check runs, and a check of jaxcart's
+    streamed metrics against :func:`trace_metrics` on the same traces."""
+    plant, controller, _ = problem
+    positions = reference_positions(*problem, gains)
+    metrics = jaxcart_metrics(*problem, gains, jnp.float64)
+    on_trace = _stack(
+        [
+            trace_metrics(
+                y,
+                np.zeros(1),
+                np.zeros(1),
+                r_final=STEP,
+                y0=0.0,
+                ts=SAMPLE_TIME,
+                limit=_limit(plant, controller),
+            )
+            for y in positions
+        ]
+    )
+    own = ("rise_time", "settling_time", "overshoot", "steady_state_error", "diverged")
+    own_check = {"runs": len(gains), "max_metric_diff": _max_diff(metrics, on_trace, own)}
+    return {"positions": positions, "metrics": metrics, "own_check": own_check}
+
+
+def _slow_peer(name, fn, problem, gains, ref, runs, checks, say) -> dict:
+    """Time ``runs`` one-at-a-time runs of a peer; the same runs are checked against ``ref``."""
+    say(f"{name}: {runs} run(s), one at a time")
+    traces, infos, times = [], [], []
+    for g in gains[:runs]:
+        t0 = time.perf_counter()
+        y, info = fn(*problem, g)
+        times.append(time.perf_counter() - t0)
+        traces.append(y)
+        infos.append(info)
+    checks[name] = _check(
+        name,
+        np.array(traces),
+        ref["positions"][:runs],
+        _stack(infos),
+        _head(ref["metrics"], runs),
+        TOLERANCE,
+    )
+    rate = runs / sum(times)
+    say(f"{name}: {rate:.3g} sims/s, max |dy| = {checks[name]['max_position_diff_m']:.2g} m")
+    return {"name": name, "sims_per_s": rate, "runs": runs, "dtype": "float64", "seconds": times}
+
+
+def _numpy_peer(problem, gains, ref, n, checks, say, quick) -> tuple[dict, dict]:
+    """Check the numpy peer in float64, then time it in both precisions (the faster is its
+    figure); returns its row and its float32 metrics."""
+    k = n["check"]
+    say(f"numpy-vectorized: float64 check on {k} runs")
+    info, trace = numpy_batch(*problem, gains[:k], record=k)
+    checks["numpy-vectorized"] = _check(
+        "numpy-vectorized", trace, ref["positions"], info, ref["metrics"], TOLERANCE
+    )
+    runs = n["numpy"]
+    timing, outputs = {}, {}
+    for dtype in ("float32", "float64"):
+        say(f"numpy-vectorized: {runs} runs in {dtype}")
+
+        def call(dtype=dtype):
+            outputs[dtype] = numpy_batch(*problem, gains[:runs], dtype=dtype)[0]
+
+        best, times = _best(call, n["repeats"])
+        timing[dtype] = {"sims_per_s": runs / best, "seconds": times}
+    fastest = max(timing, key=lambda k: timing[k]["sims_per_s"])
+    # How the rate depends on the batch (small batches pay numpy's per-call overhead).
+    by_batch = {}
+    for size in () if quick else (4096, 16384):
+        if size < runs:
+            t0 = time.perf_counter()
+            numpy_batch(*problem, gains[:size], dtype=fastest)
+            by_batch[str(size)] = size / (time.perf_counter() - t0)
+    by_batch[str(runs)] = timing[fastest]["sims_per_s"]
+    rate = timing[fastest]["sims_per_s"]
+    say(f"numpy-vectorized: {rate:.3g} sims/s ({fastest})")
+    row = {
+        "name": "numpy-vectorized",
+        "sims_per_s": rate,
+        "runs": runs,
+        "dtype": fastest,
+        "seconds": timing[fastest]["seconds"],
+        "by_dtype": timing,
+        "by_batch": by_batch,
+    }
+    return row, outputs["float32"]
+
+
+def _jaxcart(problem32, gains, repeats, say) -> tuple[dict, dict, float]:
+    """The figure: float32 step_metrics_batch; returns its row, its metrics and the compile
+    time (first call minus the best steady-state call)."""
+    from jaxcart.batch import step_metrics_batch
+
+    say(
+        f"jaxcart: step_metrics_batch float32, {len(gains)} runs on {len(jax.devices())} "
+        f"{jax.default_backend()} device(s)"
+    )
+
+    def call():
+        return jax.block_until_ready(step_metrics_batch(*problem32, gains, dtype=jnp.float32))
+
+    t0 = time.perf_counter()
+    info = call()
+    first = time.perf_counter() - t0
+    best, times = _best(call, repeats)
+    rate = len(gains) / best
+    say(f"jaxcart: {rate:.4g} sims/s (first call {first:.2f} s)")
+    row = {
+        "name": "jaxcart",
+        "sims_per_s": rate,
+        "runs": len(gains),
+        "dtype": "float32",
+        "devices": len(jax.devices()),
+        "seconds": times,
+        "first_call_s": first,
+    }
+    metrics = {k: np.asarray(v) for k, v in info._asdict().items()}
+    return row, metrics, max(0.0, first - best)
+
+
+def _grid(problem32, points, repeats, say) -> dict:
+    """Throughput of a points^3 grid through step_metrics_batch (what `jaxcart grid` runs)."""
+    from jaxcart.batch import step_metrics_batch
+
+    grid = w1_grid(points)
+    say(f"grid: {points}^3 = {grid.shape[0]} runs, float32")
+
+    def call():
+        jax.block_until_ready(step_metrics_batch(*problem32, grid, dtype=jnp.float32))
+
+    call()  # its chunk size may differ from the batch's: compile outside the timing
+    best, times = _best(call, max(1, repeats - 1))
+    rate = grid.shape[0] / best
+    say(f"grid: {rate:.4g} sims/s")
+    return {
+        "points": points,
+        "runs": int(grid.shape[0]),
+        "ranges": GRID_RANGES,
+        "sims_per_s": rate,
+        "seconds": times,
+    }
+
+
+def _grad(problem32, runs, repeats, say) -> dict:
+    """Simulation plus gradient of :func:`smooth_loss` with respect to the gains, float32,
+    sharded over the devices in chunks of at most 256 runs (fastest measured on 2 cores)."""
+    n_dev = len(jax.devices())
+    chunk = max(1, min(256, runs // n_dev))
+    unit = chunk * n_dev
+    runs = -(-runs // unit) * unit
+    say(f"grad: vmap(grad(loss)) float32, {runs} runs, chunks of {chunk} on {n_dev} device(s)")
+    evaluate = grad_evaluator(*problem32, chunk=chunk)
+    gains = jnp.asarray(w1_gains(runs), dtype=jnp.float32)
+    t0 = time.perf_counter()
+    loss, grad = jax.block_until_ready(evaluate(gains))
+    first = time.perf_counter() - t0
+    best, times = _best(lambda: jax.block_until_ready(evaluate(gains)), repeats)
+    rate = runs / best
+    say(f"grad: {rate:.4g} sims/s")
+    finite = bool(np.all(np.isfinite(np.asarray(grad))) and np.all(np.isfinite(np.asarray(loss))))
+    return {
+        "sims_per_s": rate,
+        "runs": runs,
+        "chunk": chunk,
+        "devices": n_dev,
+        "dtype": "float32",
+        "loss": "ISE/A^2 + 100 * int smooth_relu(z - 1.05)^2 dt, default Smoothing",
+        "sharded": True,
+        "seconds": times,
+        "compile_s": max(0.0, first - best),
+        "all_finite": finite,
+    }
+
+
+def _load() -> float | None:
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return None
+
+
+def _versions() -> dict:
+    import control
+    import scipy
+
+    return {
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "control": control.__version__,
+    }
+
+
+def _fmt(x: float) -> str:
+    return f"{x:,.0f}" if x >= 1000 else f"{x:.3g}"
+
+
+def format_table(result: dict) -> str:
+    """The result as a text table: sims/s per implementation and jaxcart's ratio to each."""
+    w = result["workload"]
+    lines = [
+        f"{w['name']}: PID + {w['v_limit_V']:g} V saturation, {w['step_m']:g} m step, "
+        f"{w['horizon_s']:g} s at {w['sample_time_s'] * 1e3:g} ms ({w['samples']} samples); "
+        f"jax on {result['devices']} {result['backend']} device(s)",
+        f"{'implementation':<24}{'runs':>8}  {'dtype':<9}{'sims/s':>11}{'jaxcart/peer':>14}"
+        f"{'max |dy| [m]':>14}",
+    ]
+    for row in result["rows"]:
+        dy = result["checks"].get(row["name"], {}).get("max_position_diff_m")
+        lines.append(
+            f"{row['name']:<24}{row['runs']:>8}  {row['dtype']:<9}{_fmt(row['sims_per_s']):>11}"
+            f"{_fmt(row['jaxcart_ratio']) + 'x':>14}{'' if dy is None else f'{dy:>14.2g}'}"
+        )
+    grad, grid = result["grad"], result["grid"]
+    lines.append(
+        f"{'grad (sim + d/d gains)':<24}{grad['runs']:>8}  {'float32':<9}"
+        f"{_fmt(result['grad_sims_per_s']):>11}"
+    )
+    lines.append(
+        f"{'grid ' + str(grid['points']) + '^3':<24}{grid['runs']:>8}  {'float32':<9}"
+        f"{_fmt(result['grid_sims_per_s']):>11}"
+    )
+    lines.append(
+        f"jit compile: {result['compile_s']:.2f} s (step_metrics_batch), "
+        f"{grad['compile_s']:.2f} s (grad). max |dy|: positions against float64 "
+        f"jaxcart.simulate (tolerance {result['tolerance_m']:g} m)."
+    )
+    ratios = result["ratios"]
+    met = result["targets"]
+    lines.append(
+        "targets: jaxcart >= 100,000 sims/s {}; >= 30x numpy-vectorized {}; "
+        ">= 30,000x python-control {}".format(
+            *(
+                ("met" if ok else "NOT met") + f" ({v})"
+                for ok, v in zip(
+                    met.values(),
+                    (
+                        _fmt(result["rows"][0]["sims_per_s"]),
+                        _fmt(ratios["numpy-vectorized"]) + "x",
+                        _fmt(ratios["python-control"]) + "x",
+                    ),
+                    strict=True,
+                )
+            )
+        )
+    )
+    load = result.get("load_average") or {}
+    if load.get("before") is not None:
+        lines.append(
+            f"load average (1 min) before/after: {load['before']:.2f} / "
+            f"{load['after']:.2f} on {result['cpu_count']} CPUs"
+        )
+    return "\n".join(lines)
+
+
+def to_json(value):
+    """``value`` with numpy scalars made plain and infinities written as the string "inf"."""
+    if isinstance(value, dict):
+        return {str(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_json(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value

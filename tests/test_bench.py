@@ -1,0 +1,179 @@
+"""The W1 benchmark: its four implementations compute the same loop, and its output is usable.
+
+One tiny run (0.3 s horizon, a few hundred runs, one run per slow peer) is shared by the tests.
+No rate is asserted beyond being positive: timings are not tests.
+"""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcart
+from jaxcart import bench
+from jaxcart.cli import main
+
+HORIZON = 0.3  # s: short runs keep the file fast; the loop and its checks are unchanged
+
+
+@pytest.fixture(scope="module")
+def result():
+    return bench.run_bench(
+        batch=256,
+        slow_runs=1,
+        numpy_runs=256,
+        grad_runs=32,
+        grid_points=4,
+        repeats=1,
+        check_runs=4,
+        progress=None,
+        _horizon=HORIZON,
+    )
+
+
+def test_schema(result):
+    names = [row["name"] for row in result["rows"]]
+    assert names == ["jaxcart", "python-control", "scipy", "numpy-vectorized"]
+    for row in result["rows"]:
+        assert row["sims_per_s"] > 0 and np.isfinite(row["sims_per_s"])
+        assert row["jaxcart_ratio"] > 0
+    assert result["rows"][0]["jaxcart_ratio"] == 1.0
+    assert result["grad_sims_per_s"] > 0 and result["grid_sims_per_s"] > 0
+    assert result["compile_s"] >= 0
+    assert result["devices"] == len(jax.devices())
+    assert result["backend"] == jax.default_backend()
+    assert result["grid"]["runs"] == 4**3
+    assert result["grad"]["all_finite"]
+    assert set(result["ratios"]) == set(bench.PEERS)
+    assert "not the benchmark" in result["workload"]["name"]  # a short horizon says so
+    assert result["workload"]["samples"] == 301
+    json.dumps(bench.to_json(result), allow_nan=False)  # plain JSON, no Infinity
+
+
+def test_peers_agree_with_jaxcart(result):
+    """Four independent implementations of one loop: float64 positions within 1e-6 m of
+    float64 jaxcart.simulate (measured ~1e-13 m), metrics identical to the sample."""
+    for name in bench.PEERS:
+        check = result["checks"][name]
+        assert check["max_position_diff_m"] <= bench.TOLERANCE
+        diff = check["max_metric_diff"]
+        for key in ("rise_time", "settling_time", "saturation_time", "diverged"):
+            assert diff[key] == 0.0, (name, key)
+        assert diff["overshoot"] < 1e-8  # %
+        assert diff["peak_voltage"] < 1e-9  # V
+    assert result["max_peer_position_diff_m"] <= bench.TOLERANCE
+    # jaxcart's streamed metrics against numpy on jaxcart's own trace: the same definitions.
+    own = result["checks"]["jaxcart-metrics-vs-trace"]["max_metric_diff"]
+    assert max(own.values()) < 1e-12
+
+
+def test_float32_paths_agree(result):
+    """numpy float32 against jaxcart float32 on 256 runs, and jaxcart float32 against float64:
+    rounding only (1 sample of saturation time may flip; positions ~1e-6 m)."""
+    for key in ("numpy-float32-vs-jaxcart-float32", "jaxcart-float32-vs-float64"):
+        diff = result["checks"][key]["max_metric_diff"]
+        assert diff["overshoot"] < 1e-3  # %
+        assert diff["steady_state_error"] < 1e-5  # m
+        assert diff["peak_voltage"] < 1e-3  # V
+        assert diff["saturation_time"] <= 2e-3  # s
+        assert diff["diverged"] == 0.0
+
+
+def test_a_wrong_peer_is_caught():
+    """The check is not vacuous: a plant 2 % off in B_eq fails it, loudly."""
+    with jax.enable_x64(True):
+        plant, controller, experiment = bench.w1_problem(HORIZON)
+    gains = bench.w1_gains(2)
+    reference = bench.reference_positions(plant, controller, experiment, gains)
+    ref_metrics = bench.jaxcart_metrics(plant, controller, experiment, gains, jnp.float64)
+    wrong = plant.replace(B_eq=5.5)
+    info, trace = bench.numpy_batch(wrong, controller, experiment, gains, record=2)
+    with pytest.raises(bench.PeerDisagreement, match="numpy-vectorized"):
+        bench._check("numpy-vectorized", trace, reference, info, ref_metrics, bench.TOLERANCE)
+    info, trace = bench.numpy_batch(plant, controller, experiment, gains, record=2)
+    bench._check("numpy-vectorized", trace, reference, info, ref_metrics, bench.TOLERANCE)
+
+
+@pytest.mark.parametrize("horizon, lo, hi", [(0.3, 0.1, 0.9), (0.05, 0.0, 0.1)])
+def test_rise_time_of_a_run_that_never_reaches_90_percent(horizon, lo, hi):
+    """A sluggish run (kp 10 V/m, kd 12 V s/m) reaches ~13 % in 0.3 s and < 10 % in 0.05 s:
+    every implementation reports rise_time inf (not nan), and settling time inf, like jaxcart."""
+    with jax.enable_x64(True):
+        problem = bench.w1_problem(horizon)
+    gains = np.array([[10.0, 12.0, 0.0]])
+    ref = bench.jaxcart_metrics(*problem, gains, jnp.float64)
+    y = bench.reference_positions(*problem, gains)[0]
+    assert lo * bench.STEP <= y.max() < hi * bench.STEP  # the case this parameter covers
+    numpy_info, _ = bench.numpy_batch(*problem, gains)
+    _, scipy_info = bench.scipy_run(*problem, gains[0])
+    for info in (ref, numpy_info, scipy_info):
+        assert np.isinf(info["rise_time"]).all() and np.isinf(info["settling_time"]).all()
+    assert max(bench._max_diff(numpy_info, ref).values()) < 1e-12
+
+
+def test_zoh_against_python_control():
+    """The peers' exact hold step equals python-control's c2d (zoh) of the same plant."""
+    import control
+
+    plant = jaxcart.handout_plant()
+    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    sys_d = control.ss([[0, 1], [0, -c / m]], [[0], [gamma / m]], [[1, 0]], [[0]]).sample(
+        1e-3, method="zoh"
+    )
+    ad, bd = bench.zoh_matrices(plant, 1e-3)
+    np.testing.assert_allclose(ad, sys_d.A, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(bd, sys_d.B[:, 0], rtol=1e-12, atol=1e-18)
+
+
+def test_gradient_matches_finite_differences():
+    """The benchmarked gradient (sharded vmap of grad) against central differences of the
+    same loss, float64, 2 devices x 2 runs."""
+    plant, controller, experiment = bench.w1_problem(HORIZON)
+    gains = jnp.asarray(bench.w1_gains(2 * len(jax.devices())))
+    evaluate = bench.grad_evaluator(plant, controller, experiment, chunk=2)
+    loss, grad = evaluate(gains)
+    f = jax.jit(lambda g: bench.smooth_loss(plant, controller, experiment, g))
+    for i in range(gains.shape[0]):
+        assert float(loss[i]) == pytest.approx(float(f(gains[i])), rel=1e-12)
+        for j in range(3):
+            h = 1e-5 * max(1.0, abs(float(gains[i, j])))
+            step = jnp.zeros(3).at[j].set(h)
+            fd = (f(gains[i] + step) - f(gains[i] - step)) / (2 * h)
+            assert float(grad[i, j]) == pytest.approx(float(fd), rel=1e-5, abs=1e-9)
+
+
+def test_command_line(result, monkeypatch, tmp_path, capsys):
+    """`jaxcart bench --json OUT --quick` prints the table and writes (and rewrites) OUT."""
+    calls = []
+
+    def fake(**kwargs):
+        calls.append(kwargs)
+        return result
+
+    monkeypatch.setattr(bench, "run_bench", fake)
+    out = tmp_path / "bench.json"
+    out.write_text("{}")  # an old result is overwritten
+    assert main(["bench", "--quick", "--json", str(out), "--batch", "300"]) == 0
+    assert calls == [{"batch": 300, "quick": True}]
+    table = capsys.readouterr().out
+    for name in ("jaxcart", "python-control", "scipy", "numpy-vectorized", "grad", "grid"):
+        assert name in table
+    written = json.loads(out.read_text())
+    assert [row["name"] for row in written["rows"]][0] == "jaxcart"
+    assert written["grad_sims_per_s"] == result["grad_sims_per_s"]
+
+
+def test_command_line_errors(monkeypatch, tmp_path, capsys):
+    assert main(["bench", "--batch", "0"]) == 2
+    assert "--batch 0" in capsys.readouterr().err
+    assert main(["bench", "--json", str(tmp_path / "missing" / "b.json")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+    def disagree(**kwargs):
+        raise bench.PeerDisagreement("scipy disagrees")
+
+    monkeypatch.setattr(bench, "run_bench", disagree)
+    assert main(["bench"]) == 1
+    assert "FAILED: scipy disagrees" in capsys.readouterr().err
