@@ -11,6 +11,7 @@ import argparse
 import importlib
 import sys
 
+from hw.gains import GainsFileError
 from jaxcart.errors import UserError
 
 #: Subcommand modules, in the order ``jaxcart --help`` lists them. The application layer may
@@ -54,7 +55,7 @@ def main(argv=None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except UserError as exc:
+    except (UserError, GainsFileError) as exc:
         print(f"jaxcart {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

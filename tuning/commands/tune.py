@@ -1,0 +1,598 @@
+"""``jaxcart tune``: tune the PID by gradient descent through the smoothed simulator, re-check
+on the exact one, and write a gains file, a figure and (optionally) a JSON summary.
+
+    jaxcart tune                                   # the lab's design problem
+    jaxcart tune --free kp,kd --settling 0.9       # a PD controller, tighter settling bound
+    jaxcart tune --robust --out robust.json        # meet the spec for a whole set of plants
+    jaxcart tune --plant-file fitted.json --f-c 0.4
+    jaxcart tune --compare                         # benchmark against Nelder-Mead and a grid
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from jaxcart.errors import UserError
+
+OUT_DIR = Path("jaxcart-out")
+GAINS = ("kp", "kd", "ki")
+UNITS = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)"}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "tune",
+        help="tune the PID gains by gradient (default: the lab's design problem)",
+        description=(
+            "Tune the canonical PID by gradient descent (optax) through the smoothed "
+            "simulator: first meet the specification (settling time in the 2 % band, "
+            "overshoot), then drive the settling time down; every result is re-checked on "
+            "the exact simulator. Default: step 0.5 m, settling < 1 s, overshoot < 5 %, 6 V, "
+            "handout plant, from kp=40, kd=5, ki=5. Writes the gains file (every controller "
+            "setting), a step-response figure with voltage, and prints the smooth and exact "
+            "metrics. Without --out, files go to ./jaxcart-out/ under names that never "
+            "overwrite."
+        ),
+    )
+    p.add_argument(
+        "--out",
+        metavar="GAINS.json",
+        help="gains file (default ./jaxcart-out/gains.json, gains-2.json, ...)",
+    )
+    p.add_argument(
+        "--json",
+        metavar="OUT.json",
+        help='write {"gains", "exact", "smooth", "seconds", ...} here ("-": stdout)',
+    )
+    p.add_argument(
+        "--plot",
+        metavar="TUNE.png",
+        help="step-response figure (default: beside the gains file, .png)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    spec = p.add_argument_group("specification")
+    spec.add_argument(
+        "--step", type=float, default=0.5, metavar="M", help="reference step [m] (default 0.5)"
+    )
+    spec.add_argument(
+        "--settling",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="settling-time bound, 2 %% band [s] (default 1.0)",
+    )
+    spec.add_argument(
+        "--overshoot",
+        type=float,
+        default=5.0,
+        metavar="PCT",
+        help="overshoot bound [%%] (default 5)",
+    )
+    spec.add_argument(
+        "--horizon",
+        type=float,
+        metavar="S",
+        help="simulated time [s] (default max(3, 3 x settling))",
+    )
+    ctl = p.add_argument_group("controller")
+    ctl.add_argument(
+        "--start",
+        metavar="KP,KD,KI",
+        help="starting gains [V/m, V s/m, V/(m s)] (default 40,5,5; gains that "
+        "are not free start, and stay, at 0)",
+    )
+    ctl.add_argument(
+        "--free",
+        default="kp,kd,ki",
+        metavar="NAMES",
+        help="gains to tune, e.g. kp,kd for a PD controller (default kp,kd,ki); "
+        "the others keep their --start value",
+    )
+    ctl.add_argument(
+        "--sample-time",
+        dest="sample_time",
+        type=float,
+        default=0.001,
+        metavar="S",
+        help="controller sample time [s] (default 0.001)",
+    )
+    ctl.add_argument(
+        "--derivative-on",
+        dest="derivative_on",
+        default="error",
+        choices=("error", "measurement"),
+        help="derivative of (default error)",
+    )
+    ctl.add_argument(
+        "--anti-windup",
+        dest="anti_windup",
+        default="none",
+        choices=("none", "clamping", "back_calculation"),
+        help="anti-windup (default none, as the lab's Simulink block)",
+    )
+    ctl.add_argument(
+        "--tau",
+        type=float,
+        default=0.01,
+        metavar="S",
+        help="derivative filter time constant [s] (default 0.01)",
+    )
+    ctl.add_argument(
+        "--v-limit",
+        dest="v_limit",
+        type=float,
+        default=6.0,
+        metavar="V",
+        help="software voltage limit [V] (default 6)",
+    )
+    plant = p.add_argument_group("plant (design model)")
+    plant.add_argument(
+        "--plant-file",
+        dest="plant_file",
+        metavar="FILE",
+        help="fitted-parameter JSON or an experiment TOML whose [plant] applies",
+    )
+    plant.add_argument(
+        "--B-eq",
+        dest="B_eq",
+        type=float,
+        metavar="KG_S",
+        help="viscous friction B_eq [kg/s] (handout: 5.4)",
+    )
+    plant.add_argument(
+        "--f-c",
+        dest="f_c",
+        type=float,
+        metavar="N",
+        help="Coulomb friction in the design model [N] (default 0; slower)",
+    )
+    plant.add_argument(
+        "--M", dest="M", type=float, metavar="KG", help="cart mass M [kg] (handout: 0.94)"
+    )
+    rob = p.add_argument_group("robust tuning")
+    rob.add_argument(
+        "--robust",
+        action="store_true",
+        help="meet the spec on a set of plants: B_eq in [3, 7] kg/s, f_c in "
+        "[0, 1] N, M within +/-10 %% (change with --range)",
+    )
+    rob.add_argument(
+        "--range",
+        dest="ranges",
+        action="append",
+        default=[],
+        metavar="NAME=LO,HI",
+        help="robust interval, e.g. B_eq=3,7 or f_c=0,0.5 or M=0.9,1.1 (M as a "
+        "fraction of nominal); repeatable; replaces the default set",
+    )
+    run_ = p.add_argument_group("run")
+    run_.add_argument("--starts", type=int, default=8, help="multi-start batch size (8)")
+    run_.add_argument(
+        "--iterations",
+        type=int,
+        default=400,
+        help="most optimizer iterations (400; it stops earlier when done)",
+    )
+    run_.add_argument("--seed", type=int, default=0, help="seed of the multi-start (0)")
+    run_.add_argument(
+        "--compare",
+        action="store_true",
+        help="benchmark: this tuner vs scipy Nelder-Mead on the exact simulator "
+        "vs a quasi-random grid of equal wall time; prints ratios",
+    )
+    run_.add_argument("--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxcart.experiments import step
+    from tuning.tune import compare_tuners, tune
+
+    spec = _spec(args)
+    free = _free(args.free)
+    start = _start(args.start)
+    controller = _controller(args)
+    plant = _plant(args)
+    robust = _robust(args)
+    if args.starts < 1 or args.iterations < 1:
+        raise UserError("--starts and --iterations must be at least 1")
+
+    if args.compare:
+        if robust is not False:
+            raise UserError("--compare benchmarks the nominal problem; drop --robust/--range")
+        json_path = _json_path(args)
+        report = compare_tuners(
+            plant,
+            spec=spec,
+            start=start,
+            free=free,
+            controller=controller,
+            seed=args.seed,
+            progress=not args.quiet,
+        )
+        print(report["table"])
+        if json_path is not None:
+            _write_json(json_path, {k: v for k, v in report.items() if k != "table"})
+        return 0
+
+    gains_path, png_path = _outputs(args)
+    json_path = _json_path(args)
+    result = tune(
+        plant,
+        spec=spec,
+        start=start,
+        free=free,
+        controller=controller,
+        robust=robust,
+        n_starts=args.starts,
+        max_iterations=args.iterations,
+        seed=args.seed,
+        progress=not args.quiet,
+    )
+    _print_summary(result, robust is not False)
+
+    from hw.gains import GainsFileError, write_gains
+
+    metadata = {
+        "created_by": "jaxcart tune",
+        "meets": result.meets,
+        "message": result.message,
+        "spec": result.spec,
+        "exact": result.exact.as_dict(),
+        "smooth": result.smooth.as_dict(),
+        "plant": _plant_values(result.plant),
+        "start": dict(zip(GAINS, start, strict=True))
+        if start is not None
+        else "handout: kp 40, kd 5, ki 5 for the free gains, 0 for the others",
+        "free": list(free),
+        "seconds": result.seconds,
+    }
+    if result.worst is not None:
+        metadata["robust_worst"] = result.worst.as_dict()
+        metadata["robust_plants"] = result.plant_set
+    try:
+        write_gains(gains_path, result.gains, force=args.force, **metadata)
+    except GainsFileError as exc:
+        raise UserError(str(exc)) from None
+    experiment = step(spec.step, horizon=spec.horizon, sample_time=controller.sample_time)
+    _plot(png_path, result, experiment)
+    if json_path is not None:
+        _write_json(json_path, result.as_json())
+    written = ", ".join(
+        str(p) for p in (gains_path, png_path, json_path) if p is not None and str(p) != "-"
+    )
+    print(f"wrote {written}")
+    return 0 if result.meets else 1
+
+
+# ---------------------------------------------------------------- arguments
+
+
+def _finite(value, flag, *, positive=False, nonnegative=False):
+    if not math.isfinite(value):
+        raise UserError(f"{flag} {value!r}: give a finite number")
+    if positive and not value > 0:
+        raise UserError(f"{flag} {value!r}: give a positive number")
+    if nonnegative and not value >= 0:
+        raise UserError(f"{flag} {value!r}: give a number >= 0")
+    return value
+
+
+def _spec(args):
+    from tuning.losses import Spec
+
+    _finite(args.step, "--step")
+    if args.step == 0:
+        raise UserError("--step 0: give a nonzero step [m], e.g. 0.5")
+    _finite(args.settling, "--settling", positive=True)
+    _finite(args.overshoot, "--overshoot", positive=True)
+    if args.horizon is not None:
+        _finite(args.horizon, "--horizon", positive=True)
+        if args.horizon <= args.settling:
+            raise UserError(
+                f"--horizon {args.horizon}: it must exceed --settling "
+                f"{args.settling} s (about 3x shows a slow creep)"
+            )
+    if abs(args.step) > 0.814:
+        raise UserError(f"--step {args.step}: the cart travels at most 0.814 m on the track")
+    return Spec(
+        step=args.step, settling_time=args.settling, overshoot=args.overshoot, horizon=args.horizon
+    )
+
+
+def _free(text):
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in GAINS]
+    if bad or not names:
+        raise UserError(f"--free {text}: name gains among kp, kd, ki, e.g. --free kp,kd")
+    return names
+
+
+def _start(text):
+    if text is None:
+        return None
+    parts = [s.strip() for s in text.split(",")]
+    try:
+        values = [float(s) for s in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise UserError(f"--start {text}: give three gains kp,kd,ki >= 0, e.g. --start 40,5,5")
+    return tuple(values)
+
+
+def _controller(args):
+    from hw.control_law import PID
+
+    _finite(args.sample_time, "--sample-time", positive=True)
+    _finite(args.tau, "--tau", nonnegative=True)
+    if not args.v_limit > 0:
+        raise UserError(f"--v-limit {args.v_limit}: give a positive limit [V] (inf for none)")
+    return PID(
+        tau=args.tau,
+        v_limit=args.v_limit,
+        sample_time=args.sample_time,
+        derivative_on=args.derivative_on,
+        anti_windup=args.anti_windup,
+    )
+
+
+def _plant(args):
+    from jaxcart.params import handout_plant
+
+    overrides = {}
+    if args.plant_file:
+        overrides.update(_plant_file(Path(args.plant_file)))
+    for name in ("B_eq", "f_c", "M"):
+        value = getattr(args, name)
+        if value is not None:
+            flag = {"B_eq": "--B-eq", "f_c": "--f-c", "M": "--M"}[name]
+            _finite(value, flag, positive=name == "M", nonnegative=True)
+            overrides[name] = value
+    if not overrides:
+        return handout_plant()
+    from jaxcart.files import plant_from_overrides
+
+    return plant_from_overrides(overrides, where="plant (--plant-file / --B-eq / --f-c / --M)")
+
+
+#: Keys under which a fitted-parameter JSON may hold its parameters.
+_PARAM_KEYS = ("plant", "params", "parameters", "fitted", "fit")
+
+
+def _plant_file(path: Path) -> dict:
+    """Plant overrides {name: value} from a fitted-parameter JSON or an experiment TOML."""
+    if not path.exists():
+        raise UserError(f"--plant-file {path}: no such file")
+    if path.suffix.lower() == ".toml":
+        from jaxcart.files import read_experiment
+
+        return dict(read_experiment(path).plant_overrides)
+    if path.suffix.lower() != ".json":
+        raise UserError(
+            f"--plant-file {path}: give a fitted-parameter .json or an experiment .toml"
+        )
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise UserError(f"--plant-file {path}: cannot read it as JSON ({exc})") from None
+    from jaxcart.files import plant_parameter_names
+
+    known = set(plant_parameter_names())
+    if not isinstance(doc, dict):
+        raise UserError(f"{path}: expected a JSON object of plant parameters")
+    for key in _PARAM_KEYS:
+        table = doc.get(key)
+        if isinstance(table, dict):
+            values = {k: _param_value(v) for k, v in table.items()}
+            unknown = sorted(k for k in values if k not in known)
+            if unknown:
+                raise UserError(
+                    f"{path}: {key}.{unknown[0]} is not a plant parameter; known: "
+                    f"{', '.join(sorted(known))}"
+                )
+            return values
+    values = {k: _param_value(v) for k, v in doc.items() if k in known}
+    if not values:
+        raise UserError(
+            f"{path}: no plant parameters found; expected e.g. "
+            '{"plant": {"B_eq": 5.4, "f_c": 0.3}}'
+        )
+    return values
+
+
+def _param_value(value):
+    # A fitted file may hold {"value": x, "stderr": s} per parameter.
+    if isinstance(value, dict) and "value" in value:
+        return value["value"]
+    return value
+
+
+def _robust(args):
+    if not args.robust:
+        if args.ranges:
+            raise UserError("--range needs --robust")
+        return False
+    if not args.ranges:
+        return True
+    ranges = {}
+    for text in args.ranges:
+        name, _, rest = text.partition("=")
+        name = name.strip()
+        try:
+            lo, hi = (float(s) for s in rest.split(","))
+        except ValueError:
+            raise UserError(f"--range {text}: write NAME=LO,HI, e.g. --range B_eq=3,7") from None
+        if name not in ("B_eq", "f_c", "M", "gamma_scale", "v_sat"):
+            raise UserError(
+                f"--range {text}: {name!r} cannot vary; use B_eq, f_c, M, gamma_scale or v_sat"
+            )
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
+            raise UserError(f"--range {text}: need finite 0 <= LO <= HI")
+        if name == "M" and lo <= 0:
+            raise UserError(f"--range {text}: M is a fraction of the nominal mass, > 0")
+        ranges[name] = (lo, hi)
+    return ranges
+
+
+def _outputs(args):
+    """(gains path, png path), refusing existing files unless --force, before tuning."""
+    if args.out:
+        gains_path = Path(args.out)
+        if gains_path.suffix.lower() != ".json":
+            raise UserError(f"--out {args.out}: give a name ending in .json")
+        png_path = Path(args.plot) if args.plot else gains_path.with_suffix(".png")
+        if not args.force:
+            for path in (gains_path, png_path):
+                if path.exists():
+                    raise UserError(
+                        f"{path} exists; choose another name or pass --force to overwrite it"
+                    )
+        return gains_path, png_path
+    gains_path, auto_png = _free_names(OUT_DIR, "gains")
+    png_path = Path(args.plot) if args.plot else auto_png
+    if png_path.exists() and not args.force:
+        raise UserError(f"{png_path} exists; choose another name or pass --force")
+    return gains_path, png_path
+
+
+def _free_names(folder: Path, stem: str):
+    i = 1
+    while True:
+        name = stem if i == 1 else f"{stem}-{i}"
+        paths = (folder / f"{name}.json", folder / f"{name}.png")
+        if not any(p.exists() for p in paths):
+            return paths
+        i += 1
+
+
+def _json_path(args):
+    if args.json is None:
+        return None
+    if args.json == "-":
+        return "-"
+    path = Path(args.json)
+    if path.exists() and not args.force:
+        raise UserError(f"{path} exists; choose another name or pass --force to overwrite it")
+    return path
+
+
+def _write_json(path, doc):
+    text = json.dumps(doc, indent=2, allow_nan=False, default=_default)
+    if path == "-":
+        print(text)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text + "\n", encoding="utf-8")
+
+
+def _default(value):
+    import dataclasses
+
+    if dataclasses.is_dataclass(value):
+        return dataclasses.asdict(value)
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+# ---------------------------------------------------------------- output
+
+
+def _plant_values(plant) -> dict:
+    return {name: float(plant.get(name)) for name in plant.param_names()}
+
+
+def _fmt(value, unit="", digits=3):
+    value = float(value)
+    if not math.isfinite(value):
+        return "inf"
+    return f"{value:.{digits}f}{unit}"
+
+
+def _print_summary(result, robust):
+    g = result.gains
+    print(
+        f"tuned gains: kp = {g.kp:.4g} V/m, kd = {g.kd:.4g} V s/m, ki = {g.ki:.4g} V/(m s)"
+        f"  (tau {g.tau:g} s, derivative on {g.derivative_on}, anti-windup "
+        f"{g.anti_windup}, v_limit {g.v_limit:g} V, Ts {g.sample_time:g} s)"
+    )
+    print(
+        f"{'':24s}{'settling [s]':>14s}{'overshoot [%]':>15s}{'rise [s]':>10s}{'ss error [m]':>14s}"
+    )
+    rows = [("smooth simulator", result.smooth), ("exact simulator", result.exact)]
+    if robust and result.worst is not None:
+        rows.append((f"worst of {len(result.plant_set)} plants", result.worst))
+    for label, info in rows:
+        print(
+            f"{label:24s}{_fmt(info.settling_time):>14s}{_fmt(info.overshoot, digits=2):>15s}"
+            f"{_fmt(info.rise_time):>10s}{_fmt(info.steady_state_error, digits=5):>14s}"
+        )
+    print(result.message)
+    to_spec = (
+        ""
+        if result.seconds_to_spec is None
+        else f"; first gains meeting it after {result.seconds_to_spec:.1f} s"
+    )
+    print(
+        f"{result.iterations} iterations x {result.n_starts} starts in {result.seconds:.1f} s"
+        f" (compilation included){to_spec}"
+    )
+
+
+def _plot(path, result, experiment):
+    import numpy as np
+
+    from jaxcart.exact import simulate_exact
+    from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
+    from jaxcart.simulate import simulate
+    from tuning.losses import LossSettings
+    from tuning.tune import SCALES
+
+    g, spec = result.gains, result.spec
+    exact = simulate_exact(result.plant, g, experiment)
+    smooth = simulate(
+        result.plant, g, experiment, smoothing=LossSettings().smoothing.scaled(SCALES[-1])
+    )
+    t = np.asarray(exact.time)
+    r = float(spec.step)
+    band = spec.band * abs(r)
+    runs = [
+        reference_run(t, np.asarray(exact.reference)),
+        Run(f"±{100 * spec.band:g} % band", t, np.full(t.shape, r + band), role="reference"),
+        Run("_band", t, np.full(t.shape, r - band), role="reference"),
+        run_from_response(
+            exact,
+            f"exact simulator (settling {_fmt(result.exact.settling_time)}"
+            f" s, overshoot {_fmt(result.exact.overshoot, digits=2)} %)",
+        ),
+        run_from_response(smooth, "smooth simulator (final widths)"),
+    ]
+    if result.plant_set:
+        worst = max(
+            range(len(result.plant_set)), key=lambda i: _sort_key(result.plant_set[i]["exact"])
+        )
+        values = result.plant_set[worst]["params"]
+        from tuning.tune import _with_params
+
+        worst_plant = _with_params(result.plant, values)
+        run = simulate_exact(worst_plant, g, experiment)
+        label = ", ".join(f"{k} {v:.3g}" for k, v in values.items())
+        runs.append(run_from_response(run, f"worst plant of the set ({label})"))
+    title = (
+        f"jaxcart tune: kp {g.kp:.4g}, kd {g.kd:.4g}, ki {g.ki:.4g} "
+        f"(spec: settling < {spec.settling_time:g} s, overshoot < {spec.overshoot:g} %)"
+    )
+    plot_runs(runs, title=title, path=path, voltage=True, v_limit=float(g.v_limit))
+
+
+def _sort_key(metrics):
+    def num(x):
+        return float(x) if not isinstance(x, str) else math.inf
+
+    return (num(metrics["settling_time"]), num(metrics["overshoot"]))
