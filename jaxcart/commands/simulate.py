@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from jaxcart.errors import SimulationDiverged, UserError
+from jaxcart.outputs import OUT_DIR, free_names
 
 #: The lab's design problem (DESIGN.md): step 0.5 m, handout plant, 6 V, the handout's gains.
 DEFAULT_STEP = 0.5
 DEFAULT_GAINS = {"kp": 40.0, "kd": 5.0, "ki": 5.0}
 DEFAULT_V_LIMIT = 6.0
 DEFAULT_HORIZON = 3.0
-OUT_DIR = Path("jaxcart-out")
 GAIN_OPTIONS = ("kp", "ki", "kd", "tau", "v_limit")
 
 
@@ -182,7 +182,7 @@ def _outputs(args, recording):
         png_path = Path(args.plot) if args.plot else None
     else:
         stem = "run" if recording is None else f"{recording.path.stem}-sim"
-        csv_path, toml_path, auto_png = _free_names(OUT_DIR, stem)
+        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (".csv", ".toml", ".png"))
         png_path = Path(args.plot) if args.plot else auto_png
     if not args.force:
         for path in (csv_path, toml_path, png_path):
@@ -191,17 +191,6 @@ def _outputs(args, recording):
                     f"{path} exists; choose another name or pass --force to overwrite it"
                 )
     return csv_path, toml_path, png_path
-
-
-def _free_names(folder: Path, stem: str):
-    """stem.csv/.toml/.png in folder, or stem-2, stem-3, ... where none of the three exists."""
-    i = 1
-    while True:
-        name = stem if i == 1 else f"{stem}-{i}"
-        paths = tuple(folder / f"{name}{ext}" for ext in (".csv", ".toml", ".png"))
-        if not any(p.exists() for p in paths):
-            return paths
-        i += 1
 
 
 def _simulate(exact, plant, controller, experiment):

@@ -17,9 +17,10 @@ import sys
 from pathlib import Path
 
 from jaxcart.errors import UserError
+from jaxcart.outputs import OUT_DIR, free_names
 
 DEFAULT_RANGES = {"kp": "10:150:64", "kd": "0:15:64", "ki": "0:30:64"}
-DEFAULT_DIR = Path("jaxcart-out")
+DEFAULT_DIR = OUT_DIR
 #: Bytes per point of the result arrays (6 float64 metrics, diverged, feasible, temporaries).
 _BYTES_PER_POINT = 80
 
@@ -163,13 +164,7 @@ def output_paths(out, plot, force) -> tuple[Path, Path]:
     """The .npz and .png paths: given ones (checked not to exist unless ``force``), or the
     first free jaxcart-out/grid.npz, grid-2.npz, ... with the PNG of the same name."""
     if out is None and plot is None:
-        n = 1
-        while True:
-            stem = "grid" if n == 1 else f"grid-{n}"
-            out_path, plot_path = DEFAULT_DIR / f"{stem}.npz", DEFAULT_DIR / f"{stem}.png"
-            if not (out_path.exists() or plot_path.exists()):
-                return out_path, plot_path
-            n += 1
+        return free_names(DEFAULT_DIR, "grid", (".npz", ".png"))
     if out is None:
         out_path = output_paths(None, None, force)[0]
     else:

@@ -15,8 +15,8 @@ import math
 from pathlib import Path
 
 from jaxcart.errors import UserError
+from jaxcart.outputs import OUT_DIR, free_names
 
-OUT_DIR = Path("jaxcart-out")
 GAINS = ("kp", "kd", "ki")
 UNITS = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)"}
 
@@ -454,21 +454,11 @@ def _outputs(args):
                         f"{path} exists; choose another name or pass --force to overwrite it"
                     )
         return gains_path, png_path
-    gains_path, auto_png = _free_names(OUT_DIR, "gains")
+    gains_path, auto_png = free_names(OUT_DIR, "gains", (".json", ".png"))
     png_path = Path(args.plot) if args.plot else auto_png
     if png_path.exists() and not args.force:
         raise UserError(f"{png_path} exists; choose another name or pass --force")
     return gains_path, png_path
-
-
-def _free_names(folder: Path, stem: str):
-    i = 1
-    while True:
-        name = stem if i == 1 else f"{stem}-{i}"
-        paths = (folder / f"{name}.json", folder / f"{name}.png")
-        if not any(p.exists() for p in paths):
-            return paths
-        i += 1
 
 
 def _json_path(args):
