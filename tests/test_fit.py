@@ -1,0 +1,258 @@
+"""Fitting plant parameters (tuning/fit.py): accuracy and standard errors on recordings made by the
+exact simulator through the encoder (tuning/synthetic.py), identifiability, the fitted-plant file,
+the command line, and the real recordings."""
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from tuning import fit as F
+from tuning.synthetic import make_recording, make_tap_recording, write_recording
+
+Q = jc.ENCODER_RESOLUTION
+P50 = jc.PID(kp=50.0, v_limit=6.0)
+TAP_TRUTH = {"B_eq": 1.5, "f_c": 0.44}  # close to the real cart's tap fit
+CL_TRUTH = {"B_eq": 2.5, "f_c": 0.3}
+
+
+@pytest.fixture(scope="module")
+def tap_rec():
+    truth = jc.tap_plant(B_eq=TAP_TRUTH["B_eq"], effects=(jc.Coulomb(f_c=TAP_TRUTH["f_c"]),))
+    return make_tap_recording(truth, speed=1.0, rest=0.3, push_time=0.1, horizon=1.7, seed=11)
+
+
+@pytest.fixture(scope="module")
+def tap_fit(tap_rec):
+    return F.fit([tap_rec], ("B_eq", "f_c"), progress=False)
+
+
+@pytest.fixture(scope="module")
+def cl_rec():
+    truth = jc.handout_plant(**CL_TRUTH)
+    return make_recording(truth, P50, jc.step(0.4, horizon=1.5), seed=5)
+
+
+@pytest.fixture(scope="module")
+def cl_fit(cl_rec):
+    return F.fit([cl_rec], ("B_eq", "f_c"), progress=False)
+
+
+def _check_accuracy(result, truth):
+    b, f = result.params["B_eq"], result.params["f_c"]
+    assert b.value == pytest.approx(truth["B_eq"], rel=0.01)
+    assert f.value == pytest.approx(truth["f_c"], rel=0.03)
+    for e in (b, f):
+        assert abs(e.value - truth[e.name]) < 3 * e.stderr
+        assert e.stderr >= e.stderr_naive * 0.5  # robust errors are never much smaller
+
+
+def test_tap_fit_finds_the_coasting_part_and_the_truth(tap_rec, tap_fit):
+    seg = tap_fit.segments[0]
+    # The push ends at 0.4 s; coasting starts 20 ms after the peak speed.
+    assert 0.4 <= seg.time[0] <= 0.45
+    true_v = np.gradient(tap_rec.true_position, 1e-3)
+    stop = tap_rec.time[np.flatnonzero(np.abs(true_v) > 0)[-1]]  # the exact cart's stop
+    assert stop <= seg.time[-1] <= stop + 0.06
+    _check_accuracy(tap_fit, TAP_TRUTH)
+    # The fitted exact model explains the data to the encoder's own error, q / sqrt(12).
+    assert tap_fit.rms_after_exact < 1.2 * Q / math.sqrt(12)
+    assert tap_fit.rms_before_exact > 100 * tap_fit.rms_after_exact
+    assert abs(tap_fit.rms_after - tap_fit.rms_after_exact) < 2e-6  # smooth ~ exact
+
+
+def test_closed_loop_fit_finds_the_truth(cl_fit):
+    _check_accuracy(cl_fit, CL_TRUTH)
+    assert cl_fit.rms_after_exact < 1.2 * Q / math.sqrt(12)
+    # y0 lies in the first count of the encoder (a bounded nuisance).
+    y0 = cl_fit.segments[0].nuisance["y0"].value
+    assert -1e-12 <= y0 <= Q + 1e-12
+
+
+def test_joint_fit_of_tap_and_closed_loop(tap_rec):
+    truth = jc.handout_plant(**TAP_TRUTH)
+    cl = make_recording(truth, P50, jc.step(0.4, horizon=1.5), seed=2)
+    result = F.fit(
+        [tap_rec, cl], ("B_eq", "f_c"), progress=False, settings=F.FitSettings(adam_steps=0)
+    )
+    _check_accuracy(result, TAP_TRUTH)
+    assert [s.kind for s in result.segments] == ["tap", "closed_loop"]
+    # Each recording alone predicts the other (cross-prediction) to near the encoder error.
+    pred = F.cross_predict(result.values, [cl])
+    assert pred.rms_after_exact < 2 * Q
+
+
+def test_fit_v_limit_and_gamma_scale():
+    # A saturated step also determines the amplifier's limit (v_limit = v_sat) and gain.
+    truth = {"B_eq": 2.5, "f_c": 0.3, "v_sat": 5.0, "gamma_scale": 0.9}
+    rec = make_recording(jc.handout_plant(**truth), P50, jc.step(0.4, horizon=1.5), seed=5)
+    params = ("B_eq", "f_c", "v_limit", "gamma_scale")
+    result = F.fit([rec], params, progress=False, settings=F.FitSettings(adam_steps=0))
+    for name in params:
+        e = result.params[name]
+        assert e.value == pytest.approx(truth[F.canonical(name)], rel=0.01), name
+        assert abs(e.value - truth[F.canonical(name)]) < 3 * e.stderr, name
+
+
+def _coverage(kind, seeds, noise=0.0):
+    """z = (estimate - truth) / stderr over seeds, truths drawn at random per seed."""
+    z = {"B_eq": [], "f_c": []}
+    settings = F.FitSettings(adam_steps=0, widths=(1e-3, 1e-4))
+    for seed in seeds:
+        rng = np.random.default_rng(1000 + seed)
+        tv = {"B_eq": rng.uniform(2.0, 3.0), "f_c": rng.uniform(0.4, 0.6)}
+        if kind == "tap":
+            truth = jc.tap_plant(B_eq=tv["B_eq"], effects=(jc.Coulomb(f_c=tv["f_c"]),))
+            rec = make_recording(truth, None, jc.tap(1.0, horizon=0.5), seed=seed, noise=noise)
+        else:
+            truth = jc.handout_plant(**tv)
+            rec = make_recording(truth, P50, jc.step(0.4, horizon=1.2), seed=seed, noise=noise)
+        result = F.fit([rec], ("B_eq", "f_c"), settings=settings, progress=False)
+        for k, e in result.params.items():
+            z[k].append((e.value - tv[k]) / e.stderr)
+    return {k: np.abs(np.array(v)) for k, v in z.items()}
+
+
+def test_stderr_coverage_small():
+    # 16 taps; deterministic seeds, so the counts below are fixed numbers, not chance.
+    z = _coverage("tap", range(16))
+    for k, a in z.items():
+        assert 0.5 <= np.mean(a < 1) <= 0.95, (k, a)
+        assert np.mean(a < 2) >= 0.85, (k, a)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, noise", [("tap", 0.0), ("closed_loop", 0.0), ("tap", 2e-5)])
+def test_stderr_coverage_many_seeds(kind, noise):
+    z = _coverage(kind, range(40), noise)
+    for k, a in z.items():
+        assert 0.55 <= np.mean(a < 1) <= 0.9, (k, np.mean(a < 1))
+        assert 0.88 <= np.mean(a < 2), (k, np.mean(a < 2))
+
+
+def test_not_identifiable(tap_rec):
+    # gamma_scale does nothing to a tap (motor unplugged); M only scales B_eq and f_c; f_c from
+    # a short, fast coast (never slow) with a noisy sensor cannot be told from B_eq.
+    settings = F.FitSettings(adam_steps=0)
+    result = F.fit(
+        [tap_rec], ("B_eq", "f_c", "gamma_scale", "M"), settings=settings, progress=False
+    )
+    assert result.params["B_eq"].identifiable and result.params["f_c"].identifiable
+    g, m = result.params["gamma_scale"], result.params["M"]
+    assert g.value is None and g.stderr is None and "do not depend" in g.note
+    assert m.value is None and "combination" in m.note
+    assert result.to_json()["params"]["M"]["identifiable"] is False
+    truth = jc.tap_plant(B_eq=2.5, effects=(jc.Coulomb(f_c=0.5),))
+    fast = make_recording(truth, None, jc.tap(1.0, horizon=0.12), seed=0, noise=5e-5)
+    result = F.fit([fast], ("B_eq", "f_c"), settings=settings, progress=False)
+    assert not result.params["f_c"].identifiable and result.params["f_c"].value is None
+    assert result.params["B_eq"].identifiable
+
+
+def test_parameter_names():
+    assert F.parse_params("B_eq, f_c,v_limit") == ("B_eq", "f_c", "v_limit")
+    assert F.canonical("v_limit") == "v_sat"
+    with pytest.raises(UserError, match="unknown parameter 'B'"):
+        F.parse_params("B,f_c")
+    with pytest.raises(UserError, match="named twice"):
+        F.parse_params("v_sat,v_limit")
+    plant = F.with_values(jc.handout_plant(), {"f_c": 0.4, "v_limit": 5.0})
+    assert plant.get("f_c") == 0.4 and plant.get("v_sat") == 5.0
+
+
+def test_coasting_segment_needs_a_tap():
+    with pytest.raises(ValueError, match="no tap"):
+        F.coasting_segment(np.zeros(500), 1e-3)
+
+
+def test_fitted_plant_file_round_trip(tmp_path, cl_fit):
+    path = F.write_fitted_plant(tmp_path / "fitted.json", cl_fit, sources=["a.toml"])
+    plant = F.load_fitted_plant(path)
+    assert plant.motor_connected
+    assert plant.get("B_eq") == pytest.approx(cl_fit.params["B_eq"].value, rel=1e-12)
+    assert plant.get("f_c") == pytest.approx(cl_fit.params["f_c"].value, rel=1e-12)
+    doc = json.loads(path.read_text())
+    assert doc["fitted"]["B_eq"]["stderr"] == pytest.approx(cl_fit.params["B_eq"].stderr)
+    with pytest.raises(UserError, match="exists"):
+        F.write_fitted_plant(path, cl_fit)
+    F.write_fitted_plant(path, cl_fit, force=True)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"plant": {"B_eq": -1}}')
+    with pytest.raises(UserError, match="B_eq"):
+        F.load_fitted_plant(bad)
+    with pytest.raises(UserError, match="not found"):
+        F.load_fitted_plant(tmp_path / "missing.json")
+
+
+def test_command_line(tmp_path, tap_rec, capsys):
+    from jaxcart.cli import main
+
+    toml = write_recording(tap_rec, tmp_path / "tap.toml")
+    args = [
+        "fit",
+        str(toml),
+        "--params",
+        "B_eq,f_c",
+        "--quiet",
+        "--classic",
+        "--json",
+        str(tmp_path / "fit.json"),
+        "--out",
+        str(tmp_path / "fitted.json"),
+        "--plot",
+        str(tmp_path / "fit.png"),
+    ]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "B_eq" in out and "log-linear" in out and "exact simulator" in out
+    report = json.loads((tmp_path / "fit.json").read_text())
+    assert report["params"]["B_eq"]["value"] == pytest.approx(TAP_TRUTH["B_eq"], rel=0.01)
+    assert report["rms_after"] < report["rms_before"]
+    assert report["classic"][0]["name"] == "B_eq"
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
+    assert F.load_fitted_plant(tmp_path / "fitted.json").get("f_c") == pytest.approx(
+        report["params"]["f_c"]["value"]
+    )
+    # Existing outputs are kept unless --force; the error is one line, before any fitting.
+    assert main(args) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["fit", str(toml), "--params", "B_eq,wheels"]) == 2
+    assert "unknown parameter" in capsys.readouterr().err
+
+
+def test_real_tap(realdata):
+    from jaxcart.files import read_experiment
+
+    rec = read_experiment(os.path.join(realdata, "tap.toml"))
+    result = F.fit([rec], ("B_eq", "f_c"), progress=False)
+    seg = result.segments[0]
+    assert 3.1 <= seg.time[0] <= 3.5  # the push ends at about 3.28 s
+    assert 4.2 <= seg.time[-1] <= 4.5  # at rest again by about 4.4 s
+    b, f = result.params["B_eq"], result.params["f_c"]
+    print(
+        f"real tap: B_eq = {b.value:.4g} +/- {b.stderr:.2g} kg/s, f_c = {f.value:.4g} +/- "
+        f"{f.stderr:.2g} N, RMS {result.rms_before_exact * 1e3:.4g} -> "
+        f"{result.rms_after_exact * 1e3:.4g} mm"
+    )
+    assert 0.5 < b.value < 5.4 and 0.05 < f.value < 1.5
+    # Model error (not the encoder) dominates: the robust errors exceed the naive ones.
+    assert b.stderr > 2 * b.stderr_naive
+    assert result.rms_after_exact < 1e-3 < result.rms_before_exact
+
+
+@pytest.mark.slow
+def test_real_cross_prediction(realdata):
+    from jaxcart.files import read_experiment
+    from tuning.commands.fit import cross_table
+
+    recs = [read_experiment(os.path.join(realdata, f)) for f in ("tap.toml", "p50.toml")]
+    rows = cross_table(recs, ("B_eq", "f_c"))
+    for row in rows:
+        print(
+            f"{row['fitted_on']} -> {row['predicting']}: {row['rms'] * 1e3:.4g} mm {row['values']}"
+        )
+        assert math.isfinite(row["rms"])

@@ -1,0 +1,340 @@
+"""`jaxcart lab`: the whole report from the built-in (synthetic) recordings and from the real
+ones; the PI bound on k_i; which recording goes to which part; the built-in data themselves.
+
+The built-in run (about 40 s on 2 cores) is shared by the tests of this module.
+"""
+
+import json
+import math
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from jaxcart.errors import UserError
+from jaxcart.params import Plant
+from tuning.lab import data, inputs, prelab
+from tuning.lab.html import Document
+from tuning.lab.report import output_dir, run_lab
+
+# Tolerances of the fits on the synthetic data (true B_eq = 4.6 kg/s, f_c = 0.45 N; positions are
+# whole encoder counts, no noise): the tap fit, the Part (ii) refit with f_c held, the ramp fit.
+TOL_B_EQ = 0.01  # relative
+TOL_F_C_TAP = 0.02  # relative
+TOL_F_C_RAMP = 0.03  # relative: the ramp sees f_c only after breakaway, one count at a time
+FIGURES = {
+    "prelab_root_locus",
+    "prelab_pid_step",
+    "part1_loglinear",
+    "part1_tap",
+    "part2_p50",
+    "part3_ramp",
+    "part3_error",
+    "part4_pi_error",
+    "part4_root_locus",
+    "part5_pid_step",
+    "part5_slider",
+}
+
+
+@pytest.fixture(scope="module")
+def builtin_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("lab") / "report"
+    run_lab(None, out)
+    return out, json.loads((out / "results.json").read_text())
+
+
+# ---------------------------------------------------------------- the PI bound
+
+
+@pytest.mark.parametrize("b_eq", [5.4, 4.6, 1.5])
+def test_routh_bound_is_the_root_locus_crossing(b_eq):
+    p = Plant(B_eq=b_eq)
+    m, c, gamma, k = float(p.m), float(p.c), float(p.gamma), 10.0
+    routh = prelab.ki_bound_routh(m, c, k)
+    assert routh == pytest.approx(c * k / m, rel=1e-15)
+    ki, omega = prelab.ki_bound_locus(m, c, gamma, k)
+    assert ki == pytest.approx(routh, rel=1e-6)
+    # At the bound a pair of closed-loop poles sits on the imaginary axis at sqrt(gamma k / m).
+    poles = prelab.closed_loop_poles(m, c, gamma, k, routh)
+    pair = poles[np.abs(poles.imag) > 1e-6]
+    assert pair.size == 2
+    assert np.max(np.abs(pair.real)) < 1e-9 * omega
+    assert np.abs(pair.imag) == pytest.approx([math.sqrt(gamma * k / m)] * 2, rel=1e-9)
+    # Just inside the bound the loop is stable, just outside it is not.
+    assert np.max(prelab.closed_loop_poles(m, c, gamma, k, 0.999 * routh).real) < 0
+    assert np.max(prelab.closed_loop_poles(m, c, gamma, k, 1.001 * routh).real) > 0
+
+
+def test_prelab_numbers_of_the_handout():
+    a = prelab.appendix()
+    assert a["m"] == pytest.approx(1.0731, abs=5e-5)
+    assert a["B_emf"] == pytest.approx(7.7236, abs=5e-5)
+    assert a["gamma"] == pytest.approx(1.7235, abs=5e-5)
+    assert prelab.ki_bound_routh(a["m"], 5.4 + a["B_emf"], 10.0) == pytest.approx(122.29, abs=0.01)
+
+
+# ---------------------------------------------------------------- built-in data
+
+
+def test_builtin_data_regenerate_identically(tmp_path):
+    written = data.generate(tmp_path)
+    shipped = data.builtin_dir()
+    assert {p.name for p in written} == {
+        p.name for p in shipped.iterdir() if p.suffix in (".toml", ".csv")
+    }
+    for path in written:
+        assert path.read_bytes() == (shipped / path.name).read_bytes(), path.name
+    with pytest.raises(UserError, match="exists"):
+        data.generate(tmp_path)
+
+
+def test_builtin_data_are_whole_counts_of_the_true_cart():
+    found = inputs.find_inputs(data.builtin_dir())
+    assert set(found.recordings) == set(inputs.SLOTS)
+    assert found.synthetic["B_eq"] == data.TRUE["B_eq"]
+    assert found.synthetic["f_c"] == data.TRUE["f_c"]
+    q = data.TRUE["quantization"]
+    for rec in found.recordings.values():
+        counts = rec.position / q
+        assert np.max(np.abs(counts - np.rint(counts))) < 1e-6
+    pid = found.recordings["pid"].controller
+    assert (pid.kp, pid.kd, pid.ki) == (
+        data.PID_DESIGN["kp"],
+        data.PID_DESIGN["kd"],
+        data.PID_DESIGN["ki"],
+    )
+    # Independent check of one recording: the P loop k = 50 re-run on the exact simulator with
+    # the true cart ends where the recording ends, within one count plus the controller's
+    # quantization effect (kp q).
+    from jaxcart.exact import simulate_exact
+
+    rec = found.recordings["p_step"]
+    sim = simulate_exact(data.true_plant(), rec.controller, rec.experiment)
+    assert abs(sim.position[-1] - rec.position[-1]) < 2 * q
+
+
+# ---------------------------------------------------------------- which file is which part
+
+
+def _copy_builtin(folder, *, index=False):
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in data.builtin_dir().iterdir():
+        if path.suffix in (".toml", ".csv") and (index or path.name != "lab.toml"):
+            shutil.copy(path, folder / path.name)
+    return folder
+
+
+def test_parts_are_guessed_without_an_index(tmp_path):
+    found = inputs.find_inputs(_copy_builtin(tmp_path / "d"))
+    names = {slot: rec.path.name for slot, rec in found.recordings.items()}
+    assert names == {
+        "tap": "tap.toml",
+        "p_step": "p50.toml",
+        "ramp": "ramp.toml",
+        "p_error": "p10.toml",
+        "pi": "pi.toml",
+        "pid": "pid.toml",
+    }
+    assert all(how.startswith("guessed") for how in found.how.values())
+    assert found.synthetic is None
+
+
+def test_index_wins_over_the_guess(tmp_path):
+    folder = _copy_builtin(tmp_path / "d")
+    shutil.copy(folder / "p50.toml", folder / "p50_copy.toml")
+    with pytest.raises(UserError, match="2 recordings fit Part \\(ii\\).*lab.toml"):
+        inputs.find_inputs(folder)
+    (folder / "lab.toml").write_text('[recordings]\np_step = "p50_copy.toml"\n')
+    found = inputs.find_inputs(folder)
+    assert found.recordings["p_step"].path.name == "p50_copy.toml"
+    assert found.how["p_step"] == "named in lab.toml"
+    assert ("p50.toml", "p_step is named in lab.toml") in found.unused
+
+
+@pytest.mark.parametrize(
+    "index, message",
+    [
+        ('[recordings]\nfoo = "tap.toml"\n', "foo is not a slot"),
+        ('[recordings]\ntap = "missing.toml"\n', "no such file"),
+        ("[recordings\n", "not valid TOML"),
+    ],
+)
+def test_bad_index_is_a_user_error(tmp_path, index, message):
+    folder = _copy_builtin(tmp_path / "d")
+    (folder / "lab.toml").write_text(index)
+    with pytest.raises(UserError, match=message):
+        inputs.find_inputs(folder)
+
+
+def test_bad_data_folder_is_a_user_error(tmp_path, capsys):
+    with pytest.raises(UserError, match="no such folder"):
+        run_lab(tmp_path / "nowhere", tmp_path / "out")
+    (tmp_path / "file.toml").write_text('kind = "tap"\n')
+    with pytest.raises(UserError, match="a file, not a folder"):
+        run_lab(tmp_path / "file.toml", tmp_path / "out")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="no experiment files"):
+        run_lab(tmp_path / "empty", tmp_path / "out")
+    assert not (tmp_path / "out").exists()  # nothing is written before the data are read
+    from jaxcart.cli import main
+
+    assert main(["lab", "--data", str(tmp_path / "nowhere")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jaxcart lab: error:") and "nowhere" in err[0]
+
+
+def test_an_existing_report_is_not_overwritten(tmp_path):
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "report.md").write_text("mine")
+    with pytest.raises(UserError, match="--force"):
+        output_dir(out)
+    assert (out / "report.md").read_text() == "mine"
+    assert output_dir(out, force=True) == out
+
+
+def test_default_report_folder_is_numbered(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert output_dir().name == "jaxcart-lab"
+    assert output_dir().name == "jaxcart-lab-2"
+    assert output_dir().name == "jaxcart-lab-3"
+
+
+def test_document_escapes_html():
+    doc = Document("<T>")
+    doc.paragraph("a < b and `x & y` and **bold**")
+    html = doc.to_html(".")
+    assert "<title>&lt;T&gt;</title>" in html
+    assert "a &lt; b and <code>x &amp; y</code> and <strong>bold</strong>" in html
+
+
+# ---------------------------------------------------------------- the built-in report
+
+
+def test_builtin_report_has_every_output(builtin_report):
+    out, results = builtin_report
+    for name in ("report.md", "report.html", "results.json", "gains.json"):
+        assert (out / name).is_file(), name
+    figures = {p.stem for p in (out / "figures").glob("*.png")}
+    assert figures == FIGURES
+    md = (out / "report.md").read_text()
+    linked = set(re.findall(r"\]\(figures/(\w+)\.png\)", md))
+    assert linked == FIGURES
+    html = (out / "report.html").read_text()
+    assert html.count('src="data:image/png;base64,') == len(FIGURES)
+    assert "figures/" not in re.sub(r"<figcaption>.*?</figcaption>", "", html)
+    for heading in (
+        "## Pre-lab",
+        "## Part (i)",
+        "## Part (ii)",
+        "## Part (iii)",
+        "## Part (iv)",
+        "## Part (v)",
+        "## Summary",
+    ):
+        assert heading in md
+    assert "synthetic" in md and "No recording" not in md
+    assert results["data"]["builtin"] and not results["data"]["missing"]
+
+
+def test_builtin_report_recovers_the_true_cart(builtin_report):
+    _, results = builtin_report
+    values = {k: v["value"] for k, v in results["values"].items()}
+    true = data.TRUE
+    assert values["B_eq_tap_fit"] == pytest.approx(true["B_eq"], rel=TOL_B_EQ)
+    assert values["f_c_tap_fit"] == pytest.approx(true["f_c"], rel=TOL_F_C_TAP)
+    assert values["B_eq_p50_coulomb"] == pytest.approx(true["B_eq"], rel=TOL_B_EQ)
+    assert values["f_c_ramp_fit"] == pytest.approx(true["f_c"], rel=TOL_F_C_RAMP)
+    # The handout's methods leave out what the full fits model: the log-linear B_eq is too
+    # large (Coulomb friction bends ln|v| down), the ramp breakaway is seen a few counts late.
+    assert values["B_eq_tap_handout"] > 1.1 * true["B_eq"]
+    assert true["f_c"] < values["f_c_ramp_handout"] < 1.1 * true["f_c"]
+    # Without Coulomb friction in the model, Part (ii)'s B_eq absorbs the friction: larger.
+    assert values["B_eq_p50"] > 1.05 * true["B_eq"]
+    # Every value with a truth carries it and its relative error.
+    for v in results["values"].values():
+        if "true" in v:
+            assert v["relative_error"] == pytest.approx(abs(v["value"] - v["true"]) / v["true"])
+
+
+def test_builtin_report_numbers_are_consistent(builtin_report):
+    _, results = builtin_report
+    values = {k: v["value"] for k, v in results["values"].items()}
+    p = Plant()
+    # The two k_i bounds (Routh, root-locus crossing) of the pre-lab and of Part (iv).
+    for key in ("ki_max_prelab", "ki_max_fitted"):
+        assert values[f"{key}_locus"] == pytest.approx(values[f"{key}_routh"], rel=1e-6)
+    assert values["ki_max_prelab_routh"] == pytest.approx(
+        (5.4 + float(p.B_emf)) * 10 / float(p.m), rel=1e-12
+    )
+    c_fit = values["B_eq_tap_fit"] + float(p.B_emf)
+    assert values["ki_max_fitted_routh"] == pytest.approx(c_fit * 10 / float(p.m), rel=1e-12)
+    # Part (iii): the bound f_c / (k gamma), and e(inf) measured and simulated close to it (the
+    # cart creeps to the edge of the dead band); the true bound within the fit's tolerance.
+    assert values["e_bound"] == pytest.approx(values["f_c"] / (10 * float(p.gamma)), rel=1e-12)
+    true_bound = data.TRUE["f_c"] / (10 * float(p.gamma))
+    assert values["e_bound"] == pytest.approx(true_bound, rel=TOL_F_C_RAMP)
+    assert values["e_inf_measured"] == pytest.approx(true_bound, rel=0.01)
+    assert values["e_inf_sim"] == pytest.approx(values["e_inf_measured"], abs=0.5e-3)
+    # Part (v): the fitted model predicts the recorded PID step.
+    assert values["pid_simulated_settling_time"] == pytest.approx(
+        values["pid_measured_settling_time"], abs=0.02
+    )
+    assert values["pid_simulated_rise_time"] == pytest.approx(
+        values["pid_measured_rise_time"], abs=0.01
+    )
+    # The pre-lab design meets the design problem on the exact simulator.
+    assert results["prelab"]["pid"]["meets"]
+    assert values["pid_settling_time"] < 1.0 and values["pid_overshoot"] < 5.0
+    from hw.gains import read_gains
+
+    g = read_gains(builtin_report[0] / "gains.json")
+    assert (g.kp, g.kd, g.ki) == pytest.approx(
+        (values["pid_kp"], values["pid_kd"], values["pid_ki"])
+    )
+
+
+def test_slider_moves_end_at_each_setpoint(builtin_report):
+    _, results = builtin_report
+    moves = results["part_v"]["slider"]
+    assert [(m["from"], m["to"]) for m in moves] == [
+        (0.0, 0.2),
+        (0.2, 0.0),
+        (0.0, -0.2),
+        (-0.2, 0.2),
+    ]
+    for m in moves:  # within the Coulomb dead band of the tuned PD part, under 1 cm
+        assert m["steady_state_error"] < 0.01
+
+
+# ---------------------------------------------------------------- the real recordings
+
+
+def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
+    out = run_lab(realdata, tmp_path / "real")
+    results = json.loads((out / "results.json").read_text())
+    recordings = results["data"]["recordings"]
+    assert recordings["tap"] == "tap.toml" and recordings["p_step"] == "p50.toml"
+    assert set(results["data"]["missing"]) == {"ramp", "p_error", "pi", "pid"}
+    assert results["data"]["synthetic"] is None
+    md = (out / "report.md").read_text()
+    for part in ("(iii) (open-loop", "(iii) (P control", "(iv)", "(v)"):
+        assert f"No recording for Part {part}" in md
+    values = {k: v["value"] for k, v in results["values"].items()}
+    # The real tap: the full fit reproduces the coast within a fraction of a millimetre
+    # (exact simulator), with a B_eq and f_c of a real cart.
+    fit = results["part_i"]["fit"]
+    assert fit["rms_after"] < 0.5e-3
+    assert 0.5 < values["B_eq_tap_fit"] < 10 and 0.05 < values["f_c_tap_fit"] < 2
+    # Part (ii) from the real recording: B_eq re-estimated, better than the tap's model.
+    refit = results["part_ii"]["refit"]
+    assert refit["rms_after"] < refit["rms_before"]
+    assert 0.5 < values["B_eq_p50"] < 15
+    assert "e_inf_measured" not in values and "pid_measured_rise_time" not in values
+    # The P-control bounds on f_c from the real Part (ii): lower <= upper.
+    bounds = results["part_iii"]["p_control_bounds"]["p_step"]
+    assert 0 < bounds["lower"] <= bounds["upper"]
+    assert (out / "report.html").is_file()
+    assert {p.stem for p in (out / "figures").glob("*.png")} == FIGURES

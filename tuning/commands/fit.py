@@ -1,0 +1,230 @@
+"""``jaxcart fit``: fit plant parameters to one or several recordings.
+
+    jaxcart fit tap.toml --params B_eq,f_c
+    jaxcart fit tap.toml p50.toml --params B_eq,f_c --classic --cross --plot fit.png \\
+        --json fit.json --out fitted.json
+
+Prints each parameter with its standard error (or "not identifiable"), the RMS position error
+before and after (smooth and exact simulators), optionally the lab's classic estimates and the
+cross-prediction of each recording from the others' fit; writes the fitted plant (``--out``,
+readable by ``jaxcart tune --plant-file``), a JSON report and an overlay plot.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from jaxcart.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit",
+        help="fit plant parameters (B_eq, f_c, ...) to recordings, with standard errors",
+        description="Fit plant parameters shared by the recordings, and each recording's start "
+        "state, by gradient through the smoothed simulator and a Levenberg-Marquardt polish "
+        "finished on the exact simulator. A tap's coasting part is found automatically.",
+    )
+    p.add_argument("experiments", nargs="+", metavar="EXPERIMENT.toml", help="recordings")
+    p.add_argument(
+        "--params",
+        default="B_eq,f_c",
+        help="parameters to fit, comma-separated: B_eq, f_c, M, gamma_scale, v_limit (= v_sat) "
+        "or any plant parameter (default B_eq,f_c)",
+    )
+    p.add_argument(
+        "--plant-file",
+        help="start from the B_eq, f_c, M, gamma_scale and v_sat of this fitted-plant JSON "
+        "(jaxcart fit --out)",
+    )
+    p.add_argument("--json", dest="json_out", metavar="OUT", help="write the report as JSON")
+    p.add_argument("--plot", metavar="PNG", help="overlay plot of recordings and model")
+    p.add_argument(
+        "--out", metavar="JSON", help="write the fitted plant (for jaxcart tune --plant-file)"
+    )
+    p.add_argument("--classic", action="store_true", help="add the lab's classic estimates")
+    p.add_argument(
+        "--cross",
+        action="store_true",
+        help="fit each recording alone and predict the others with it",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from jaxcart.files import read_experiment
+    from tuning import fit as F
+
+    params = F.parse_params(args.params)
+    if args.cross and len(args.experiments) < 2:
+        raise UserError("--cross needs at least two recordings")
+    outputs = [x for x in (args.json_out, args.plot, args.out) if x]
+    for out in outputs:
+        if Path(out).exists() and not args.force:
+            raise UserError(f"{out} exists; choose another name or pass --force to overwrite it")
+    recordings = [read_experiment(path) for path in args.experiments]
+    initial = {}
+    if args.plant_file:
+        initial = F.plant_values(F.load_fitted_plant(args.plant_file))
+    result = F.fit(recordings, params, initial=initial, progress=not args.quiet)
+    print(format_result(result))
+
+    report = result.to_json()
+    if args.classic:
+        classic = classic_estimates(recordings, result)
+        print(format_classic(classic))
+        report["classic"] = [{"recording": n, **c.to_json()} for n, c in classic]
+    if args.cross:
+        cross = cross_table(recordings, params, progress=not args.quiet)
+        print(format_cross(cross))
+        report["cross_prediction"] = cross
+    if args.json_out:
+        _write(args.json_out, json.dumps(report, indent=2, default=_jsonable) + "\n", args.force)
+        print(f"report: {args.json_out}")
+    if args.out:
+        F.write_fitted_plant(args.out, result, sources=args.experiments, force=args.force)
+        print(f"fitted plant: {args.out}")
+    if args.plot:
+        F.plot_fit(result, args.plot)
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def _write(path, text: str, force: bool) -> None:
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("w" if force else "x") as f:
+            f.write(text)
+    except FileExistsError:
+        raise UserError(f"{path} exists; choose another name or pass --force") from None
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror}") from None
+
+
+def _jsonable(x):
+    if hasattr(x, "item"):
+        return x.item()
+    raise TypeError(f"not JSON serializable: {type(x).__name__}")
+
+
+def _mm(x) -> str:
+    return "-" if x is None else f"{x * 1e3:.4g}"
+
+
+def format_result(result) -> str:
+    """The parameter table and the RMS errors, as printed by the command."""
+    from tuning.fit import UNITS
+
+    lines = ["recordings:"]
+    for s in result.segments:
+        what = "coasting part" if s.kind == "tap" else "whole run"
+        lines.append(
+            f"  {s.name}: {s.kind}, {what} {s.time[0]:.3f} to {s.time[-1]:.3f} s "
+            f"({s.measured.size} samples)"
+        )
+    lines.append(f"{'parameter':<14}{'value':>14}{'stderr':>12}{'naive':>12}  unit")
+    for name, e in result.params.items():
+        unit = UNITS.get(name, "")
+        if not e.identifiable:
+            lines.append(f"{name:<14}{e.note}")
+            continue
+        lines.append(f"{name:<14}{e.value:>14.6g}{e.stderr:>12.3g}{e.stderr_naive:>12.3g}  {unit}")
+    for s in result.segments:
+        for v, e in s.nuisance.items():
+            unit = "m/s" if v == "yd0" else "m"
+            lines.append(f"{s.name + ':' + v:<14}{e.value:>14.6g}{e.stderr:>12.3g}{'':>12}  {unit}")
+    lines.append(f"RMS position error [mm]{'before':>12}{'after':>12}")
+    lines.append(f"  {'smooth model':<21}{_mm(result.rms_before):>12}{_mm(result.rms_after):>12}")
+    lines.append(
+        f"  {'exact simulator':<21}{_mm(result.rms_before_exact):>12}"
+        f"{_mm(result.rms_after_exact):>12}"
+    )
+    if len(result.segments) > 1:
+        for s in result.segments:
+            lines.append(
+                f"  {s.name + ' (exact)':<21}{_mm(s.rms_before_exact):>12}"
+                f"{_mm(s.rms_after_exact):>12}"
+            )
+    for (a, b), c in result.correlation.items():
+        lines.append(f"correlation {a}, {b}: {c:+.3f}")
+    lines.append(f"fitted in {result.seconds:.1f} s")
+    return "\n".join(lines)
+
+
+def classic_estimates(recordings, result=None) -> list:
+    """[(recording name, ClassicEstimate)] of the methods that apply to each recording."""
+    from tuning import classic
+
+    out = []
+    for rec in recordings:
+        name = classic._name(rec)
+        try:
+            if rec.kind == "tap":
+                out.append((name, classic.loglinear_beq(rec)))
+            elif rec.kind == "open_loop":
+                out.append((name, classic.ramp_breakaway_fc(rec)))
+            elif rec.controller is not None and rec.controller.ki == 0:
+                out.append((name, classic.pcontrol_fc_bounds(rec)))
+        except UserError as exc:
+            print(f"classic ({name}): skipped: {exc}", file=sys.stderr)
+    return out
+
+
+def format_classic(classic) -> str:
+    from tuning.fit import UNITS
+
+    lines = ["classic estimates:"]
+    for name, c in classic:
+        unit = UNITS.get(c.name, "")
+        if c.value is not None:
+            se = f" +/- {c.stderr:.3g}" if c.stderr is not None else ""
+            text = f"{c.name} = {c.value:.4g}{se} {unit}"
+        else:
+            upper = f" < {c.upper:.4g}" if c.upper is not None else ""
+            text = f"{c.lower:.4g} <= {c.name}{upper} {unit}"
+        lines.append(f"  {name}: {text}   [{c.method}]")
+    return "\n".join(lines)
+
+
+def cross_table(recordings, params, *, progress=False) -> list:
+    """Fit each recording alone; predict every other one with those values (its start state
+    refitted). [{"fitted_on", "predicting", "rms", "rms_smooth", "values", "held"}] with RMS
+    [m]; "held" names the parameters that recording could not identify (kept at their start)."""
+    from tuning import fit as F
+
+    rows = []
+    for rec in recordings:
+        alone = F.fit([rec], params, progress=progress)
+        values = {n: alone.values[F.canonical(n)] for n in params}
+        held = [n for n, e in alone.params.items() if not e.identifiable]
+        for other in recordings:
+            pred = alone if other is rec else F.cross_predict(values, [other], progress=progress)
+            rows.append(
+                {
+                    "fitted_on": F._name(rec),
+                    "predicting": F._name(other),
+                    "rms": F._finite(pred.rms_after_exact),
+                    "rms_smooth": F._finite(pred.rms_after),
+                    "values": values,
+                    "held": held,
+                }
+            )
+    return rows
+
+
+def format_cross(rows) -> str:
+    lines = ["cross-prediction (exact simulator RMS [mm]; the start state of a tap refitted):"]
+    for r in rows:
+        vals = ", ".join(
+            f"{k} = {v:.4g}" + (" (held)" if k in r["held"] else "") for k, v in r["values"].items()
+        )
+        rms = r["rms"] if r["rms"] is not None else r["rms_smooth"]
+        note = " (own fit)" if r["fitted_on"] == r["predicting"] else ""
+        what = "failed" if rms is None else f"{_mm(rms)} mm{note}"
+        lines.append(f"  {r['fitted_on']} -> {r['predicting']}: {what}   [{vals}]")
+    return "\n".join(lines)

@@ -1,0 +1,57 @@
+"""``jaxcart lab``: the whole pre-lab and lab report in one command.
+
+    jaxcart lab                                  # built-in example recordings -> ./jaxcart-lab/
+    jaxcart lab --data DIR --out REPORT_DIR      # your recordings (experiment files)
+    jaxcart lab --force --out REPORT_DIR         # replace an existing report
+
+DIR holds experiment files (TOML + CSV or .mat); each goes to its part from its kind,
+controller and input, or from an index DIR/lab.toml ([recordings] tap = "tap.toml", ...).
+Parts without a recording show simulations only. Writes report.md, report.html (figures
+embedded), results.json, gains.json and figures/*.png.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "lab",
+        help="write the whole pre-lab and lab report (every number and plot of the handout)",
+        description="Write the pre-lab and the lab report, Parts (i) to (v): appendix "
+        "constants, the PI bound on k_i (Routh and root locus), a tuned PID design, B_eq and "
+        "f_c fitted to the recordings, every experiment against simulations, a summary table; "
+        "Markdown + self-contained HTML + results.json + PNG figures. Without --data the "
+        "built-in (synthetic) example recordings are used.",
+    )
+    p.add_argument(
+        "--data",
+        metavar="DIR",
+        type=Path,
+        help="folder of experiment files (default: the built-in example recordings); "
+        'an index DIR/lab.toml [recordings] slot = "file.toml" (slots: tap, '
+        "p_step, ramp, p_error, pi, pid) wins over the guess from each file",
+    )
+    p.add_argument(
+        "--out",
+        metavar="REPORT_DIR",
+        type=Path,
+        help="report folder (default ./jaxcart-lab, or ./jaxcart-lab-N if it exists)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite the report in an existing, non-empty --out folder",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # fits and checks need float64
+    from tuning.lab.report import run_lab
+
+    run_lab(args.data, args.out, force=args.force)
+    return 0

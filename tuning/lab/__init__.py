@@ -1,0 +1,23 @@
+"""The lab, end to end: ``run_lab`` writes the whole pre-lab and lab report (``jaxcart lab``).
+
+Modules: :mod:`~tuning.lab.report` (the run and its outputs), :mod:`~tuning.lab.inputs` (which
+recording is which part), :mod:`~tuning.lab.prelab` (appendix constants, the k_i bound),
+:mod:`~tuning.lab.parts` (Parts (i) to (v)), :mod:`~tuning.lab.data` (the built-in example
+recordings), :mod:`~tuning.lab.figures` and :mod:`~tuning.lab.html` (figures, Markdown/HTML).
+"""
+
+from tuning.lab.data import TRUE, builtin_dir, generate
+from tuning.lab.inputs import SLOTS, find_inputs
+from tuning.lab.prelab import ki_bound_locus, ki_bound_routh
+from tuning.lab.report import run_lab
+
+__all__ = [
+    "TRUE",
+    "builtin_dir",
+    "generate",
+    "SLOTS",
+    "find_inputs",
+    "ki_bound_locus",
+    "ki_bound_routh",
+    "run_lab",
+]

@@ -1,0 +1,295 @@
+"""Pre-lab arithmetic: the appendix's derived constants and the PI stability bound on k_i.
+
+With P gain k and integral gain k_i on the cart m y'' + c y' = gamma v, the closed loop has the
+characteristic polynomial
+
+    m s^3 + c s^2 + gamma k s + gamma k_i
+
+Routh: the first column m, c, (c gamma k - m gamma k_i)/c, gamma k_i is positive iff
+0 < k_i < c k / m. The same bound is where the root locus of
+
+    H(s) = gamma / (m s^3 + c s^2 + gamma k s)      (gain k_i)
+
+crosses the imaginary axis, at s = +/- j sqrt(gamma k / m); :func:`ki_bound_locus` finds that
+crossing numerically from python-control's closed-loop poles, independently of the formula.
+
+>>> round(ki_bound_routh(1.0731, 13.1236, 10.0), 2)
+122.3
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import brentq
+
+from jaxcart.params import Plant
+
+
+def appendix(plant: Plant | None = None) -> dict:
+    """Derived constants of the appendix: M, M_J, m [kg], B_emf [kg/s], gamma [N/V]."""
+    plant = Plant() if plant is None else plant
+    return {
+        "M": float(plant.M),
+        "M_J": float(plant.M_J),
+        "m": float(plant.m),
+        "B_emf": float(plant.B_emf),
+        "gamma": float(plant.gamma),
+    }
+
+
+def ki_bound_routh(m: float, c: float, k: float) -> float:
+    """Largest stable integral gain k_i [V/(m s)] from the Routh condition: c k / m.
+
+    m: moving mass [kg]; c: total damping B_eq + B_emf [kg/s]; k: P gain [V/m].
+    """
+    return c * k / m
+
+
+def open_loop(m: float, c: float, gamma: float, k: float):
+    """H(s) = gamma / (m s^3 + c s^2 + gamma k s): the loop seen by k_i (python-control tf)."""
+    import control
+
+    return control.tf([gamma], [m, c, gamma * k, 0.0])
+
+
+def closed_loop_poles(m, c, gamma, k, ki) -> np.ndarray:
+    """Poles of the PI loop with gain k_i, from python-control's feedback(k_i H, 1)."""
+    import control
+
+    return np.asarray(control.feedback(ki * open_loop(m, c, gamma, k), 1).poles())
+
+
+def ki_bound_locus(m: float, c: float, gamma: float, k: float) -> tuple[float, float]:
+    """(k_i, omega): where the root locus of H crosses the imaginary axis, found numerically.
+
+    Bisects on the largest real part of the closed-loop poles (python-control), so it does not
+    use the Routh formula. omega [rad/s] is the crossing frequency.
+    """
+
+    def growth(ki):
+        return float(np.max(closed_loop_poles(m, c, gamma, k, ki).real))
+
+    lo, hi = 1e-6, 1.0
+    while growth(hi) < 0:
+        lo, hi = hi, hi * 4.0
+        if hi > 1e12:
+            raise ValueError("the root locus never crosses the imaginary axis")
+    ki = brentq(growth, lo, hi, xtol=1e-14, rtol=1e-14, maxiter=500)
+    poles = closed_loop_poles(m, c, gamma, k, ki)
+    omega = float(np.max(np.abs(poles.imag)))
+    return float(ki), omega
+
+
+def locus_data(m, c, gamma, k, ki_max):
+    """Root locus of H for k_i in [0, 3 ki_max] (python-control's root_locus_map)."""
+    import control
+
+    gains = np.concatenate([[0.0], np.geomspace(1e-3, 3.0 * ki_max, 600)])
+    gains = np.sort(np.concatenate([gains, [ki_max]]))
+    return control.root_locus_map(open_loop(m, c, gamma, k), gains=gains)
+
+
+# ---------------------------------------------------------------- the report's section
+
+#: The handout's P gain for the PI analysis [V/m] and its B_eq estimate [kg/s].
+K_PI = 10.0
+B_EQ_HANDOUT = 5.4
+#: Tuning for the report: a short multi-start run (about 10 s on 2 cores), checked exactly.
+TUNE_OPTIONS = {"max_iterations": 60, "n_starts": 4}
+
+
+def routh_and_locus(lab, m, c, gamma, k, *, name, part, title, key):
+    """Routh bound and root-locus crossing of the PI loop; figure ``name``; returns the bound."""
+    ki_routh = ki_bound_routh(m, c, k)
+    ki_locus, omega = ki_bound_locus(m, c, gamma, k)
+    poles = closed_loop_poles(m, c, gamma, k, ki_routh)
+    rel = abs(ki_locus - ki_routh) / ki_routh
+    path, rel_path = lab.figure_path(name)
+    from tuning.lab import figures
+
+    figures.root_locus(
+        path, locus_data(m, c, gamma, k, ki_routh), ki_bound=ki_locus, omega=omega, title=title
+    )
+    lab.value(f"{key}_routh", ki_routh, "V/(m s)", f"largest stable k_i, Routh ({part})", part)
+    lab.value(
+        f"{key}_locus",
+        ki_locus,
+        "V/(m s)",
+        f"largest stable k_i, root-locus crossing ({part})",
+        part,
+    )
+    pole_text = ", ".join(_pole(p) for p in sorted(poles, key=lambda p: (p.real, p.imag)))
+    lab.doc.paragraph(
+        f"Characteristic polynomial m s³ + c s² + γ k s + γ k_i with m = {m:.4f} kg, "
+        f"c = {c:.4f} kg/s, γ = {gamma:.4f} N/V, k = {k:g} V/m. Routh's first column "
+        f"(m, c, γ (c k − m k_i)/c, γ k_i) stays positive for 0 < k_i < c k / m = "
+        f"**{ki_routh:.4f} V/(m s)**. The root locus of H(s) = γ / (m s³ + c s² + γ k s) "
+        f"(python-control) crosses the imaginary axis at k_i = {ki_locus:.4f} V/(m s), "
+        f"s = ±j {omega:.4f} rad/s (found by bisection on the closed-loop poles; relative "
+        f"difference from Routh {rel:.1e}; √(γ k / m) = {math.sqrt(gamma * k / m):.4f} rad/s). "
+        f"Closed-loop poles at the bound: {pole_text}."
+    )
+    lab.doc.figure(
+        rel_path,
+        f"Root locus of H(s) with gain k_i (k = {k:g} V/m, c = {c:.3f} "
+        f"kg/s); the imaginary-axis crossing is marked.",
+    )
+    return {
+        "k": k,
+        "m": m,
+        "c": c,
+        "gamma": gamma,
+        "ki_max_routh": ki_routh,
+        "ki_max_locus": ki_locus,
+        "crossing_omega": omega,
+        "relative_difference": rel,
+        "poles_at_bound": [[float(p.real), float(p.imag)] for p in poles],
+    }
+
+
+def _pole(p) -> str:
+    if abs(p.imag) < 1e-9 * max(1.0, abs(p)):
+        return f"{p.real:.4f}"
+    sign = "+" if p.imag > 0 else "−"
+    return f"{p.real:.2e} {sign} j{abs(p.imag):.4f}"
+
+
+def section(lab) -> None:
+    """The pre-lab: appendix constants, the PI bound on k_i, the tuned PID design."""
+    import jaxcart as jc
+    from jaxcart.exact import simulate_exact, step_info_exact
+    from jaxcart.plots import Run, plot_runs, reference_run
+    from tuning.tune import tune
+
+    doc = lab.doc
+    lab.say("pre-lab: appendix constants, Routh bound and root locus")
+    doc.heading("Pre-lab")
+    a = appendix(jc.Plant())
+    doc.paragraph(
+        "Constants from the appendix (Rm = 2.6 Ω, Kt = Km = 0.00767, Jm = 3.9e-7 kg m², "
+        "Kg = 3.71, r_mp = 6.35 mm, η = 1, M = Mc + Mw = 0.57 + 0.37 kg):"
+    )
+    doc.table(
+        ["quantity", "formula", "value", "unit"],
+        [
+            ["M_J", "η_g Kg² Jm / r_mp²", f"{a['M_J']:.4f}", "kg"],
+            ["m", "M + M_J", f"{a['m']:.4f}", "kg"],
+            ["B_emf", "η_g Kg² η_m Kt Km / (Rm r_mp²)", f"{a['B_emf']:.4f}", "kg/s"],
+            ["γ", "η_g Kg η_m Kt / (Rm r_mp)", f"{a['gamma']:.4f}", "N/V"],
+        ],
+        numeric=[False, False, True, False],
+    )
+    lab.value("gamma", a["gamma"], "N/V", "γ, force per volt (appendix)", "pre-lab")
+    lab.value("m", a["m"], "kg", "m = M + M_J (appendix)", "pre-lab")
+    lab.value("B_emf", a["B_emf"], "kg/s", "B_emf, back-EMF damping (appendix)", "pre-lab")
+
+    doc.heading("Largest stable k_i (k = 10 V/m, B_eq = 5.4 kg/s)", 3)
+    c = B_EQ_HANDOUT + a["B_emf"]
+    bound = routh_and_locus(
+        lab,
+        a["m"],
+        c,
+        a["gamma"],
+        K_PI,
+        name="prelab_root_locus",
+        part="pre-lab",
+        title="Pre-lab: root locus of γ/(m s³ + c s² + γ k s), k = 10 V/m, B_eq = 5.4 kg/s",
+        key="ki_max_prelab",
+    )
+
+    doc.heading("PID design (jaxcart tune)", 3)
+    lab.say(
+        "pre-lab: tuning the PID on the handout's model (jaxcart tune, 60 iterations, 4 starts)"
+    )
+    plant = jc.handout_plant()
+    res = tune(plant, progress=False, **TUNE_OPTIONS)
+    lab.tuned = res
+    g = res.gains
+    exp = jc.step(0.5, horizon=3.0)
+    info = step_info_exact(plant, g, exp)
+    response = simulate_exact(plant, g, exp)
+    path, rel = lab.figure_path("prelab_pid_step")
+    plot_runs(
+        [
+            reference_run(response.time, response.reference),
+            Run(
+                "exact simulation, handout model, 6 V saturation",
+                response.time,
+                response.position,
+                response.command,
+            ),
+        ],
+        title=f"Pre-lab PID design: kp = {g.kp:.4g} V/m, kd = {g.kd:.4g} V s/m, "
+        f"ki = {g.ki:.4g} V/(m s); step 0.5 m",
+        path=path,
+        v_limit=6.0,
+    )
+    doc.paragraph(
+        "The design problem: move 0.5 m, 2 % settling time under 1 s, overshoot under 5 %, "
+        "with the 6 V saturation, on the handout's model (B_eq = 5.4 kg/s). `jaxcart tune "
+        f"--starts {TUNE_OPTIONS['n_starts']} --iterations {TUNE_OPTIONS['max_iterations']}` "
+        f"(gradient descent through the smooth simulator, {TUNE_OPTIONS['n_starts']} starts, "
+        f"{TUNE_OPTIONS['max_iterations']} iterations, from the handout's kp = 40, kd = 5, "
+        f"ki = 5) found the gains below in {res.seconds:.1f} s; the metrics are those of the "
+        f"exact simulator (hard clip, 1 ms digital loop). {res.message}."
+    )
+    rows = [
+        ["kp", f"{g.kp:.4g}", "V/m"],
+        ["kd", f"{g.kd:.4g}", "V s/m"],
+        ["ki", f"{g.ki:.4g}", "V/(m s)"],
+        ["tau (derivative filter)", f"{g.tau:g}", "s"],
+        ["rise time (10-90 %)", f"{info.rise_time:.3f}", "s"],
+        ["overshoot", f"{info.overshoot:.2f}", "%"],
+        ["settling time (2 %)", f"{info.settling_time:.3f}", "s"],
+        ["steady-state error at 3 s", mm_text(info.steady_state_error), "mm"],
+        ["meets the design problem", "yes" if info.meets() else "no", ""],
+    ]
+    doc.table(["", "value", "unit"], rows, numeric=[False, True, False])
+    doc.figure(
+        rel,
+        "Pre-lab: step response of the tuned PID (exact simulator, handout model "
+        "with the 6 V saturation); voltage below, ±6 V limits dotted.",
+    )
+    for name, unit in (("kp", "V/m"), ("kd", "V s/m"), ("ki", "V/(m s)")):
+        lab.value(f"pid_{name}", float(getattr(g, name)), unit, f"tuned PID {name}", "pre-lab")
+    lab.value(
+        "pid_rise_time", info.rise_time, "s", "tuned PID rise time (handout model)", "pre-lab"
+    )
+    lab.value(
+        "pid_overshoot", info.overshoot, "%", "tuned PID overshoot (handout model)", "pre-lab"
+    )
+    lab.value(
+        "pid_settling_time",
+        info.settling_time,
+        "s",
+        "tuned PID settling time (handout model)",
+        "pre-lab",
+    )
+    lab.value(
+        "pid_steady_state_error",
+        info.steady_state_error,
+        "m",
+        "tuned PID steady-state error (handout model)",
+        "pre-lab",
+    )
+    lab.results["prelab"] = {
+        "appendix": a,
+        "pi_bound": bound,
+        "pid": {
+            "gains": g.to_dict(),
+            "metrics": info.as_dict(),
+            "meets": info.meets(),
+            "tune_seconds": res.seconds,
+            "tune_message": res.message,
+        },
+    }
+    lab.say(
+        f"pre-lab: tuned kp = {g.kp:.4g}, kd = {g.kd:.4g}, ki = {g.ki:.4g}: settling "
+        f"{info.settling_time:.3f} s, overshoot {info.overshoot:.2f} %"
+    )
+
+
+def mm_text(x) -> str:
+    return f"{float(x) * 1e3:.3g}"

@@ -1,0 +1,241 @@
+"""``run_lab``: the whole pre-lab and lab report, from the built-in example recordings or from a
+folder of real ones.
+
+    data folder --find_inputs--> which recording is which part (lab.toml or a guess)
+        |
+        v
+    pre-lab -> Part (i) -> (ii) -> (iii) -> (iv) -> (v) -> summary      (progress on stderr)
+        |          each part: numbers, figures/*.png, its section of the report
+        v
+    REPORT_DIR/report.md, report.html (figures embedded), results.json, gains.json, figures/
+
+>>> out = run_lab(out="/tmp/jaxcart-lab-demo", force=True)     # doctest: +SKIP
+>>> sorted(p.name for p in out.iterdir())                        # doctest: +SKIP
+['figures', 'gains.json', 'report.html', 'report.md', 'results.json']
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxcart.errors import UserError
+from tuning.lab import parts, prelab
+from tuning.lab.context import Lab, fmt, relative_error
+from tuning.lab.data import builtin_dir
+from tuning.lab.html import Document
+from tuning.lab.inputs import SLOTS, find_inputs
+
+DEFAULT_OUT = Path("jaxcart-lab")
+#: Files the report writes (besides figures/*.png): never replaced without ``force``.
+OUTPUTS = ("report.md", "report.html", "results.json", "gains.json")
+TITLE = "Position control of the IP02 cart: pre-lab and lab report"
+
+
+def output_dir(out=None, *, force: bool = False) -> Path:
+    """The report folder, created: ``out`` (refused if it holds files, unless ``force``), or
+    ./jaxcart-lab, or the first free ./jaxcart-lab-N."""
+    if out is None:
+        path, n = DEFAULT_OUT, 1
+        while path.exists():
+            n += 1
+            path = DEFAULT_OUT.with_name(f"{DEFAULT_OUT.name}-{n}")
+    else:
+        path = Path(out)
+        if path.exists() and not path.is_dir():
+            raise UserError(f"--out {path}: a file of that name exists; give a folder name")
+        if path.is_dir() and any(path.iterdir()) and not force:
+            raise UserError(
+                f"--out {path}: the folder exists and is not empty; choose another "
+                f"name or pass --force to overwrite its report"
+            )
+    (path / "figures").mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def run_lab(data=None, out=None, *, force: bool = False, stream=None) -> Path:
+    """Write the lab report; returns its folder.
+
+    data: folder of experiment files (None: the built-in example recordings); out: the report
+    folder (None: ./jaxcart-lab or a numbered one); force: overwrite an existing report;
+    stream: where progress goes (default stderr).
+    """
+    import jax
+
+    with jax.enable_x64(True):  # fits and exact checks need float64
+        return _run_lab(data, out, force=force, stream=stream)
+
+
+def _run_lab(data, out, *, force, stream) -> Path:
+    started = time.perf_counter()
+    folder = Path(data) if data is not None else builtin_dir()
+    inputs = find_inputs(folder)
+    out = output_dir(out, force=force)
+    lab = Lab(out=out, inputs=inputs, doc=Document(TITLE), stream=stream, started=started)
+    builtin = data is None
+    lab.say(f"data: {'built-in example recordings' if builtin else folder}")
+    for line in inputs.summary_lines():
+        lab.say("  " + line)
+    _introduction(lab, folder, builtin)
+    for section in (
+        prelab.section,
+        parts.part_i,
+        parts.part_ii,
+        parts.part_iii,
+        parts.part_iv,
+        parts.part_v,
+    ):
+        section(lab)
+    _summary(lab)
+    elapsed = time.perf_counter() - started
+    lab.results["elapsed_seconds"] = elapsed
+    lab.doc.paragraph(f"Report written by `jaxcart lab` in {elapsed:.0f} s.")
+    _write(lab)
+    lab.say(
+        f"done: {out / 'report.md'}, {out / 'report.html'}, {out / 'results.json'} "
+        f"({len(lab.figures)} figures) in {elapsed:.1f} s"
+    )
+    return out
+
+
+# ---------------------------------------------------------------- sections
+
+
+def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
+    doc, inputs = lab.doc, lab.inputs
+    doc.paragraph(
+        "Every number and figure the handout asks for, computed by `jaxcart lab`: the pre-lab "
+        "(appendix constants, the PI stability bound from Routh and the root locus, a tuned "
+        "PID design) and Parts (i) to (v) of the lab, each recording compared with "
+        "simulations of the 1 ms digital loop (exact simulator: hard voltage clip, event-exact "
+        "Coulomb stick-slip)."
+    )
+    doc.heading("Data")
+    where = "the built-in example recordings" if builtin else f"`{folder}`"
+    doc.paragraph(f"Recordings from {where}. Which file went to which part:")
+    doc.bullets(inputs.summary_lines())
+    synthetic = inputs.synthetic
+    if synthetic is not None:
+        doc.note(
+            "These recordings are **synthetic**: generated once by the exact simulator "
+            f'({synthetic.get("made_by", "tuning.lab.data")}) from the "true" cart below, '
+            "which differs from the handout's model; positions are whole encoder counts. "
+            "The fits below should recover these values."
+        )
+        rows = []
+        names = {
+            "M": ("cart mass M", "kg"),
+            "B_eq": ("viscous friction B_eq", "kg/s"),
+            "f_c": ("Coulomb friction f_c", "N"),
+            "v_sat": ("amplifier saturation", "V"),
+            "quantization": ("encoder resolution", "m/count"),
+            "pid_kp": ("Part (v) recording's kp (fixed design)", "V/m"),
+            "pid_kd": ("Part (v) recording's kd", "V s/m"),
+            "pid_ki": ("Part (v) recording's ki", "V/(m s)"),
+            "seed": ("random seed (encoder phase)", ""),
+        }
+        for key, (label, unit) in names.items():
+            if key in synthetic:
+                rows.append([label, f"{synthetic[key]:g}", unit])
+        doc.table(["true parameter", "value", "unit"], rows, numeric=[False, True, False])
+    missing = inputs.missing()
+    if missing:
+        parts_missing = sorted(
+            {SLOTS[s][0] for s in missing}, key=["i", "ii", "iii", "iv", "v"].index
+        )
+        doc.note(
+            "No recording for: "
+            + "; ".join(f"Part ({SLOTS[s][0]}) {SLOTS[s][1]}" for s in missing)
+            + ". Those items show simulations only (Parts "
+            + ", ".join(f"({p})" for p in parts_missing)
+            + ")."
+        )
+    lab.results["data"] = {
+        "folder": str(folder),
+        "builtin": builtin,
+        "synthetic": synthetic,
+        "recordings": {
+            slot: (str(Path(r.path).name) if r is not None else None)
+            for slot, r in ((s, inputs.recordings.get(s)) for s in SLOTS)
+        },
+        "how": dict(inputs.how),
+        "missing": missing,
+        "unused": [{"file": n, "reason": r} for n, r in inputs.unused],
+    }
+
+
+def _summary(lab: Lab) -> None:
+    doc = lab.doc
+    doc.heading("Summary")
+    synthetic = lab.synthetic
+    header = ["part", "quantity", "value", "unit"]
+    if synthetic:
+        header += ["true value", "relative error"]
+    rows = []
+    for v in lab.values.values():
+        value, unit = v.value, v.unit
+        shown_unit = unit
+        if unit == "m" and value is not None:
+            value, shown_unit = value * 1e3, "mm"
+        row = [v.part, v.label, fmt(value), shown_unit]
+        if synthetic:
+            if v.true is None:
+                row += ["", ""]
+            else:
+                err = relative_error(v.value, v.true)
+                row += [
+                    fmt(v.true * (1e3 if unit == "m" else 1.0)),
+                    "n/a" if err is None else f"{100 * err:.2g} %",
+                ]
+        rows.append(row)
+    doc.table(header, rows, numeric=[False, False, True, False] + [True, True][: len(header) - 4])
+    doc.paragraph(
+        "Every number is also in `results.json` (SI units); the tuned gains are in "
+        "`gains.json` (jaxcart gains-file format, every PID setting)."
+    )
+    lab.results["values"] = {k: v.as_json() for k, v in lab.values.items()}
+
+
+# ---------------------------------------------------------------- writing
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, bool | np.bool_):
+        return bool(x)
+    if isinstance(x, int | np.integer):
+        return int(x)
+    if isinstance(x, float | np.floating):
+        x = float(x)
+        if math.isfinite(x):
+            return x
+        return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+    if x is None or isinstance(x, str):
+        return x
+    return str(x)
+
+
+def _write(lab: Lab) -> None:
+    from hw.gains import write_gains
+
+    out = lab.out
+    (out / "results.json").write_text(json.dumps(_jsonable(lab.results), indent=2) + "\n")
+    (out / "report.md").write_text(lab.doc.to_markdown())
+    (out / "report.html").write_text(lab.doc.to_html(out))
+    if lab.tuned is not None:
+        write_gains(
+            out / "gains.json",
+            lab.tuned.gains,
+            force=True,
+            source="jaxcart lab: pre-lab design (handout model)",
+            metrics=lab.results.get("prelab", {}).get("pid", {}).get("metrics", {}),
+        )
