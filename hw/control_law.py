@@ -66,6 +66,15 @@ class PID:
             )
         if not (isinstance(self.sample_time, float | int) and self.sample_time > 0):
             raise ValueError(f"sample_time = {self.sample_time!r} s: it must be a positive number")
+        if (
+            self.anti_windup != "none"
+            and isinstance(self.v_limit, float | int)
+            and math.isinf(self.v_limit)
+        ):
+            raise ValueError(
+                f"anti_windup = {self.anti_windup!r} acts on the software limit, but v_limit is "
+                "infinite; give v_limit (e.g. 6 V, the amplifier's range) or anti_windup='none'"
+            )
         for name in ("tau", "v_limit", "kb"):
             value = getattr(self, name)
             if isinstance(value, float | int) and not value >= 0:

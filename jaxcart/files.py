@@ -158,6 +158,8 @@ def read_experiment(path) -> Recording:
     one-line message for any problem in the file or its data.
     """
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"experiment file {path} is a folder; give the path of a .toml file")
     if not path.is_file():
         raise UserError(f"experiment file {path} not found; give the path of a .toml file")
     try:

@@ -154,8 +154,10 @@ def test_command_line(result, monkeypatch, tmp_path, capsys):
 
     monkeypatch.setattr(bench, "run_bench", fake)
     out = tmp_path / "bench.json"
-    out.write_text("{}")  # an old result is overwritten
-    assert main(["bench", "--quick", "--json", str(out), "--batch", "300"]) == 0
+    out.write_text("{}")  # an old result is kept unless --force
+    assert main(["bench", "--quick", "--json", str(out), "--batch", "300"]) == 2
+    assert "--force" in capsys.readouterr().err and out.read_text() == "{}"
+    assert main(["bench", "--quick", "--json", str(out), "--batch", "300", "--force"]) == 0
     assert calls == [{"batch": 300, "quick": True}]
     table = capsys.readouterr().out
     for name in ("jaxcart", "python-control", "scipy", "numpy-vectorized", "grad", "grid"):

@@ -83,3 +83,5 @@ def test_bad_settings_are_refused_with_the_field_named():
         jc.PID(anti_windup="clip")
     with pytest.raises(ValueError, match="tau"):
         jc.PID(tau=-0.1)
+    with pytest.raises(ValueError, match="v_limit is infinite"):
+        jc.PID(ki=1.0, anti_windup="clamping")

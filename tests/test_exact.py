@@ -97,7 +97,7 @@ def test_matches_exact_forms_of_smooth_simulator_without_friction():
     for pid in (
         PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0),
         PID(kp=40.0, kd=5.0, ki=30.0, v_limit=5.0, anti_windup="clamping"),
-        PID(kp=40.0, kd=5.0, ki=30.0, anti_windup="back_calculation", kb=3.0),
+        PID(kp=40.0, kd=5.0, ki=30.0, v_limit=6.0, anti_windup="back_calculation", kb=3.0),
         PID(kp=30.0, kd=4.0, ki=5.0, tau=0.0, derivative_on="measurement"),
     ):
         exact = simulate_exact(plant, pid, exp)

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONTROLLERS = [
     PID(kp=258.7566102523228, ki=1.7040361957982133, kd=6.133625299079171, v_limit=6.0),
     PID(kp=40.0, kd=5.0, ki=5.0, tau=0.0, v_limit=math.inf, derivative_on="measurement"),
-    PID(kp=10.0, ki=15.0, kb=2.5, sample_time=0.002, anti_windup="back_calculation"),
+    PID(kp=10.0, ki=15.0, kb=2.5, sample_time=0.002, v_limit=6.0, anti_windup="back_calculation"),
     PID(kp=50.0, anti_windup="clamping", v_limit=4.5),
 ]
 

@@ -33,7 +33,7 @@ def register(subparsers) -> None:
         "--json",
         metavar="OUT",
         type=Path,
-        help="write the result as JSON to OUT (overwritten if it exists)",
+        help="write the result as JSON to OUT (an existing file is kept unless --force)",
     )
     parser.add_argument(
         "--batch",
@@ -47,6 +47,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="smaller batches, one run per slow peer, a 16^3 grid, no repeats",
     )
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --json file")
     parser.set_defaults(func=run)
 
 
@@ -62,6 +63,10 @@ def run(args) -> int:
         if out.is_dir():
             raise UserError(
                 f"--json {out}: is a directory; give a file name such as {out / 'bench.json'}"
+            )
+        if out.exists() and not args.force:
+            raise UserError(
+                f"--json {out} exists; pass --force to overwrite it or choose another name"
             )
         if not out.parent.is_dir():
             raise UserError(

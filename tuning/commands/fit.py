@@ -60,6 +60,8 @@ def run(args) -> int:
     from tuning import fit as F
 
     params = F.parse_params(args.params)
+    if not params:
+        raise UserError("--params: name at least one parameter, e.g. --params B_eq,f_c")
     if args.cross and len(args.experiments) < 2:
         raise UserError("--cross needs at least two recordings")
     outputs = [x for x in (args.json_out, args.plot, args.out) if x]

@@ -168,7 +168,12 @@ def register(subparsers) -> None:
         "fraction of nominal); repeatable; replaces the default set",
     )
     run_ = p.add_argument_group("run")
-    run_.add_argument("--starts", type=int, default=8, help="multi-start batch size (8)")
+    run_.add_argument(
+        "--starts",
+        type=int,
+        default=8,
+        help="multi-start batch size (8; rounded up to a multiple of the device count)",
+    )
     run_.add_argument(
         "--iterations",
         type=int,

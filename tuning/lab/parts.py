@@ -890,8 +890,9 @@ def part_iv(lab: Lab) -> None:
     stable = controller.ki < bound["ki_max_routh"]
     doc.paragraph(
         f"k_i = {controller.ki:g} V/(m s) is {'inside' if stable else 'outside'} the "
-        f"stable range (the bound is for the linear model; Coulomb friction and "
-        f"saturation do not move it)."
+        f"stable range of the linear model (small signals: the Routh bound does not "
+        f"account for saturation, integrator windup or Coulomb friction, whose effect shows "
+        f"in the simulated and measured error above)."
     )
     out["pi_bound"] = bound
     lab.results["part_iv"] = out
