@@ -747,13 +747,15 @@ def compare_tuners(
     free: Sequence[str] = GAIN_NAMES,
     controller: PID | None = None,
     seed: int = 0,
+    bounds: Mapping | None = None,
     nm_max_evaluations: int = 600,
     progress: bool = False,
 ) -> dict:
     """Benchmark :func:`tune` against scipy's Nelder-Mead on the exact simulator (penalty
     objective, same start, log gains) and against the best point of a quasi-random (Sobol)
     grid over :data:`GRID_BOX` evaluated on the batched hard-clip simulator for the same wall
-    time as :func:`tune` took (compilation included in both).
+    time as :func:`tune` took (compilation included in both). All three search the same gain
+    box: ``bounds`` (default :data:`DEFAULT_BOUNDS`), for the grid intersected with GRID_BOX.
 
     Returns a dict: one entry per method (settling_time [s], overshoot [%] on the exact
     simulator, seconds, seconds_to_spec, evaluations, gains) plus "ratios" and a printable
@@ -782,9 +784,11 @@ def compare_tuners(
         free=free,
         controller=controller,
         seed=seed,
+        bounds=bounds,
         progress=progress,
     )
     budget = ours.seconds
+    log_lo, log_hi = _bounds(bounds)
 
     # 2. Nelder-Mead on the exact simulator, penalty objective, same start.
     say("compare: Nelder-Mead on the exact simulator ...")
@@ -796,7 +800,8 @@ def compare_tuners(
 
     def objective(x):
         g = np.where(free_mask, base, start_gains)
-        g[free_mask] = np.exp(x)
+        # Projected into the tuner's box, so both search the same gains.
+        g[free_mask] = np.exp(np.clip(x, log_lo[free_mask], log_hi[free_mask]))
         info = exact_info(plant, controller_with(template, list(g)), experiment)
         nm["evaluations"] += 1
         feasible = not failing_constraints(info, spec)
@@ -833,8 +838,8 @@ def compare_tuners(
     say(f"compare: grid of equal wall time ({budget:.1f} s) ...")
     friction = _has_friction(plant)
     smoothing = EXACT_FORMS if not friction else LossSettings().smoothing.scaled(SCALES[-1] / 4)
-    lo = np.log([GRID_BOX[n][0] for n in GAIN_NAMES])
-    hi = np.log([GRID_BOX[n][1] for n in GAIN_NAMES])
+    lo = np.maximum(np.log([GRID_BOX[n][0] for n in GAIN_NAMES]), log_lo)
+    hi = np.minimum(np.log([GRID_BOX[n][1] for n in GAIN_NAMES]), log_hi)
     sobol = qmc.Sobol(d=3, scramble=True, seed=seed)
     batch = 4096
     t0 = time.perf_counter()
