@@ -567,18 +567,7 @@ def part_iii(lab: Lab) -> None:
     rows.append(
         ["simulated e(inf) (Coulomb friction + saturation, exact stick-slip)", mm(e_sim, 4)]
     )
-    traces.append(
-        figures.Trace(
-            sim.time,
-            np.asarray(sim.error) * 1e3,
-            f"simulation with Coulomb friction f_c = {lab.f_c:.3f} N and saturation",
-        )
-    )
-    traces.append(
-        figures.Trace(
-            sim_lin.time, np.asarray(sim_lin.error) * 1e3, "simulation without Coulomb friction"
-        )
-    )
+    traces.extend(_error_traces(sim, sim_lin, lab.f_c))
     path, rel = lab.figure_path("part3_error")
     r_final = float(np.asarray(exp.signal)[-1])
     top = max(3.0 * bound, 0.25 * abs(r_final)) * 1e3
@@ -834,18 +823,7 @@ def part_iv(lab: Lab) -> None:
         rms = float(np.sqrt(np.mean((np.asarray(sim.position) - rec.position) ** 2)))
         out["rms_difference"] = rms
         lab.value("pi_rms", rms, "m", "PI: RMS difference simulation − experiment", "iv")
-    traces.append(
-        figures.Trace(
-            sim.time,
-            np.asarray(sim.error) * 1e3,
-            f"simulation with Coulomb friction f_c = {lab.f_c:.3f} N and saturation",
-        )
-    )
-    traces.append(
-        figures.Trace(
-            sim_lin.time, np.asarray(sim_lin.error) * 1e3, "simulation without Coulomb friction"
-        )
-    )
+    traces.extend(_error_traces(sim, sim_lin, lab.f_c))
     path, rel = lab.figure_path("part4_pi_error")
     r_final = float(np.asarray(exp.signal)[-1])
     figures.time_plot(
@@ -1086,3 +1064,19 @@ def _slider_moves(response, times):
         moves.append((previous, target, step_info(Response(**part), v_limit=V_SAT)))
         previous = target
     return moves
+
+
+def _error_traces(sim, sim_lin, f_c):
+    """Simulated error [mm] with Coulomb friction and saturation, and without friction."""
+    from tuning.lab import figures
+
+    return [
+        figures.Trace(
+            sim.time,
+            np.asarray(sim.error) * 1e3,
+            f"simulation with Coulomb friction f_c = {f_c:.3f} N and saturation",
+        ),
+        figures.Trace(
+            sim_lin.time, np.asarray(sim_lin.error) * 1e3, "simulation without Coulomb friction"
+        ),
+    ]
