@@ -8,7 +8,7 @@ namespace passed as ``xp`` (``numpy`` or ``jax.numpy``); it never imports jax it
           |-                                                                          (held, ZOH)
     y_k --'
 
-Equations (sample time Ts, DESIGN.md):
+Equations (sample time Ts, docs/design.md, "The control law"):
     e_k = r_k - y_k
     s_k = e_k (derivative on error) or -y_k (on measurement); s_-1 = s_0
     d_k = (tau d_{k-1} + s_k - s_{k-1}) / (tau + Ts)
@@ -21,7 +21,7 @@ adds kb (u_k - v_k) / ki to the integrator input (Simulink's form, kb in 1/s).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -88,6 +88,12 @@ class PID:
 #: Field names that are numbers (array leaves in JAX); the rest are static configuration.
 PID_DATA_FIELDS = ("kp", "ki", "kd", "tau", "v_limit", "kb")
 PID_META_FIELDS = ("sample_time", "derivative_on", "anti_windup")
+
+
+def float_pid(pid: PID) -> PID:
+    """The controller with Python-float numbers (the control law then runs on floats: fast in
+    the exact simulator and the hardware loop)."""
+    return replace(pid, **{n: float(getattr(pid, n)) for n in PID_DATA_FIELDS})
 
 
 def _plain(value):

@@ -1,8 +1,8 @@
 """Gains files: every setting of the canonical PID in one JSON file, plus how it was obtained.
 
 Standard library and numpy only (hw/ never imports jax). A gains file records the whole
-controller (DESIGN.md), so the simulator, the hardware loop and any independent check run
-exactly the same one::
+controller (docs/design.md, "The control law"), so the simulator, the hardware loop and any
+independent check run exactly the same one::
 
     {
       "format": "jaxcart-gains",
@@ -36,9 +36,8 @@ import math
 import os
 from pathlib import Path
 
-import numpy as np
-
 from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID
+from hw.jsonio import to_jsonable
 
 FORMAT = "jaxcart-gains"
 VERSION = 1
@@ -96,7 +95,11 @@ def write_gains(path, pid: PID, *, force: bool = False, **metadata) -> Path:
         "units": dict(UNITS),
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }
-    document.update({k: _jsonable(v) for k, v in metadata.items()})
+    for key, value in metadata.items():
+        try:
+            document[key] = to_jsonable(value)
+        except TypeError as exc:
+            raise GainsFileError(f"metadata {key}: {exc}", path=path) from None
     text = json.dumps(document, indent=2, allow_nan=False) + "\n"
     if path.exists() and not force:
         raise GainsFileError("the file exists; pass force=True (--force) to replace it", path=path)
@@ -214,39 +217,6 @@ def _field(path, name, value):
 def _reject_constant(name):
     # json.loads would accept NaN/Infinity, which are not JSON; say where instead.
     raise ValueError(f'{name} is not a JSON number; write null or "inf" for v_limit')
-
-
-def _jsonable(value):
-    """Plain JSON data from numbers, numpy values, named tuples, dataclasses, paths."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if hasattr(value, "_asdict"):
-        return _jsonable(value._asdict())
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return _jsonable({f.name: getattr(value, f.name) for f in dataclasses.fields(value)})
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, bool | np.bool_):
-        return bool(value)
-    if isinstance(value, int | np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        value = float(value)
-        if math.isfinite(value):
-            return value
-        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-    if value is None or isinstance(value, str):
-        return value
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    if hasattr(value, "__array__"):  # e.g. a jax array, without importing jax
-        return _jsonable(np.asarray(value).tolist())
-    raise GainsFileError(
-        f"metadata value {value!r} ({type(value).__name__}) is not "
-        "JSON-serializable: give numbers, strings, lists or dicts"
-    )
 
 
 __all__ = [

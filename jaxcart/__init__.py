@@ -1,59 +1,69 @@
-"""jaxcart: a differentiable simulator and auto-tuner for the cart-on-a-track servo lab."""
+"""jaxcart: a differentiable simulator and auto-tuner for the cart-on-a-track servo lab.
 
-import jax as _jax
+Public names load on first use (``jaxcart.simulate`` imports JAX then), so that importing a
+submodule without JAX, such as :mod:`jaxcart.errors` for the command line, stays instant.
+"""
 
-from hw.control_law import PID, PIDState, pid_init, pid_update
-from jaxcart.effects import Coulomb, Effect, Saturation
-from jaxcart.experiments import (
-    Experiment,
-    ramp,
-    reference_sequence,
-    setpoints,
-    step,
-    tap,
-    voltage_ramp,
-    voltage_sequence,
-    voltage_step,
-)
-from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant, tap_plant
-from jaxcart.simulate import EXACT_FORMS, Response, simulate
-from jaxcart.smoothing import Smoothing
+from __future__ import annotations
 
-# The controller settings live in hw/ (numpy only); register them as a pytree here.
-_jax.tree_util.register_dataclass(
-    PID,
-    data_fields=["kp", "ki", "kd", "tau", "v_limit", "kb"],
-    meta_fields=["sample_time", "derivative_on", "anti_windup"],
-)
+import importlib
 
-from jaxcart.metrics import StepInfo, step_info, step_metrics  # noqa: E402
+#: public name -> module that defines it
+_EXPORTS = {
+    "PID": "hw.control_law",
+    "PIDState": "hw.control_law",
+    "pid_init": "hw.control_law",
+    "pid_update": "hw.control_law",
+    "REGISTRY": "jaxcart.effects",
+    "Coulomb": "jaxcart.effects",
+    "CurrentLimit": "jaxcart.effects",
+    "Deadzone": "jaxcart.effects",
+    "Delay": "jaxcart.effects",
+    "Effect": "jaxcart.effects",
+    "Quantization": "jaxcart.effects",
+    "Saturation": "jaxcart.effects",
+    "Spring": "jaxcart.effects",
+    "Stiction": "jaxcart.effects",
+    "TrackFriction": "jaxcart.effects",
+    "Experiment": "jaxcart.experiments",
+    "ramp": "jaxcart.experiments",
+    "reference_sequence": "jaxcart.experiments",
+    "setpoints": "jaxcart.experiments",
+    "step": "jaxcart.experiments",
+    "tap": "jaxcart.experiments",
+    "voltage_ramp": "jaxcart.experiments",
+    "voltage_sequence": "jaxcart.experiments",
+    "voltage_step": "jaxcart.experiments",
+    "ENCODER_RESOLUTION": "jaxcart.params",
+    "Plant": "jaxcart.params",
+    "handout_plant": "jaxcart.params",
+    "tap_plant": "jaxcart.params",
+    "voltage_limit": "jaxcart.params",
+    "build_plant": "jaxcart.plantspec",
+    "read_plant_file": "jaxcart.plantspec",
+    "write_plant_file": "jaxcart.plantspec",
+    "EXACT_FORMS": "jaxcart.smooth",
+    "Response": "jaxcart.smooth",
+    "simulate": "jaxcart.smooth",
+    "Smoothing": "jaxcart.smoothing",
+    "StepInfo": "jaxcart.metrics",
+    "step_info": "jaxcart.metrics",
+    "step_metrics": "jaxcart.metrics",
+}
 
-__all__ = [
-    "PID",
-    "PIDState",
-    "pid_init",
-    "pid_update",
-    "Coulomb",
-    "Effect",
-    "Saturation",
-    "Experiment",
-    "ramp",
-    "reference_sequence",
-    "setpoints",
-    "step",
-    "tap",
-    "voltage_ramp",
-    "voltage_sequence",
-    "voltage_step",
-    "ENCODER_RESOLUTION",
-    "Plant",
-    "handout_plant",
-    "tap_plant",
-    "EXACT_FORMS",
-    "Response",
-    "simulate",
-    "Smoothing",
-    "StepInfo",
-    "step_info",
-    "step_metrics",
-]
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'jaxcart' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    if module == "hw.control_law":
+        importlib.import_module("jaxcart.pytrees")  # PID as a pytree before anyone uses it
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -24,7 +24,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxcart.metrics import StepInfo, step_metrics
-from jaxcart.simulate import EXACT_FORMS
+from jaxcart.smooth import EXACT_FORMS
 
 #: Runs per chunk: 4096 lanes x ~10 state values fit in L2; measured best on 2 cores.
 DEFAULT_CHUNK = 4096

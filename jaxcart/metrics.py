@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcart.params import Plant
-from jaxcart.simulate import DIVERGED_POSITION, Response, loop
+from jaxcart.params import voltage_limit
+from jaxcart.smooth import DIVERGED_POSITION, Response, loop
 
 SETTLING_BAND = 0.02
 # Two samples per loop iteration lets XLA fuse across them: ~1.4x faster on a CPU, measured.
@@ -52,17 +52,6 @@ class StepInfo(NamedTuple):
             and self.settling_time < settling_time
             and self.overshoot < overshoot
         )
-
-
-def _voltage_limit(plant: Plant | None, controller=None) -> float:
-    limit = np.inf
-    if controller is not None:
-        limit = min(limit, float(np.min(controller.v_limit)))
-    if plant is not None:
-        for effect in plant.effects:
-            if hasattr(effect, "v_sat"):
-                limit = min(limit, float(np.min(effect.v_sat)))
-    return limit
 
 
 def step_info(response: Response, *, v_limit: float = np.inf, band: float = SETTLING_BAND):
@@ -122,7 +111,7 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
     amplitude = r_final - experiment.y0
     inv_amplitude = 1.0 / amplitude
     band = SETTLING_BAND * jnp.abs(amplitude)
-    limit = jnp.minimum(controller.v_limit, _plant_v_sat(plant))
+    limit = voltage_limit(plant, controller)
     dtype = jnp.result_type(experiment.signal)
     inf = jnp.asarray(jnp.inf, dtype)
 
@@ -159,8 +148,3 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
         saturation_time=n_sat * ts,
         diverged=bad,
     )
-
-
-def _plant_v_sat(plant):
-    sat = [e.v_sat for e in plant.effects if hasattr(e, "v_sat")]
-    return sat[0] if sat else jnp.inf

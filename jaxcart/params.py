@@ -5,8 +5,10 @@
     B_emf = eta_g Kg^2 eta_m Kt Km / (Rm r_mp^2)       (0 with the motor unplugged)
     gamma = eta_g Kg eta_m Kt / (Rm r_mp)               (times gamma_scale)
 
-Effects beyond this linear model (saturation, Coulomb friction, ...) are pieces in
-``Plant.effects``; see :mod:`jaxcart.effects`.
+This is the nominal model, the handout's equation (0.1): no amplifier limit, no friction. The
+lab's 6 V limit is the Simulink saturation block, i.e. the controller's ``v_limit``. Effects
+beyond the linear model (saturation, friction, delay, ...) are pieces in ``Plant.effects`` that
+a file, an option or a fit adds; see :mod:`jaxcart.effects` and :func:`jaxcart.build_plant`.
 
 >>> p = Plant()
 >>> round(float(p.m), 4), round(float(p.B_emf), 4), round(float(p.gamma), 4)
@@ -20,7 +22,7 @@ from dataclasses import dataclass, field, fields
 
 import jax
 
-from jaxcart.effects import Coulomb, Saturation
+from jaxcart.effects import REGISTRY, STAGE_ORDER
 
 #: Encoder resolution of the IP02 [m/count] (the handout's appendix).
 ENCODER_RESOLUTION = 2.275e-5
@@ -59,7 +61,7 @@ class Plant:
     eta_g: float = 1.0
     eta_m: float = 1.0
     gamma_scale: float = 1.0
-    effects: tuple = (Saturation(),)
+    effects: tuple = ()
     motor_connected: bool = field(default=True, metadata={"static": True})
 
     def __post_init__(self):
@@ -69,9 +71,9 @@ class Plant:
                 raise ValueError(f"plant parameter {name} = {value!r}: it must be >= 0")
         if isinstance(self.M, float | int) and self.M == 0:
             raise ValueError("plant parameter M = 0 kg: the cart needs a positive mass")
-        names = [n for e in self.effects for n in e.param_names]
-        if len(names) != len(set(names)):
-            raise ValueError(f"two effects share a parameter name: {names}")
+        kinds = [type(e).name for e in self.effects]
+        if len(kinds) != len(set(kinds)):
+            raise ValueError(f"an effect is named twice in {kinds}; give each effect once")
 
     # Derived quantities of the handout (section 1.1).
     @property
@@ -106,14 +108,14 @@ class Plant:
     # Parameters by name, across the plant and its effects (used by fitting and files).
     def param_names(self) -> tuple[str, ...]:
         own = tuple(f.name for f in fields(self) if f.name not in ("effects", "motor_connected"))
-        return own + tuple(n for e in self.effects for n in e.param_names)
+        return own + tuple(n for e in self.effects for n in e.param_names())
 
     def get(self, name: str):
         """Value of a named parameter of the plant or of one of its effects."""
         if name in _OWN:
             return getattr(self, name)
         for effect in self.effects:
-            if name in effect.param_names:
+            if name in effect.param_names():
                 return getattr(effect, name)
         raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.param_names())}")
 
@@ -123,7 +125,7 @@ class Plant:
         rest = {k: v for k, v in values.items() if k not in _OWN}
         effects = []
         for effect in self.effects:
-            mine = {k: rest.pop(k) for k in list(rest) if k in effect.param_names}
+            mine = {k: rest.pop(k) for k in list(rest) if k in effect.param_names()}
             effects.append(dataclasses.replace(effect, **mine) if mine else effect)
         if rest:
             raise KeyError(
@@ -132,24 +134,58 @@ class Plant:
             )
         return dataclasses.replace(self, effects=tuple(effects), **own)
 
-    def effect(self, kind: type):
-        """The first effect of the given class, or None."""
+    def effect(self, kind):
+        """The effect of the given class or registry name ("coulomb"), or None."""
+        if isinstance(kind, str):
+            kind = REGISTRY[kind]
         return next((e for e in self.effects if isinstance(e, kind)), None)
+
+    def stage(self, name: str) -> tuple:
+        """The effects acting at one stage ("voltage", "force", "sensor"), in loop order."""
+        chosen = [e for e in self.effects if e.stage == name]
+        return tuple(sorted(chosen, key=lambda e: e.order))
+
+    @property
+    def structure(self) -> tuple[str, ...]:
+        """Names of the plant's effects in loop order ("nominal" when it has none)."""
+        ordered = sorted(self.effects, key=lambda e: (STAGE_ORDER[e.stage], e.order))
+        return tuple(type(e).name for e in ordered)
 
 
 _OWN = frozenset(f.name for f in fields(Plant) if f.name not in ("effects", "motor_connected"))
 
 
-def handout_plant(*, f_c: float = 0.0, v_sat: float = 6.0, **overrides) -> Plant:
-    """The handout's model: appendix values, B_eq = 5.4 kg/s, 6 V saturation, and Coulomb
-    friction f_c [N] when it is positive."""
-    effects = [Saturation(v_sat=v_sat)]
-    if f_c:
-        effects.append(Coulomb(f_c=f_c))
-    return Plant(effects=tuple(effects), **overrides)
+def voltage_limit(plant: Plant, controller=None):
+    """The effective voltage limit [V]: the smaller of the controller's software ``v_limit``
+    and the amplifier's ``v_sat`` (inf when neither limits). Traced values pass through."""
+    import jax.numpy as jnp
+
+    limits = [e.v_sat for e in plant.effects if type(e).name == "saturation"]
+    if controller is not None:
+        limits.append(controller.v_limit)
+    if not limits:
+        return float("inf")
+    if all(isinstance(x, int | float) for x in limits):
+        return float(min(limits))
+    out = limits[0]
+    for x in limits[1:]:
+        out = jnp.minimum(out, x)
+    return out
 
 
-def tap_plant(**overrides) -> Plant:
-    """The tap test: motor unplugged (B_emf = 0, no drive), no saturation in play."""
-    effects = overrides.pop("effects", ())
-    return Plant(motor_connected=False, effects=tuple(effects), **overrides)
+def handout_plant(**values) -> Plant:
+    """The handout's nominal model (appendix values, B_eq = 5.4 kg/s, no effects), with named
+    parameters set; naming an effect's parameter adds the effect (``f_c=0.3`` adds Coulomb
+    friction, ``v_sat=6.0`` an amplifier limit). See :func:`jaxcart.build_plant`."""
+    from jaxcart.plantspec import build_plant
+
+    return build_plant(values, where="handout_plant()")
+
+
+def tap_plant(**values) -> Plant:
+    """The tap test: motor unplugged (B_emf = 0, no drive), with named parameters set."""
+    from jaxcart.plantspec import build_plant
+
+    effects = values.pop("effects", ())
+    plant = build_plant(values, motor_connected=False, where="tap_plant()")
+    return dataclasses.replace(plant, effects=tuple(plant.effects) + tuple(effects))

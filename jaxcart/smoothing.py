@@ -68,3 +68,15 @@ def smooth_sign(x, width):
     denom = x * x + width * width
     safe = jnp.where(denom > 0, denom, 1.0)
     return jnp.where(denom > 0, x * jax.lax.rsqrt(safe), 0.0)
+
+
+def continuation(shrink: float, stages: int) -> tuple[float, ...]:
+    """The smoothing continuation schedule shared by fitting and tuning: width factors from 1
+    down to ``shrink`` in ``stages`` geometric steps (``continuation(0.125, 4)`` is 1, 0.5,
+    0.25, 0.125). Each stage starts from the previous stage's answer, so the optimizer follows
+    the smoothed problem toward the exact one as the widths go to 0."""
+    if not (0 < shrink <= 1 and stages >= 1):
+        raise ValueError(f"continuation({shrink}, {stages}): need 0 < shrink <= 1, stages >= 1")
+    if stages == 1:
+        return (1.0,)
+    return tuple(float(shrink ** (i / (stages - 1))) for i in range(stages))

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import jaxcart
-from jaxcart import bench
-from jaxcart.cli import main
+from tuning import bench
+from tuning.cli import main
 
 HORIZON = 0.3  # s: short runs keep the file fast; the loop and its checks are unchanged
 
@@ -179,3 +179,12 @@ def test_command_line_errors(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(bench, "run_bench", disagree)
     assert main(["bench"]) == 1
     assert "FAILED: scipy disagrees" in capsys.readouterr().err
+
+
+def test_grid_ranges_are_those_of_jaxcart_grid():
+    """The benchmark's 64^3 grid spans the default ranges of ``jaxcart grid``."""
+    from tuning.commands.grid import DEFAULT_RANGES
+
+    for name, text in DEFAULT_RANGES.items():
+        lo, hi, _ = text.split(":")
+        assert (float(lo), float(hi)) == bench.GRID_RANGES[name]

@@ -57,7 +57,7 @@ def test_numpy_and_jax_agree(derivative_on, anti_windup):
 
 
 def test_law_matches_design_equations_by_hand():
-    """Two samples worked by hand from DESIGN.md's equations."""
+    """Two samples worked by hand from the equations of docs/design.md, "The control law"."""
     pid = jc.PID(kp=2.0, ki=10.0, kd=0.5, tau=0.01, sample_time=0.001)
     state = pid_init(pid, 1.0, 0.0)
     u0, _, state = pid_update(pid, state, 1.0, 0.0)

@@ -27,7 +27,7 @@ from jaxcart import (
     voltage_step,
 )
 from jaxcart.exact import simulate_exact, step_info_exact, voltage_limit
-from jaxcart.simulate import DIVERGED_POSITION
+from jaxcart.smooth import DIVERGED_POSITION
 
 #: Closed-form solutions vs the simulator: both exact, so only rounding separates them [m].
 CLOSED_FORM_TOL = 1e-10
@@ -245,7 +245,8 @@ def test_smooth_simulator_converges_to_exact(smooth_sim, name):
 @pytest.mark.parametrize("kp", [40.0, 60.0, 100.0])
 def test_p_control_sticks_inside_friction_band(kp):
     """P control with Coulomb friction: the cart sticks (velocity exactly 0, position constant)
-    with |e| <= f_c / (k gamma), DESIGN's band (rounding allowance 1e-12 relative)."""
+    with |e| <= f_c / (k gamma), the Coulomb dead band of docs/design.md, "The physics"
+    (rounding allowance 1e-12 relative)."""
     plant = handout_plant(f_c=F_C)
     res = simulate_exact(plant, PID(kp=kp, v_limit=6.0), step(0.5, horizon=2.0))
     band = F_C / (kp * float(plant.gamma))
@@ -324,7 +325,7 @@ def test_divergence_stops_and_fills_nan():
 
 
 def test_step_info_exact_uses_the_smaller_voltage_limit():
-    plant = handout_plant(f_c=F_C)
+    plant = handout_plant(f_c=F_C, v_sat=6.0)
     pid = PID(kp=40.0, kd=5.0, ki=5.0, v_limit=5.0)
     exp = step(0.5, horizon=2.0)
     assert voltage_limit(plant, pid) == 5.0
@@ -335,13 +336,19 @@ def test_step_info_exact_uses_the_smaller_voltage_limit():
 
 
 @dataclasses.dataclass(frozen=True)
-class _Spring(Effect):
-    k_s: float = 1.0
+class _Magnet(Effect):
+    """An effect with only a smooth form (not registered: a test double)."""
+
+    k_m: float = 1.0
+    name = "magnet"
     stage = "force"
-    param_names = ("k_s",)
+
+    def smooth_force(self, y, yd, v, smoothing, plant):
+        return -self.k_m * y
 
 
-def test_unsupported_effect_is_named():
-    plant = Plant(effects=(Saturation(), _Spring()))
-    with pytest.raises(NotImplementedError, match="_Spring.*exact simulator does not model it"):
+def test_an_effect_without_an_exact_form_is_named():
+    # Which effects the exact simulator supports comes from the effects themselves.
+    plant = Plant(effects=(Saturation(), _Magnet()))
+    with pytest.raises(NotImplementedError, match="magnet.*has no exact form"):
         simulate_exact(plant, PID(kp=10.0), step(0.1, horizon=0.1))

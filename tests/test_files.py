@@ -224,10 +224,10 @@ def test_reference_and_input_kinds(tmp_path):
 def test_plant_from_overrides():
     p = plant_from_overrides({"M": 1.25})
     assert float(p.m) == pytest.approx(1.25 + 0.1331, abs=1e-4)  # M + M_J (handout appendix)
-    assert p.effect(jc.Saturation).v_sat == 6.0 and p.effect(jc.Coulomb) is None
+    assert p.effects == ()  # the nominal plant: no amplifier limit, no friction
     p = plant_from_overrides({"f_c": 0.4, "v_sat": 5.0})
     assert p.effect(jc.Coulomb).f_c == 0.4 and p.effect(jc.Saturation).v_sat == 5.0
-    assert plant_from_overrides({"f_c": 0.0}).effect(jc.Coulomb) is None
+    assert p.structure == ("saturation", "coulomb")
     p = plant_from_overrides({"B_eq": 3.0}, jc.tap_plant())
     assert p.motor_connected is False and p.B_eq == 3.0 and p.effects == ()
     with pytest.raises(UserError, match="unknown plant parameter 'Beq'"):
@@ -279,12 +279,16 @@ BAD = {
         ["'start'", "[reference]"],
     ),
     "unknown kind": ('kind = "closedloop"\ndata = "run.csv"\n', GOOD_CSV, ["kind", "'closedloop'"]),
-    "zero mass": (HEAD + "[plant]\nM = 0\n", GOOD_CSV, ["[plant]", "M = 0", "positive mass"]),
+    "zero mass": (
+        HEAD + "[plant]\nM = 0\n",
+        GOOD_CSV,
+        ["[plant]", "M = 0", "out of its range [0.001"],
+    ),
     "negative mass": (HEAD + "[plant]\nM = -1.0\n", GOOD_CSV, ["[plant]", "M = -1.0"]),
     "negative B_eq": (
         HEAD + "[plant]\nB_eq = -2.0\n",
         GOOD_CSV,
-        ["[plant]", "B_eq = -2.0", ">= 0"],
+        ["[plant]", "B_eq = -2.0", "out of its range [0, 200] kg/s"],
     ),
     "unknown plant parameter": (
         HEAD + "[plant]\nBeq = 2.0\n",
@@ -348,3 +352,10 @@ def test_write_rejects_bad_plant_overrides_and_batches(tmp_path):
     with pytest.raises(UserError, match="one run at a time"):
         write_experiment(tmp_path / "y.toml", batch)
     assert not list(tmp_path.iterdir())
+
+
+def test_csv_saved_by_excel_with_a_byte_order_mark(tmp_path):
+    (tmp_path / "run.csv").write_bytes("\ufefft,y,v\r\n0,0,1\r\n0.001,0.1,1\r\n".encode("utf-8"))
+    rec = read_experiment(_toml(tmp_path, HEAD))
+    np.testing.assert_array_equal(rec.position, [0.0, 0.1])
+    np.testing.assert_array_equal(rec.command, [1.0, 1.0])

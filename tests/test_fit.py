@@ -170,26 +170,29 @@ def test_coasting_segment_needs_a_tap():
 
 
 def test_fitted_plant_file_round_trip(tmp_path, cl_fit):
-    path = F.write_fitted_plant(tmp_path / "fitted.json", cl_fit, sources=["a.toml"])
-    plant = F.load_fitted_plant(path)
-    assert plant.motor_connected
+    from jaxcart.plantspec import read_plant_file
+
+    path = F.write_fitted_plant(tmp_path / "fitted.toml", cl_fit, sources=["a.toml"])
+    plant, fit_table = read_plant_file(path)
+    assert plant == F.load_fitted_plant(path) == cl_fit.plant()  # the effects come back too
+    assert plant.motor_connected and plant.structure == ("coulomb",)  # P50 limits in software
     assert plant.get("B_eq") == pytest.approx(cl_fit.params["B_eq"].value, rel=1e-12)
     assert plant.get("f_c") == pytest.approx(cl_fit.params["f_c"].value, rel=1e-12)
-    doc = json.loads(path.read_text())
-    assert doc["fitted"]["B_eq"]["stderr"] == pytest.approx(cl_fit.params["B_eq"].stderr)
+    assert fit_table["stderr"]["B_eq"] == pytest.approx(cl_fit.params["B_eq"].stderr)
+    assert fit_table["recordings"] == ["a.toml"] and fit_table["held"] == []
     with pytest.raises(UserError, match="exists"):
         F.write_fitted_plant(path, cl_fit)
     F.write_fitted_plant(path, cl_fit, force=True)
-    bad = tmp_path / "bad.json"
-    bad.write_text('{"plant": {"B_eq": -1}}')
+    bad = tmp_path / "bad.toml"
+    bad.write_text('format = "jaxcart-plant"\n[plant]\nB_eq = -1.0\n')
     with pytest.raises(UserError, match="B_eq"):
         F.load_fitted_plant(bad)
     with pytest.raises(UserError, match="not found"):
-        F.load_fitted_plant(tmp_path / "missing.json")
+        F.load_fitted_plant(tmp_path / "missing.toml")
 
 
 def test_command_line(tmp_path, tap_rec, capsys):
-    from jaxcart.cli import main
+    from tuning.cli import main
 
     toml = write_recording(tap_rec, tmp_path / "tap.toml")
     args = [
@@ -202,7 +205,7 @@ def test_command_line(tmp_path, tap_rec, capsys):
         "--json",
         str(tmp_path / "fit.json"),
         "--out",
-        str(tmp_path / "fitted.json"),
+        str(tmp_path / "fitted.toml"),
         "--plot",
         str(tmp_path / "fit.png"),
     ]
@@ -214,7 +217,7 @@ def test_command_line(tmp_path, tap_rec, capsys):
     assert report["rms_after"] < report["rms_before"]
     assert report["classic"][0]["name"] == "B_eq"
     assert (tmp_path / "fit.png").stat().st_size > 10_000
-    assert F.load_fitted_plant(tmp_path / "fitted.json").get("f_c") == pytest.approx(
+    assert F.load_fitted_plant(tmp_path / "fitted.toml").get("f_c") == pytest.approx(
         report["params"]["f_c"]["value"]
     )
     # Existing outputs are kept unless --force; the error is one line, before any fitting.

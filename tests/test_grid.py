@@ -281,7 +281,7 @@ def test_bad_gains_files_say_where(tmp_path, content, match):
 
 
 def test_cli_reports_bad_option_in_one_line(capsys):
-    from jaxcart.cli import main
+    from tuning.cli import main
 
     assert main(["grid", "--kp", "150:10:64"]) == 2
     err = capsys.readouterr().err.strip()

@@ -178,7 +178,7 @@ def test_bad_data_folder_is_a_user_error(tmp_path, capsys):
     with pytest.raises(UserError, match="no experiment files"):
         run_lab(tmp_path / "empty", tmp_path / "out")
     assert not (tmp_path / "out").exists()  # nothing is written before the data are read
-    from jaxcart.cli import main
+    from tuning.cli import main
 
     assert main(["lab", "--data", str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -27,8 +27,16 @@ def test_tap_plant_has_no_back_emf():
     assert sig(p.m, 5) == 1.0731  # the rotor still turns with the cart
 
 
+def test_the_nominal_plant_is_the_handouts_with_no_effects():
+    # Equation (0.1): no amplifier limit, no friction; the 6 V is the controller's v_limit.
+    assert jc.handout_plant().effects == () and jc.Plant().effects == ()
+    assert jc.voltage_limit(jc.handout_plant(), jc.PID(v_limit=6.0)) == 6.0
+    assert jc.voltage_limit(jc.handout_plant(v_sat=5.0), jc.PID(v_limit=6.0)) == 5.0
+    assert jc.voltage_limit(jc.handout_plant(), jc.PID()) == float("inf")
+
+
 def test_named_parameters_reach_effects():
-    p = jc.handout_plant(f_c=0.3)
+    p = jc.handout_plant(f_c=0.3, v_sat=6.0)
     assert p.get("f_c") == 0.3 and p.get("v_sat") == 6.0 and p.get("B_eq") == 5.4
     q = p.replace(f_c=0.5, B_eq=4.0, v_sat=5.0)
     assert (q.get("f_c"), q.get("B_eq"), q.get("v_sat")) == (0.5, 4.0, 5.0)

@@ -163,7 +163,7 @@ def test_bad_input_is_a_user_error():
 
 
 def test_command_line_writes_gains_and_refuses_to_overwrite(tmp_path, capsys):
-    from jaxcart.cli import main
+    from tuning.cli import main
 
     out = tmp_path / "g.json"
     summary = tmp_path / "summary.json"
@@ -211,26 +211,32 @@ def test_command_line_writes_gains_and_refuses_to_overwrite(tmp_path, capsys):
         (["--settling", "nan"], "--settling"),
         (["--range", "B_eq=3,7"], "--range needs --robust"),
         (["--robust", "--range", "B_eq=7,3"], "LO <= HI"),
-        (["--plant-file", "missing.json"], "no such file"),
+        (["--plant", "missing.toml"], "no such file"),
     ],
 )
 def test_command_line_bad_input(tmp_path, capsys, argv, words):
-    from jaxcart.cli import main
+    from tuning.cli import main
 
     assert main(["tune", "--out", str(tmp_path / "g.json"), *argv]) == 2
     err = capsys.readouterr().err
     assert words in err and err.count("\n") == 1
 
 
-def test_plant_file_json(tmp_path):
-    from tuning.commands.tune import _plant_file
+def test_plant_option_reads_a_plant_file_and_its_effects(tmp_path):
+    import argparse
 
-    path = tmp_path / "fit.json"
-    path.write_text(json.dumps({"plant": {"B_eq": {"value": 4.8, "stderr": 0.1}, "f_c": 0.3}}))
-    assert _plant_file(path) == {"B_eq": 4.8, "f_c": 0.3}
-    path.write_text(json.dumps({"plant": {"B_eqq": 4.8}}))
+    from tuning.commands.tune import _plant
+
+    path = jc.write_plant_file(tmp_path / "p.toml", jc.build_plant({"B_eq": 4.8, "delay": 0.002}))
+    args = argparse.Namespace(plant_file=str(path), B_eq=None, f_c=0.4, M=None)
+    plant = _plant(args)
+    assert plant.B_eq == 4.8 and plant.get("f_c") == 0.4 and plant.get("delay") == 0.002
+    assert plant.structure == ("delay", "coulomb")
+    (tmp_path / "bad.toml").write_text('format = "jaxcart-plant"\n[plant]\nB_eqq = 4.8\n')
     with pytest.raises(UserError, match="B_eqq"):
-        _plant_file(path)
+        _plant(
+            argparse.Namespace(plant_file=str(tmp_path / "bad.toml"), B_eq=None, f_c=None, M=None)
+        )
 
 
 @pytest.mark.slow

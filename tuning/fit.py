@@ -39,7 +39,6 @@ is kept beside it (``stderr_naive``).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import sys
 import time as _time
@@ -53,19 +52,36 @@ import jax.numpy as jnp
 import numpy as np
 
 from hw.control_law import PID
-from jaxcart.effects import Coulomb, Saturation
+from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
 from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant
-from jaxcart.simulate import simulate
-from jaxcart.smoothing import Smoothing
+from jaxcart.smooth import simulate
+from jaxcart.smoothing import Smoothing, continuation
 
-#: Parameters the command line offers (any plant or effect parameter name is accepted).
-FITTABLE = ("B_eq", "f_c", "M", "gamma_scale", "v_sat")
+#: Parameters a fit offers: the plant's corrections and every registered effect's parameters
+#: (naming one adds its effect; a vector such as f_track is fitted element by element, as
+#: f_track[0], f_track[1], ...). The encoder count is read from each recording, not fitted.
+NOT_FITTED = {
+    "quantization": "the encoder's count size is read from each recording (every position is "
+    "a whole number of counts); it is not fitted",
+}
+FITTABLE = ("B_eq", "M", "gamma_scale") + tuple(
+    p.name
+    for cls in plantspec.REGISTRY.values()
+    for p in cls.params
+    if p.name not in NOT_FITTED
+)
 #: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
 ALIASES = {"v_limit": "v_sat"}
-#: Starting values for parameters a plant does not have yet (f_c adds Coulomb friction) [SI].
-DEFAULT_START = {"f_c": 0.3, "v_sat": 6.0}
+#: Starting values for parameters a plant does not have yet [SI]: each effect's declared start.
+DEFAULT_START = {
+    n: (plantspec.param(n).start,) * plantspec.param(n).size
+    if plantspec.param(n).size
+    else plantspec.param(n).start
+    for n in FITTABLE
+    if n not in ("B_eq", "M")
+}
 #: Nuisance values and their internal units (the optimizer's unit step): y0, the initial
 #: position [m]; yd0, the initial velocity [m/s].
 NUISANCE_SCALE = {"y0": 1e-3, "yd0": 0.1}
@@ -94,6 +110,9 @@ class Nuisance(NamedTuple):
         return self.scale
 
 
+#: Secant half-width (internal units: 3 % for a log-scaled parameter) where the exact
+#: simulator's output moves in steps of a parameter (an event snapped to a sample).
+STAIRCASE_STEP = 0.03
 #: Largest Levenberg-Marquardt step per iteration, in internal units.
 MAX_STEP = 1.0
 #: Bounded nuisance values stay within sigmoid(+-BOUNDED_LIMIT) of their range.
@@ -121,7 +140,7 @@ class FitSettings:
     quantization: the encoder count [m]; None: found in each recording (:func:`encoder_count`)
     """
 
-    widths: tuple[float, ...] = (1e-2, 1e-3, 1e-4)
+    widths: tuple[float, ...] = tuple(1e-2 * f for f in continuation(1e-2, 3))
     voltage_width: float = 1e-3
     adam_steps: int = 40
     learning_rate: float = 0.02
@@ -267,7 +286,7 @@ class FitResult:
         if base is None:
             driven = [s.plant for s in self.segments if s.plant.motor_connected]
             base = driven[0] if driven else handout_plant()
-        return with_values(base, self.values)
+        return with_values(base, assemble(base, self.values))
 
     def to_json(self) -> dict:
         """{"params": {name: {"value", "stderr"}}, "rms_before", "rms_after" [m], ...}: the
@@ -313,34 +332,106 @@ def parse_params(text) -> tuple[str, ...]:
     names = [n.strip() for n in text.split(",")] if isinstance(text, str) else list(text)
     names = [n for n in names if n]
     known = _known_names()
+    expanded = []
     for n in names:
+        if canonical(n) in NOT_FITTED:
+            raise UserError(f"--params: {n}: {NOT_FITTED[canonical(n)]}")
+        if base_name(n) in known and "[" in n:
+            expanded.append(n)  # one element of a vector, as returned by the fit
+            continue
+        size = plantspec.param(canonical(n)).size if canonical(n) in known else 0
+        if size:
+            expanded += [f"{n}[{i}]" for i in range(size)]
+            continue
+        expanded.append(n)
         if canonical(n) not in known:
             raise UserError(
                 f"--params: unknown parameter {n!r}; fit any of "
                 f"{', '.join(FITTABLE)} (v_limit = v_sat), or another plant "
                 f"parameter: {', '.join(sorted(known))}"
             )
-    if len({canonical(n) for n in names}) != len(names):
+    if len({canonical(n) for n in expanded}) != len(expanded):
         raise UserError(f"--params {','.join(names)}: a parameter is named twice")
-    return tuple(names)
+    return tuple(expanded)
+
+
+def base_name(name: str) -> str:
+    """The parameter a name belongs to: "f_track[2]" -> "f_track"."""
+    return name.split("[", 1)[0]
+
+
+def _element(name: str) -> int | None:
+    return int(name[name.index("[") + 1 : -1]) if "[" in name else None
+
+
+def assemble(plant: Plant, values: dict, xp=np) -> dict:
+    """{name: value} with vector elements ("f_track[2]") gathered into their vectors (the
+    plant's current vector where an element is not given); scalars pass through."""
+    out, vectors = {}, {}
+    for name, value in values.items():
+        i = _element(name)
+        if i is None:
+            out[name] = value
+            continue
+        base = base_name(name)
+        if base not in vectors:
+            have = plant.get(base) if base in plant.param_names() else DEFAULT_START[base]
+            vectors[base] = list(have) if isinstance(have, tuple) else list(xp.asarray(have))
+        vectors[base][i] = value
+    for base, items in vectors.items():
+        out[base] = xp.stack([xp.asarray(v) for v in items]) if xp is not np else tuple(
+            float(v) for v in items
+        )
+    return out
 
 
 def _known_names() -> set:
-    return set(Plant(effects=(Saturation(), Coulomb())).param_names())
+    return set(FITTABLE) | set(plantspec.parameter_names())
+
+
+def _drives_nothing(name: str, plant: Plant) -> bool:
+    """True for a parameter of the drive (voltage stage, current limit) on an unplugged motor."""
+    cls = plantspec.effect_of_param(name)
+    return (
+        not plant.motor_connected
+        and cls is not None
+        and (cls.stage == "voltage" or cls.name == "current_limit")
+    )
 
 
 def with_values(plant: Plant, values: dict) -> Plant:
-    """``plant`` with named values [SI]; ``f_c`` adds Coulomb friction and ``v_sat`` a
-    saturation where the plant lacks them. Names the plant cannot have are ignored."""
+    """``plant`` with named values [SI] through the plant spec (a name of an effect the plant
+    lacks adds it). Names the plant cannot have (a drive effect on a tap) are ignored."""
     values = {canonical(k): v for k, v in values.items()}
-    effects = list(plant.effects)
-    if "f_c" in values and plant.effect(Coulomb) is None:
-        effects.append(Coulomb(f_c=values["f_c"]))
-    if "v_sat" in values and plant.effect(Saturation) is None and plant.motor_connected:
-        effects.insert(0, Saturation(v_sat=values["v_sat"]))
-    plant = dataclasses.replace(plant, effects=tuple(effects))
-    known = set(plant.param_names())
-    return plant.replace(**{k: v for k, v in values.items() if k in known})
+    values = {k: v for k, v in values.items() if not _drives_nothing(k, plant)}
+    return plantspec.with_values(plant, values)
+
+
+def _log_scaled(name: str) -> bool:
+    """Parameters that cannot be negative are fitted as their logarithm (relative steps)."""
+    try:
+        return plantspec.param(base_name(name)).low >= 0
+    except KeyError:
+        return True
+
+
+#: Internal unit of a parameter fitted linearly (one that may be negative, like y_rest) [SI].
+LINEAR_SCALE = 0.1
+
+
+def to_value(name: str, theta, xp=np):
+    """A parameter's value [SI] from its internal coordinate theta."""
+    return xp.exp(theta) if _log_scaled(name) else LINEAR_SCALE * theta
+
+
+def to_theta(name: str, value: float) -> float:
+    """The internal coordinate of a parameter value (inverse of :func:`to_value`)."""
+    return math.log(value) if _log_scaled(name) else float(value) / LINEAR_SCALE
+
+
+def value_slope(name: str, theta) -> float:
+    """d value / d theta (the Jacobian factor of standard errors)."""
+    return float(np.exp(theta)) if _log_scaled(name) else LINEAR_SCALE
 
 
 def plant_values(plant: Plant, names=FITTABLE) -> dict:
@@ -350,6 +441,21 @@ def plant_values(plant: Plant, names=FITTABLE) -> dict:
 
 
 # ---------------------------------------------------------------- segments
+
+
+def _default_start(name: str) -> float:
+    start = DEFAULT_START.get(base_name(name), 1.0)
+    return float(start[_element(name)] if isinstance(start, tuple) else start)
+
+
+def _initial_value(name, value):
+    """A starting value [SI]: a float, or a tuple of floats for a vector parameter."""
+    try:
+        if isinstance(value, list | tuple | np.ndarray):
+            return tuple(float(v) for v in value)
+        return float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"initial value {name} = {value!r}: give a number (SI units)") from None
 
 
 def coasting_segment(
@@ -442,10 +548,11 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
     time = np.asarray(recording.time, dtype=float)
     plant = with_values(recording.plant(), values)
     canon = [canonical(p) for p in params]
-    for p in canon:  # a fitted friction the plant lacks starts from DEFAULT_START
-        if p in DEFAULT_START and p not in plant.param_names():
-            plant = with_values(plant, {p: DEFAULT_START[p]})
-    acting = tuple(p for p in canon if p in plant.param_names())
+    for p in canon:  # a fitted effect the plant lacks starts from DEFAULT_START
+        b = base_name(p)
+        if b in DEFAULT_START and b not in plant.param_names() and not _drives_nothing(b, plant):
+            plant = with_values(plant, {b: DEFAULT_START[b]})
+    acting = tuple(p for p in canon if base_name(p) in plant.param_names())
     exp = recording.experiment
     if recording.kind == "tap":
         try:
@@ -523,7 +630,9 @@ def _positions(theta, data, smoothing, layout: _Layout):
     for (plant, controller, experiment, base), (params, nuisance) in zip(
         data, layout.segments, strict=True
     ):
-        plant = plant.replace(**{p: jnp.exp(theta[i]) for p, i in params})
+        plant = plant.replace(
+            **assemble(plant, {p: to_value(p, theta[i], jnp) for p, i in params}, jnp)
+        )
         # The base values are data (a traced array), so that recordings differing only in them
         # share one compilation.
         values = {
@@ -559,7 +668,7 @@ class _Problem:
         self.settings = settings
         index = len(self.params)
         layout = []
-        theta = [math.log(self._start_value(p)) for p in self.params]
+        theta = [to_theta(p, self._start_value(p)) for p in self.params]
         for seg in segments:
             ps = tuple((p, self.params.index(p)) for p in seg.params)
             nu = []
@@ -609,9 +718,14 @@ class _Problem:
         )
 
     def _start_value(self, p) -> float:
-        values = [float(s.plant.get(p)) for s in self.segments if p in s.params]
-        value = values[0] if values else DEFAULT_START.get(p, 1.0)
-        if not value > 0:
+        i = _element(p)
+        values = [
+            float(s.plant.get(p) if i is None else s.plant.get(base_name(p))[i])
+            for s in self.segments
+            if p in s.params
+        ]
+        value = values[0] if values else _default_start(p)
+        if _log_scaled(p) and not value > 0:
             value = DEFAULT_START.get(p, 1.0)
         return value
 
@@ -638,7 +752,7 @@ class _Problem:
         """(plant values {name: value}, nuisance {name: value}) of segment k at theta."""
         params, _ = self.layout.segments[k]
         return (
-            {p: float(np.exp(theta[i])) for p, i in params},
+            {p: float(to_value(p, theta[i])) for p, i in params},
             {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
         )
 
@@ -664,7 +778,7 @@ class _Problem:
         out = []
         for k, seg in enumerate(self.segments):
             values, nuisance = self.segment_values(theta, k)
-            plant = seg.plant.replace(**values)
+            plant = seg.plant.replace(**assemble(seg.plant, values))
             exp = dataclasses.replace(seg.experiment, **nuisance)
             res = simulate_exact(plant, seg.controller, exp)
             out.append(np.asarray(res.position))
@@ -812,7 +926,24 @@ def _exact_polish(problem, theta, active, jac, iterations):
     jac = jac.copy()
     if idx.size == 0 or not math.isfinite(cost):
         return theta, r, jac, 0
-    jac[:, idx] = problem.exact_jacobian(theta, idx, r)
+    smooth_norm = np.linalg.norm(jac[:, idx], axis=0)
+
+    def columns(theta, r):
+        # Where an event snaps to a sample (a breakaway at f_s, say) the exact output moves in
+        # steps, and a small difference quotient is 0 although the data depend on the
+        # parameter: there a central secant over a few percent spans the steps.
+        cols = problem.exact_jacobian(theta, idx, r)
+        flat = np.flatnonzero(np.linalg.norm(cols, axis=0) < 1e-3 * smooth_norm)
+        for j in flat:
+            up, down = theta.copy(), theta.copy()
+            up[idx[j]] += STAIRCASE_STEP
+            down[idx[j]] -= STAIRCASE_STEP
+            cols[:, j] = (
+                problem.exact_residuals(up) - problem.exact_residuals(down)
+            ) / (2 * STAIRCASE_STEP)
+        return cols
+
+    jac[:, idx] = columns(theta, r)
     done = 0
     while done < iterations:
         done += 1
@@ -833,7 +964,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
         else:
             break
         theta, r, cost = trial, r2, cost2
-        jac[:, idx] = problem.exact_jacobian(theta, idx, r)
+        jac[:, idx] = columns(theta, r)
         if np.all(np.abs(t * step) <= 1e-2 * scale):
             break
     return theta, r, jac, done
@@ -998,7 +1129,7 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
     recordings = list(recordings)
     if not recordings:
         raise UserError("no recordings to fit; give at least one experiment file")
-    values0 = {canonical(k): float(v) for k, v in (initial or {}).items()}
+    values0 = {canonical(k): _initial_value(k, v) for k, v in (initial or {}).items()}
     segments = [prepare(rec, params, values0, settings) for rec in recordings]
     problem = _Problem(segments, params, settings)
     p = len(problem.params)
@@ -1055,7 +1186,15 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
     while True:
         idx = np.flatnonzero(active)
         hac, naive, singular = _covariances(problem, r, jac, idx)
-        rel = np.sqrt(np.diag(hac))  # log-space standard error = relative standard error
+        # Relative standard errors (for log-scaled parameters the log-space error is that).
+        rel = np.sqrt(np.diag(hac)) * np.asarray(
+            [
+                1.0
+                if i >= p or _log_scaled(problem.params[i])
+                else LINEAR_SCALE / max(abs(float(to_value(problem.params[i], theta[i]))), 1e-3)
+                for i in idx
+            ]
+        )
         zero = np.linalg.norm(jac[:, idx], axis=0) == 0
         # Worst first: no effect at all, then the largest relative error, then the parameter
         # named last (the user lists the important ones first).
@@ -1070,7 +1209,8 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         i = int(idx[worst])
         name = problem.params[i]
         notes[name] = _why(name, worst, idx, hac, singular, zero, problem, theta)
-        say(f"{name}: {notes[name]}; holding it at {math.exp(problem.theta0[i]):.4g}")
+        held_at = float(to_value(name, problem.theta0[i]))
+        say(f"{name}: {notes[name]}; holding it at {held_at:.4g}")
         active[i] = False
         theta[i] = problem.theta0[i]
         theta, r, jac, _ = _lm(problem, theta, active, narrow, settings.lm_iterations)
@@ -1082,9 +1222,10 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
     for asked, name in zip(params, problem.params, strict=True):
         i = problem.params.index(name)
         if active[i]:
-            value = float(np.exp(theta[i]))
+            value = float(to_value(name, theta[i]))
+            slope = value_slope(name, theta[i])
             estimates[asked] = Estimate(
-                asked, value, value * float(se_internal[i]), stderr_naive=value * float(se_naive[i])
+                asked, value, slope * float(se_internal[i]), stderr_naive=slope * float(se_naive[i])
             )
         else:
             estimates[asked] = Estimate(asked, None, None, identifiable=False, note=notes[name])
@@ -1125,14 +1266,14 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
                 before_exact[k],
                 after_exact[k],
                 nuis,
-                seg.plant.replace(**pv),
+                seg.plant.replace(**assemble(seg.plant, pv)),
             )
         )
     values = {**values0}
     for seg in segments:
         values.update(plant_values(seg.plant, problem.params))
     for i, name in enumerate(problem.params):
-        values[name] = float(np.exp(theta[i]))
+        values[name] = float(to_value(name, theta[i]))
     result = FitResult(
         estimates,
         values,
@@ -1156,7 +1297,7 @@ def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:
     """Why parameter ``name`` (entry j of idx) is not identifiable, in one line."""
     i = int(idx[j])
     p = len(problem.params)
-    if theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: log-space runs off to zero
+    if _log_scaled(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
         return (
             f"not identifiable: the fit drives it towards 0 ({math.exp(theta[i]):.2g}); the "
             "data favour a model without it, or the model misses what they show"
@@ -1204,59 +1345,44 @@ def _rms(x) -> float:
 # ---------------------------------------------------------------- fitted-plant files
 
 
-def fitted_json(result: FitResult, sources=()) -> dict:
-    """The fitted-plant document: {"format", "version", "plant": {every plant parameter},
-    "fitted": {name: {"value", "stderr"}}, "rms_before", "rms_after", "recordings"}."""
-    plant = result.plant()
-    doc = {
-        "format": FITTED_FORMAT,
-        "version": 1,
-        "plant": {n: float(plant.get(n)) for n in plant.param_names()},
-        "fitted": {canonical(n): e.to_json() for n, e in result.params.items()},
-        "rms_before": result.to_json()["rms_before"],
-        "rms_after": result.to_json()["rms_after"],
-        "recordings": [str(s) for s in sources],
+def fit_table(result: FitResult, sources=()) -> dict:
+    """What a fit knows, for a plant file's [fit] table: the structure fitted, every fitted
+    parameter's value and standard error, the parameters held or not identifiable (with why),
+    the RMS before and after [m], the recordings."""
+    doc = result.to_json()
+    fitted = {n: e for n, e in result.params.items() if e.identifiable and e.value is not None}
+    held = {n: e.note for n, e in result.params.items() if not e.identifiable}
+    table = {
+        "structure": list(result.plant().structure) or ["nominal"],
+        "fitted": [canonical(n) for n in fitted],
+        "value": {canonical(n): e.value for n, e in fitted.items()},
+        "stderr": {canonical(n): e.stderr for n, e in fitted.items()},
+        "held": [canonical(n) for n in held],
+        "why_held": {canonical(n): note or "" for n, note in held.items()},
+        "rms_before": doc["rms_before"],
+        "rms_after": doc["rms_after"],
+        "recordings": [str(x) for x in sources],
     }
-    return doc
+    return {k: v for k, v in table.items() if v is not None}
 
 
 def write_fitted_plant(path, result: FitResult, *, sources=(), force: bool = False) -> Path:
-    """Write the fitted plant as JSON (:func:`fitted_json`); refuses to overwrite unless force."""
-    path = Path(path)
-    if path.exists() and not force:
-        raise UserError(f"{path} exists; choose another name or pass --force to overwrite it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(fitted_json(result, sources), indent=2) + "\n")
-    return path
+    """Write the fitted plant as a plant file (TOML, :mod:`jaxcart.plantspec`) with a [fit]
+    table (:func:`fit_table`); refuses to overwrite unless ``force``."""
+    return plantspec.write_plant_file(
+        path, result.plant(), fit=fit_table(result, sources), force=force
+    )
 
 
-def load_fitted_plant(path, base: Plant | None = None) -> Plant:
-    """The plant of a fitted-plant file (``jaxcart fit --out``): ``base`` (default
-    :func:`jaxcart.handout_plant`) with the file's "plant" values (f_c adds Coulomb friction)."""
-    from jaxcart.files import plant_from_overrides
-
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"plant file {path} not found; write one with jaxcart fit --out")
-    try:
-        doc = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(
-            f"{path}: not valid JSON ({exc}); write it with jaxcart fit --out"
-        ) from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("plant"), dict):
-        raise UserError(
-            f'{path}: no "plant" table of parameter values; write the file with jaxcart fit --out'
-        )
-    if doc.get("format", FITTED_FORMAT) != FITTED_FORMAT:
-        raise UserError(f"{path}: format {doc.get('format')!r} is not {FITTED_FORMAT!r}")
-    return plant_from_overrides(doc["plant"], base or handout_plant(), where=f'{path} "plant"')
+def load_fitted_plant(path) -> Plant:
+    """The plant of a plant file (written by ``jaxcart fit --out`` or ``diagnose``)."""
+    return plantspec.read_plant_file(path)[0]
 
 
 # ---------------------------------------------------------------- overlay plot
 
 #: Units of the fittable parameters (for tables and plots).
-UNITS = {"B_eq": "kg/s", "f_c": "N", "M": "kg", "gamma_scale": "", "v_sat": "V", "v_limit": "V"}
+UNITS = {n: plantspec.unit(n) for n in plantspec.parameter_names()} | {"v_limit": "V"}
 
 
 def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:

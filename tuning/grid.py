@@ -31,8 +31,8 @@ import numpy as np
 
 from jaxcart.batch import DEFAULT_CHUNK, step_metrics_batch
 from jaxcart.errors import UserError
-from jaxcart.metrics import StepInfo, step_info
-from jaxcart.simulate import EXACT_FORMS, simulate
+from jaxcart.metrics import StepInfo
+from jaxcart.smooth import EXACT_FORMS
 
 #: Chunks per device in one evaluated block: the progress granularity (65,536 points per
 #: block on 2 devices); also what bounds the working set beside the output arrays.
@@ -308,27 +308,12 @@ def _best(flat, feasible, settling_spec, overshoot_spec) -> tuple[int, bool]:
 def recheck(plant, controller, experiment, gains) -> tuple[StepInfo, str]:
     """Metrics of one gain triple (kp, kd, ki) on the exact simulator, in float64.
 
-    Returns (:class:`StepInfo`, a label naming the simulator). Uses
-    :func:`jaxcart.exact.step_info_exact`; if that module is not installed, falls back to the
-    smooth simulator with the hard-clip forms in float64 (same model without friction) and says
-    so in the label.
-    """
+    Returns (:class:`StepInfo`, a label naming the simulator)."""
+    from jaxcart.exact import step_info_exact
+
     pid = dataclasses.replace(
         controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
     )
-    try:
-        from jaxcart.exact import step_info_exact  # written beside this module; may be absent
-    except ModuleNotFoundError as exc:
-        if exc.name != "jaxcart.exact":
-            raise
-        with jax.enable_x64(True):
-            response = simulate(plant, pid, experiment, smoothing=EXACT_FORMS)
-            limit = min(
-                [float(pid.v_limit)]
-                + [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
-            )
-            info = step_info(response, v_limit=limit)
-        return info, "smooth simulator, hard clip, float64 (jaxcart.exact not available)"
     return step_info_exact(plant, pid, experiment), "exact simulator"
 
 

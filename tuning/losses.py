@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from jaxcart.errors import UserError
 from jaxcart.metrics import SETTLING_BAND
-from jaxcart.simulate import simulate
+from jaxcart.smooth import simulate
 from jaxcart.smoothing import Smoothing
 from jaxcart.surrogates import SmoothStepInfo, band_excess, smooth_step_info, soft_max
 

@@ -32,13 +32,14 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from hw.control_law import PID
-from jaxcart.effects import Coulomb
+from hw.control_law import PID, float_pid
 from jaxcart.errors import UserError
 from jaxcart.experiments import step
 from jaxcart.metrics import StepInfo, step_metrics
-from jaxcart.params import Plant, handout_plant
-from jaxcart.simulate import EXACT_FORMS
+from jaxcart.params import Plant, handout_plant, voltage_limit
+from jaxcart.plantspec import with_values
+from jaxcart.smooth import EXACT_FORMS
+from jaxcart.smoothing import continuation
 from tuning.losses import (
     GAIN_NAMES,
     LossSettings,
@@ -65,7 +66,7 @@ DEFAULT_ROBUST = {"B_eq": (3.0, 7.0), "f_c": (0.0, 1.0), "M": (0.9, 1.1)}
 #: overshoot (to 0.01 %) as the simulator's default 10, at 2.5x the speed.
 FRICTION_SUBSTEPS = 2
 #: Continuation: the smoothing widths are multiplied by these factors, stage by stage.
-SCALES = (1.0, 0.5, 0.25, 0.125)
+SCALES = continuation(0.125, 4)  # 1, 0.5, 0.25, 0.125
 
 
 @dataclass
@@ -184,11 +185,9 @@ def _bounds(bounds):
 
 
 def _with_params(plant: Plant, values: Mapping) -> Plant:
-    """``plant`` with named parameters set; ``f_c`` adds Coulomb friction when missing."""
-    values = dict(values)
-    if "f_c" in values and plant.effect(Coulomb) is None:
-        plant = dataclasses.replace(plant, effects=tuple(plant.effects) + (Coulomb(0.0),))
-    return plant.replace(**{k: float(v) for k, v in values.items()})
+    """``plant`` with named parameters set through the plant spec (a name of an effect the
+    plant lacks adds it: ``f_c`` adds Coulomb friction)."""
+    return with_values(plant, {k: float(v) for k, v in dict(values).items()}, where="robust set")
 
 
 def robust_plants(plant: Plant, ranges=None, *, n_random: int = 0, seed: int = 0):
@@ -216,10 +215,10 @@ def robust_plants(plant: Plant, ranges=None, *, n_random: int = 0, seed: int = 0
         if "M" in v:
             v["M"] = v["M"] * float(plant.M)
         values.append(v)
-    # Same effect structure for every plant (friction everywhere if anywhere).
+    # Same effect structure for every plant (an effect everywhere if anywhere).
     base = plant
-    if any("f_c" in v for v in values) and base.effect(Coulomb) is None:
-        base = _with_params(base, {"f_c": 0.0})
+    for name in sorted({n for v in values for n in v} - set(base.param_names())):
+        base = _with_params(base, {name: 0.0})
     for v in values:
         try:
             plants.append(_with_params(base, v))
@@ -233,7 +232,8 @@ def _stack(plants: Sequence[Plant]) -> Plant:
 
 
 def _has_friction(plant: Plant) -> bool:
-    return plant.effect(Coulomb) is not None
+    """True where force effects act (the loop then needs sub-steps and narrow widths)."""
+    return bool(plant.stage("force"))
 
 
 # ---------------------------------------------------------------- exact checks
@@ -243,13 +243,7 @@ def exact_info(plant: Plant, controller: PID, experiment) -> StepInfo:
     """Metrics of one run on the exact simulator (:mod:`jaxcart.exact`)."""
     from jaxcart.exact import step_info_exact  # written beside this package: import late
 
-    return step_info_exact(plant, _float_pid(controller), experiment)
-
-
-def _float_pid(pid: PID) -> PID:
-    return dataclasses.replace(
-        pid, **{n: float(getattr(pid, n)) for n in ("kp", "ki", "kd", "tau", "v_limit", "kb")}
-    )
+    return step_info_exact(plant, float_pid(controller), experiment)
 
 
 def _violation(settling, overshoot, spec: Spec) -> float:
@@ -298,8 +292,9 @@ def tune(
 ) -> TuneResult:
     """Tune the canonical PID's gains by gradient descent on the smooth simulator.
 
-    plant: design model (default :func:`jaxcart.handout_plant`: B_eq = 5.4 kg/s, 6 V
-        saturation; a plant with Coulomb friction f_c [N] is simulated with sub-steps, slower).
+    plant: design model (default :func:`jaxcart.handout_plant`: the nominal model, B_eq = 5.4
+        kg/s, no effects; the 6 V of the lab is the controller's ``v_limit``; a plant with
+        force effects such as Coulomb friction is simulated with sub-steps, slower).
     spec: :class:`tuning.losses.Spec` (step 0.5 m, settling < 1 s, overshoot < 5 %).
     start: (kp, kd, ki) [V/m, V s/m, V/(m s)], a {name: gain} dict or a PID; default the
         handout's (40, 5, 5) with the gains that are not free set to 0. Gains not in ``free``
@@ -333,7 +328,7 @@ def tune(
     plant = handout_plant() if plant is None else plant
     free_mask = _free_mask(free)
     start_gains, template = _start_and_template(start, controller, free)
-    template = _float_pid(template)
+    template = float_pid(template)
     lo, hi = _bounds(bounds)
     experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
     ts = template.sample_time
@@ -475,7 +470,7 @@ def tune(
         candidates, template, plant, experiment, spec, check_plants if is_robust else None
     )
     gains = dataclasses.replace(
-        _float_pid(template), kp=float(chosen[0]), kd=float(chosen[1]), ki=float(chosen[2])
+        float_pid(template), kp=float(chosen[0]), kd=float(chosen[1]), ki=float(chosen[2])
     )
     smooth = _smooth_report(check, gains, plant, plants_arg, is_robust, theta, settings)
 
@@ -562,7 +557,7 @@ def _smooth_report(check, gains, plant, plants_arg, robust, theta, settings) -> 
     if robust:
         # One plant with the set's effects (friction included even where f_c = 0).
         values = {n: float(plant.get(n)) for n in ("M", "B_eq") if n in plant.param_names()}
-        values["f_c"] = float(plant.get("f_c")) if plant.effect(Coulomb) is not None else 0.0
+        values["f_c"] = float(plant.get("f_c")) if plant.effect("coulomb") is not None else 0.0
         nominal = _stack([_with_params(plant, values)])
         if jax.tree.structure(nominal) != jax.tree.structure(plants_arg):
             nominal = _stack([plant])
@@ -625,7 +620,7 @@ def _verify(candidates, template, plant, experiment, spec, check_plants, tries: 
     ranked = sorted(candidates.values(), key=lambda c: c[0])
     best = None
     for _key, g, _s, _o in ranked[:tries]:
-        pid = controller_with(_float_pid(template), [float(x) for x in g])
+        pid = controller_with(float_pid(template), [float(x) for x in g])
         if check_plants is None:
             info = exact_info(plant, pid, experiment)
             judged, per_plant = info, None
@@ -658,8 +653,7 @@ def _info_dict(info: StepInfo) -> dict:
 
 
 def _limit(plant, pid) -> float:
-    limits = [float(pid.v_limit)] + [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
-    return min(limits)
+    return float(voltage_limit(plant, pid))
 
 
 def _message(meets, failing, info, spec, robust, n_plants) -> str:

@@ -1,7 +1,47 @@
-"""Effects beyond the handout's linear model, each with an exact and a smoothed form."""
+"""The effects library: physics beyond the handout's linear model, one module each, each with a
+smooth (JAX) and an exact (numpy) form; see :mod:`jaxcart.effects.base` for the protocol.
 
-from jaxcart.effects.base import Effect
+Registering an effect is the import line below (the module's ``@register`` does the rest).
+"""
+
+from jaxcart.effects.backlash import Backlash
+from jaxcart.effects.base import (
+    REGISTRY,
+    STAGE_ORDER,
+    STAGES,
+    Effect,
+    Held,
+    Param,
+    effect_of_param,
+    register,
+)
 from jaxcart.effects.coulomb import Coulomb
+from jaxcart.effects.current_limit import CurrentLimit
+from jaxcart.effects.deadzone import Deadzone
+from jaxcart.effects.delay import Delay
+from jaxcart.effects.quantization import Quantization
 from jaxcart.effects.saturation import Saturation
+from jaxcart.effects.spring import Spring
+from jaxcart.effects.stiction import Stiction
+from jaxcart.effects.track_friction import TrackFriction
 
-__all__ = ["Effect", "Coulomb", "Saturation"]
+__all__ = [
+    "REGISTRY",
+    "STAGE_ORDER",
+    "STAGES",
+    "Effect",
+    "Held",
+    "Param",
+    "effect_of_param",
+    "register",
+    "Backlash",
+    "Coulomb",
+    "CurrentLimit",
+    "Deadzone",
+    "Delay",
+    "Quantization",
+    "Saturation",
+    "Spring",
+    "Stiction",
+    "TrackFriction",
+]

@@ -1,28 +1,173 @@
-"""What an effect is: a small piece of physics with an exact and a smoothed form.
+"""The effect protocol: physics beyond the handout's linear model, with state, in two forms.
 
-Each effect is a frozen dataclass registered as a pytree (its parameters are array leaves, so
-they can be fitted, vmapped and differentiated) and acts at one place of the loop:
+Each effect is one frozen dataclass registered as a pytree (its parameters are array leaves: they
+can be fitted, vmapped and differentiated; its configuration is static) and acts at one stage of
+the sampled loop (docs/design.md, "Effects"):
 
-    controller --u--> [voltage effects] --v_applied--> gamma * v_applied + [force effects] --> cart
-        ^                                                                                    |
-        '------------------------------ [sensor effects] <---------------- y ---------------'
+    controller --u_k--> [voltage stage] --v(t)--> cart: m y'' + c y' = gamma v + F --> y(t)
+        ^                                                 [force stage] F(y, y', v)      |
+        '--y_meas,k-- [sensor stage] <------------------------- y_k ---------------------'
 
-- ``stage = "voltage"``: ``smooth(v, smoothing)`` (JAX) and ``exact(v)`` (numpy) map the commanded
-  voltage to the voltage the motor sees.
-- ``stage = "force"``: ``smooth_force(y, ydot, smoothing)`` (JAX) is the force on the cart [N];
-  the exact simulator reads ``friction_levels()`` -> (kinetic, static) [N] for stick-slip.
+- ``stage = "voltage"``: maps the command held over one sample to the voltage the motor sees.
+  The held voltage is a :class:`Held` profile: ``early`` over [t_k, t_k + split), ``late`` over
+  [t_k + split, t_k+1) (``split = 0`` for a plain zero-order hold; a delay moves the edge).
+  ``smooth(state, held, smoothing, sample_time) -> (held, state)`` (JAX) and
+  ``exact(state, held, sample_time) -> (held, state)`` (Python floats).
+- ``stage = "force"``: a force on the cart [N]. Dry friction (Coulomb, stiction, friction along
+  the track) is one family: each member gives ``kinetic(y)`` [N] and/or ``static()`` [N], the
+  simulators combine them in one Karnopp law (exact) or one smoothed law (smooth). Any other
+  force gives ``smooth_force(y, yd, v, smoothing, plant)`` (JAX) and ``exact_force(y, yd, v,
+  plant)`` (floats), continuous in y and yd. A force effect that splits the moving body in two
+  (``transmission = True``: backlash between pinion and rack) has state and owns the motion
+  between samples: the smooth loop carries its state and steps a two-body sub-step, the exact
+  simulator a two-body event integrator (see :mod:`jaxcart.effects.backlash`).
+- ``stage = "sensor"``: maps the cart's position to what the controller reads:
+  ``smooth_measure(state, y, smoothing) -> (y_meas, state)`` and ``exact_measure(state, y) ->
+  (y_meas, state)``.
 
-Adding an effect is one module: the dataclass, its two forms, and its entry in ``__init__``.
+State: ``init_state(sample_time)`` returns a tuple of arrays (``()`` for a memoryless effect)
+for the smooth simulator, ``exact_init(sample_time)`` its plain-Python twin for the exact one;
+both simulators carry every effect's state through the loop.
+
+Each effect declares its parameters once (:class:`Param`: unit, valid range, typical starting
+value, the smoothing width it uses). Adding an effect is one module plus one line in
+``jaxcart/effects/__init__.py``; the registry below is how the plant spec, the file reader, the
+fitter, both simulators and the contract tests find it.
 """
 
 from __future__ import annotations
 
-from typing import ClassVar
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
+
+STAGES = ("voltage", "force", "sensor")
+#: Order of the stages in listings (the loop itself runs sensor -> controller -> voltage -> force).
+STAGE_ORDER = {"sensor": 0, "voltage": 1, "force": 2}
+#: Smoothing widths an effect may use (fields of :class:`jaxcart.smoothing.Smoothing`).
+WIDTHS = ("voltage", "velocity", "position")
+
+
+@dataclass(frozen=True)
+class Param:
+    """What an effect declares about one of its parameters.
+
+    name: the parameter's name in files and fits (unique across effects); unit: SI unit;
+    low, high: the valid range (inclusive; ``high`` may be inf); start: a typical starting
+    value for a fit; width: the smoothing width its nonsmooth form uses (a field of
+    Smoothing) or None; doc: one line; size: 0 for a scalar, n for a vector of n values.
+    """
+
+    name: str
+    unit: str
+    low: float
+    high: float
+    start: float
+    width: str | None = None
+    doc: str = ""
+    size: int = 0
+
+    def check(self, value, where: str) -> None:
+        """Raise ValueError naming the parameter, its range and ``where`` if out of range."""
+        values = value if isinstance(value, list | tuple) else [value]
+        for v in values:
+            v = float(v)
+            if math.isnan(v) or not (self.low <= v <= self.high):
+                high = "inf" if math.isinf(self.high) else f"{self.high:g}"
+                raise ValueError(
+                    f"{where}: {self.name} = {v!r} {self.unit}: out of its range "
+                    f"[{self.low:g}, {high}] {self.unit}"
+                )
+
+
+class Held(NamedTuple):
+    """The voltage held over one sample period: ``early`` [V] over [t_k, t_k + split),
+    ``late`` [V] over the rest; ``split`` [s] in [0, Ts]."""
+
+    early: Any
+    late: Any
+    split: Any
 
 
 class Effect:
-    """Base class of effects (documentation and shared helpers)."""
+    """Base class of effects; subclasses are frozen pytree dataclasses registered with
+    :func:`register`."""
 
+    #: registry key and the name in files and diagnoses ("saturation", "coulomb", ...)
+    name: ClassVar[str] = ""
     stage: ClassVar[str] = ""
-    #: names of the fields that are physical parameters (fittable; unique across effects)
-    param_names: ClassVar[tuple[str, ...]] = ()
+    params: ClassVar[tuple[Param, ...]] = ()
+    #: order within its stage (lower first); memoryless voltage effects commute with a delay
+    order: ClassVar[int] = 50
+    #: True when the effect moves the voltage edge inside the sample (the loop then
+    #: integrates two pieces per sample; plain plants pay nothing)
+    splits_sample: ClassVar[bool] = False
+    #: dry friction (combined by the simulators' Karnopp / smoothed friction law)
+    dry_friction: ClassVar[bool] = False
+    #: a transmission that splits the moving body in two (backlash); at most one per plant
+    transmission: ClassVar[bool] = False
+    #: a dry-friction level that depends on the position (the exact simulator then integrates)
+    position_dependent: ClassVar[bool] = False
+    #: one line for listings and reports
+    summary: ClassVar[str] = ""
+
+    @classmethod
+    def param_names(cls) -> tuple[str, ...]:
+        return tuple(p.name for p in cls.params)
+
+    @classmethod
+    def param(cls, name: str) -> Param:
+        return next(p for p in cls.params if p.name == name)
+
+    def values(self) -> dict:
+        """{parameter name: value} of this effect."""
+        return {p.name: getattr(self, p.name) for p in self.params}
+
+    def init_state(self, sample_time: float) -> tuple:
+        """Initial state (a tuple of arrays; empty for a memoryless effect)."""
+        return ()
+
+    def exact_init(self, sample_time: float):
+        """Initial state for the exact simulator (Python values)."""
+        return ()
+
+    def check(self, sample_time: float) -> None:
+        """Raise ValueError if the effect cannot run at this sample time (e.g. a delay longer
+        than its line)."""
+
+    # Dry friction (only where dry_friction is True).
+    def kinetic(self, y, xp):
+        """Kinetic friction level [N] at position y (0 if the effect has none)."""
+        return 0.0
+
+    def static(self):
+        """Static (breakaway) level [N], or None if the effect has none."""
+        return None
+
+
+#: Registered effect classes by name, in registration order.
+REGISTRY: dict[str, type[Effect]] = {}
+
+
+def register(cls: type[Effect]) -> type[Effect]:
+    """Add an effect class to the registry (its name and parameter names must be new)."""
+    if cls.stage not in STAGES:
+        raise TypeError(f"effect {cls.__name__}: stage {cls.stage!r} is not one of {STAGES}")
+    if not cls.name or cls.name in REGISTRY:
+        raise TypeError(f"effect {cls.__name__}: name {cls.name!r} is empty or taken")
+    taken = {p: n for n, c in REGISTRY.items() for p in c.param_names()}
+    for p in cls.params:
+        if p.name in taken:
+            raise TypeError(f"effect {cls.name}: parameter {p.name} belongs to {taken[p.name]}")
+        if p.width is not None and p.width not in WIDTHS:
+            raise TypeError(f"effect {cls.name}: width {p.width!r} is not one of {WIDTHS}")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+def effect_of_param(name: str) -> type[Effect] | None:
+    """The registered effect class that owns a parameter name, or None."""
+    for cls in REGISTRY.values():
+        if name in cls.param_names():
+            return cls
+    return None

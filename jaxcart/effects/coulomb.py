@@ -1,6 +1,6 @@
 """Coulomb (dry) friction: a force f_c opposing motion; a stuck cart stays stuck while the net
-applied force is within +/- f_c (Karnopp). Static friction equal to kinetic here; stiction
-(static above kinetic) is its own effect."""
+applied force is within the static level (Karnopp), which is f_c unless stiction sets it higher
+(docs/design.md, "Effects")."""
 
 from __future__ import annotations
 
@@ -8,26 +8,25 @@ from dataclasses import dataclass
 
 import jax
 
-from jaxcart.effects.base import Effect
-from jaxcart.smoothing import smooth_sign
+from jaxcart.effects.base import Effect, Param, register
 
 
+@register
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Coulomb(Effect):
     """Coulomb friction.
 
-    f_c: kinetic (and static) friction force [N]
+    f_c: kinetic friction force [N] (also the static level when there is no stiction)
     """
 
     f_c: float = 0.0
 
+    name = "coulomb"
     stage = "force"
-    param_names = ("f_c",)
+    dry_friction = True
+    summary = "Coulomb friction: -f_c sign(y')"
+    params = (Param("f_c", "N", 0.0, 20.0, 0.3, "velocity", "kinetic friction force"),)
 
-    def smooth_force(self, y, ydot, smoothing):
-        return -self.f_c * smooth_sign(ydot, smoothing.velocity)
-
-    def friction_levels(self):
-        """(kinetic, static) friction force [N] for the exact stick-slip simulator."""
-        return float(self.f_c), float(self.f_c)
+    def kinetic(self, y, xp):
+        return self.f_c + 0.0 * y

@@ -1,31 +1,37 @@
-"""Voltage saturation of the power amplifier: v_applied = clip(u, -v_sat, v_sat)."""
+"""Amplifier saturation: the motor sees clip(u, -v_sat, v_sat) (docs/design.md, "Effects")."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import jax
-import numpy as np
 
-from jaxcart.effects.base import Effect
+from jaxcart.effects.base import Effect, Held, Param, register
 from jaxcart.smoothing import smooth_clip
 
 
+@register
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Saturation(Effect):
-    """Amplifier saturation.
+    """Voltage limit of the power amplifier (not the software's ``v_limit``).
 
-    v_sat: largest voltage magnitude the amplifier delivers [V] (the lab's +/-6 V)
+    v_sat: largest voltage magnitude the amplifier delivers [V]
     """
 
     v_sat: float = 6.0
 
+    name = "saturation"
     stage = "voltage"
-    param_names = ("v_sat",)
+    order = 60
+    summary = "amplifier voltage limit: v = clip(u, -v_sat, v_sat)"
+    params = (Param("v_sat", "V", 1e-3, math.inf, 6.0, "voltage", "amplifier voltage limit"),)
 
-    def smooth(self, v, smoothing):
-        return smooth_clip(v, self.v_sat, smoothing.voltage)
+    def smooth(self, state, held: Held, smoothing, sample_time):
+        f = lambda v: smooth_clip(v, self.v_sat, smoothing.voltage)  # noqa: E731
+        return Held(f(held.early), f(held.late), held.split), state
 
-    def exact(self, v):
-        return np.clip(v, -self.v_sat, self.v_sat)
+    def exact(self, state, held: Held, sample_time):
+        f = lambda v: min(max(v, -self.v_sat), self.v_sat)  # noqa: E731
+        return Held(f(held.early), f(held.late), held.split), state

@@ -2,17 +2,16 @@
 
     jaxcart fit tap.toml --params B_eq,f_c
     jaxcart fit tap.toml p50.toml --params B_eq,f_c --classic --cross --plot fit.png \\
-        --json fit.json --out fitted.json
+        --json fit.json --out fitted.toml
 
 Prints each parameter with its standard error (or "not identifiable"), the RMS position error
 before and after (smooth and exact simulators), optionally the lab's classic estimates and the
 cross-prediction of each recording from the others' fit; writes the fitted plant (``--out``,
-readable by ``jaxcart tune --plant-file``), a JSON report and an overlay plot.
+readable by ``--plant`` of simulate, tune, grid and lab), a JSON report and an overlay plot.
 """
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -31,18 +30,22 @@ def register(subparsers) -> None:
     p.add_argument(
         "--params",
         default="B_eq,f_c",
-        help="parameters to fit, comma-separated: B_eq, f_c, M, gamma_scale, v_limit (= v_sat) "
-        "or any plant parameter (default B_eq,f_c)",
+        help="parameters to fit, comma-separated: B_eq, M, gamma_scale or any effect's "
+        "parameter (f_c, v_sat, f_s, delay, deadzone, k_s, y_rest, i_max, ...; naming one adds "
+        "its effect); default B_eq,f_c",
     )
     p.add_argument(
-        "--plant-file",
-        help="start from the B_eq, f_c, M, gamma_scale and v_sat of this fitted-plant JSON "
-        "(jaxcart fit --out)",
+        "--plant",
+        dest="plant_file",
+        metavar="FILE",
+        help="start from this plant file (jaxcart fit --out, diagnose): its effects and values",
     )
     p.add_argument("--json", dest="json_out", metavar="OUT", help="write the report as JSON")
     p.add_argument("--plot", metavar="PNG", help="overlay plot of recordings and model")
     p.add_argument(
-        "--out", metavar="JSON", help="write the fitted plant (for jaxcart tune --plant-file)"
+        "--out",
+        metavar="PLANT.toml",
+        help="write the fitted plant as a plant file (for simulate, tune, grid, lab --plant)",
     )
     p.add_argument("--classic", action="store_true", help="add the lab's classic estimates")
     p.add_argument(
@@ -64,6 +67,8 @@ def run(args) -> int:
         raise UserError("--params: name at least one parameter, e.g. --params B_eq,f_c")
     if args.cross and len(args.experiments) < 2:
         raise UserError("--cross needs at least two recordings")
+    if args.out and not str(args.out).lower().endswith(".toml"):
+        raise UserError(f"--out {args.out}: a plant file is TOML; give a name ending in .toml")
     outputs = [x for x in (args.json_out, args.plot, args.out) if x]
     for out in outputs:
         if Path(out).exists() and not args.force:
@@ -71,7 +76,9 @@ def run(args) -> int:
     recordings = [read_experiment(path) for path in args.experiments]
     initial = {}
     if args.plant_file:
-        initial = F.plant_values(F.load_fitted_plant(args.plant_file))
+        from jaxcart.plantspec import load_plant, plant_values
+
+        initial = plant_values(load_plant(args.plant_file))
     result = F.fit(recordings, params, initial=initial, progress=not args.quiet)
     print(format_result(result))
 
@@ -85,7 +92,9 @@ def run(args) -> int:
         print(format_cross(cross))
         report["cross_prediction"] = cross
     if args.json_out:
-        _write(args.json_out, json.dumps(report, indent=2, default=_jsonable) + "\n", args.force)
+        from hw.jsonio import write_json
+
+        write_json(args.json_out, report, force=args.force)
         print(f"report: {args.json_out}")
     if args.out:
         F.write_fitted_plant(args.out, result, sources=args.experiments, force=args.force)
@@ -108,18 +117,13 @@ def _write(path, text: str, force: bool) -> None:
         raise UserError(f"cannot write {path}: {exc.strerror}") from None
 
 
-def _jsonable(x):
-    if hasattr(x, "item"):
-        return x.item()
-    raise TypeError(f"not JSON serializable: {type(x).__name__}")
-
-
 def _mm(x) -> str:
     return "-" if x is None else f"{x * 1e3:.4g}"
 
 
 def format_result(result) -> str:
     """The parameter table and the RMS errors, as printed by the command."""
+    from jaxcart.plantspec import describe_plant
     from tuning.fit import UNITS
 
     lines = ["recordings:"]
@@ -129,6 +133,7 @@ def format_result(result) -> str:
             f"  {s.name}: {s.kind}, {what} {s.time[0]:.3f} to {s.time[-1]:.3f} s "
             f"({s.measured.size} samples)"
         )
+        lines.append(f"    model fitted: {describe_plant(s.plant)}")
     lines.append(f"{'parameter':<14}{'value':>14}{'stderr':>12}{'naive':>12}  unit")
     for name, e in result.params.items():
         unit = UNITS.get(name, "")

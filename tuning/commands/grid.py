@@ -63,6 +63,12 @@ def register(subparsers) -> None:
         help="evaluate in float64 (default float32, about twice as fast)",
     )
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.add_argument(
+        "--plant",
+        metavar="PLANT.toml",
+        help="design model: a plant file (fit --out, diagnose) or an experiment file whose "
+        "[plant] applies; default the handout's nominal plant",
+    )
     p.set_defaults(func=run)
 
 
@@ -248,7 +254,13 @@ def run(args) -> int:
     _check_memory(n_points)
     out_path, plot_path = output_paths(args.out, args.plot, args.force)
 
-    plant = jc.handout_plant()
+    from jaxcart.plantspec import describe_plant, load_plant
+
+    plant = load_plant(args.plant) if args.plant else jc.handout_plant()
+    # Hard forms for a plant without force effects (what the real loop does); with friction
+    # or other forces the smooth loop at a tenth of the default widths, re-checked exactly.
+    smoothing = jc.Smoothing().scaled(0.1) if plant.stage("force") else jc.EXACT_FORMS
+    print(f"plant: {describe_plant(plant)}", file=sys.stderr)
     controller = jc.PID(v_limit=6.0)
     with jax.enable_x64(True):  # the reference in float64; the grid casts it to its dtype
         experiment = jc.step(args.step, horizon=args.horizon)
@@ -262,7 +274,14 @@ def run(args) -> int:
             file=sys.stderr,
         )
         result = grid.evaluate_list(
-            plant, controller, experiment, gains, dtype=dtype, progress=progress, **spec
+            plant,
+            controller,
+            experiment,
+            gains,
+            dtype=dtype,
+            progress=progress,
+            smoothing=smoothing,
+            **spec,
         )
     else:
         shape = " x ".join(str(a.size) for a in axes) + f" = {n_points} points"
@@ -271,7 +290,14 @@ def run(args) -> int:
             file=sys.stderr,
         )
         result = grid.grid_search(
-            plant, controller, experiment, *axes, dtype=dtype, progress=progress, **spec
+            plant,
+            controller,
+            experiment,
+            *axes,
+            dtype=dtype,
+            progress=progress,
+            smoothing=smoothing,
+            **spec,
         )
     exact, label = grid.recheck(plant, controller, experiment, result.best_gains)
 

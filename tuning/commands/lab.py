@@ -44,6 +44,12 @@ def register(subparsers) -> None:
         action="store_true",
         help="overwrite the report in an existing, non-empty --out folder",
     )
+    p.add_argument(
+        "--plant",
+        metavar="PLANT.toml",
+        help="starting model (a plant file from fit or diagnose): its B_eq, f_c and effects; "
+        "the parts refit B_eq and f_c from the recordings",
+    )
     p.set_defaults(func=run)
 
 
@@ -53,5 +59,10 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", True)  # fits and checks need float64
     from tuning.lab.report import run_lab
 
-    run_lab(args.data, args.out, force=args.force)
+    plant = None
+    if args.plant:
+        from jaxcart.plantspec import load_plant
+
+        plant = load_plant(args.plant)
+    run_lab(args.data, args.out, force=args.force, plant=plant)
     return 0

@@ -4,13 +4,12 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
     jaxcart tune                                   # the lab's design problem
     jaxcart tune --free kp,kd --settling 0.9       # a PD controller, tighter settling bound
     jaxcart tune --robust --out robust.json        # meet the spec for a whole set of plants
-    jaxcart tune --plant-file fitted.json --f-c 0.4
+    jaxcart tune --plant fitted.toml --f-c 0.4
     jaxcart tune --compare                         # benchmark against Nelder-Mead and a grid
 """
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -129,10 +128,11 @@ def register(subparsers) -> None:
     )
     plant = p.add_argument_group("plant (design model)")
     plant.add_argument(
-        "--plant-file",
+        "--plant",
         dest="plant_file",
         metavar="FILE",
-        help="fitted-parameter JSON or an experiment TOML whose [plant] applies",
+        help="plant file (from jaxcart fit --out or diagnose) or an experiment TOML whose "
+        "[plant] applies; default: the handout's nominal plant",
     )
     plant.add_argument(
         "--B-eq",
@@ -349,73 +349,17 @@ def _controller(args):
 
 def _plant(args):
     from jaxcart.params import handout_plant
+    from jaxcart.plantspec import load_plant, with_values
 
+    plant = load_plant(args.plant_file) if args.plant_file else handout_plant()
     overrides = {}
-    if args.plant_file:
-        overrides.update(_plant_file(Path(args.plant_file)))
     for name in ("B_eq", "f_c", "M"):
         value = getattr(args, name)
         if value is not None:
             flag = {"B_eq": "--B-eq", "f_c": "--f-c", "M": "--M"}[name]
             _finite(value, flag, positive=name == "M", nonnegative=True)
             overrides[name] = value
-    if not overrides:
-        return handout_plant()
-    from jaxcart.files import plant_from_overrides
-
-    return plant_from_overrides(overrides, where="plant (--plant-file / --B-eq / --f-c / --M)")
-
-
-#: Keys under which a fitted-parameter JSON may hold its parameters.
-_PARAM_KEYS = ("plant", "params", "parameters", "fitted", "fit")
-
-
-def _plant_file(path: Path) -> dict:
-    """Plant overrides {name: value} from a fitted-parameter JSON or an experiment TOML."""
-    if not path.exists():
-        raise UserError(f"--plant-file {path}: no such file")
-    if path.suffix.lower() == ".toml":
-        from jaxcart.files import read_experiment
-
-        return dict(read_experiment(path).plant_overrides)
-    if path.suffix.lower() != ".json":
-        raise UserError(
-            f"--plant-file {path}: give a fitted-parameter .json or an experiment .toml"
-        )
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise UserError(f"--plant-file {path}: cannot read it as JSON ({exc})") from None
-    from jaxcart.files import plant_parameter_names
-
-    known = set(plant_parameter_names())
-    if not isinstance(doc, dict):
-        raise UserError(f"{path}: expected a JSON object of plant parameters")
-    for key in _PARAM_KEYS:
-        table = doc.get(key)
-        if isinstance(table, dict):
-            values = {k: _param_value(v) for k, v in table.items()}
-            unknown = sorted(k for k in values if k not in known)
-            if unknown:
-                raise UserError(
-                    f"{path}: {key}.{unknown[0]} is not a plant parameter; known: "
-                    f"{', '.join(sorted(known))}"
-                )
-            return values
-    values = {k: _param_value(v) for k, v in doc.items() if k in known}
-    if not values:
-        raise UserError(
-            f"{path}: no plant parameters found; expected e.g. "
-            '{"plant": {"B_eq": 5.4, "f_c": 0.3}}'
-        )
-    return values
-
-
-def _param_value(value):
-    # A fitted file may hold {"value": x, "stderr": s} per parameter.
-    if isinstance(value, dict) and "value" in value:
-        return value["value"]
-    return value
+    return with_values(plant, overrides, where="--B-eq / --f-c / --M") if overrides else plant
 
 
 def _robust(args):
@@ -478,22 +422,9 @@ def _json_path(args):
 
 
 def _write_json(path, doc):
-    text = json.dumps(doc, indent=2, allow_nan=False, default=_default)
-    if path == "-":
-        print(text)
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text + "\n", encoding="utf-8")
+    from hw.jsonio import write_json
 
-
-def _default(value):
-    import dataclasses
-
-    if dataclasses.is_dataclass(value):
-        return dataclasses.asdict(value)
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+    write_json(path, doc, force=True)  # the name was checked (or --force given) before tuning
 
 
 # ---------------------------------------------------------------- output
@@ -545,7 +476,7 @@ def _plot(path, result, experiment):
 
     from jaxcart.exact import simulate_exact
     from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
-    from jaxcart.simulate import simulate
+    from jaxcart.smooth import simulate
     from tuning.losses import LossSettings
     from tuning.tune import SCALES
 

@@ -5,14 +5,15 @@ best-known model of the cart that later parts simulate with.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from jaxcart.effects import Coulomb, Saturation
 from jaxcart.params import Plant
+from jaxcart.plantspec import build_plant, with_values
 from tuning.lab.html import Document
 from tuning.lab.inputs import Inputs
 
@@ -80,6 +81,7 @@ class Lab:
     f_c: float = 0.0
     f_c_source: str = "none yet (the handout's model)"
     tuned: object = None  # tuning.tune.TuneResult of the pre-lab
+    base: Plant | None = None  # the --plant model (its effects carry through), or None
     started: float = field(default_factory=time.perf_counter)
     figures: list = field(default_factory=list)
 
@@ -115,14 +117,22 @@ class Lab:
 
     def plant(self, *, saturation: bool = True, coulomb: bool = True, **overrides) -> Plant:
         """The best-known cart (motor connected): appendix values, B_eq and f_c found so far,
-        the 6 V saturation; without the effects the flags turn off."""
-        effects = []
-        if saturation:
-            effects.append(Saturation(v_sat=V_SAT))
+        and the lab's 6 V limit as an amplifier saturation (the handout's Simulink block, so
+        that recordings whose files name no software limit are simulated as they ran);
+        without the effects the flags turn off. Built by :func:`jaxcart.build_plant`."""
+        values = {"B_eq": self.B_eq}
+        if saturation and (self.base is None or self.base.effect("saturation") is None):
+            values["v_sat"] = V_SAT
         if coulomb and self.f_c > 0:
-            effects.append(Coulomb(f_c=self.f_c))
-        values = {"B_eq": self.B_eq, **overrides}
-        return Plant(effects=tuple(effects), **values)
+            values["f_c"] = self.f_c
+        if self.base is not None:
+            plant = self.base
+            if not coulomb and plant.effect("coulomb") is not None:
+                plant = dataclasses.replace(
+                    plant, effects=tuple(e for e in plant.effects if type(e).name != "coulomb")
+                )
+            return with_values(plant, {**values, **overrides}, where="the lab's plant")
+        return build_plant({**values, **overrides}, where="the lab's plant")
 
     def recording(self, slot):
         return self.inputs.recordings.get(slot)

@@ -119,16 +119,12 @@ def builtin_dir() -> Path:
 
 def true_plant(*, tap: bool = False):
     """The true cart of the built-in data (motor unplugged for the tap)."""
-    from jaxcart.effects import Coulomb, Saturation
-    from jaxcart.params import Plant, tap_plant
+    from jaxcart.plantspec import build_plant
 
+    values = {n: TRUE[n] for n in ("M", "B_eq", "f_c")}
     if tap:
-        return tap_plant(M=TRUE["M"], B_eq=TRUE["B_eq"], effects=(Coulomb(f_c=TRUE["f_c"]),))
-    return Plant(
-        M=TRUE["M"],
-        B_eq=TRUE["B_eq"],
-        effects=(Saturation(v_sat=TRUE["v_sat"]), Coulomb(f_c=TRUE["f_c"])),
-    )
+        return build_plant(values, motor_connected=False, where="the built-in tap's cart")
+    return build_plant({**values, "v_sat": TRUE["v_sat"]}, where="the built-in cart")
 
 
 def make(spec: Spec, *, seed: int = SEED):

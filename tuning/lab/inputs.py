@@ -1,6 +1,7 @@
 """Which recording is which part of the lab.
 
-A data folder holds experiment files (DESIGN.md format). Each is given a *slot* of the lab:
+A data folder holds experiment files (the format of docs/experiment-files.md). Each is given
+a *slot* of the lab:
 
     slot      part   what it is                                   how it is recognised
     tap       (i)    tap test, motor unplugged                    kind = "tap"
@@ -209,6 +210,6 @@ def find_inputs(folder) -> Inputs:
     if not inputs.recordings:
         raise UserError(
             f'--data {folder}: no experiment files found (TOML files with kind = "tap", '
-            f'"open_loop" or "closed_loop"); see DESIGN.md for the format'
+            f'"open_loop" or "closed_loop"); see docs/experiment-files.md for the format'
         )
     return inputs

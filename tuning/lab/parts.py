@@ -1039,7 +1039,7 @@ def _metrics_row(info) -> list[str]:
 def _slider_moves(response, times):
     """Step metrics of each move of a piecewise-constant reference."""
     from jaxcart.metrics import step_info
-    from jaxcart.simulate import Response
+    from jaxcart.smooth import Response
 
     t = np.asarray(response.time)
     bounds = [int(np.searchsorted(t, x - 1e-9)) for x in times] + [t.size]

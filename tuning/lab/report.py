@@ -16,15 +16,11 @@ folder of real ones.
 
 from __future__ import annotations
 
-import json
-import math
 import time
 from pathlib import Path
 
-import numpy as np
-
 from jaxcart.errors import UserError
-from tuning.lab import parts, prelab
+from tuning.lab import diagnosis, parts, prelab
 from tuning.lab.context import Lab, fmt, relative_error
 from tuning.lab.data import builtin_dir
 from tuning.lab.html import Document
@@ -57,25 +53,35 @@ def output_dir(out=None, *, force: bool = False) -> Path:
     return path
 
 
-def run_lab(data=None, out=None, *, force: bool = False, stream=None) -> Path:
+def run_lab(data=None, out=None, *, force: bool = False, stream=None, plant=None) -> Path:
     """Write the lab report; returns its folder.
 
     data: folder of experiment files (None: the built-in example recordings); out: the report
     folder (None: ./jaxcart-lab or a numbered one); force: overwrite an existing report;
-    stream: where progress goes (default stderr).
+    stream: where progress goes (default stderr); plant: a starting model (a
+    :class:`jaxcart.Plant`, e.g. from a plant file): its B_eq, f_c and effects start the lab's
+    model, and the parts refit B_eq and f_c from the recordings as usual.
     """
     import jax
 
     with jax.enable_x64(True):  # fits and exact checks need float64
-        return _run_lab(data, out, force=force, stream=stream)
+        return _run_lab(data, out, force=force, stream=stream, plant=plant)
 
 
-def _run_lab(data, out, *, force, stream) -> Path:
+def _run_lab(data, out, *, force, stream, plant=None) -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
     inputs = find_inputs(folder)
     out = output_dir(out, force=force)
     lab = Lab(out=out, inputs=inputs, doc=Document(TITLE), stream=stream, started=started)
+    if plant is not None:
+        from jaxcart.plantspec import describe_plant
+
+        lab.base = plant
+        lab.B_eq, lab.B_eq_source = float(plant.B_eq), "the --plant file"
+        if plant.effect("coulomb") is not None:
+            lab.f_c, lab.f_c_source = float(plant.get("f_c")), "the --plant file"
+        lab.say(f"starting model: {describe_plant(plant)}")
     builtin = data is None
     lab.say(f"data: {'built-in example recordings' if builtin else folder}")
     for line in inputs.summary_lines():
@@ -88,6 +94,7 @@ def _run_lab(data, out, *, force, stream) -> Path:
         parts.part_iii,
         parts.part_iv,
         parts.part_v,
+        diagnosis.section,
     ):
         section(lab)
     _summary(lab)
@@ -203,32 +210,12 @@ def _summary(lab: Lab) -> None:
 # ---------------------------------------------------------------- writing
 
 
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, bool | np.bool_):
-        return bool(x)
-    if isinstance(x, int | np.integer):
-        return int(x)
-    if isinstance(x, float | np.floating):
-        x = float(x)
-        if math.isfinite(x):
-            return x
-        return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
-    if x is None or isinstance(x, str):
-        return x
-    return str(x)
-
-
 def _write(lab: Lab) -> None:
     from hw.gains import write_gains
+    from hw.jsonio import write_json
 
     out = lab.out
-    (out / "results.json").write_text(json.dumps(_jsonable(lab.results), indent=2) + "\n")
+    write_json(out / "results.json", lab.results, force=True)
     (out / "report.md").write_text(lab.doc.to_markdown())
     (out / "report.html").write_text(lab.doc.to_html(out))
     if lab.tuned is not None:

@@ -1,4 +1,5 @@
-"""Benchmark of workload W1 (DESIGN.md): jaxcart beside its peers, measured in one process.
+"""Benchmark of workload W1 (docs/design.md, "Benchmark workload W1"): jaxcart beside its
+peers, measured in one process.
 
 W1 is the lab's design problem as a batch job: the discrete PID (derivative on error, tau =
 0.01 s, software limit 6 V) drives the handout's cart (B_eq = 5.4 kg/s, amplifier saturation
@@ -42,7 +43,8 @@ from jax.sharding import PartitionSpec as P
 
 from hw.control_law import PID, PIDState, pid_init, pid_update
 
-#: Workload W1 (DESIGN.md): the step [m], horizon [s], sample time [s], limits [V], filter [s].
+#: Workload W1 (docs/design.md, "Benchmark workload W1"): the step [m], horizon [s], sample
+#: time [s], limits [V], filter [s].
 STEP = 0.5
 HORIZON = 3.0
 SAMPLE_TIME = 1e-3
@@ -51,7 +53,8 @@ TAU = 0.01
 #: Ranges of the gains: kp [V/m], kd [V s/m], ki [V/(m s)]; and the seed that draws them.
 GAIN_RANGES = {"kp": (10.0, 120.0), "kd": (0.0, 12.0), "ki": (0.0, 30.0)}
 SEED = 364
-#: The default ranges of ``jaxcart grid`` (tuning/commands/grid.py; jaxcart never imports tuning).
+#: The default ranges of ``jaxcart grid`` (``DEFAULT_RANGES`` of tuning/commands/grid.py, as
+#: numbers: a test keeps the two equal).
 GRID_RANGES = {"kp": (10.0, 150.0), "kd": (0.0, 15.0), "ki": (0.0, 30.0)}
 #: Largest position difference [m] a float64 peer may show against float64 jaxcart.
 TOLERANCE = 1e-6

@@ -6,16 +6,13 @@ Prints a table (sims/s and jaxcart's ratio to python-control, scipy and vectoriz
 measured in this process) and a progress line per stage on stderr. Every peer is first checked
 to compute the same loop as jaxcart (positions within 1e-6 m of float64 jaxcart); a peer that
 does not stops the benchmark with exit status 1. ``--json OUT`` writes the whole result
-(a benchmark result may be overwritten).
+(an existing file is kept unless --force).
 """
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
-
-from jaxcart.errors import UserError
 
 
 def register(subparsers) -> None:
@@ -52,7 +49,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from jaxcart import bench
+    # Imported here, not at the top: building the parser must not start jax.
+    from jaxcart.errors import UserError
+    from tuning import bench
 
     if args.batch is not None and args.batch < 1:
         raise UserError(
@@ -80,7 +79,9 @@ def run(args) -> int:
     print(bench.format_table(result))
     if out is not None:
         try:
-            out.write_text(json.dumps(bench.to_json(result), indent=2) + "\n")
+            from hw.jsonio import write_json
+
+            write_json(out, bench.to_json(result), force=True)
         except OSError as exc:
             raise UserError(
                 f"--json {out}: cannot write it ({exc.strerror}); choose another path"

@@ -1,0 +1,318 @@
+"""``python -m hw``: run tuned gains on the cart, and measure the loop. Numpy only.
+
+    python -m hw run GAINS.json --device sim --step 0.5 [--duration 3] [--out RUN.toml]
+    python -m hw run GAINS.json --device q2_usb --slider 0.2,0,-0.2,0.2 [--hold 2]
+    python -m hw run GAINS.json --device replay --replay OLD.toml --virtual
+    python -m hw bench [--samples 10000]
+
+``jaxcart run`` (tuning/commands/run.py) is the same command from the full install.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hw.devices.base import DeviceError
+from hw.expfile import ExpFileError
+from hw.gains import GainsFileError, read_gains_file
+from hw.safety import X_MAX, Limits
+
+DEVICES = ("sim", "q2_usb", "q8_usb", "replay")
+#: Default folder and name of recordings (never overwritten: run.toml, run-2.toml, ...).
+OUT_DIR = Path("jaxcart-out")
+OUT_STEM = "hw-run"
+
+
+class CommandError(ValueError):
+    """Bad options: printed as one line."""
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``run`` (shared by ``python -m hw run`` and ``jaxcart run``)."""
+    p.add_argument("gains", metavar="GAINS.json", help="gains file from `jaxcart tune`")
+    p.add_argument(
+        "--device",
+        default="sim",
+        help=f"{', '.join(DEVICES)} or another Quanser HIL board type (default: sim)",
+    )
+    p.add_argument("--board-id", default="0", help="which board of that type (default: 0)")
+    ref = p.add_mutually_exclusive_group()
+    ref.add_argument("--step", type=float, metavar="M", help="reference step [m] at t = 0")
+    ref.add_argument(
+        "--slider",
+        metavar="R1,R2,...",
+        help="reference set points [m], each held for --hold s (the handout's Part (v))",
+    )
+    p.add_argument("--hold", type=float, default=2.0, metavar="S", help="seconds per set point")
+    p.add_argument("--duration", type=float, metavar="S", help="run time [s] (default 3 s)")
+    p.add_argument("--out", metavar="RUN.toml", help="the recording (default: jaxcart-out/...)")
+    p.add_argument("--plant", metavar="FILE", help="sim: cart parameters (TOML/JSON, name = value)")
+    p.add_argument("--replay", metavar="REC.toml", help="replay: the recording to play back")
+    p.add_argument(
+        "--virtual", action="store_true", help="sim/replay: no real time, as fast as possible"
+    )
+    p.add_argument("--x-max", type=float, default=X_MAX, help=f"track limit [m] ({X_MAX})")
+    p.add_argument("--v-max", type=float, default=6.0, help="voltage clamp [V] (6)")
+    p.add_argument("--speed-max", type=float, default=1.5, help="velocity limit [m/s] (1.5)")
+    p.add_argument("--jump-max", type=float, default=0.005, help="encoder jump limit [m] (0.005)")
+    p.add_argument(
+        "--watchdog", type=float, default=0.005, help="loop watchdog: max lateness [s] (0.005)"
+    )
+    p.add_argument("--encoder-channel", type=int, default=0)
+    p.add_argument("--analog-channel", type=int, default=0)
+    p.add_argument("--description", help="text for the recording's description")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m hw", description="Run tuned gains on the cart (numpy only)."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    p = sub.add_parser("run", help="run a gains file on a device and record the run")
+    add_run_arguments(p)
+    p.set_defaults(func=run_command)
+    b = sub.add_parser("bench", help="the loop's cost per sample and its real-time jitter")
+    b.add_argument("--samples", type=int, default=10000, help="samples per real-time run")
+    b.set_defaults(func=bench_command)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except (CommandError, GainsFileError, ExpFileError, DeviceError, ValueError) as exc:
+        print(f"hw {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+
+
+# ---------------------------------------------------------------- run
+
+
+def reference_from(args, sample_time: float) -> np.ndarray:
+    """r_k [m] from --step / --slider, --hold and --duration."""
+    if args.slider is not None:
+        try:
+            points = [float(x) for x in args.slider.split(",") if x.strip()]
+        except ValueError:
+            raise CommandError(
+                f"--slider {args.slider!r}: give set points in m, e.g. 0.2,0,-0.2"
+            ) from None
+        if not points:
+            raise CommandError("--slider: give at least one set point")
+        if not (math.isfinite(args.hold) and args.hold > 0):
+            raise CommandError(f"--hold {args.hold!r}: give a positive number of seconds")
+        duration = args.duration if args.duration is not None else args.hold * len(points)
+        segments = np.repeat(points, int(round(args.hold / sample_time)))
+    else:
+        amplitude = 0.5 if args.step is None else args.step
+        duration = 3.0 if args.duration is None else args.duration
+        segments = np.array([amplitude])
+    if not (math.isfinite(duration) and duration > 0):
+        raise CommandError(f"--duration {duration!r}: give a positive number of seconds")
+    n = int(round(duration / sample_time)) + 1
+    k = np.minimum(np.arange(n), segments.size - 1)
+    r = np.asarray(segments, dtype=float)[k]
+    if args.x_max is not None and np.any(np.abs(r) >= args.x_max):
+        raise CommandError(
+            f"the reference reaches {np.abs(r).max():g} m, at or beyond the track limit "
+            f"--x-max {args.x_max:g} m; give set points inside it"
+        )
+    return r
+
+
+def make_device(args):
+    """The device named by --device (the Quanser API is imported only when a board starts)."""
+    name = args.device
+    if name != "sim" and args.plant:
+        raise CommandError("--plant sets the simulated cart; use it with --device sim")
+    if name != "replay" and args.replay:
+        raise CommandError("--replay names the recording of --device replay")
+    if name == "sim":
+        from hw.devices.sim import CartParams, SimCart, load_cart_params
+
+        return SimCart(load_cart_params(args.plant) if args.plant else CartParams())
+    if name == "replay":
+        from hw.devices.replay import Replay
+
+        if not args.replay:
+            raise CommandError("--device replay needs --replay REC.toml, the recording to play")
+        return Replay(args.replay)
+    if args.virtual:
+        raise CommandError(f"--virtual: {name} is real hardware, it runs in real time only")
+    from hw.devices.quanser import QuanserBoard
+
+    return QuanserBoard(
+        name,
+        args.board_id,
+        encoder_channel=args.encoder_channel,
+        analog_channel=args.analog_channel,
+    )
+
+
+def free_names(folder: Path, stem: str) -> Path:
+    """``folder/stem.toml`` or ``stem-2.toml``, ...: the first whose TOML and CSV are both free."""
+    n = 1
+    while True:
+        name = stem if n == 1 else f"{stem}-{n}"
+        toml, csv = folder / f"{name}.toml", folder / f"{name}.csv"
+        if not (toml.exists() or csv.exists()):
+            return toml
+        n += 1
+
+
+def run_command(args) -> int:
+    from hw.loop import run_loop
+
+    pid, meta = read_gains_file(args.gains)
+    try:
+        limits = Limits(
+            x_max=args.x_max,
+            v_max=args.v_max,
+            speed_max=args.speed_max,
+            jump_max=args.jump_max,
+            late_max=args.watchdog,
+        )
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    reference = reference_from(args, pid.sample_time)
+    device = make_device(args)
+    out = Path(args.out) if args.out else free_names(OUT_DIR, OUT_STEM)
+    notes = {"gains": str(Path(args.gains).resolve())}
+    if isinstance(meta.get("date"), str):
+        notes["gains_date"] = meta["date"]
+    clock = "virtual" if args.virtual else None
+    what = f"step {reference[-1]:g} m" if args.slider is None else f"slider {args.slider} m"
+    description = args.description or f"hw run: {what} on {args.device}"
+    print(
+        f"hw run: {args.device}, {reference.size} samples at {pid.sample_time * 1e3:g} ms, "
+        f"kp={pid.kp:g} ki={pid.ki:g} kd={pid.kd:g}, writing {out}",
+        file=sys.stderr,
+    )
+    result = run_loop(
+        device,
+        pid,
+        reference,
+        limits=limits,
+        clock=clock,
+        out=out,
+        description=description,
+        notes=notes,
+    )
+    t = result.timing
+    line = f"hw run: {result.status}, {result.n_samples} samples"
+    if "period_median_us" in t:
+        line += (
+            f"; period median {t['period_median_us']:.1f} us, p99 {t['period_p99_us']:.1f} us, "
+            f"max {t['period_max_us']:.1f} us, {t['overruns']} overruns"
+        )
+    line += f"; compute median {t.get('compute_median_us', math.nan):.1f} us"
+    print(line, file=sys.stderr)
+    if result.fault:
+        print(f"hw run: stopped: {result.fault} (0 V written)", file=sys.stderr)
+    print(result.path)
+    if result.fault:
+        return 130 if result.fault.startswith("interrupted") else 1
+    return 0
+
+
+# ---------------------------------------------------------------- bench
+
+
+class _NullDevice:
+    """No physics, no I/O: what is left is the loop's own cost."""
+
+    name = "null"
+    hardware_timed = False
+    virtual = True
+    last_voltage = 0.0
+
+    def start(self, sample_time):
+        pass
+
+    def read(self):
+        return 0.0
+
+    def write(self, volts):
+        self.last_voltage = volts
+
+    def stop(self):
+        self.last_voltage = 0.0
+
+    def describe(self):
+        return {"name": self.name}
+
+
+def _naive_periods(n: int, ts: float) -> tuple[np.ndarray, np.ndarray]:
+    """A loop that does its work then time.sleep(Ts): the timestamps and the work times."""
+    stamps, work = np.empty(n), np.empty(n)
+    perf = time.perf_counter
+    t0 = perf()
+    for k in range(n):
+        t = perf()
+        stamps[k] = t - t0
+        work[k] = perf() - t
+        time.sleep(ts)
+    return stamps, work
+
+
+def bench_command(args) -> int:
+    from hw.control_law import PID
+    from hw.devices.sim import SimCart
+    from hw.loop import run_loop, timing_stats
+
+    n = int(args.samples)
+    if n < 100:
+        raise CommandError(f"--samples {n}: give at least 100")
+    pid = PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0)
+    ts = pid.sample_time
+    ref = np.full(n, 0.0)
+    print(f"hw bench: PID kp=40 kd=5 ki=5, 6 V, Ts = {ts * 1e3:g} ms, {n} samples per run")
+    print("loop cost per sample (virtual time, no waiting):")
+    run_loop(_NullDevice(), pid, ref[:1000], clock="virtual")  # warm-up
+    for label, device, r in (
+        ("null device (the loop alone)", _NullDevice(), ref),
+        ("simulated cart, step 0.5 m", SimCart(), np.full(n, 0.5)),
+    ):
+        t = time.perf_counter()
+        res = run_loop(device, pid, r, clock="virtual", limits=Limits(x_max=1e9))
+        per = (time.perf_counter() - t) / n * 1e6
+        c = res.timing
+        print(
+            f"  {label:32s} {per:7.2f} us/sample (read->write median "
+            f"{c['compute_median_us']:.2f} us, p99 {c['compute_p99_us']:.2f} us)"
+        )
+    print(f"real time at {1 / ts:g} Hz, {n} samples each (sample period in us):")
+    res = run_loop(_RealNull(), pid, ref, clock="perf_counter", limits=Limits(late_max=0))
+    rows = [("hw loop (sleep + spin, absolute deadlines)", res.timing)]
+    stamps, work = _naive_periods(n, ts)
+    rows.append(("naive time.sleep(Ts) loop", timing_stats(stamps, work, ts)))
+    print(
+        f"  {'':44s} {'median':>8s} {'p99':>8s} {'max':>9s} {'overruns/10k':>13s} "
+        f"{'>1.5Ts/10k':>11s}"
+    )
+    for (label, t), wall in zip(rows, (res.t_wall, stamps), strict=True):
+        long = np.count_nonzero(np.diff(wall) > 1.5 * ts) * 10000.0 / (wall.size - 1)
+        print(
+            f"  {label:44s} {t['period_median_us']:8.1f} {t['period_p99_us']:8.1f} "
+            f"{t['period_max_us']:9.1f} {t['overruns_per_10000']:13.1f} {long:11.1f}"
+        )
+    print(
+        "  overruns: samples whose write ended after the next deadline k Ts of an absolute "
+        "schedule (a loop that drifts overruns every sample); >1.5Ts: periods over 1.5 ms"
+    )
+    return 0
+
+
+class _RealNull(_NullDevice):
+    virtual = False

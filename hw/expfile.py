@@ -1,0 +1,722 @@
+"""Experiment files, the project's exchange format, in numpy and the standard library only.
+
+One TOML file per experiment, its data in a CSV file (docs/experiment-files.md):
+
+    kind = "closed_loop"              # "tap" | "open_loop" | "closed_loop"
+    sample_time = 0.001               # [s]
+    data = "run.csv"                  # header t, y and optionally v, r, e ([s], [m], [V], [m])
+    # or a table:  [data]  y = "2.1pos.mat:y"   v = "2.1volt.mat:v"   (or "run.csv:column")
+    [controller]  kp = 50.0  ki  kd  tau  kb  derivative_on  anti_windup  v_limit
+    [reference]   kind = "step", amplitude = 0.4  |  "ramp", slope  |  "column" (column r)
+    [input]       open loop: kind = "step", amplitude [V] | "ramp", slope [V/s] | "column" (v)
+    [tap]         motor_connected = false
+    [plant]       overrides of the handout's parameters by name, e.g. M = 1.25, f_c = 0.3
+    description = "..."   initial_velocity = 0.0 [m/s]   [notes] free-form provenance
+    [device] [timing] [run]   free-form tables written by the hardware loop (hw/loop.py): the
+                  device that ran, the sample-period statistics, and how the run ended
+
+The CSV may also hold the loop's timing columns ``t_wall`` (when the sample was read, [s] from
+the start) and ``compute`` (read to write, [s]); readers of the signals ignore them.
+
+This module reads a file into plain numpy arrays and dicts (:func:`read_experiment_data`) and
+writes one (:func:`write_experiment_file`); :mod:`jaxcart.files` builds the simulator's objects
+on top (and reads MATLAB .mat data, which needs scipy, through the ``mat_reader`` hook). Every
+problem is an :class:`ExpFileError` with one line naming the file, the field and what to do.
+
+>>> import os, tempfile, numpy as np
+>>> path = os.path.join(tempfile.mkdtemp(), "run.toml")
+>>> t = np.arange(5) * 0.001
+>>> _ = write_experiment_file(path, {"t": t, "y": 0.1 * t}, kind="tap")
+>>> read_experiment_data(path).position.shape
+(5,)
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, PID_DATA_FIELDS
+
+KINDS = ("tap", "open_loop", "closed_loop")
+COLUMNS = ("t", "y", "v", "r", "e")
+COLUMN_UNITS = {"t": "s", "y": "m", "v": "V", "r": "m", "e": "m"}
+#: Columns of the hardware loop's own timing, allowed in a CSV and ignored as signals.
+TIMING_COLUMNS = ("t_wall", "compute")
+TIMING_UNITS = {"t_wall": "s", "compute": "s"}
+#: Free-form tables (any keys; values numbers, strings, booleans).
+FREE_TABLES = ("notes", "device", "timing", "run")
+TOP_KEYS = (
+    "kind",
+    "sample_time",
+    "description",
+    "initial_velocity",
+    "data",
+    "controller",
+    "reference",
+    "input",
+    "tap",
+    "plant",
+) + FREE_TABLES
+CONTROLLER_KEYS = PID_DATA_FIELDS + ("derivative_on", "anti_windup")
+#: Keys of [reference] and [input] for each of their kinds (besides "kind").
+SIGNAL_KEYS = {"step": ("amplitude",), "ramp": ("slope",), "column": ()}
+TAP_KEYS = ("motor_connected",)
+#: Allowed time-step deviation from sample_time (docs/experiment-files.md: more than 1 % off
+#: is an error).
+TIME_TOLERANCE = 0.01
+
+
+class ExpFileError(ValueError):
+    """An experiment file that cannot be read or written; the message is one line that names
+    the file, the field or column, and what to fix."""
+
+
+@dataclass(frozen=True, eq=False)
+class ExperimentData:
+    """One experiment file read into numpy arrays (float64) and plain dicts.
+
+    path: the TOML file; meta: the parsed TOML; kind: "tap" | "open_loop" | "closed_loop"
+    sample_time: Ts [s]; time: sample times [s] as recorded; position: y [m]
+    command: v, the voltage the software sent [V], or None (no column v)
+    reference: r [m] for closed loop (from [reference]), else None
+    signal: what drives the experiment at t = k Ts: r [m] (closed loop), the input voltage [V]
+        (open loop) or zeros (tap)
+    y0: the first position [m]; yd0: initial_velocity [m/s]
+    controller: the PID that ran (from [controller]), or None
+    plant: the [plant] table as written (names are checked by jaxcart, which knows them)
+    """
+
+    path: Path
+    meta: dict
+    kind: str
+    sample_time: float
+    time: np.ndarray
+    position: np.ndarray
+    command: np.ndarray | None
+    reference: np.ndarray | None
+    signal: np.ndarray
+    y0: float
+    yd0: float
+    controller: PID | None
+    plant: dict
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.position.shape[0])
+
+
+# ---------------------------------------------------------------- reading
+
+
+def read_toml(path) -> dict:
+    """The parsed TOML of an experiment file (one-line errors for a missing or broken file)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ExpFileError(f"experiment file {path} is a folder; give the path of a .toml file")
+    if not path.is_file():
+        raise ExpFileError(f"experiment file {path} not found; give the path of a .toml file")
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise ExpFileError(f"{path}: not valid TOML ({_one_line(exc)}); fix the syntax") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ExpFileError(f"{path}: cannot read it ({_one_line(exc)})") from None
+
+
+def read_experiment_data(path, *, mat_reader=None) -> ExperimentData:
+    """Read an experiment file (TOML + CSV) into an :class:`ExperimentData`.
+
+    Relative data paths are relative to the TOML file's folder. ``mat_reader(reader, file,
+    variable, field) -> (values, time or None)`` reads signals mapped to MATLAB .mat files
+    (jaxcart passes one built on scipy); without it such a file is refused with a message.
+    Raises :class:`ExpFileError` with a one-line message for any problem.
+    """
+    path = Path(path)
+    return Reader(path, read_toml(path), mat_reader).read()
+
+
+class Signal:
+    """One data column: values, its own time vector (or None) and how to name its rows."""
+
+    def __init__(self, values, time, label, row):
+        self.values, self.time, self.label, self.row = values, time, label, row
+
+
+class Reader:
+    """The checks of one experiment file; ``fail`` raises the one-line error."""
+
+    def __init__(self, path: Path, meta: dict, mat_reader=None):
+        self.path, self.meta, self.folder = path, meta, path.parent
+        self.mat_reader = mat_reader
+        self._csv_cache: dict = {}
+        self.cache: dict = {}  # for the mat reader
+
+    def fail(self, message: str):
+        raise ExpFileError(f"{self.path}: {message}")
+
+    # -- values
+
+    def number(self, value, field, *, positive=False, nonnegative=False, allow_inf=False):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            self.fail(f"{field} = {value!r}: give a number")
+        value = float(value)
+        if math.isnan(value) or (math.isinf(value) and not allow_inf):
+            self.fail(f"{field} = {value!r}: give a finite number")
+        if positive and not value > 0:
+            self.fail(f"{field} = {value!r}: it must be positive")
+        if nonnegative and not value >= 0:
+            self.fail(f"{field} = {value!r}: it must be >= 0")
+        return value
+
+    def choice(self, value, field, allowed):
+        if value not in allowed:
+            self.fail(f"{field} = {value!r}: use one of {', '.join(map(repr, allowed))}")
+        return value
+
+    def table(self, name, allowed):
+        table = self.meta.get(name, {})
+        if not isinstance(table, dict):
+            self.fail(f"{name} = {table!r}: it must be a table [{name}]")
+        for key in table:
+            if key not in allowed:
+                self.fail(f"unknown key {key!r} in [{name}]; allowed: {', '.join(allowed)}")
+        return table
+
+    # -- the file
+
+    def read(self) -> ExperimentData:
+        meta = self.meta
+        for key in meta:
+            if key not in TOP_KEYS:
+                self.fail(f"unknown key {key!r}; allowed keys: {', '.join(TOP_KEYS)}")
+        if "kind" not in meta:
+            self.fail(f"no kind; add kind = one of {', '.join(map(repr, KINDS))}")
+        kind = self.choice(meta["kind"], "kind", KINDS)
+        if "description" in meta and not isinstance(meta["description"], str):
+            self.fail(f"description = {meta['description']!r}: give a string")
+        for name in FREE_TABLES:
+            if name in meta and not isinstance(meta[name], dict):
+                self.fail(f"{name} must be a table [{name}]")
+        yd0 = self.number(meta.get("initial_velocity", 0.0), "initial_velocity")
+        for section, owner in (
+            ("controller", "closed_loop"),
+            ("reference", "closed_loop"),
+            ("input", "open_loop"),
+            ("tap", "tap"),
+        ):
+            if section in meta and kind != owner:
+                self.fail(
+                    f"[{section}] belongs to kind = {owner!r}, this file is {kind!r}; "
+                    f"remove it or change kind"
+                )
+
+        signals = self.signals()
+        time, ts = self.time(signals)
+        n = time.size
+        position = signals["y"].values
+        command = signals["v"].values if "v" in signals else None
+        y0 = float(position[0])
+        k = np.arange(n)
+        controller = reference = None
+        if kind == "closed_loop":
+            controller = self.controller(ts)
+            spec = self.signal_spec("reference", "r", signals)
+            reference = self.signal_from_spec(spec, signals, "r", k * ts, y0)
+            signal = reference
+        elif kind == "open_loop":
+            spec = self.signal_spec("input", "v", signals)
+            signal = self.signal_from_spec(spec, signals, "v", k * ts, 0.0)
+        else:
+            tap = self.table("tap", TAP_KEYS)
+            if not isinstance(tap.get("motor_connected", False), bool):
+                self.fail(f"[tap] motor_connected = {tap['motor_connected']!r}: give true or false")
+            signal = np.zeros(n)
+        plant = meta.get("plant", {})
+        if not isinstance(plant, dict):
+            self.fail(f"plant = {plant!r}: it must be a table [plant]")
+        return ExperimentData(
+            path=self.path,
+            meta=meta,
+            kind=kind,
+            sample_time=ts,
+            time=time,
+            position=position,
+            command=command,
+            reference=reference,
+            signal=np.asarray(signal, dtype=float),
+            y0=y0,
+            yd0=yd0,
+            controller=controller,
+            plant=dict(plant),
+        )
+
+    # -- data
+
+    def signals(self) -> dict[str, Signal]:
+        data = self.meta.get("data")
+        if data is None:
+            self.fail('no data; add data = "run.csv" or a [data] table (y = "file.mat:variable")')
+        if isinstance(data, str):
+            if data.lower().endswith(".mat"):
+                self.fail(
+                    f"data = {data!r}: map each signal of a .mat file in a [data] table, "
+                    f'e.g. [data] y = "{data}:variable"'
+                )
+            header, columns, lines = self.read_csv(data, "data")
+            unknown = [name for name in header if name not in COLUMNS + TIMING_COLUMNS]
+            for required in ("t", "y"):
+                if required not in columns:
+                    guess = unknown[0] if unknown else "column"
+                    self.fail(
+                        f"column {required!r} missing in {data} (columns: "
+                        f"{', '.join(header)}); name the {_LONG[required]} column "
+                        f"{required} or map it in a [data] table ({required} = "
+                        f'"{data}:{guess}")'
+                    )
+            if unknown:
+                self.fail(
+                    f"column {unknown[0]!r} of {data} is not one of {', '.join(COLUMNS)}; "
+                    f"rename it, or map the columns you need in a [data] table "
+                    f'(e.g. y = "{data}:y", v = "{data}:{unknown[0]}")'
+                )
+            return {
+                name: Signal(values, None, f"{data} column {name}", _line_of(lines))
+                for name, values in columns.items()
+                if name in COLUMNS
+            }
+        if not isinstance(data, dict):
+            self.fail(f"data = {data!r}: give a CSV file name or a [data] table")
+        for key in data:
+            if key not in COLUMNS:
+                self.fail(
+                    f"unknown key {key!r} in [data]; allowed: {', '.join(COLUMNS)} "
+                    f"({', '.join(f'{c} [{u}]' for c, u in COLUMN_UNITS.items())})"
+                )
+        if "y" not in data:
+            self.fail('[data] has no y; map the position [m]: y = "file.mat:variable"')
+        return {name: self.mapped(name, source) for name, source in data.items()}
+
+    def mapped(self, name, source) -> Signal:
+        field = f"[data] {name}"
+        if not isinstance(source, str) or ":" not in source:
+            self.fail(f'{field} = {source!r}: give "file.mat:variable" or "file.csv:column"')
+        file, variable = source.rsplit(":", 1)
+        if file.lower().endswith(".mat"):
+            if self.mat_reader is None:
+                self.fail(
+                    f"{field}: {file} is a MATLAB .mat file, which needs scipy; read it with "
+                    f"jaxcart (jaxcart.files.read_experiment) or save the data as CSV"
+                )
+            values, time = self.mat_reader(self, file, variable, field)
+            return Signal(values, time, source, lambda i: f"row {i + 1}")
+        if file.lower().endswith((".csv", ".txt")):
+            header, columns, lines = self.read_csv(file, field)
+            if variable not in columns:
+                self.fail(
+                    f"{field}: column {variable!r} missing in {file} (columns: "
+                    f"{', '.join(header)}); map one of them"
+                )
+            return Signal(columns[variable], None, source, _line_of(lines))
+        self.fail(f"{field} = {source!r}: the file must be .mat or .csv")
+
+    def data_path(self, name, field) -> Path:
+        path = self.folder / name
+        if not path.is_file():
+            self.fail(
+                f"{field}: data file {name} not found (looked for {path}); "
+                f"fix the path (relative to the TOML file's folder)"
+            )
+        return path
+
+    def read_csv(self, name, field):
+        if name in self._csv_cache:
+            return self._csv_cache[name]
+        path = self.data_path(name, field)
+        try:
+            header, rows, lines = read_csv_rows(path, name)
+        except ExpFileError as exc:
+            self.fail(str(exc))
+        except (OSError, UnicodeDecodeError) as exc:
+            self.fail(f"{field}: cannot read {name} ({_one_line(exc)})")
+        if header is None or not rows:
+            self.fail(f"{field}: {name} has no data rows; it needs a header line and samples")
+        if len(set(header)) != len(header):
+            self.fail(f"{name}: repeated column names in the header {header}; name each once")
+        table = np.asarray(rows, dtype=float)
+        result = header, {h: table[:, i] for i, h in enumerate(header)}, np.asarray(lines)
+        self._csv_cache[name] = result
+        return result
+
+    def time(self, signals):
+        """The time vector [s] and the sample time [s], after every consistency check."""
+        sizes = {name: s.values.size for name, s in signals.items()}
+        if len(set(sizes.values())) > 1:
+            listing = ", ".join(f"{n} ({signals[n].label}) {sizes[n]}" for n in sizes)
+            self.fail(f"data lengths differ: {listing} samples; give every signal the same samples")
+        n = sizes["y"]
+        if n < 2:
+            self.fail(f"{signals['y'].label}: {n} sample(s); a recording needs at least 2")
+        for s in signals.values():
+            for what, values in (("", s.values), (" time", s.time)):
+                if values is None:
+                    continue
+                bad = np.nonzero(~np.isfinite(values))[0]
+                if bad.size:
+                    self.fail(
+                        f"{s.label}{what}: {float(values[bad[0]])!r} at {s.row(bad[0])} "
+                        f"({bad.size} non-finite samples); remove or fill them"
+                    )
+        if "t" in signals:
+            source = signals["t"]
+            time = source.values
+        else:
+            timed = [s for name, s in signals.items() if s.time is not None]
+            source = timed[0] if timed else None
+            time = source.time if source else None
+            for other in timed[1:]:
+                gap = np.abs(other.time - time).max()
+                if gap > 0.5 * _median_step(time):
+                    self.fail(
+                        f"time vectors of {source.label} and {other.label} differ by "
+                        f"{gap:.3g} s; give signals sampled at the same times"
+                    )
+        ts = self.meta.get("sample_time")
+        if ts is not None:
+            ts = self.number(ts, "sample_time", positive=True)
+        if time is None:
+            if ts is None:
+                self.fail(
+                    "no time vector in the data and no sample_time; add sample_time = "
+                    "0.001 (s) or a time column t"
+                )
+            return np.arange(n) * ts, ts
+        steps = np.diff(time)
+        back = np.nonzero(steps <= 0)[0]
+        if back.size:
+            i = back[0] + 1
+            self.fail(
+                f"time of {source.label} does not increase at {source.row(i)} "
+                f"(t = {float(time[i - 1])!r} then {float(time[i])!r} s); sort the samples or "
+                f"remove repeated rows"
+            )
+        if ts is None:
+            ts = float(f"{(time[-1] - time[0]) / (n - 1):.12g}")
+            where = f"the mean step of {source.label}"
+        else:
+            where = f"sample_time = {ts!r} s"
+        off = np.nonzero(np.abs(steps - ts) > TIME_TOLERANCE * ts)[0]
+        if off.size:
+            i = off[0] + 1
+            self.fail(
+                f"time of {source.label} steps by {steps[off[0]]:.6g} s at {source.row(i)}, "
+                f"more than 1 % from {where}; fix sample_time or resample the data to a "
+                f"uniform step"
+            )
+        return time, ts
+
+    # -- sections
+
+    def controller(self, ts) -> PID | None:
+        if "controller" not in self.meta:
+            return None
+        table = self.table("controller", CONTROLLER_KEYS)
+        field = "[controller] {}".format
+        values = {}
+        for key in ("kp", "ki", "kd"):
+            values[key] = self.number(table.get(key, 0.0), field(key))
+        values["tau"] = self.number(table.get("tau", 0.01), field("tau"), nonnegative=True)
+        values["kb"] = self.number(table.get("kb", 1.0), field("kb"), nonnegative=True)
+        values["v_limit"] = self.number(
+            table.get("v_limit", math.inf), field("v_limit"), positive=True, allow_inf=True
+        )
+        values["derivative_on"] = self.choice(
+            table.get("derivative_on", "error"), field("derivative_on"), DERIVATIVE_MODES
+        )
+        values["anti_windup"] = self.choice(
+            table.get("anti_windup", "none"), field("anti_windup"), ANTI_WINDUP_MODES
+        )
+        try:
+            return PID(sample_time=ts, **values)
+        except ValueError as exc:
+            self.fail(f"[controller]: {_one_line(exc)}")
+
+    def signal_spec(self, section, column, signals) -> dict:
+        """[reference] or [input] as a dict with its kind; defaults to the column if present."""
+        if section not in self.meta:
+            if column in signals:
+                return {"kind": "column"}
+            what = "reference [m]" if section == "reference" else "voltage input [V]"
+            self.fail(
+                f"no [{section}] and no column {column}; add [{section}] kind = "
+                f'"step" with amplitude, "ramp" with slope, or a column {column} '
+                f"(the {what})"
+            )
+        table = self.meta[section]
+        if not isinstance(table, dict):
+            self.fail(f"{section} = {table!r}: it must be a table [{section}]")
+        kind = self.choice(table.get("kind"), f"[{section}] kind", tuple(SIGNAL_KEYS))
+        allowed = ("kind",) + SIGNAL_KEYS[kind]
+        for key in table:
+            if key not in allowed:
+                self.fail(
+                    f"unknown key {key!r} in [{section}] (kind = {kind!r}); allowed: "
+                    f"{', '.join(allowed)}"
+                )
+        for key in SIGNAL_KEYS[kind]:
+            if key not in table:
+                self.fail(f"[{section}] kind = {kind!r} needs {key}; add {key} = ...")
+            self.number(table[key], f"[{section}] {key}")
+        if kind == "column" and column not in signals:
+            self.fail(
+                f"[{section}] kind = 'column' but the data have no column {column}; add "
+                f"it to the data or map it in [data]"
+            )
+        return table
+
+    def signal_from_spec(self, spec, signals, column, t, offset):
+        kind = spec["kind"]
+        if kind == "column":
+            return signals[column].values
+        if kind == "step":
+            return np.full(t.shape, float(spec["amplitude"]))
+        return offset + float(spec["slope"]) * t
+
+
+def read_csv_rows(path: Path, name: str):
+    """(header, rows of floats, line numbers) of a CSV file with a header line.
+
+    Blank lines and lines starting with # are skipped; a UTF-8 byte-order mark (Excel's "CSV
+    UTF-8") is dropped. Raises :class:`ExpFileError` (message without the TOML file's name)
+    for a line with the wrong number of fields or a value that is not a number.
+    """
+    header, rows, lines = None, [], []
+    # utf-8-sig: a file saved by Excel starts with a BOM, which would glue itself to "t".
+    with path.open(newline="", encoding="utf-8-sig") as f:
+        for lineno, row in enumerate(csv.reader(f), start=1):
+            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+                continue
+            if header is None:
+                header = [h.strip() for h in row]
+                continue
+            if len(row) != len(header):
+                raise ExpFileError(
+                    f"{name} line {lineno}: {len(row)} fields, the header has "
+                    f"{len(header)}; fix that line"
+                )
+            try:
+                rows.append([float(x) for x in row])
+            except ValueError:
+                bad = next(x for x in row if not _is_float(x))
+                col = header[row.index(bad)]
+                raise ExpFileError(
+                    f"{name} line {lineno}, column {col}: {bad.strip()!r} is not "
+                    f"a number; fix that value"
+                ) from None
+            lines.append(lineno)
+    return header, rows, lines
+
+
+_LONG = {
+    "t": "time [s]",
+    "y": "position [m]",
+    "v": "voltage [V]",
+    "r": "reference [m]",
+    "e": "error [m]",
+}
+
+
+def _line_of(lines):
+    return lambda i: f"line {int(lines[i])}"
+
+
+def _is_float(text) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _median_step(time):
+    return float(np.median(np.diff(time))) if time.size > 1 else 0.0
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split())
+
+
+# ---------------------------------------------------------------- writing
+
+
+def experiment_paths(path) -> tuple[Path, Path]:
+    """(TOML, CSV) paths for a name given with either suffix, or none."""
+    path = Path(path)
+    if path.suffix.lower() in (".toml", ".csv"):
+        return path.with_suffix(".toml"), path.with_suffix(".csv")
+    return path.with_name(path.name + ".toml"), path.with_name(path.name + ".csv")
+
+
+def check_free(paths, force: bool = False) -> None:
+    """Refuse (:class:`ExpFileError`) if any of ``paths`` exists, unless ``force``."""
+    for path in paths:
+        if Path(path).exists() and not force:
+            raise ExpFileError(
+                f"{path} exists; choose another name or pass --force (force=True) to overwrite it"
+            )
+
+
+def toml_lines(
+    *,
+    kind: str,
+    sample_time: float,
+    csv_name: str,
+    columns,
+    controller: PID | None = None,
+    plant: dict | None = None,
+    description: str | None = None,
+    initial_velocity: float = 0.0,
+    tables: dict | None = None,
+) -> list[str]:
+    """The lines of an experiment file's TOML (the reference or input is the CSV column)."""
+    if kind not in KINDS:
+        raise ExpFileError(f"kind = {kind!r}: use one of {', '.join(KINDS)}")
+    lines = []
+    if description:
+        lines.append(f"description = {toml_str(description)}")
+    lines += [f'kind = "{kind}"', f"sample_time = {toml_float(sample_time)}"]
+    if initial_velocity != 0:
+        lines.append(f"initial_velocity = {toml_float(initial_velocity)}   # [m/s]")
+    units = {**COLUMN_UNITS, **TIMING_UNITS}
+    listing = ", ".join(f"{c} [{units.get(c, '-')}]" for c in columns)
+    lines.append(f"data = {toml_str(csv_name)}   # columns {listing}")
+    if kind == "closed_loop":
+        if controller is not None:
+            lines += ["", "[controller]"] + controller_lines(controller)
+        lines += ["", "[reference]", 'kind = "column"']
+    elif kind == "open_loop":
+        lines += ["", "[input]", 'kind = "column"']
+    else:
+        lines += ["", "[tap]", "motor_connected = false"]
+    if plant:
+        lines += ["", "[plant]"] + [f"{k} = {toml_float(v)}" for k, v in plant.items()]
+    for name, table in (tables or {}).items():
+        if name not in FREE_TABLES:
+            raise ExpFileError(f"table [{name}]: the free-form tables are {', '.join(FREE_TABLES)}")
+        lines += ["", f"[{name}]"] + [f"{_key(k)} = {toml_value(v)}" for k, v in table.items()]
+    return lines
+
+
+def write_experiment_file(
+    toml_path,
+    columns: dict,
+    *,
+    kind: str,
+    sample_time: float | None = None,
+    controller: PID | None = None,
+    plant: dict | None = None,
+    description: str | None = None,
+    initial_velocity: float = 0.0,
+    tables: dict | None = None,
+    force: bool = False,
+) -> Path:
+    """Write ``columns`` ({name: 1-D array}, ``t`` and ``y`` first) as ``name.toml`` + ``name.csv``.
+
+    Values are written with 17 significant digits (exact round trip); ``sample_time`` defaults
+    to the mean step of ``t``. ``controller`` goes to [controller], ``plant`` ({name: number})
+    to [plant], ``tables`` ({"notes" | "device" | "timing" | "run": {key: value}}) to free-form
+    tables. Refuses to overwrite either file unless ``force``. Returns the TOML path.
+    """
+    toml_path, csv_path = experiment_paths(toml_path)
+    check_free((toml_path, csv_path), force)
+    names = tuple(columns)
+    arrays = [np.asarray(columns[c], dtype=float) for c in names]
+    n = arrays[0].shape[0]
+    if any(a.shape != (n,) for a in arrays):
+        raise ExpFileError(f"{toml_path}: every column must be 1-D of the same length")
+    if sample_time is None:
+        t = np.asarray(columns["t"], dtype=float)
+        sample_time = float(f"{(t[-1] - t[0]) / (n - 1):.12g}")
+    lines = toml_lines(
+        kind=kind,
+        sample_time=sample_time,
+        csv_name=csv_path.name,
+        columns=names,
+        controller=controller,
+        plant=plant,
+        description=description,
+        initial_velocity=initial_velocity,
+        tables=tables,
+    )
+    toml_path.parent.mkdir(parents=True, exist_ok=True)
+    mode = "w" if force else "x"  # "x": never over a file that appeared since the check
+    try:
+        with csv_path.open(mode, newline="") as f:
+            f.write(",".join(names) + "\n")
+            np.savetxt(f, np.column_stack(arrays), fmt="%.17g", delimiter=",")
+        with toml_path.open(mode) as f:
+            f.write("\n".join(lines) + "\n")
+    except FileExistsError as exc:
+        check_free((exc.filename,))
+        raise
+    return toml_path
+
+
+def controller_lines(pid: PID) -> list[str]:
+    lines = [f"{k} = {toml_float(float(getattr(pid, k)))}" for k in ("kp", "ki", "kd", "tau")]
+    if pid.anti_windup == "back_calculation" or float(pid.kb) != 1.0:
+        lines.append(f"kb = {toml_float(float(pid.kb))}")
+    if math.isfinite(float(pid.v_limit)):
+        lines.append(f"v_limit = {toml_float(float(pid.v_limit))}")
+    lines += [f'derivative_on = "{pid.derivative_on}"', f'anti_windup = "{pid.anti_windup}"']
+    return lines
+
+
+def toml_float(x: float) -> str:
+    x = float(x)
+    if math.isnan(x):
+        raise ValueError("NaN cannot be written to an experiment file")
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return repr(x)
+
+
+def toml_value(value) -> str:
+    """A TOML value from a bool, number or string (numpy scalars too)."""
+    if isinstance(value, bool | np.bool_):
+        return "true" if value else "false"
+    if isinstance(value, int | np.integer):
+        return str(int(value))
+    if isinstance(value, float | np.floating):
+        x = float(value)
+        return '"nan"' if math.isnan(x) else toml_float(x)
+    if isinstance(value, str | os.PathLike):
+        return toml_str(str(value))
+    raise ExpFileError(f"cannot write {value!r} to a TOML table; give a number or a string")
+
+
+def _key(name) -> str:
+    name = str(name)
+    if name and all(ch.isalnum() or ch in "_-" for ch in name):
+        return name
+    return toml_str(name)
+
+
+def toml_str(text: str) -> str:
+    # A TOML basic string: escape backslash, quote and control characters.
+    out = []
+    for ch in str(text):
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append({"\n": "\\n", "\t": "\\t", "\r": "\\r"}.get(ch, f"\\u{ord(ch):04X}"))
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'

@@ -1,5 +1,0 @@
-import sys
-
-from jaxcart.cli import main
-
-sys.exit(main())

@@ -1,0 +1,48 @@
+"""Amplifier current limit: the motor current, not the voltage, saturates.
+
+The armature current is i = (v - K_b y') / Rm with K_b = B_emf / gamma [V s/m] (back-EMF), and
+the drive force is gamma Rm i. The linear model's gamma v - B_emf y' is that force unlimited; a
+limit |i| <= i_max replaces it with gamma Rm clip(i, -i_max, i_max), so this effect adds
+    F = gamma (clip(u, -Rm i_max, Rm i_max) - u),   u = v - K_b y'.
+At rest it acts like a voltage limit Rm i_max; at speed the back-EMF lowers the current and the
+two differ (docs/design.md, "Effects").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax
+
+from jaxcart.effects.base import Effect, Param, register
+from jaxcart.smoothing import smooth_clip
+
+
+@register
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class CurrentLimit(Effect):
+    """Current limit of the amplifier.
+
+    i_max: largest armature current magnitude [A]
+    """
+
+    i_max: float = math.inf
+
+    name = "current_limit"
+    stage = "force"
+    summary = "amplifier current limit: |i| <= i_max (the force saturates, not the voltage)"
+    params = (Param("i_max", "A", 1e-3, math.inf, 1.5, "voltage", "armature current limit"),)
+
+    def smooth_force(self, y, yd, v, smoothing, plant):
+        gamma = plant.gamma
+        u = v - plant.B_emf / gamma * yd
+        limit = self.i_max * plant.Rm
+        return gamma * (smooth_clip(u, limit, smoothing.voltage) - u)
+
+    def exact_force(self, y, yd, v, plant):
+        gamma = plant.gamma  # plain floats here (jaxcart.exact)
+        u = v - plant.B_emf / gamma * yd
+        limit = self.i_max * plant.Rm
+        return gamma * (min(max(u, -limit), limit) - u)

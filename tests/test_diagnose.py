@@ -1,0 +1,113 @@
+"""jaxcart diagnose: the fast subset of the concealed-effect suite (tuning/diagnose/suite.py),
+bad input, and the command line. The whole suite: ``python -m tuning.diagnose.suite``."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from jaxcart.files import read_experiment
+from tuning.diagnose import diagnose, render_markdown, write_outputs
+from tuning.diagnose.suite import CASES, FAST, judge, make_case
+from tuning.synthetic import make_recording, write_recording
+
+BY_NAME = {c.name: c for c in CASES}
+
+
+@pytest.fixture(scope="module")
+def fast_results(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("suite")
+    out = {}
+    for name in FAST:
+        case = BY_NAME[name]
+        d = diagnose([read_experiment(make_case(case, folder))], progress=False)
+        out[name] = (case, d)
+    return out
+
+
+@pytest.mark.parametrize("name", FAST)
+def test_fast_suite_names_the_truth(fast_results, name):
+    case, d = fast_results[name]
+    row = judge(case, d)
+    assert row["correct"], row
+    assert not row["false_alarm"], row
+    assert d.rms_after <= d.rms_before * 1.0001
+    if case.expect or case.corrected:
+        assert d.rms_after < 2.5 * d.floor  # down to the encoder's quantization
+        assert row["ratio"] > 10
+
+
+def test_json_and_outputs(fast_results, tmp_path):
+    _, d = fast_results["coulomb plain"]
+    assert abs(d.parameters["f_c"]["value"] - 0.4) < 0.01
+    assert d.parameters["f_c"]["stderr"] > 0
+    written = write_outputs(d, tmp_path / "out", json_path=tmp_path / "d.json")
+    data = json.loads((tmp_path / "d.json").read_text())
+    for key in (
+        "left_out",
+        "rms_before",
+        "rms_after",
+        "parameters",
+        "windows",
+        "candidates",
+        "plant_file",
+    ):
+        assert key in data
+    assert data["left_out"] == ["coulomb"]
+    assert all("rms" in c and "score" in c for c in data["candidates"])
+    plant = jc.plantspec.load_plant(written["plant_file"])
+    assert "coulomb" in plant.structure
+    assert "Diagnosis" in render_markdown(d)
+    with pytest.raises(UserError, match="exists"):
+        write_outputs(d, tmp_path / "out")
+
+
+def test_no_excitation_is_not_diagnosed():
+    rec = make_recording(jc.handout_plant(), jc.PID(kp=40.0), jc.step(0.0001, horizon=1.0))
+    d = diagnose([rec], progress=False)
+    assert d.status == "not diagnosed"
+    assert "excitation" in d.messages[0]
+    short = make_recording(jc.handout_plant(), jc.PID(kp=40.0), jc.step(0.3, horizon=0.05))
+    d = diagnose([short], progress=False)
+    assert d.status == "not diagnosed" and "too short" in d.messages[0]
+
+
+def test_controller_mismatch_is_reported_and_inferred(tmp_path):
+    from tuning.diagnose.controller import check
+
+    ran = jc.PID(kp=30.0, kd=2.0, tau=0.005, v_limit=6.0)
+    rec = make_recording(jc.handout_plant(B_eq=4.6), ran, jc.step(0.3, horizon=1.0))
+    path = write_recording(rec, tmp_path / "run.toml")
+    text = path.read_text().replace("kp = 30", "kp = 50")
+    path.write_text(text)
+    chk = check(read_experiment(path))
+    assert not chk["consistent"]
+    inf = chk["inferred"]
+    # The synthetic controller saw the exact position, the regression sees whole counts: the
+    # derivative of counts biases kd and tau a little.
+    assert abs(inf.kp - 30.0) < 1.0 and abs(inf.kd - 2.0) < 0.25
+    assert chk["inferred_rms"] < 0.1 * chk["mismatch_rms"]
+    assert inf.derivative_on == "error" and inf.v_limit == pytest.approx(6.0)
+
+
+def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):
+    code = (
+        "import sys; from tuning.cli import build_parser; build_parser(); "
+        "print('jax' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "False"
+    (tmp_path / "report.md").write_text("x")
+    from tuning.cli import main
+
+    rec = make_recording(jc.handout_plant(), jc.PID(kp=40.0), jc.step(0.3, horizon=0.5))
+    path = write_recording(rec, tmp_path / "r.toml")
+    assert main(["diagnose", str(path), "--out", str(tmp_path), "--quiet"]) == 2
+    assert (tmp_path / "report.md").read_text() == "x"
+    assert np.isfinite(rec.position).all()

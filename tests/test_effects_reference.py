@@ -1,0 +1,447 @@
+"""Independent references for the exact form of every registered effect.
+
+Each check runs :func:`jaxcart.exact.simulate_exact` and compares it with something computed
+here without the simulator's code: the closed form of the linear cart
+
+    m y'' + c y' = F   (F constant from t0, state (y0, v0) there)
+    v(t) = F/c + (v0 - F/c) e^{-a tau},   y(t) = y0 + F/c tau + (v0 - F/c)(1 - e^{-a tau})/a,
+    a = c / m,   tau = t - t0,
+
+its spring-mass-damper and Coulomb variants, an equivalence between two runs (a delay of k
+samples and the command shifted by k samples; equal track-friction knots and Coulomb friction),
+or a numerical integration with scipy (friction varying along the track). Tolerances are stated
+beside each comparison; the closed-form simulator (no force effect but Coulomb) is held to
+1e-12 m, the RK4 one (spring, current limit, track friction) to 1e-9 m.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxcart as jc
+from jaxcart.effects import REGISTRY
+from jaxcart.exact import simulate_exact
+from jaxcart.plantspec import build_plant
+
+TS = 1e-3  # [s]
+#: The handout's plant (appendix values), its derived constants written out here (section 1.1).
+RM, KT, KM, JM, KG, RMP = 2.6, 0.00767, 0.00767, 3.9e-7, 3.71, 6.35e-3
+M_J = KG**2 * JM / RMP**2  # [kg]
+B_EMF = KG**2 * KT * KM / (RM * RMP**2)  # [kg/s]
+GAMMA = KG * KT / (RM * RMP)  # [N/V]
+M = 0.94 + M_J  # [kg]
+B_EQ = 5.4  # [kg/s]
+C = B_EQ + B_EMF  # [kg/s] (motor connected)
+
+#: Closed-form tolerance [m] (float64 rounding over a few thousand steps of a 0.1 m motion).
+TOL_CLOSED = 1e-12
+#: Tolerance [m] where the exact simulator integrates with RK4 on Ts/20 sub-steps.
+TOL_RK4 = 1e-9
+
+
+def _times(horizon):
+    return np.arange(int(round(horizon / TS)) + 1) * TS
+
+
+def linear(t, force, *, m=M, c=C, t0=0.0, y0=0.0, v0=0.0):
+    """(y, v) of m y'' + c y' = force [N] from (y0, v0) at t0 (held at (y0, v0) before t0)."""
+    t = np.asarray(t, dtype=float)
+    tau = np.maximum(t - t0, 0.0)
+    a = c / m
+    vinf = force / c
+    e = np.exp(-a * tau)
+    y = y0 + vinf * tau + (v0 - vinf) * (1.0 - e) / a
+    v = vinf + (v0 - vinf) * e
+    return y, v
+
+
+def test_the_handout_constants_match_the_plant():
+    p = jc.handout_plant()
+    assert float(p.m) == pytest.approx(M, rel=1e-14)
+    assert float(p.c) == pytest.approx(C, rel=1e-14)
+    assert float(p.gamma) == pytest.approx(GAMMA, rel=1e-14)
+    # The docstring's rounded values (jaxcart/params.py).
+    assert (round(M, 4), round(B_EMF, 4), round(GAMMA, 4)) == (1.0731, 7.7236, 1.7235)
+
+
+def test_the_nominal_step_is_the_closed_form():
+    """The reference the other checks build on: a plain 3 V step, no effect."""
+    t = _times(0.5)
+    res = simulate_exact(jc.handout_plant(), None, jc.voltage_step(3.0, horizon=0.5))
+    y, v = linear(t, GAMMA * 3.0)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+
+
+# ---------------------------------------------------------------- delay
+
+
+@pytest.mark.parametrize("k", [1, 3, 7, 25])
+def test_delay_of_k_samples_is_the_command_shifted(k):
+    """Open loop: delay = k Ts equals no delay with u shifted by k samples (zeros first).
+    Equal to 1e-12 m (a delay of k Ts may round to (k-1) Ts plus a sample-long split)."""
+    rng = np.random.default_rng(k)
+    u = np.repeat(rng.uniform(-4.0, 4.0, 30), 20)[:500]
+    shifted = np.concatenate([np.zeros(k), u[:-k]])
+    delayed = simulate_exact(build_plant({"delay": k * TS}), None, jc.voltage_sequence(u))
+    plain = simulate_exact(jc.handout_plant(), None, jc.voltage_sequence(shifted))
+    np.testing.assert_allclose(delayed.position, plain.position, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(delayed.velocity, plain.velocity, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_array_equal(delayed.voltage, shifted)
+
+
+@pytest.mark.parametrize("d", [0.3e-3, 2.6e-3, 0.0111])
+def test_fractional_delay_of_a_step_is_the_delayed_closed_form(d):
+    """A 4 V step delayed by d (not a whole number of samples): y(t) is the linear cart's step
+    response started at t = d, 0 before."""
+    t = _times(0.4)
+    res = simulate_exact(build_plant({"delay": d}), None, jc.voltage_step(4.0, horizon=0.4))
+    y, v = linear(t, GAMMA * 4.0, t0=d)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+    assert np.all(res.position[t <= d] == 0.0)
+
+
+# ---------------------------------------------------------------- saturation, deadzone
+
+
+def test_saturation_an_8V_step_is_the_6V_closed_form():
+    t = _times(0.5)
+    for sign in (1.0, -1.0):
+        res = simulate_exact(
+            build_plant({"v_sat": 6.0}), None, jc.voltage_step(8.0 * sign, horizon=0.5)
+        )
+        y, v = linear(t, GAMMA * 6.0 * sign)
+        np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+        np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+        np.testing.assert_array_equal(res.voltage, 6.0 * sign)
+    # Below the limit it does nothing.
+    res = simulate_exact(build_plant({"v_sat": 6.0}), None, jc.voltage_step(5.0, horizon=0.5))
+    np.testing.assert_allclose(res.position, linear(t, GAMMA * 5.0)[0], rtol=0, atol=TOL_CLOSED)
+
+
+def test_deadzone_a_1V_step_is_the_0_7V_closed_form():
+    t = _times(0.5)
+    plant = build_plant({"deadzone": 0.3})
+    for sign in (1.0, -1.0):
+        res = simulate_exact(plant, None, jc.voltage_step(1.0 * sign, horizon=0.5))
+        y, _ = linear(t, GAMMA * 0.7 * sign)
+        np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+        np.testing.assert_allclose(res.voltage, 0.7 * sign, rtol=1e-15)
+    # Inside the band nothing moves at all.
+    res = simulate_exact(plant, None, jc.voltage_step(0.25, horizon=0.5))
+    assert np.all(res.position == 0.0) and np.all(res.voltage == 0.0)
+
+
+# ---------------------------------------------------------------- current limit
+
+
+def _current_limited(t, volts, i_max):
+    """Closed form of a step of ``volts`` from rest under |i| <= i_max: while the current is
+    limited, m y'' + B_eq y' = gamma Rm i_max (the back-EMF term cancels); once the back-EMF
+    brings i = (V - K_b y')/Rm below i_max (y' = v* = (V - Rm i_max)/K_b), the linear cart
+    m y'' + c y' = gamma V from that state. Returns (y, v, t*) with t* = inf if never."""
+    kb = B_EMF / GAMMA  # [V s/m]
+    force = GAMMA * RM * i_max
+    v_star = (volts - RM * i_max) / kb
+    v_inf = force / B_EQ
+    y, v = linear(t, force, c=B_EQ)
+    if v_star >= v_inf:
+        return y, v, math.inf
+    t_star = -math.log1p(-v_star / v_inf) / (B_EQ / M)
+    y_star, _ = linear(t_star, force, c=B_EQ)
+    y2, v2 = linear(t, GAMMA * volts, t0=t_star, y0=float(y_star), v0=v_star)
+    late = t > t_star
+    return np.where(late, y2, y), np.where(late, v2, v), t_star
+
+
+@pytest.mark.parametrize("i_max, limited_throughout", [(0.5, True), (1.5, False)])
+def test_current_limit_of_a_6V_step_is_the_closed_form(i_max, limited_throughout):
+    """i_max = 0.5 A: the current stays limited (the terminal speed under the limit is below
+    where the back-EMF would release it); 1.5 A: limited until t* ~ 94 ms, then linear. RK4
+    with a corner in the force at t*: 1e-9 m."""
+    t = _times(0.5)
+    res = simulate_exact(build_plant({"i_max": i_max}), None, jc.voltage_step(6.0, horizon=0.5))
+    y, v, t_star = _current_limited(t, 6.0, i_max)
+    assert math.isinf(t_star) == limited_throughout
+    if not limited_throughout:
+        assert 0.05 < t_star < 0.2
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_RK4)
+    # The velocity crosses the corner at t* inside an RK4 sub-step (the integrator does not
+    # locate it): measured 1.1e-9 m/s after it, so 1e-8 m/s (1e-12 m/s before the corner).
+    before = t < t_star
+    np.testing.assert_allclose(res.velocity[before], v[before], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=1e-8)
+    # The limit matters: the unlimited step is far ahead.
+    assert res.position[-1] < linear(t, GAMMA * 6.0)[0][-1] - 0.01
+
+
+def test_current_limit_above_the_stall_current_does_nothing():
+    t = _times(0.3)
+    stall = 6.0 / RM  # [A]: the largest current of a 6 V step
+    res = simulate_exact(
+        build_plant({"i_max": 1.01 * stall}), None, jc.voltage_step(6.0, horizon=0.3)
+    )
+    np.testing.assert_allclose(res.position, linear(t, GAMMA * 6.0)[0], rtol=0, atol=TOL_RK4)
+
+
+# ---------------------------------------------------------------- spring
+
+
+def _spring(t, force, k, y_rest, y0, v0):
+    """Closed form of m y'' + c y' + k (y - y_rest) = force from (y0, v0) at 0 (complex roots
+    or real: one formula)."""
+    roots = np.roots([M, C, k]).astype(complex)
+    y_eq = y_rest + force / k
+    s1, s2 = roots
+    # c1 + c2 = y0 - y_eq,  s1 c1 + s2 c2 = v0
+    c2 = (v0 - s1 * (y0 - y_eq)) / (s2 - s1)
+    c1 = (y0 - y_eq) - c2
+    t = np.asarray(t, dtype=float)
+    y = y_eq + c1 * np.exp(s1 * t) + c2 * np.exp(s2 * t)
+    v = s1 * c1 * np.exp(s1 * t) + s2 * c2 * np.exp(s2 * t)
+    return y.real, v.real
+
+
+@pytest.mark.parametrize("k_s", [200.0, 20.0])  # underdamped, overdamped
+def test_spring_step_is_the_spring_mass_damper_closed_form(k_s):
+    t = _times(0.6)
+    y_rest, y0, volts = -0.1, 0.05, 2.0
+    plant = build_plant({"k_s": k_s, "y_rest": y_rest})
+    res = simulate_exact(plant, None, jc.voltage_sequence(np.full(t.size, volts), y0=y0))
+    y, v = _spring(t, GAMMA * volts, k_s, y_rest, y0, 0.0)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_RK4)
+    if k_s == 200.0:  # underdamped: it overshoots its equilibrium
+        assert np.max(res.position) > y_rest + GAMMA * volts / k_s + 1e-3
+
+
+# ---------------------------------------------------------------- quantization
+
+
+def test_quantized_output_is_whole_counts_of_the_unquantized_run():
+    """Open loop (quantization cannot change the motion): the reading is q floor(y / q) of the
+    unquantized run, bit for bit, and the motion itself (velocity) is unchanged."""
+    q = 1e-4
+    u = np.concatenate([np.full(200, 3.0), np.full(200, -2.0), np.full(101, 0.5)])
+    exp = jc.voltage_sequence(u, y0=0.0123)
+    plain = simulate_exact(jc.handout_plant(), None, exp)
+    quant = simulate_exact(build_plant({"quantization": q}), None, exp)
+    counts = quant.position / q
+    np.testing.assert_allclose(counts, np.round(counts), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(quant.position, q * np.floor(plain.position / q))
+    np.testing.assert_array_equal(quant.velocity, plain.velocity)
+    assert np.all(quant.position <= plain.position)
+    assert np.all(plain.position - quant.position < q)
+    assert len(np.unique(counts)) > 50  # it moved over many counts
+
+
+# ---------------------------------------------------------------- Coulomb, stiction
+
+
+def _coulomb_tap(t, f_c, v0, y0=0.0, m=M, c=B_EQ):
+    """Closed form of the tap m y'' + c y' = -f_c sign(y') from (y0, v0): the linear cart with
+    force -s f_c until it stops at t_s = ln(1 + c |v0| / f_c) / a, then at rest."""
+    s = math.copysign(1.0, v0)
+    a = c / m
+    t_stop = math.log1p(c * abs(v0) / f_c) / a
+    y, v = linear(t, -s * f_c, m=m, c=c, y0=y0, v0=v0)
+    y_stop, _ = linear(t_stop, -s * f_c, m=m, c=c, y0=y0, v0=v0)
+    after = np.asarray(t) >= t_stop
+    return np.where(after, float(y_stop), y), np.where(after, 0.0, v), t_stop, float(y_stop)
+
+
+@pytest.mark.parametrize("v0", [0.8, -0.5])
+def test_coulomb_tap_is_the_closed_form_until_it_stops(v0):
+    """Motor unplugged (c = B_eq): stop time and position from the closed form; at rest after."""
+    b_eq, f_c = 1.5, 0.44
+    t = _times(1.0)
+    plant = jc.tap_plant(B_eq=b_eq, f_c=f_c)
+    res = simulate_exact(plant, None, jc.tap(v0, horizon=1.0, y0=0.01))
+    y, v, t_stop, y_stop = _coulomb_tap(t, f_c, v0, y0=0.01, c=b_eq)
+    assert 0.05 < t_stop < 0.95
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+    moving = np.flatnonzero(res.velocity != 0.0)
+    assert t[moving[-1]] < t_stop <= t[moving[-1] + 1]  # stops within the right sample
+    assert res.position[-1] == pytest.approx(y_stop, abs=TOL_CLOSED)
+
+
+@pytest.mark.parametrize("f_s", [0.9, None])
+def test_stiction_open_loop_ramp_breaks_away_at_f_s_over_gamma_slope(f_s):
+    """u = slope t: the cart stays at rest while gamma u_k <= f_s (ZOH: the force is constant
+    over each sample) and breaks away in the first sample after t_b = f_s / (gamma slope); it
+    then slides against the kinetic level f_c < f_s: m y'' + c y' = gamma u_k - f_c over that
+    sample. Without stiction the breakaway level is f_c itself."""
+    f_c, slope = 0.3, 2.0
+    values = {"f_c": f_c} if f_s is None else {"f_c": f_c, "f_s": f_s}
+    level = f_c if f_s is None else f_s
+    res = simulate_exact(build_plant(values), None, jc.voltage_ramp(slope, horizon=0.5))
+    t = res.time
+    t_break = level / (GAMMA * slope)
+    k_b = int(np.flatnonzero(GAMMA * slope * t > level)[0])  # first sample that breaks away
+    assert t[k_b - 1] <= t_break < t[k_b]
+    assert np.all(res.position[: k_b + 1] == 0.0) and np.all(res.velocity[: k_b + 1] == 0.0)
+    assert res.position[k_b + 1] > 0.0
+    # The first sample of motion: from rest under gamma u_kb - f_c (kinetic, not static).
+    y1, v1 = linear(TS, GAMMA * slope * t[k_b] - f_c)
+    assert res.position[k_b + 1] == pytest.approx(float(y1), rel=1e-9, abs=1e-18)
+    assert res.velocity[k_b + 1] == pytest.approx(float(v1), rel=1e-9, abs=1e-18)
+    # And the motion after it is the sampled linear cart with the kinetic level, sample by
+    # sample from the simulator's own state (each sample a closed form from its start).
+    for k in range(k_b + 1, k_b + 50):
+        yk, vk = linear(TS, GAMMA * slope * t[k] - f_c, y0=res.position[k], v0=res.velocity[k])
+        assert res.position[k + 1] == pytest.approx(float(yk), abs=TOL_CLOSED)
+        assert res.velocity[k + 1] == pytest.approx(float(vk), abs=TOL_CLOSED)
+
+
+def test_stiction_holds_a_force_between_the_kinetic_and_static_levels():
+    """A constant 0.4 V (0.69 N) against f_c = 0.3 N, f_s = 0.9 N: it never moves; with
+    f_s = 0.5 N it slides at once against f_c (the step closed form with force gamma V - f_c)."""
+    t = _times(0.3)
+    exp = jc.voltage_step(0.4, horizon=0.3)
+    held = simulate_exact(build_plant({"f_c": 0.3, "f_s": 0.9}), None, exp)
+    assert np.all(held.position == 0.0)
+    slides = simulate_exact(build_plant({"f_c": 0.3, "f_s": 0.5}), None, exp)
+    np.testing.assert_allclose(
+        slides.position, linear(t, GAMMA * 0.4 - 0.3)[0], rtol=0, atol=TOL_CLOSED
+    )
+
+
+# ---------------------------------------------------------------- friction along the track
+
+
+def test_track_friction_equal_knots_equal_coulomb():
+    """Equal knot values a: f(y) = a everywhere, so the run equals Coulomb friction f_c = a
+    (the RK4 integrator with events against the closed form), for a tap and a P loop."""
+    a = 0.4
+    tap = jc.tap(0.9, horizon=0.4, y0=-0.05)
+    track = simulate_exact(jc.tap_plant(B_eq=1.5, f_track=[a] * 5), None, tap)
+    coulomb = simulate_exact(jc.tap_plant(B_eq=1.5, f_c=a), None, tap)
+    np.testing.assert_allclose(track.position, coulomb.position, rtol=0, atol=TOL_RK4)
+    pid, step = jc.PID(kp=25.0), jc.step(0.2, horizon=0.6)
+    track = simulate_exact(build_plant({"f_track": [a] * 4}), pid, step)
+    coulomb = simulate_exact(build_plant({"f_c": a}), pid, step)
+    np.testing.assert_allclose(track.position, coulomb.position, rtol=0, atol=TOL_RK4)
+    nominal = simulate_exact(jc.handout_plant(), pid, step)
+    assert np.max(np.abs(nominal.position - coulomb.position)) > 1e-3  # friction acts
+
+
+def _track_level(y, knots):
+    """The documented map (jaxcart/effects/track_friction.py): a normalized Gaussian basis,
+    knots evenly spaced over [-0.4, 0.4] m, width their spacing."""
+    n = len(knots)
+    centers = np.linspace(-0.4, 0.4, n)
+    h = 0.8 / (n - 1)
+    w = np.exp(-0.5 * ((y - centers) / h) ** 2)
+    return float(np.dot(knots, w) / np.sum(w))
+
+
+@pytest.mark.parametrize("v0", [1.2, -1.0])
+def test_track_friction_tap_decelerates_at_the_local_level(v0):
+    """A tap over a track whose friction rises from 0.1 N to 0.9 N: solve_ivp (DOP853, rtol
+    1e-12) of m y'' + B_eq y' = -f(y) sign(y') with an event at y' = 0 gives the reference
+    path, stop time and stop position; the exact simulator agrees to 1e-9 m."""
+    knots = (0.1, 0.3, 0.9, 0.5, 0.2)
+    b_eq, y0 = 1.0, 0.0
+    s = math.copysign(1.0, v0)
+
+    def rhs(_, x):
+        return [x[1], (-b_eq * x[1] - s * _track_level(x[0], knots)) / M]
+
+    def stop(_, x):
+        return x[1]
+
+    stop.terminal = True
+    sol = solve_ivp(
+        rhs,
+        (0.0, 2.0),
+        [y0, v0],
+        method="DOP853",
+        rtol=1e-12,
+        atol=1e-14,
+        events=stop,
+        dense_output=True,
+    )
+    t_stop = float(sol.t_events[0][0])
+    y_stop = float(sol.y_events[0][0][0])
+    horizon = round(t_stop + 0.05, 3)
+    res = simulate_exact(
+        jc.tap_plant(B_eq=b_eq, f_track=list(knots)), None, jc.tap(v0, horizon=horizon, y0=y0)
+    )
+    t = res.time
+    moving = t < t_stop
+    ref = sol.sol(t[moving])
+    np.testing.assert_allclose(res.position[moving], ref[0], rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.velocity[moving], ref[1], rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.position[~moving], y_stop, rtol=0, atol=TOL_RK4)
+    assert np.all(res.velocity[~moving] == 0.0)
+    # The local level matters: a constant level at the start position stops elsewhere.
+    _, _, _, y_const = _coulomb_tap([0.0], _track_level(y0, knots), v0, y0=y0, c=b_eq)
+    assert abs(y_const - y_stop) > 0.01
+
+
+# ---------------------------------------------------------------- backlash
+
+
+def test_backlash_step_crosses_the_gap_then_shares_momentum():
+    """A 2 V step from rest, play b = 0.2 mm, pinion mid-gap: the motor side alone (M_J x'' +
+    B_emf x' = gamma V) crosses b/2 while the cart stays put; at the impact (t_c from brentq on
+    the closed form) momentum is shared, y'+ = M_J x'(t_c) / m; then the joined body follows
+    m y'' + c y' = gamma V from (0, y'+). Event bisection inside RK4 sub-steps: 1e-9 m."""
+    from scipy.optimize import brentq
+
+    b, volts = 2e-4, 2.0
+    force = GAMMA * volts
+    motor = lambda t: linear(t, force, m=M_J, c=B_EMF)  # noqa: E731
+    t_c = brentq(lambda t: float(motor(t)[0]) - b / 2, 1e-9, 0.1, xtol=1e-15)
+    v_plus = M_J * float(motor(t_c)[1]) / M
+    t = _times(0.3)
+    y, v = linear(t, force, t0=t_c, y0=0.0, v0=v_plus)
+    y, v = np.where(t < t_c, 0.0, y), np.where(t < t_c, 0.0, v)
+    res = simulate_exact(build_plant({"backlash": b}), None, jc.voltage_step(volts, horizon=0.3))
+    assert 1e-3 < t_c < 1e-2
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_RK4)
+
+
+# ---------------------------------------------------------------- every effect has one
+
+#: The tests above that reference each effect's exact form.
+REFERENCES = {
+    "delay": (
+        test_delay_of_k_samples_is_the_command_shifted,
+        test_fractional_delay_of_a_step_is_the_delayed_closed_form,
+    ),
+    "saturation": (test_saturation_an_8V_step_is_the_6V_closed_form,),
+    "deadzone": (test_deadzone_a_1V_step_is_the_0_7V_closed_form,),
+    "current_limit": (
+        test_current_limit_of_a_6V_step_is_the_closed_form,
+        test_current_limit_above_the_stall_current_does_nothing,
+    ),
+    "spring": (test_spring_step_is_the_spring_mass_damper_closed_form,),
+    "quantization": (test_quantized_output_is_whole_counts_of_the_unquantized_run,),
+    "coulomb": (test_coulomb_tap_is_the_closed_form_until_it_stops,),
+    "stiction": (
+        test_stiction_open_loop_ramp_breaks_away_at_f_s_over_gamma_slope,
+        test_stiction_holds_a_force_between_the_kinetic_and_static_levels,
+    ),
+    "track_friction": (
+        test_track_friction_equal_knots_equal_coulomb,
+        test_track_friction_tap_decelerates_at_the_local_level,
+    ),
+    "backlash": (test_backlash_step_crosses_the_gap_then_shares_momentum,),
+}
+#: Registered by another change; its reference is still to be written.
+PENDING = {"backlash"}
+
+
+@pytest.mark.parametrize("name", sorted(REGISTRY))
+def test_every_registered_effect_has_a_reference(name):
+    if name in PENDING and name not in REFERENCES:
+        pytest.skip(f"{name}: no independent reference yet")
+    assert name in REFERENCES, f"effect {name} has no independent reference in this file"

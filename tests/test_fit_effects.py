@@ -1,0 +1,195 @@
+"""`fit` recovers every effect's parameters from recordings of the exact simulator through the
+IP02 encoder (tuning/synthetic.py, q = 2.275e-5 m, a random phase per seed): within 2 % where
+identifiable, with the standard error covering the truth within 3 sigma; the parameters that are
+not identifiable are reported as such (Estimate.identifiable False, with a note).
+
+Each case starts from the nominal plant without the effect (naming its parameter adds it at its
+declared start value) and fits B_eq beside it (truth B_eq = 2.5 kg/s, start 5.4 kg/s). The
+excitation is chosen so that the effect acts plainly: a saturated P step for the amplifier's
+voltage and current limits, a PID step for the delay, a P loop on a slow ramp for the deadzone,
+a P loop moving over +-0.2 m for the spring, a P step that comes to rest for Coulomb friction,
+an open-loop slow voltage ramp for stiction. Measured values (seed per case, 2-core machine)
+are in the report of this change; run with ``-s`` to print each fit's row.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from tuning import fit as F
+from tuning.synthetic import make_recording
+
+Q = 2.275e-5  # [m] the IP02 encoder count
+B_EQ = 2.5  # [kg/s] truth of every case
+PID_STEP = jc.PID(kp=40.0, kd=3.0, ki=5.0, v_limit=6.0)
+
+#: effect -> (truth values, controller (None: open loop), experiment, seed, relative tolerance)
+CASES = {
+    "coulomb": ({"f_c": 0.3}, jc.PID(kp=50.0, v_limit=6.0), jc.step(0.3, horizon=1.0), 3, 0.02),
+    # Software limit above the amplifier's so that the amplifier's v_sat is what clips.
+    "saturation": (
+        {"v_sat": 4.5},
+        jc.PID(kp=50.0, v_limit=10.0),
+        jc.step(0.3, horizon=1.0),
+        3,
+        0.02,
+    ),
+    "delay": ({"delay": 0.004}, PID_STEP, jc.step(0.3, horizon=1.0), 3, 0.02),
+    "deadzone": ({"deadzone": 0.4}, jc.PID(kp=20.0), jc.ramp(0.1, horizon=1.5), 3, 0.02),
+    "spring": (
+        {"k_s": 30.0, "y_rest": -0.1},
+        jc.PID(kp=30.0),
+        jc.setpoints([0.0, 0.5, 1.0], [0.2, -0.1, 0.3], horizon=1.5),
+        3,
+        0.02,
+    ),
+    # A 15 V demand clipped to 6 V by the software; the amplifier's current limit (Rm i_max =
+    # 2.6 V at rest) is what the cart sees, then the back-EMF releases it.
+    "current_limit": (
+        {"i_max": 1.0},
+        jc.PID(kp=50.0, v_limit=6.0),
+        jc.step(0.3, horizon=1.0),
+        3,
+        0.02,
+    ),
+}
+#: Cases whose fit takes over ~5 s here (2 cores, including compilation).
+SLOW = {"coulomb", "spring", "current_limit"}
+
+
+def _fit_case(truth_values, controller, experiment, seed, params, **kwargs):
+    truth = jc.handout_plant(B_eq=B_EQ, **truth_values)
+    rec = make_recording(truth, controller, experiment, quantization=Q, seed=seed)
+    t0 = time.perf_counter()
+    result = F.fit([rec], params, progress=False, **kwargs)
+    return result, time.perf_counter() - t0
+
+
+def _row(effect, name, truth, e, seconds):
+    rel = (e.value - truth) / truth if e.value is not None else math.nan
+    print(
+        f"\nFIT {effect:14s} {name:8s} truth {truth:<10.6g} fitted {e.value:<12.7g} "
+        f"stderr {e.stderr:<10.3g} rel {rel:+.4%} z {(e.value - truth) / e.stderr:+.2f} "
+        f"{seconds:.1f} s"
+    )
+
+
+@pytest.mark.parametrize(
+    "effect", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in CASES]
+)
+def test_fit_recovers_the_effect(effect):
+    values, controller, experiment, seed, tol = CASES[effect]
+    params = ("B_eq", *values)
+    result, seconds = _fit_case(values, controller, experiment, seed, params)
+    truth = {"B_eq": B_EQ, **values}
+    for name in params:
+        e = result.params[name]
+        assert e.identifiable, (name, e.note)
+        _row(effect, name, truth[name], e, seconds)
+        assert e.value == pytest.approx(truth[name], rel=tol), name
+        assert abs(e.value - truth[name]) < 3 * e.stderr, (name, e.value, e.stderr)
+    # The fitted exact model explains the data to the encoder's own error (q / sqrt(12)).
+    assert result.rms_after_exact < 1.3 * Q / math.sqrt(12)
+    assert result.exact_polish
+
+
+# ---------------------------------------------------------------- stiction
+
+STICTION = {"f_c": 0.3, "f_s": 0.6}
+
+
+@pytest.fixture(scope="module")
+def stiction_recording():
+    """Open-loop ramp 1 V/s: breakaway at f_s / gamma = 0.35 s, then sliding against f_c."""
+    truth = jc.handout_plant(B_eq=B_EQ, **STICTION)
+    return make_recording(truth, None, jc.voltage_ramp(1.0, horizon=1.0), quantization=Q, seed=3)
+
+
+@pytest.mark.slow
+def test_fit_recovers_stiction(stiction_recording):
+    result = F.fit([stiction_recording], ("B_eq", "f_c", "f_s"), progress=False)
+    truth = {"B_eq": B_EQ, **STICTION}
+    for name, e in result.params.items():
+        assert e.identifiable, (name, e.note)
+        assert e.value == pytest.approx(truth[name], rel=0.02), name
+        assert abs(e.value - truth[name]) < 3 * e.stderr, name
+
+
+# ---------------------------------------------------------------- not identifiable
+
+
+def test_f_s_of_a_tap_is_not_identifiable():
+    """A tap (motor unplugged) never sticks against an applied force: once it stops nothing
+    pushes it, so the breakaway level changes nothing; f_s is reported not identifiable with a
+    note, and B_eq, f_c are still found."""
+    truth = jc.tap_plant(B_eq=B_EQ, f_c=0.44)
+    rec = make_recording(truth, None, jc.tap(1.0, horizon=0.6), quantization=Q, seed=1)
+    t0 = time.perf_counter()
+    result = F.fit([rec], ("B_eq", "f_c", "f_s"), progress=False)
+    seconds = time.perf_counter() - t0
+    f_s = result.params["f_s"]
+    assert not f_s.identifiable and f_s.value is None and f_s.stderr is None
+    assert f_s.note.startswith("not identifiable")
+    assert result.to_json()["params"]["f_s"]["identifiable"] is False
+    for name, value in (("B_eq", B_EQ), ("f_c", 0.44)):
+        e = result.params[name]
+        _row("tap", name, value, e, seconds)
+        assert e.identifiable and e.value == pytest.approx(value, rel=0.02)
+        assert abs(e.value - value) < 3 * e.stderr
+
+
+def test_quantization_is_not_fitted():
+    try:
+        result, _ = _fit_case(
+            {}, jc.PID(kp=50.0, v_limit=6.0), jc.step(0.3, horizon=1.0), 3, ("B_eq", "quantization")
+        )
+    except UserError as exc:
+        assert "quantization" in str(exc)
+        return
+    e = result.params["quantization"]
+    assert not e.identifiable and e.note
+
+
+def test_track_friction_fit_is_rejected_or_fitted():
+    values = {"f_track": [0.2, 0.4, 0.3, 0.5, 0.2]}
+    try:
+        result, _ = _fit_case(
+            values, jc.PID(kp=50.0, v_limit=6.0), jc.step(0.3, horizon=1.0), 3, ("B_eq", "f_track")
+        )
+    except UserError as exc:
+        assert "f_track" in str(exc)
+        return
+    fitted = 0
+    for i, truth in enumerate(values["f_track"]):
+        e = result.params[f"f_track[{i}]"]
+        if e.identifiable:
+            fitted += 1
+            assert abs(e.value - truth) < 3 * e.stderr, (i, e.value, e.stderr)
+        else:
+            assert "does not act" not in e.note, e.note
+    assert fitted >= 2  # the knots the cart passes are found
+    assert result.params["B_eq"].value == pytest.approx(B_EQ, rel=0.02)
+
+
+@pytest.mark.slow
+def test_fit_recovers_stiction_without_the_exact_polish(stiction_recording):
+    """The workaround until the exact polish keeps f_s: the smooth model alone, its friction
+    width narrowed to 1e-6 m/s (the smooth stiction converges at the rate sqrt(w); at the
+    default narrowest 1e-4 m/s f_s comes out 4.8 % high, z = 8.5)."""
+    settings = F.FitSettings(widths=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6))
+    t0 = time.perf_counter()
+    result = F.fit(
+        [stiction_recording], ("B_eq", "f_c", "f_s"), progress=False, exact=False, settings=settings
+    )
+    seconds = time.perf_counter() - t0
+    truth = {"B_eq": B_EQ, **STICTION}
+    for name, e in result.params.items():
+        assert e.identifiable, (name, e.note)
+        _row("stiction*", name, truth[name], e, seconds)
+        assert e.value == pytest.approx(truth[name], rel=0.02), name
+        assert abs(e.value - truth[name]) < 3 * e.stderr, name

@@ -1,0 +1,157 @@
+"""``python -m hw run`` / ``bench`` and ``jaxcart run``; hw in a process where jax and scipy
+cannot be imported (the lab PC has numpy only)."""
+
+import json
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import hw
+from hw.cli import main
+from hw.control_law import PID
+from hw.gains import write_gains
+from jaxcart.files import read_experiment
+
+ROOT = Path(__file__).resolve().parents[1]
+PID_LAB = PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0)
+#: Run in a child: refuse every import of jax, jaxlib or scipy, then run the rest of argv.
+BLOCKED = """
+import sys, runpy
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in ('jax', 'jaxlib', 'scipy', 'jaxcart', 'tuning'):
+            raise ImportError(f'{name} is blocked: hw must run with numpy only')
+sys.meta_path.insert(0, Block())
+"""
+
+
+def _gains(tmp_path, pid=PID_LAB, name="gains.json"):
+    return str(write_gains(tmp_path / name, pid, note="test"))
+
+
+def test_run_on_the_sim_writes_a_recording(tmp_path, capsys):
+    gains = _gains(tmp_path)
+    out = tmp_path / "run.toml"
+    args = ["run", gains, "--device", "sim", "--step", "0.3", "--duration", "0.5", "--virtual"]
+    assert main(args + ["--out", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    rec = read_experiment(out)
+    assert rec.n_samples == 501 and rec.controller == PID_LAB
+    assert rec.meta["notes"]["gains"] == str(Path(gains).resolve())
+    # Never over an existing recording: one line, exit status 2.
+    assert main(args + ["--out", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+
+
+def test_run_slider_plant_file_and_numbered_names(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    gains = _gains(tmp_path)
+    (tmp_path / "cart.toml").write_text("B_eq = 4.6\nf_c = 0.45\n")
+    args = ["run", gains, "--slider", "0.2,0,-0.2", "--hold", "0.3", "--virtual"]
+    assert main(args + ["--plant", "cart.toml"]) == 0
+    assert main(args) == 0
+    first, second = capsys.readouterr().out.split()
+    assert first.endswith("hw-run.toml") and second.endswith("hw-run-2.toml")
+    rec = read_experiment(first)
+    assert rec.n_samples == 901 and rec.meta["device"]["B_eq"] == 4.6
+    assert list(rec.reference[[0, 300, 600, 900]]) == [0.2, 0.0, -0.2, -0.2]
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        (["--step", "0.7"], "track limit"),
+        (["--device", "q2_usb", "--virtual"], "real hardware"),
+        (["--device", "replay"], "--replay"),
+        (["--slider", "a,b"], "--slider"),
+        (["--x-max", "-1"], "x_max"),
+    ],
+)
+def test_run_refuses_bad_options_in_one_line(tmp_path, capsys, extra, words):
+    assert main(["run", _gains(tmp_path), "--virtual", *extra]) == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1, err
+
+
+def test_run_refuses_gains_it_cannot_honour(tmp_path, capsys):
+    gains = _gains(tmp_path, PID(kp=40.0, v_limit=12.0))
+    assert main(["run", gains, "--virtual", "--out", str(tmp_path / "x")]) == 2
+    assert "v_limit = 12 V" in capsys.readouterr().err
+    assert not (tmp_path / "x.toml").exists()
+
+
+def test_a_fault_exits_1_and_is_recorded(tmp_path, capsys):
+    gains = _gains(tmp_path)
+    out = tmp_path / "f.toml"
+    assert main(["run", gains, "--virtual", "--speed-max", "0.1", "--out", str(out)]) == 1
+    assert "velocity limit" in capsys.readouterr().err
+    assert read_experiment(out).meta["run"]["status"] == "fault"
+
+
+def test_jaxcart_run_is_the_same_command(tmp_path):
+    import argparse
+
+    from tuning.commands import run as command
+
+    parser = argparse.ArgumentParser()
+    command.register(parser.add_subparsers(dest="command"))
+    out = tmp_path / "j.toml"
+    args = parser.parse_args(
+        ["run", _gains(tmp_path), "--virtual", "--duration", "0.2", "--out", str(out)]
+    )
+    assert args.func(args) == 0 and read_experiment(out).n_samples == 201
+    from jaxcart.errors import UserError
+
+    with pytest.raises(UserError, match="exists"):
+        args.func(args)
+
+
+def test_every_hw_module_imports_without_jax_or_scipy():
+    names = [m.name for m in pkgutil.walk_packages(hw.__path__, "hw.") if m.name != "hw.__main__"]
+    assert {"hw.loop", "hw.safety", "hw.expfile", "hw.devices.sim", "hw.cli"} <= set(names)
+    code = BLOCKED + f"import importlib\nfor n in {names!r}: importlib.import_module(n)\n"
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+
+
+def test_python_m_hw_run_in_real_time_with_numpy_only(tmp_path):
+    gains = _gains(tmp_path)
+    out = tmp_path / "np.toml"
+    code = (
+        BLOCKED + "sys.argv = ['hw'] + sys.argv[1:]\nrunpy.run_module('hw', run_name='__main__')\n"
+    )
+    argv = [
+        "run",
+        gains,
+        "--device",
+        "sim",
+        "--step",
+        "0.2",
+        "--duration",
+        "0.3",
+        "--watchdog",
+        "0.1",
+    ]
+    done = subprocess.run(
+        [sys.executable, "-c", code, *argv, "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    rec = read_experiment(out)
+    assert rec.n_samples == 301 and rec.meta["device"]["clock"] == "perf_counter"
+    assert "period median" in done.stderr
+    json.dumps(rec.meta["timing"])  # plain numbers
+
+
+def test_bench_prints_both_loops(capsys):
+    assert main(["bench", "--samples", "200"]) == 0
+    out = capsys.readouterr().out
+    assert "us/sample" in out and "naive time.sleep" in out and "overruns" in out

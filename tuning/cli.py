@@ -1,0 +1,80 @@
+"""The ``jaxcart`` command line: one subcommand per job of the lab.
+
+The command line is the top floor of the layout (docs/design.md, "Layout"): it lives in
+``tuning/`` and may import ``jaxcart/`` and ``hw/``; neither of them imports it.
+
+Each subcommand lives in its own module with ``register(subparsers)``, which adds its parser
+and sets ``func``; ``func(args)`` returns the exit status. Building the parser imports no jax
+(a command module imports jax and jaxcart inside its ``func``), so ``jaxcart --help`` and
+argument errors answer at once. Errors the user can fix (:class:`jaxcart.errors.UserError`,
+:class:`hw.gains.GainsFileError`) are printed as one line, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: Subcommand modules, in the order ``jaxcart --help`` lists them.
+COMMANDS = (
+    "tuning.commands.simulate",
+    "tuning.commands.run",
+    "tuning.commands.tune",
+    "tuning.commands.grid",
+    "tuning.commands.fit",
+    "tuning.commands.diagnose",
+    "tuning.commands.lab",
+    "tuning.commands.bench",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole ``jaxcart`` parser, every subcommand registered; imports neither jax nor
+    jaxcart."""
+    parser = argparse.ArgumentParser(
+        prog="jaxcart",
+        description="Differentiable simulator and auto-tuner for the cart-on-a-track servo lab.",
+    )
+    parser.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not keep compiled programs in the user's cache folder (~/.cache/jaxcart/xla, "
+        "safe to delete; also JAXCART_NO_CACHE=1)",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    # A command runs: the compilation cache and one XLA device per core, both set before jax
+    # starts a backend, so later runs skip compiling and batches shard over every core.
+    if not args.no_cache:
+        from jaxcart.cache import enable_persistent_cache
+
+        enable_persistent_cache()
+    from jaxcart.batch import host_devices
+
+    host_devices()
+    from hw.gains import GainsFileError
+    from jaxcart.errors import UserError
+
+    try:
+        return int(args.func(args) or 0)
+    except (UserError, GainsFileError) as exc:
+        print(f"jaxcart {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

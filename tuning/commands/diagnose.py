@@ -1,0 +1,76 @@
+"""``jaxcart diagnose``: where recordings and model part, which physics was left out, the model
+with it, and the fit improving.
+
+    jaxcart diagnose run.toml [more.toml ...] [--plant START.toml] [--json OUT] [--out DIR]
+    jaxcart diagnose --suite          # the concealed-effect suite, its score table
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from jaxcart.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "diagnose",
+        help="locate where recordings and the model part, name and model the left-out physics",
+        description="Baseline (the handout's model, B_eq fitted) on the exact simulator; "
+        "windows where the residual has structure beyond the encoder's quantization; candidate "
+        "structures from the effects library fitted in batches through the smoothed simulator, "
+        "re-checked on the exact one and chosen by an information criterion; the corrected "
+        "plant, a report, a figure. Several recordings of one cart are diagnosed jointly.",
+    )
+    p.add_argument("experiments", nargs="*", metavar="EXPERIMENT.toml", help="recordings")
+    p.add_argument("--plant", dest="plant_file", metavar="START.toml", help="start plant file")
+    p.add_argument("--json", dest="json_out", metavar="OUT", help="write the diagnosis as JSON")
+    p.add_argument("--out", metavar="DIR", help="report folder (default ./jaxcart-out/diagnose-N)")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
+    p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
+    p.set_defaults(func=run)
+
+
+def _default_out() -> Path:
+    base = Path("jaxcart-out")
+    k = 1
+    while (base / f"diagnose-{k}").exists():
+        k += 1
+    return base / f"diagnose-{k}"
+
+
+def run(args) -> int:
+    if args.suite:
+        from tuning.diagnose.suite import main as suite_main
+
+        return suite_main(["--fast"] if args.fast else [])
+    if not args.experiments:
+        raise UserError("give at least one experiment file (EXPERIMENT.toml), or --suite")
+    out = Path(args.out) if args.out else _default_out()
+    for p in (out / "report.md", out / "corrected_plant.toml", args.json_out):
+        if p and Path(p).exists() and not args.force:
+            raise UserError(f"{p} exists; choose another --out/--json or pass --force")
+    from jaxcart.files import read_experiment
+    from tuning.diagnose import diagnose, write_outputs
+
+    recordings = [read_experiment(path) for path in args.experiments]
+    start = None
+    if args.plant_file:
+        from jaxcart.plantspec import load_plant
+
+        start = load_plant(args.plant_file)
+    d = diagnose(recordings, start=start, progress=not args.quiet)
+    written = write_outputs(d, out, json_path=args.json_out, force=args.force)
+    print(d.verdict)
+    if d.status == "diagnosed":
+        print(
+            f"RMS (exact simulator): {d.rms_before * 1e3:.4f} mm before, "
+            f"{d.rms_after * 1e3:.4f} mm after (encoder floor {d.floor * 1e3:.4f} mm)"
+        )
+        for n, p in d.parameters.items():
+            print(f"  {n} = {p['value']:.6g} +/- {p['stderr']:.2g} {p['unit']}")
+    for what, path in written.items():
+        print(f"{what}: {path}")
+    return 0 if d.status == "diagnosed" else 1

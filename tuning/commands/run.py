@@ -1,0 +1,45 @@
+"""``jaxcart run``: run a gains file on the cart (or the simulated cart) and record the run.
+
+The same command as ``python -m hw run`` (hw/cli.py), which needs numpy only (the lab PC); this
+is its entry in the full install. The recording is an experiment file that ``jaxcart fit``,
+``diagnose`` and ``lab`` read as they are.
+
+    jaxcart run gains.json --device sim --step 0.5
+    jaxcart run gains.json --device q2_usb --slider 0.2,0,-0.2,0.2 --out part5.toml
+"""
+
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    from hw.cli import add_run_arguments
+
+    p = subparsers.add_parser(
+        "run",
+        help="run a gains file on the cart (sim, q2_usb, q8_usb, replay) and record it",
+        description=(
+            "Run the controller of GAINS.json (every setting as tuned) on a device: the "
+            "simulated cart, a Quanser board (q2_usb, q8_usb: needs Quanser's quanser.hardware "
+            "API) or a replay. Safety: track limit, voltage clamp, velocity limit, encoder "
+            "jumps, a watchdog; any fault writes 0 V. The run is recorded as an experiment "
+            "file (never over an existing one). Same as `python -m hw run` (numpy only)."
+        ),
+    )
+    add_run_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from hw.cli import CommandError, run_command
+    from hw.devices.base import DeviceError
+    from hw.expfile import ExpFileError
+    from jaxcart.errors import UserError
+
+    try:
+        return run_command(args)
+    except (CommandError, ExpFileError, DeviceError) as exc:
+        raise UserError(" ".join(str(exc).split())) from None
+    except ValueError as exc:  # a controller the loop refuses, or bad limits
+        if isinstance(exc, UserError):
+            raise
+        raise UserError(" ".join(str(exc).split())) from None

@@ -1,0 +1,18 @@
+"""Diagnosis of recordings against the model: where they part, which physics was left out,
+the model with it, and the fit improving (``jaxcart diagnose``; docs/diagnose.md).
+
+    d = diagnose([read_experiment("run.toml")])     # a Diagnosis (compute only)
+    print(render_markdown(d)); plot_diagnosis(d, "diagnosis.png"); d.to_json()
+"""
+
+from tuning.diagnose.core import Diagnosis, diagnose
+
+__all__ = ["Diagnosis", "diagnose", "plot_diagnosis", "render_markdown", "write_outputs"]
+
+
+def __getattr__(name):
+    if name in ("render_markdown", "plot_diagnosis", "write_outputs"):
+        from tuning.diagnose import report
+
+        return getattr(report, name)
+    raise AttributeError(name)

@@ -1,0 +1,240 @@
+"""Batched fits of candidate structures: one superset plant, one jit(vmap(Levenberg-Marquardt)).
+
+Every candidate structure is the same pytree: a *superset* plant that holds every candidate
+effect (delay, deadzone, saturation, Coulomb, stiction, spring, current limit), each one neutral
+(delay 0, deadzone 0, v_sat = i_max = 1e4, f_c = f_s = k_s = 0) where the candidate lacks it. A
+candidate is a vector of index slots into one full parameter vector (its free parameters; unused
+slots point at a dummy entry) and a base vector (the neutral or start values). One compiled
+Levenberg-Marquardt step (Jacobian by ``jax.jacfwd``: a few parameters, forward mode is cheap)
+is vmapped over the candidates; every recording of a joint diagnosis is simulated inside it
+(one plant, each file's controller), so the same compiled step serves every round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: The shared plant parameters of the superset, in slot order.
+SHARED = (
+    "B_eq",
+    "M",
+    "gamma_scale",
+    "v_sat",
+    "f_c",
+    "f_s",
+    "delay",
+    "deadzone",
+    "k_s",
+    "y_rest",
+    "i_max",
+)
+#: Values that make an effect act as if it were absent.
+NEUTRAL = {
+    "v_sat": 1e4,
+    "f_c": 0.0,
+    "f_s": 0.0,
+    "delay": 0.0,
+    "deadzone": 0.0,
+    "k_s": 0.0,
+    "y_rest": 0.0,
+    "i_max": 1e4,
+}
+#: Fitted as logarithms (positive parameters).
+LOG = {"B_eq", "M", "gamma_scale", "v_sat", "f_c", "f_s", "deadzone", "k_s", "i_max"}
+#: Bounds in natural units of each fitted parameter.
+BOUNDS = {
+    "B_eq": (1e-3, 100.0),
+    "M": (0.1, 20.0),
+    "gamma_scale": (0.05, 20.0),
+    "v_sat": (0.05, 1e3),
+    "f_c": (1e-4, 10.0),
+    "f_s": (1e-4, 10.0),
+    "delay": (0.0, 0.024),
+    "deadzone": (1e-4, 4.0),
+    "k_s": (1e-3, 1e3),
+    "y_rest": (-2.0, 2.0),
+    "i_max": (0.01, 1e3),
+    "y0": (-2.0, 2.0),
+    "yd0": (-10.0, 10.0),
+}
+
+
+@dataclass
+class Segment:
+    """One recording prepared for fitting: the part fitted, its target and its experiment."""
+
+    name: str
+    kind: str
+    experiment: object  # jaxcart Experiment of the fitted part (y0, yd0 the start guesses)
+    controller: object
+    target: np.ndarray  # measured position, middle of the count [m]
+    time: np.ndarray
+    start: int
+    quantization: float
+    motor: bool
+
+
+class Layout:
+    """Slots of the full parameter vector: SHARED, then (y0, yd0) of each tap, then a dummy."""
+
+    def __init__(self, segments):
+        self.names = list(SHARED)
+        self.nuisance = {}
+        for i, seg in enumerate(segments):
+            if seg.kind == "tap":
+                self.nuisance[i] = (len(self.names), len(self.names) + 1)
+                self.names += [f"y0@{i}", f"yd0@{i}"]
+        self.dummy = len(self.names)
+        self.names.append("_dummy")
+        self.size = len(self.names)
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    @staticmethod
+    def kind(name: str) -> str:
+        return name.split("@")[0]
+
+
+def _to_theta(name, value):
+    kind = Layout.kind(name)
+    return math.log(max(value, 1e-300)) if kind in LOG else float(value)
+
+
+def _to_value(name, theta):
+    return math.exp(theta) if Layout.kind(name) in LOG else float(theta)
+
+
+class BatchFitter:
+    """The compiled, vmapped LM step for a set of segments (built once per diagnosis)."""
+
+    def __init__(self, segments, start_plants, substeps: int = 1):
+        import jax
+        import jax.numpy as jnp
+
+        from jaxcart.plantspec import with_values
+        from jaxcart.smooth import simulate
+        from jaxcart.smoothing import Smoothing
+
+        self.segments = segments
+        self.layout = layout = Layout(segments)
+        supers = []
+        for plant in start_plants:
+            missing = {k: v for k, v in NEUTRAL.items() if k not in plant.param_names()}
+            supers.append(with_values(plant, missing))
+        self.supers = supers
+        targets = [jnp.asarray(s.target) for s in segments]
+        scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
+        shared_idx = [layout.index(n) for n in SHARED]
+        log_mask = np.array([Layout.kind(n) in LOG for n in layout.names])
+        lo = np.array(
+            [_to_theta(n, BOUNDS.get(Layout.kind(n), (-1e9, 1e9))[0]) for n in layout.names]
+        )
+        hi = np.array(
+            [_to_theta(n, BOUNDS.get(Layout.kind(n), (-1e9, 1e9))[1]) for n in layout.names]
+        )
+        self.log_mask = log_mask
+        log_mask_j = jnp.asarray(log_mask)
+        lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
+        base_smoothing = Smoothing()
+
+        def full_values(theta, idx, base):
+            vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta)
+            return base.at[idx].set(vals)
+
+        def residuals(theta, idx, base, width):
+            full = full_values(theta, idx, base)
+            smoothing = base_smoothing.scaled(width)
+            out = []
+            for i, (seg, sup, tgt) in enumerate(zip(segments, supers, targets, strict=True)):
+                values = {n: full[j] for n, j in zip(SHARED, shared_idx, strict=True)}
+                plant = sup.replace(**values)
+                exp = seg.experiment
+                if i in layout.nuisance:
+                    a, b = layout.nuisance[i]
+                    exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
+                res = simulate(plant, seg.controller, exp, smoothing=smoothing, substeps=substeps)
+                pos = jnp.where(jnp.isfinite(res.position), res.position, 1.0)
+                out.append(pos - tgt)
+            return jnp.concatenate(out) * scale
+
+        def step(theta, lam, idx, free, base, width):
+            def f(th):
+                r = residuals(th, idx, base, width)
+                return r, r
+
+            jac, r = jax.jacfwd(f, has_aux=True)(theta)
+            jac = jac * free[None, :]
+            cost = r @ r
+            g = jac.T @ r
+            h = jac.T @ jac
+            d = jnp.diag(h)
+            dmax = jnp.max(d)
+            reg = jnp.where(free > 0, lam * (d + 1e-9 * dmax) + 1e-30, 1.0)
+            delta = -jnp.linalg.solve(h + jnp.diag(reg), g) * free
+            new = jnp.clip(theta + delta, lo_j[idx], hi_j[idx])
+            r_new = residuals(new, idx, base, width)
+            cost_new = r_new @ r_new
+            ok = jnp.isfinite(cost_new) & (cost_new < cost)
+            theta_out = jnp.where(ok, new, theta)
+            lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
+            return theta_out, lam_out, jnp.where(ok, cost_new, cost), jac, r
+
+        self._step = jax.jit(jax.vmap(step, in_axes=(0, 0, 0, 0, 0, None)))
+        self._jnp = jnp
+
+    def base_vector(self, values: dict) -> np.ndarray:
+        """The full vector (natural units) from {name: value}; neutral elsewhere."""
+        base = np.zeros(self.layout.size)
+        for j, n in enumerate(self.layout.names):
+            k = Layout.kind(n)
+            if n in values:
+                base[j] = values[n]
+            elif k in values and "@" not in n:
+                base[j] = values[k]
+            elif k in SHARED:
+                base[j] = float(np.asarray(self.supers[0].get(k)))
+        for i, (a, b) in self.layout.nuisance.items():
+            exp = self.segments[i].experiment
+            base[a], base[b] = values.get(f"y0@{i}", exp.y0), values.get(f"yd0@{i}", exp.yd0)
+        return base
+
+    def fit(self, problems, widths, iterations, progress=None, kmax=None):
+        """LM on every problem at once. problems: list of (free names, start values dict,
+        base values dict). Returns list of (values dict, smooth cost, jac, r)."""
+        jnp = self._jnp
+        lay = self.layout
+        kmax = max([len(p[0]) for p in problems] + [kmax or 0])
+        idx = np.full((len(problems), kmax), lay.dummy, dtype=np.int32)
+        free = np.zeros((len(problems), kmax))
+        theta = np.zeros((len(problems), kmax))
+        base = np.zeros((len(problems), lay.size))
+        for c, (names, start, base_vals) in enumerate(problems):
+            base[c] = self.base_vector({**base_vals, **start})
+            for s, n in enumerate(names):
+                j = lay.index(n)
+                idx[c, s] = j
+                free[c, s] = 1.0
+                theta[c, s] = _to_theta(n, base[c, j])
+        theta = jnp.asarray(theta)
+        lam = jnp.full(len(problems), 1e-2)
+        idx_j, free_j, base_j = jnp.asarray(idx), jnp.asarray(free), jnp.asarray(base)
+        cost = jac = r = None
+        for width, its in zip(widths, iterations, strict=True):
+            lam = jnp.maximum(lam, 1e-3)
+            for _ in range(its):
+                theta, lam, cost, jac, r = self._step(theta, lam, idx_j, free_j, base_j, width)
+            if progress:
+                progress(width, np.asarray(cost))
+        theta = np.asarray(theta)
+        out = []
+        for c, (names, _start, _b) in enumerate(problems):
+            vals = {}
+            for s, n in enumerate(names):
+                vals[n] = _to_value(n, float(theta[c, s]))
+            out.append((vals, float(cost[c]), np.asarray(jac[c]), np.asarray(r[c])))
+        return out

@@ -1,0 +1,171 @@
+"""Drawing and writing a :class:`~tuning.diagnose.core.Diagnosis`: Markdown, figure, JSON,
+corrected plant file (nothing is written over an existing file without ``force``)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from jaxcart.errors import UserError
+
+
+def _mm(x) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x * 1e3:.4f} mm"
+
+
+def _num(x) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.5g}"
+
+
+def render_markdown(d, figure: str | None = None) -> str:
+    """The diagnosis as a Markdown section (for ``report.md`` and the lab report)."""
+    lines = [f"# Diagnosis of {', '.join(d.recordings)}", "", f"**{d.verdict}**", ""]
+    if d.controller_checks:
+        lines += ["## Controller check", ""]
+        lines += [f"- {c['message']}" for c in d.controller_checks]
+        lines.append("")
+    if d.status != "diagnosed":
+        return "\n".join(lines + [f"- {m}" for m in d.messages]) + "\n"
+    ratio = d.rms_before / d.rms_after if d.rms_after > 0 else math.inf
+    lines += [
+        "## Fit on the exact simulator",
+        "",
+        "| | RMS position error |",
+        "|---|---|",
+        f"| baseline (handout model, B_eq fitted) | {_mm(d.rms_before)} |",
+        f"| corrected ({d.chosen}) | {_mm(d.rms_after)} |",
+        f"| encoder floor q/sqrt(12) | {_mm(d.floor)} |",
+        "",
+        f"Improvement: {ratio:.1f}x. Baseline B_eq = {_num(d.baseline['B_eq']['value'])} +/- "
+        f"{_num(d.baseline['B_eq']['stderr'])} kg/s.",
+        "",
+        "## Fitted parameters",
+        "",
+        "| parameter | value | standard error | unit |",
+        "|---|---|---|---|",
+    ]
+    for n, p in d.parameters.items():
+        lines.append(f"| {n} | {_num(p['value'])} | {_num(p['stderr'])} | {p['unit']} |")
+    lines += ["", "## Where the recording and the baseline part", ""]
+    if d.windows:
+        lines += [
+            "| recording | start [s] | end [s] | regime | share | RMS |",
+            "|---|---|---|---|---|---|",
+        ]
+        for w in d.windows[:12]:
+            lines.append(
+                f"| {w['recording']} | {w['start']:.3f} | {w['end']:.3f} | {w['regime']} | "
+                f"{w['share'] * 100:.1f} % | {_mm(w['rms'])} |"
+            )
+    else:
+        lines.append("No window: the baseline residual stays within the encoder's quantization.")
+    lines += ["", "## Residual tests (baseline)", ""]
+    t = d.tests
+    wh = t.get("whiteness", {})
+    lines.append(
+        f"- whiteness: lag-1 autocorrelation {wh.get('lag1_autocorrelation')}, Ljung-Box Q(20) "
+        f"{wh.get('ljung_box_q20')} ({'white' if wh.get('white') else 'not white'})"
+    )
+    for k in ("command", "sign_velocity", "position", "acceleration"):
+        if k in t:
+            x = t[k]
+            sig = "significant" if x["significant"] else "not significant"
+            lines.append(
+                f"- correlation with {k.replace('_', ' ')}: {x['correlation']:+.3f} (z = "
+                f"{x['z']:+.1f}, {sig}; can explain: {', '.join(x['points_to'])})"
+            )
+    lines += [
+        "",
+        "## Candidates (fitted through the smoothed simulator, scored on the exact one)",
+        "",
+        "| structure | exact RMS | score | window evidence |",
+        "|---|---|---|---|",
+    ]
+    for c in d.candidates:
+        lines.append(
+            f"| {c.name} | {_mm(c.rms_exact)} | {c.score:.1f} | {c.window_evidence * 100:.1f} % |"
+        )
+    if figure:
+        lines += ["", f"![recording, baseline and corrected model]({figure})"]
+    if d.plant_file:
+        lines += ["", f"Corrected plant: `{d.plant_file}` (for simulate, fit, tune, lab --plant)."]
+    return "\n".join(lines) + "\n"
+
+
+def plot_diagnosis(d, path) -> Path:
+    """Recording, baseline and corrected model (windows shaded), residuals below."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = max(len(d.traces), 1)
+    fig, axes = plt.subplots(2, n, figsize=(6.5 * n, 6), squeeze=False, sharex="col")
+    for i, tr in enumerate(d.traces):
+        top, bottom = axes[0, i], axes[1, i]
+        t = tr["time"]
+        top.plot(t, tr["measured"], "k.", ms=1.5, label="recording")
+        top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline")
+        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})")
+        bottom.plot(t, (tr["baseline"] - tr["measured"]) * 1e3, "C0-", lw=0.8, label="baseline")
+        bottom.plot(t, (tr["after"] - tr["measured"]) * 1e3, "C3-", lw=0.8, label="corrected")
+        for w in d.windows:
+            if w["recording"] == tr["name"]:
+                for ax in (top, bottom):
+                    ax.axvspan(w["start"], w["end"], color="orange", alpha=0.15, lw=0)
+        top.set_title(tr["name"])
+        top.set_ylabel("position [m]")
+        bottom.set_ylabel("residual [mm]")
+        bottom.set_xlabel("time [s]")
+        top.legend(fontsize=8)
+        bottom.legend(fontsize=8)
+    fig.suptitle(d.verdict[:120], fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_outputs(d, out_dir, *, json_path=None, force: bool = False) -> dict:
+    """Write report.md, diagnosis.png, corrected_plant.toml (and the JSON) into ``out_dir``;
+    refuses to overwrite any of them without ``force``. Returns {what: path}."""
+    from jaxcart.plantspec import write_plant_file
+
+    out = Path(out_dir)
+    paths = {
+        "report": out / "report.md",
+        "figure": out / "diagnosis.png",
+        "plant_file": out / "corrected_plant.toml",
+    }
+    if d.status != "diagnosed":
+        paths = {"report": out / "report.md"}
+    if json_path:
+        paths["json"] = Path(json_path)
+    for p in paths.values():
+        if p.exists() and not force:
+            raise UserError(f"{p} exists; choose another --out/--json or pass --force")
+    out.mkdir(parents=True, exist_ok=True)
+    if d.status == "diagnosed":
+        fit = {
+            "source": "jaxcart diagnose",
+            "recordings": ", ".join(d.recordings),
+            "left_out": ", ".join(d.left_out) or "nothing",
+            "rms_before": float(d.rms_before),
+            "rms_after": float(d.rms_after),
+        }
+        for n, p in d.parameters.items():
+            if math.isfinite(p["stderr"]):
+                fit[f"stderr_{n}"] = float(p["stderr"])
+        write_plant_file(paths["plant_file"], d.plant, fit=fit, force=force)
+        d.plant_file = str(paths["plant_file"])
+        plot_diagnosis(d, paths["figure"])
+    text = render_markdown(d, figure="diagnosis.png" if d.status == "diagnosed" else None)
+    paths["report"].write_text(text)
+    if json_path:
+        paths["json"].parent.mkdir(parents=True, exist_ok=True)
+        from hw.jsonio import write_json
+
+        write_json(paths["json"], d.to_json(), force=True)  # checked above
+    return {k: str(v) for k, v in paths.items()}
