@@ -111,3 +111,13 @@ def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):
     assert main(["diagnose", str(path), "--out", str(tmp_path), "--quiet"]) == 2
     assert (tmp_path / "report.md").read_text() == "x"
     assert np.isfinite(rec.position).all()
+
+
+def test_every_registered_effect_is_a_candidate_or_says_why_not():
+    from jaxcart.effects import REGISTRY
+    from tuning.diagnose.core import EFFECT_PARAMS, NOT_CANDIDATES
+
+    for name in REGISTRY:
+        assert (name in EFFECT_PARAMS) != (name in NOT_CANDIDATES), name
+    for name, params in EFFECT_PARAMS.items():
+        assert set(params) >= set(REGISTRY[name].param_names()), name

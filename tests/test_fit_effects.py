@@ -159,7 +159,7 @@ def test_track_friction_fit_is_rejected_or_fitted():
     values = {"f_track": [0.2, 0.4, 0.3, 0.5, 0.2]}
     try:
         result, _ = _fit_case(
-            values, jc.PID(kp=50.0, v_limit=6.0), jc.step(0.3, horizon=1.0), 3, ("B_eq", "f_track")
+            values, jc.PID(kp=50.0, v_limit=6.0), jc.step(0.3, horizon=0.5), 3, ("B_eq", "f_track")
         )
     except UserError as exc:
         assert "f_track" in str(exc)

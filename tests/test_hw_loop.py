@@ -104,16 +104,39 @@ def test_refuses_a_controller_it_cannot_run_as_tuned():
         run_loop(SimCart(), PID(kp=1.0, v_limit=6, sample_time=1e-5), [0.1] * 10)
 
 
+HW_TRUTH = {"B_eq": 2.5, "f_c": 0.3}
+
+
+@pytest.fixture(scope="module")
+def hw_recording(tmp_path_factory):
+    """A P 50 step run by the loop on the simulated cart (Coulomb friction, 6 V amplifier,
+    quantization), read back from the experiment file it wrote."""
+    truth = HW_TRUTH
+    device = SimCart(CartParams(B_eq=truth["B_eq"], f_c=truth["f_c"], quantization=Q))
+    out = tmp_path_factory.mktemp("hw") / "p"
+    result = run_loop(
+        device, PID(kp=50.0, v_limit=6.0), np.full(1501, 0.4), clock="virtual", out=out
+    )
+    return read_experiment(result.path)
+
+
 @pytest.mark.slow
-def test_fit_of_a_hardware_recording_gives_back_the_cart(tmp_path):
+def test_diagnose_of_a_hardware_recording_names_the_carts_friction(hw_recording):
+    from tuning.diagnose import diagnose
+
+    d = diagnose([hw_recording], progress=False)
+    assert d.left_out == ["coulomb"], d.left_out
+    assert d.parameters["f_c"]["value"] == pytest.approx(HW_TRUTH["f_c"], rel=0.05)
+    assert d.parameters["B_eq"]["value"] == pytest.approx(HW_TRUTH["B_eq"], rel=0.03)
+    assert d.rms_after < 1.5 * Q / math.sqrt(12) < d.rms_before
+
+
+@pytest.mark.slow
+def test_fit_of_a_hardware_recording_gives_back_the_cart(hw_recording):
     from tuning import fit as F
 
-    truth = {"B_eq": 2.5, "f_c": 0.3}
-    device = SimCart(CartParams(B_eq=truth["B_eq"], f_c=truth["f_c"], quantization=Q))
-    result = run_loop(
-        device, PID(kp=50.0, v_limit=6.0), np.full(1501, 0.4), clock="virtual", out=tmp_path / "p"
-    )
-    rec = read_experiment(result.path)
+    truth = HW_TRUTH
+    rec = hw_recording
     fitted = F.fit([rec], ("B_eq", "f_c"), progress=False)
     b, f = fitted.params["B_eq"], fitted.params["f_c"]
     print(f"hw recording fit: B_eq = {b.value:.4g} +/- {b.stderr:.2g}, f_c = {f.value:.4g}")

@@ -239,6 +239,24 @@ def test_builtin_report_has_every_output(builtin_report):
     assert results["data"]["builtin"] and not results["data"]["missing"]
 
 
+def test_builtin_report_diagnoses_every_recording(builtin_report):
+    """The built-in cart has Coulomb friction the handout's model leaves out (its 6 V amplifier
+    limit equals the files' software limit, so it leaves out nothing else there): the
+    diagnosis of the tap, the P 50 step and the PI run names it, and every fit reaches the
+    encoder floor with the true friction."""
+    out, results = builtin_report
+    md = (out / "report.md").read_text()
+    assert "## Diagnosis" in md
+    diagnosis = results["diagnosis"]
+    assert set(diagnosis) == {"tap", "p_step", "ramp", "p_error", "pi", "pid"}
+    for slot in ("tap", "p_step", "pi"):
+        d = diagnosis[slot]
+        assert "coulomb" in d["left_out"], (slot, d["left_out"])
+        assert d["rms_after"] < 0.02e-3 < d["rms_before"], slot
+        assert d["parameters"]["f_c"]["value"] == pytest.approx(data.TRUE["f_c"], rel=0.02)
+        assert d["parameters"]["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=0.02)
+
+
 def test_builtin_report_recovers_the_true_cart(builtin_report):
     _, results = builtin_report
     values = {k: v["value"] for k, v in results["values"].items()}

@@ -63,6 +63,10 @@ BOUNDS = {
 }
 
 
+#: Voltage smoothing width at the widest stage [V] (narrowing with the others).
+VOLTAGE_WIDTH = 4e-3
+
+
 @dataclass
 class Segment:
     """One recording prepared for fitting: the part fitted, its target and its experiment."""
@@ -148,7 +152,10 @@ class BatchFitter:
 
         def residuals(theta, idx, base, width):
             full = full_values(theta, idx, base)
+            # Velocity and position widths follow the continuation; the voltage corners stay
+            # narrow (as in tuning.fit): a rounded software limit misplaces a saturated run.
             smoothing = base_smoothing.scaled(width)
+            smoothing = dataclasses.replace(smoothing, voltage=VOLTAGE_WIDTH * width / 4.0)
             out = []
             for i, (seg, sup, tgt) in enumerate(zip(segments, supers, targets, strict=True)):
                 values = {n: full[j] for n, j in zip(SHARED, shared_idx, strict=True)}

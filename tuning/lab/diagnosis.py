@@ -1,6 +1,7 @@
-"""The lab report's diagnosis section: for each recording, where it and the model part, which
-physics the model left out, and the fit with it (``jaxcart diagnose`` on each recording, then
-on all the driven ones jointly: one cart)."""
+"""The lab report's diagnosis section: for each recording, which physics the model left out and
+the fit with it (``jaxcart diagnose`` on each recording; ``jaxcart diagnose`` on several files
+diagnoses them jointly, one cart, which the report suggests rather than runs: it takes
+minutes)."""
 
 from __future__ import annotations
 
@@ -44,12 +45,6 @@ def section(lab: Lab) -> None:
         d = diagnose([rec], progress=False)
         results[slot] = d.to_json()
         rows.append(_row(PARTS[slot], rec.path.name, d))
-    driven = [rec for slot, rec in recordings if rec.kind != "tap"]
-    if len(driven) > 1:
-        lab.say(f"diagnosis: the {len(driven)} driven recordings jointly")
-        d = diagnose(driven, progress=False)
-        results["joint"] = d.to_json()
-        rows.append(_row("all driven, jointly (one cart)", f"{len(driven)} files", d))
     lab.results["diagnosis"] = results
     doc.table(
         ["part", "recording", "left out", "RMS before [mm]", "RMS after [mm]", "fitted"],
@@ -65,8 +60,9 @@ def section(lab: Lab) -> None:
             f"every recording: here it ranges over {spread:.3g} kg/s ("
             + ", ".join(f"{PARTS.get(k, k)}: {v:.3g}" for k, v in b_eq.items())
             + "). Where it still differs, or where no structure reaches the encoder floor, "
-            "physics outside the library is at work; `jaxcart diagnose` on the files gives "
-            "the windows, the residual tests and a figure for each."
+            "physics outside the library is at work. `jaxcart diagnose` on the files gives "
+            "the windows, the residual tests and a figure for each, and diagnoses several "
+            "files jointly (one plant, every file's controller)."
         )
 
 
