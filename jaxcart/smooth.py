@@ -139,11 +139,7 @@ def _transmission(plant: Plant):
 def _total_force(plant: Plant, smoothing: Smoothing):
     """F(y, y', v) [N]: every force effect (dry friction combined), or None for none."""
     dry = _dry_friction(plant, smoothing)
-    others = [
-        e
-        for e in plant.stage("force")
-        if not e.dry_friction and not e.transmission
-    ]
+    others = [e for e in plant.stage("force") if not e.dry_friction and not e.transmission]
     if dry is None and not others:
         return None
 

@@ -67,10 +67,7 @@ NOT_FITTED = {
     "a whole number of counts); it is not fitted",
 }
 FITTABLE = ("B_eq", "M", "gamma_scale") + tuple(
-    p.name
-    for cls in plantspec.REGISTRY.values()
-    for p in cls.params
-    if p.name not in NOT_FITTED
+    p.name for cls in plantspec.REGISTRY.values() for p in cls.params if p.name not in NOT_FITTED
 )
 #: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
 ALIASES = {"v_limit": "v_sat"}
@@ -379,8 +376,10 @@ def assemble(plant: Plant, values: dict, xp=np) -> dict:
             vectors[base] = list(have) if isinstance(have, tuple) else list(xp.asarray(have))
         vectors[base][i] = value
     for base, items in vectors.items():
-        out[base] = xp.stack([xp.asarray(v) for v in items]) if xp is not np else tuple(
-            float(v) for v in items
+        out[base] = (
+            xp.stack([xp.asarray(v) for v in items])
+            if xp is not np
+            else tuple(float(v) for v in items)
         )
     return out
 
@@ -938,9 +937,9 @@ def _exact_polish(problem, theta, active, jac, iterations):
             up, down = theta.copy(), theta.copy()
             up[idx[j]] += STAIRCASE_STEP
             down[idx[j]] -= STAIRCASE_STEP
-            cols[:, j] = (
-                problem.exact_residuals(up) - problem.exact_residuals(down)
-            ) / (2 * STAIRCASE_STEP)
+            cols[:, j] = (problem.exact_residuals(up) - problem.exact_residuals(down)) / (
+                2 * STAIRCASE_STEP
+            )
         return cols
 
     jac[:, idx] = columns(theta, r)
