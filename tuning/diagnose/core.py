@@ -572,7 +572,18 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
     tests = locate.residual_tests(segments, base.residuals, commands, n_eff)
 
     cands = list(round1)
-    if pairs:
+    # A single structure that already explains the data to the encoder's own error leaves
+    # nothing for a pair to explain: round 2 is skipped (it costs a second batch).
+    for c in sorted(round1[1:], key=lambda c: c.score)[:2]:  # a smooth fit may have stalled
+        polished = _polish(c, segments, base_plants, dict(c.values), layout)
+        res, _ = exact_residuals(c, segments, base_plants, polished, layout)
+        if _rms(res) < c.rms_exact:
+            c.values, c.residuals, c.rms_exact = polished, res, _rms(res)
+            c.score = score(c, c.rms_exact**2, floor2, n_eff)
+    explained = min(c.rms_exact for c in round1) <= FLOOR_FACTOR * floor
+    if explained:
+        say("round 2 skipped: a single structure reaches the encoder floor")
+    if pairs and not explained:
         good = [
             c
             for c in round1[1:]
