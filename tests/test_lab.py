@@ -331,7 +331,9 @@ def test_slider_moves_end_at_each_setpoint(builtin_report):
 
 
 def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
-    out = run_lab(realdata, tmp_path / "real")
+    # The diagnosis section is tested on the built-in report (and the real recordings'
+    # diagnosis in tests/test_diagnose.py); leaving it out here halves this test.
+    out = run_lab(realdata, tmp_path / "real", diagnosis=False)
     results = json.loads((out / "results.json").read_text())
     recordings = results["data"]["recordings"]
     assert recordings["tap"] == "tap.toml" and recordings["p_step"] == "p50.toml"

@@ -50,6 +50,11 @@ def register(subparsers) -> None:
         help="starting model (a plant file from fit or diagnose): its B_eq, f_c and effects; "
         "the parts refit B_eq and f_c from the recordings",
     )
+    p.add_argument(
+        "--no-diagnosis",
+        action="store_true",
+        help="leave out the section that diagnoses each recording (most of the run time)",
+    )
     p.set_defaults(func=run)
 
 
@@ -64,5 +69,5 @@ def run(args) -> int:
         from jaxcart.plantspec import load_plant
 
         plant = load_plant(args.plant)
-    run_lab(args.data, args.out, force=args.force, plant=plant)
+    run_lab(args.data, args.out, force=args.force, plant=plant, diagnosis=not args.no_diagnosis)
     return 0

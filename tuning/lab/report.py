@@ -20,7 +20,8 @@ import time
 from pathlib import Path
 
 from jaxcart.errors import UserError
-from tuning.lab import diagnosis, parts, prelab
+from tuning.lab import diagnosis as diagnosis_section
+from tuning.lab import parts, prelab
 from tuning.lab.context import Lab, fmt, relative_error
 from tuning.lab.data import builtin_dir
 from tuning.lab.html import Document
@@ -53,22 +54,25 @@ def output_dir(out=None, *, force: bool = False) -> Path:
     return path
 
 
-def run_lab(data=None, out=None, *, force: bool = False, stream=None, plant=None) -> Path:
+def run_lab(
+    data=None, out=None, *, force: bool = False, stream=None, plant=None, diagnosis: bool = True
+) -> Path:
     """Write the lab report; returns its folder.
 
     data: folder of experiment files (None: the built-in example recordings); out: the report
     folder (None: ./jaxcart-lab or a numbered one); force: overwrite an existing report;
     stream: where progress goes (default stderr); plant: a starting model (a
     :class:`jaxcart.Plant`, e.g. from a plant file): its B_eq, f_c and effects start the lab's
-    model, and the parts refit B_eq and f_c from the recordings as usual.
+    model, and the parts refit B_eq and f_c from the recordings as usual; diagnosis: add the
+    section that diagnoses each recording (most of the run time).
     """
     import jax
 
     with jax.enable_x64(True):  # fits and exact checks need float64
-        return _run_lab(data, out, force=force, stream=stream, plant=plant)
+        return _run_lab(data, out, force=force, stream=stream, plant=plant, diagnosis=diagnosis)
 
 
-def _run_lab(data, out, *, force, stream, plant=None) -> Path:
+def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True) -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
     inputs = find_inputs(folder)
@@ -94,9 +98,10 @@ def _run_lab(data, out, *, force, stream, plant=None) -> Path:
         parts.part_iii,
         parts.part_iv,
         parts.part_v,
-        diagnosis.section,
+        diagnosis_section.section if diagnosis else None,
     ):
-        section(lab)
+        if section is not None:
+            section(lab)
     _summary(lab)
     elapsed = time.perf_counter() - started
     lab.results["elapsed_seconds"] = elapsed
