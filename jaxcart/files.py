@@ -18,7 +18,7 @@ that the hardware loop writes what this module reads; here are what needs JAX or
 built from [plant]. Every problem is a :class:`UserError` with one line naming the file, the field
 and what to do.
 
->>> rec = read_experiment("../shared/realdata/p50.toml")          # doctest: +SKIP
+>>> rec = read_experiment("p50.toml")                              # doctest: +SKIP
 >>> rec.kind, rec.position.shape, rec.controller.kp                # doctest: +SKIP
 ('closed_loop', (2705,), 50.0)
 """

@@ -623,16 +623,15 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
 
     # Window evidence: how much of the windows' residual energy each candidate removes.
     masks = _window_masks(segments, wins)
-    base_w = sum(float(r[m] @ r[m]) for r, m in zip(base.residuals, masks, strict=True))
-    for c in cands:
-        cw = sum(float(r[m] @ r[m]) for r, m in zip(c.residuals, masks, strict=True))
-        c.window_evidence = 1.0 - cw / base_w if base_w > 0 else 0.0
+    _window_evidence(cands, base, masks)
 
     # Exact polish (Gauss-Newton on the exact simulator) of the most promising structures.
     t2 = _time.perf_counter()
     ranked = sorted(cands, key=lambda c: c.score)
-    for c in [x for x in ranked if x is not base][:POLISH] + [base]:
-        polished = _polish(c, segments, base_plants, dict(c.values), layout)
+
+    def polish(c, start):
+        # Keep the exact re-fit only where it lowers the exact residual.
+        polished = _polish(c, segments, base_plants, start, layout)
         res, _ = exact_residuals(c, segments, base_plants, polished, layout)
         if _rms(res) < c.rms_exact:
             c.values, c.residuals, c.rms_exact = polished, res, _rms(res)
@@ -641,20 +640,17 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
                 f"  exact polish {c.name:<20} exact {c.rms_exact * 1e3:8.4f} mm"
                 f"   score {c.score:10.1f}"
             )
+
+    for c in [x for x in ranked if x is not base][:POLISH] + [base]:
+        polish(c, dict(c.values))
     say(f"exact polish: {_time.perf_counter() - t2:.1f} s")
-    base_w = sum(float(r[m] @ r[m]) for r, m in zip(base.residuals, masks, strict=True))
-    for c in cands:
-        cw = sum(float(r[m] @ r[m]) for r, m in zip(c.residuals, masks, strict=True))
-        c.window_evidence = 1.0 - cw / base_w if base_w > 0 else 0.0
     best = min(cands, key=lambda c: c.score)
-    # Simpler structures nested in the choice, polished from its values: a smooth fit that
-    # stalled (Coulomb friction creeps where the exact cart sticks) must not lose to a richer one.
-    # (Those polished above from their own values too: their own start may have stalled.)
+    # Every structure no richer than the choice, re-fitted from the choice's shared values
+    # (B_eq, the start states): a smooth fit that stalled in another basin (Coulomb friction
+    # creeps where the exact cart sticks) gets a fair exact re-fit, so that a simpler structure
+    # does not lose to a richer one and near-ties are found (Coulomb and deadzone on a P step).
     done = {id(base)}
     for _ in range(2):
-        # Every structure no richer than the choice, started from the choice's shared values
-        # (B_eq, the start states): a smooth fit that stalled in another basin gets a fair
-        # exact re-fit, so near-ties are found (Coulomb and deadzone on a P step).
         nested = [
             c
             for c in cands
@@ -664,20 +660,9 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
             break
         for c in nested:
             done.add(id(c))
-            start_vals = {k: best.values.get(k, c.values[k]) for k in c.values}
-            polished = _polish(c, segments, base_plants, start_vals, layout)
-            res, _ = exact_residuals(c, segments, base_plants, polished, layout)
-            if _rms(res) < c.rms_exact:
-                c.values, c.residuals, c.rms_exact = polished, res, _rms(res)
-                c.score = score(c, c.rms_exact**2, floor2, n_eff)
-                say(
-                    f"  exact polish {c.name:<20} exact {c.rms_exact * 1e3:8.4f} mm"
-                    f"   score {c.score:10.1f}"
-                )
+            polish(c, {k: best.values.get(k, c.values[k]) for k in c.values})
         best = min(cands, key=lambda c: c.score)
-    for c in cands:
-        cw = sum(float(r[m] @ r[m]) for r, m in zip(c.residuals, masks, strict=True))
-        c.window_evidence = 1.0 - cw / base_w if base_w > 0 else 0.0
+    _window_evidence(cands, base, masks)
     ties = [
         c
         for c in cands
@@ -765,6 +750,14 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
 
 def fitter_scale(segments) -> float:
     return 1.0 / math.sqrt(sum(s.target.size for s in segments))
+
+
+def _window_evidence(cands, base, masks) -> None:
+    """How much of the located windows' residual energy each candidate removes (0..1)."""
+    base_w = sum(float(r[m] @ r[m]) for r, m in zip(base.residuals, masks, strict=True))
+    for c in cands:
+        cw = sum(float(r[m] @ r[m]) for r, m in zip(c.residuals, masks, strict=True))
+        c.window_evidence = 1.0 - cw / base_w if base_w > 0 else 0.0
 
 
 def _window_masks(segments, wins):
