@@ -188,3 +188,20 @@ def test_grid_ranges_are_those_of_jaxcart_grid():
     for name, text in DEFAULT_RANGES.items():
         lo, hi, _ = text.split(":")
         assert (float(lo), float(hi)) == bench.GRID_RANGES[name]
+
+
+def test_peers_model_an_amplifier_saturation_as_the_simulators_do():
+    """A plant with an amplifier limit below the software's: every peer clips at v_sat and agrees
+    with the exact simulator; a plant with an effect the peers do not model is refused."""
+    from jaxcart.exact import simulate_exact
+
+    with jax.enable_x64(True):
+        plant = jaxcart.handout_plant(v_sat=4.0)
+        controller = jaxcart.PID(kp=80.0, kd=5.0, tau=0.01, v_limit=6.0)
+        experiment = jaxcart.step(0.5, horizon=0.3)
+        gains = np.array([80.0, 5.0, 0.0])
+        exact = simulate_exact(plant, controller, experiment).position
+        y_ivp, _ = bench.scipy_run(plant, controller, experiment, gains)
+        assert np.max(np.abs(np.asarray(y_ivp)[: exact.size] - exact)) < 1e-6
+        with pytest.raises(ValueError, match="coulomb"):
+            bench.scipy_run(jaxcart.handout_plant(f_c=0.3), controller, experiment, gains)

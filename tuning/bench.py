@@ -124,22 +124,30 @@ def zoh_matrices(plant, ts: float):
 
 
 def _voltage_stages(plant):
-    """The plant's exact voltage effects (the amplifier saturation) as one numpy function."""
-    stages = [e for e in plant.effects if e.stage == "voltage"]
-    if any(e.stage == "force" for e in plant.effects):
-        raise ValueError("the W1 peers model a linear plant; force effects are not supported")
+    """The plant's exact voltage effects (an amplifier saturation, a deadzone) as one numpy
+    function; the W1 peers model a linear plant with memoryless voltage effects only."""
+    from jaxcart.effects import Held
+
+    other = [e for e in plant.effects if e.stage != "voltage" or e.splits_sample]
+    if other:
+        names = ", ".join(type(e).name for e in other)
+        raise ValueError(
+            f"the W1 peers model a linear plant with memoryless voltage effects; not {names}"
+        )
+    stages = plant.stage("voltage")
 
     def apply(u):
         for effect in stages:
-            u = effect.exact(u)
+            u = effect.exact((), Held(u, u, 0.0), 0.0)[0].late
         return u
 
     return apply
 
 
 def _limit(plant, controller) -> float:
-    sat = [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
-    return min([float(controller.v_limit), *sat])
+    from jaxcart.params import voltage_limit
+
+    return float(voltage_limit(plant, controller))
 
 
 def trace_metrics(
@@ -284,7 +292,7 @@ def numpy_batch(plant, controller, experiment, gains, *, dtype=np.float64, recor
         raise ValueError("the numpy peer assumes a plant without a position-dependent force")
     f = np.dtype(dtype).type
     a01, a11, b0, b1 = f(ad[0, 1]), f(ad[1, 1]), f(bd[0]), f(bd[1])
-    sat = [float(e.v_sat) for e in plant.effects if hasattr(e, "v_sat")]
+    sat = [float(e.v_sat) for e in plant.effects if type(e).name == "saturation"]
     v_lim, v_sat = f(controller.v_limit), f(min(sat, default=math.inf))
     limit = f(_limit(plant, controller))
     tau, inv = float(controller.tau), 1.0 / (float(controller.tau) + ts)
