@@ -1,9 +1,8 @@
 """Many runs in one call: step metrics for a batch of gain triples (or plants), chunked so the
 working set stays in cache, sharded over every JAX device.
 
-On a CPU, XLA gives the process a single device unless told otherwise; ``host_devices(n)``
-(called before jax is first used, as the command line does) splits the cores into n devices
-so the batch runs on all of them.
+Devices come from :mod:`jaxcart.parallel` (on a CPU, :func:`jaxcart.parallel.use_cpu_devices`
+splits the cores into devices before JAX starts, as the command line does).
 
 >>> import numpy as np, jaxcart as jc
 >>> gains = np.array([[40.0, 5.0, 0.0], [60.0, 6.0, 0.0]])
@@ -15,7 +14,6 @@ so the batch runs on all of them.
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import jax
 import jax.numpy as jnp
@@ -28,14 +26,6 @@ from jaxcart.smooth import EXACT_FORMS
 
 #: Runs per chunk: 4096 lanes x ~10 state values fit in L2; measured best on 2 cores.
 DEFAULT_CHUNK = 4096
-
-
-def host_devices(n: int | None = None) -> None:
-    """Ask XLA for ``n`` CPU devices (default: one per core). Must run before jax starts."""
-    n = n or os.cpu_count() or 1
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
 
 
 def _metrics_fn(plant, base, experiment, smoothing, substeps):

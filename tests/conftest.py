@@ -3,13 +3,13 @@ path; figures are closed after each test."""
 
 import os
 
-# Two host devices so the sharded batch path runs in CI (set before jax starts).
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# Two CPU devices so the sharded batch path runs in CI (set before jax starts).
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
+jax.config.update("jax_num_cpu_devices", 2)
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

@@ -60,9 +60,9 @@ def main(argv=None) -> int:
         from jaxcart.cache import enable_persistent_cache
 
         enable_persistent_cache()
-    from jaxcart.batch import host_devices
+    from jaxcart.parallel import use_cpu_devices
 
-    host_devices()
+    use_cpu_devices()
     from hw.gains import GainsFileError
     from jaxcart.errors import UserError
 

@@ -281,7 +281,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from jaxcart.batch import host_devices
+    from jaxcart.parallel import use_cpu_devices
 
-    host_devices()
+    use_cpu_devices()
     sys.exit(main())
