@@ -33,7 +33,6 @@ problem is an :class:`ExpFileError` with one line naming the file, the field and
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 import tomllib
@@ -43,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, PID_DATA_FIELDS
+from hw.csvio import CSVError, read_numeric_csv, write_numeric_csv
 
 KINDS = ("tap", "open_loop", "closed_loop")
 COLUMNS = ("t", "y", "v", "r", "e")
@@ -346,7 +346,7 @@ class Reader:
             self.fail(str(exc))
         except (OSError, UnicodeDecodeError) as exc:
             self.fail(f"{field}: cannot read {name} ({_one_line(exc)})")
-        if header is None or not rows:
+        if header is None or len(rows) == 0:
             self.fail(f"{field}: {name} has no data rows; it needs a header line and samples")
         if len(set(header)) != len(header):
             self.fail(f"{name}: repeated column names in the header {header}; name each once")
@@ -491,37 +491,18 @@ class Reader:
 
 
 def read_csv_rows(path: Path, name: str):
-    """(header, rows of floats, line numbers) of a CSV file with a header line.
+    """(header, rows, line numbers) of a CSV file with a header line: rows a float64 array
+    (rows x columns), read fast and in bounded memory by :mod:`hw.csvio` (progress on stderr
+    for a large file).
 
     Blank lines and lines starting with # are skipped; a UTF-8 byte-order mark (Excel's "CSV
     UTF-8") is dropped. Raises :class:`ExpFileError` (message without the TOML file's name)
     for a line with the wrong number of fields or a value that is not a number.
     """
-    header, rows, lines = None, [], []
-    # utf-8-sig: a file saved by Excel starts with a BOM, which would glue itself to "t".
-    with path.open(newline="", encoding="utf-8-sig") as f:
-        for lineno, row in enumerate(csv.reader(f), start=1):
-            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
-                continue
-            if header is None:
-                header = [h.strip() for h in row]
-                continue
-            if len(row) != len(header):
-                raise ExpFileError(
-                    f"{name} line {lineno}: {len(row)} fields, the header has "
-                    f"{len(header)}; fix that line"
-                )
-            try:
-                rows.append([float(x) for x in row])
-            except ValueError:
-                bad = next(x for x in row if not _is_float(x))
-                col = header[row.index(bad)]
-                raise ExpFileError(
-                    f"{name} line {lineno}, column {col}: {bad.strip()!r} is not "
-                    f"a number; fix that value"
-                ) from None
-            lines.append(lineno)
-    return header, rows, lines
+    try:
+        return read_numeric_csv(path, name)
+    except CSVError as exc:
+        raise ExpFileError(str(exc)) from None
 
 
 _LONG = {
@@ -535,14 +516,6 @@ _LONG = {
 
 def _line_of(lines):
     return lambda i: f"line {int(lines[i])}"
-
-
-def _is_float(text) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def _median_step(time):
@@ -629,7 +602,8 @@ def write_experiment_file(
 ) -> Path:
     """Write ``columns`` ({name: 1-D array}, ``t`` and ``y`` first) as ``name.toml`` + ``name.csv``.
 
-    Values are written with 17 significant digits (exact round trip); ``sample_time`` defaults
+    Values are written in their shortest exact form (``repr``: exact round trip), in blocks
+    (:func:`hw.csvio.write_numeric_csv`: bounded memory); ``sample_time`` defaults
     to the mean step of ``t``. ``controller`` goes to [controller], ``plant`` ({name: number})
     to [plant], ``tables`` ({"notes" | "device" | "timing" | "run": {key: value}}) to free-form
     tables. Refuses to overwrite either file unless ``force``. Returns the TOML path.
@@ -659,8 +633,7 @@ def write_experiment_file(
     mode = "w" if force else "x"  # "x": never over a file that appeared since the check
     try:
         with csv_path.open(mode, newline="") as f:
-            f.write(",".join(names) + "\n")
-            np.savetxt(f, np.column_stack(arrays), fmt="%.17g", delimiter=",")
+            write_numeric_csv(f, names, arrays, name=csv_path.name)
         with toml_path.open(mode) as f:
             f.write("\n".join(lines) + "\n")
     except FileExistsError as exc:

@@ -64,6 +64,7 @@ class Recording:
     experiment: the same samples as an :class:`Experiment` (t = k Ts from 0, y0 = first
         position), ready for :func:`jaxcart.simulate`
     meta: the parsed TOML
+    warnings: what looks physically doubtful (:mod:`jaxcart.plausibility`), one line each
     """
 
     path: Path
@@ -77,6 +78,7 @@ class Recording:
     plant_overrides: dict
     experiment: Experiment
     meta: dict
+    warnings: tuple[str, ...] = ()
 
     @property
     def n_samples(self) -> int:
@@ -138,11 +140,14 @@ class Recording:
 # ---------------------------------------------------------------- reading
 
 
-def read_experiment(path) -> Recording:
+def read_experiment(path, *, check: bool = True) -> Recording:
     """Read an experiment file (TOML + CSV/.mat data); see the module docstring for the format.
 
     Relative data paths are relative to the TOML file's folder. Raises :class:`UserError` with a
-    one-line message for any problem in the file or its data.
+    one-line message for any problem in the file or its data. With ``check`` (the default) the
+    recording is checked for physical sense (:mod:`jaxcart.plausibility`): positions far off
+    the track raise a UserError, milder doubts are printed once to stderr and kept in
+    ``Recording.warnings``.
     """
     try:
         data = _expfile.read_experiment_data(path, mat_reader=_read_mat)
@@ -156,7 +161,7 @@ def read_experiment(path) -> Recording:
         kind=data.kind,
         sample_time=data.sample_time,
     )
-    return Recording(
+    rec = Recording(
         path=data.path,
         kind=data.kind,
         sample_time=data.sample_time,
@@ -169,6 +174,14 @@ def read_experiment(path) -> Recording:
         experiment=experiment,
         meta=data.meta,
     )
+    if not check:
+        return rec
+    from jaxcart import plausibility
+
+    warnings = tuple(plausibility.check_recording(rec))
+    for message in warnings:
+        plausibility.warn(message)
+    return dataclasses.replace(rec, warnings=warnings)
 
 
 def _read_mat(reader, name, variable, field):
@@ -316,7 +329,7 @@ def write_experiment(
     """Write a :class:`jaxcart.Response` as an experiment file: ``name.toml`` and ``name.csv``.
 
     Columns: t [s], y [m], v [V] (the command the software sent), and for closed loop r, e [m];
-    every value with 17 significant digits (exact round trip). The reference (or open-loop
+    every value in its shortest exact form (exact round trip). The reference (or open-loop
     input) is recorded as a column. ``controller`` and ``plant_overrides`` go to [controller]
     and [plant]. Refuses to overwrite either file unless ``force``. Returns the TOML path.
     """

@@ -73,6 +73,50 @@ def test_refuses_existing_outputs_without_force(tmp_path, monkeypatch, capsys):
     assert read_experiment("mine.toml").n_samples == 201
 
 
+def test_outputs_checked_before_computing(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    cases = [
+        (["--out", "afile/run.csv"], "--out afile/run.csv: afile is a file"),
+        (["--out", "run.csv", "--plot", "run.jpg"], "--plot run.jpg: unknown suffix '.jpg'"),
+        (["--out", "run.csv", "--plot", "afile/x.png"], "afile is a file"),
+    ]
+    for extra, expected in cases:
+        # --horizon 1e4 would take a while: the refusal comes first.
+        assert main(["simulate", "--horizon", "1e4", *extra]) == 2
+        err = capsys.readouterr().err
+        assert expected in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+    # jaxcart run: before the cart moves.
+    from hw.gains import write_gains
+
+    gains = str(write_gains(tmp_path / "g.json", jc.PID(kp=40.0, v_limit=6.0), note="test"))
+    assert main(["run", gains, "--virtual", "--out", "afile/rec.toml"]) == 2
+    err = capsys.readouterr().err
+    assert "--out afile/rec.toml: afile is a file" in err and err.count("\n") == 1
+
+
+def test_long_runs_show_cost_and_progress_or_are_refused(tmp_path, monkeypatch, capsys):
+    from jaxcart import longrun
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(longrun, "LONG_SAMPLES", 1000)  # the 3 s default run goes in chunks
+    monkeypatch.setattr(longrun, "CHUNK", 1024)
+    monkeypatch.setattr(longrun, "WRITE_VALUES_PER_S", 100.0)  # so its cost is "long"
+    assert main(["simulate", "--out", "long.csv"]) == 0
+    err = capsys.readouterr().err
+    assert "simulate: about" in err and "--horizon to shorten" in err
+    assert "simulate: 100% (3001 of 3001 samples" in err
+    _, res = _default_response()
+    rec = read_experiment("long.toml")
+    np.testing.assert_allclose(rec.position, np.asarray(res.position), rtol=0, atol=SAME_RUN_TOL)
+    monkeypatch.setattr(longrun, "memory_budget", lambda: 1e7)
+    assert main(["simulate", "--horizon", "1e5", "--out", "huge.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "--horizon 100000: 1e+08 samples need about" in err and err.count("\n") == 1
+    assert not (tmp_path / "huge.csv").exists()
+
+
 def test_simulate_real_p50_recording(tmp_path, monkeypatch, realdata, capsys):
     monkeypatch.chdir(tmp_path)
     argv = ["simulate", f"{realdata}/p50.toml", "--out", "p50.csv", "--plot", "p50.png"]
@@ -104,7 +148,15 @@ def test_options_that_do_not_apply_and_diverged_runs(tmp_path, monkeypatch, real
     assert main(["simulate", "div.toml", "--kp=-10000", "--v-limit", "inf", "--out", "x.csv"]) == 2
     err = capsys.readouterr().err
     assert "diverged" in err and "div.toml" in err and "kp=-10000" in err
-    assert err.count("\n") == 1 and not (tmp_path / "x.csv").exists()
+    lines = err.splitlines()
+    assert [line for line in lines if "error:" in line] == lines[-1:]
+    # Said before the run: the loop's eigenvalue outside the unit circle.
+    assert "warning: controller: kp=-10000" in err and "unstable" in err
+    assert not (tmp_path / "x.csv").exists()
+    # With the 6 V limit the run stays finite, and the summary says it left the track.
+    off = ["--kp=-100", "--v-limit", "6", "--horizon", "3", "--out", "off.csv"]
+    assert main(["simulate", "div.toml", *off]) == 0
+    assert "warning: the simulated cart leaves the track" in capsys.readouterr().out
 
 
 @pytest.mark.skipif(

@@ -359,3 +359,39 @@ def test_csv_saved_by_excel_with_a_byte_order_mark(tmp_path):
     rec = read_experiment(_toml(tmp_path, HEAD))
     np.testing.assert_array_equal(rec.position, [0.0, 0.1])
     np.testing.assert_array_equal(rec.command, [1.0, 1.0])
+
+
+# ---------------------------------------------------------------- large files (hw.csvio)
+
+
+def test_csv_blocks_progress_and_exact_round_trip(tmp_path, monkeypatch, capsys):
+    import hw.csvio as csvio
+
+    rng = np.random.default_rng(7)
+    n = 3000
+    cols = {"t": np.arange(n) * 0.001, "y": rng.normal(size=n) * 0.1, "v": rng.normal(size=n)}
+    with (tmp_path / "big.csv").open("w") as f:
+        csvio.write_numeric_csv(f, list(cols), list(cols.values()), progress=lambda x: None)
+    text = (tmp_path / "big.csv").read_text().splitlines()
+    # A comment and a blank line in the middle: that block takes the csv module's path.
+    text.insert(1500, "# operator note, 1, 2")
+    text.insert(2000, "")
+    (tmp_path / "big.csv").write_text("\n".join(text) + "\n")
+    monkeypatch.setattr(csvio, "BLOCK", 1000)  # ~30 blocks, edges inside lines
+    monkeypatch.setattr(csvio, "PROGRESS_BYTES", 1000)
+    header, table, lines = csvio.read_numeric_csv(tmp_path / "big.csv", "big.csv")
+    assert header == ["t", "y", "v"] and table.shape == (n, 3)
+    for i, values in enumerate(cols.values()):  # shortest repr: every float read back exactly
+        np.testing.assert_array_equal(table[:, i], values)
+    assert lines[0] == 2 and lines[1498] == 1500 and lines[1499] == 1502 and lines[-1] == n + 3
+    err = capsys.readouterr().err
+    assert err.startswith("reading big.csv (") and " 100% in " in err and err.count("\n") == 1
+    # A bad value far into the file: the same one-line error as the csv module's reading.
+    text[2500] = text[2500].replace(",", ",x", 1)
+    (tmp_path / "big.csv").write_text("\n".join(text) + "\n")
+    with pytest.raises(csvio.CSVError, match=r"big.csv line 2501, column y: 'x.*' is not a number"):
+        csvio.read_numeric_csv(tmp_path / "big.csv", "big.csv", progress=lambda x: None)
+    # A spreadsheet's regional export (semicolons): said as such, on the header's line.
+    (tmp_path / "semi.csv").write_text("# exported\nt;y;v\n0;0;1\n")
+    with pytest.raises(csvio.CSVError, match="semi.csv line 2: the fields are separated by semi"):
+        csvio.read_numeric_csv(tmp_path / "semi.csv", "semi.csv")

@@ -35,6 +35,15 @@ def run(args) -> int:
     from hw.expfile import ExpFileError
     from jaxcart.errors import UserError
 
+    if args.out:
+        # Before the cart moves: an output under a file or in a read-only folder fails now.
+        from pathlib import Path
+
+        from hw.expfile import experiment_paths
+        from jaxcart.outputs import check_writable
+
+        for path in experiment_paths(Path(args.out)):
+            check_writable(path, option="--out")
     try:
         return run_command(args)
     except (CommandError, ExpFileError, DeviceError) as exc:

@@ -23,6 +23,11 @@ DEFAULT_GAINS = {"kp": 40.0, "kd": 5.0, "ki": 5.0}
 DEFAULT_V_LIMIT = 6.0
 DEFAULT_HORIZON = 3.0
 GAIN_OPTIONS = ("kp", "ki", "kd", "tau", "v_limit")
+#: Figure formats of --plot (matplotlib's, by suffix).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+#: The .mat layouts of ``--mat-layout`` (jaxcart.matfile.LAYOUTS; not imported here: the
+#: parser must not import jaxcart).
+MAT_LAYOUTS = ("structure-with-time", "structure", "array", "vector")
 
 
 def register(subparsers) -> None:
@@ -32,8 +37,9 @@ def register(subparsers) -> None:
         description=(
             "Simulate EXPERIMENT.toml (or, without it, the lab's design problem: step 0.5 m, "
             "kp=40, kd=5, ki=5, 6 V limit, handout plant, 3 s) and write the run as an "
-            "experiment file (CSV + TOML), with a figure. Without --out, files go to "
-            "./jaxcart-out/ under names that never overwrite."
+            "experiment file (CSV or MATLAB .mat, + TOML), with a figure. Without --out, files "
+            "go to ./jaxcart-out/ under names that never overwrite; a recording whose data are "
+            ".mat files is written back as .mat in the Simulink layout it came in."
         ),
     )
     p.add_argument(
@@ -44,8 +50,15 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--out",
-        metavar="RUN.csv",
-        help="write RUN.csv and RUN.toml (default: ./jaxcart-out/run.csv, run-2.csv...)",
+        metavar="RUN.csv|RUN.mat",
+        help="write RUN.csv (or RUN.mat, one variable per signal) and RUN.toml (default: "
+        "./jaxcart-out/run.csv, run-2.csv...)",
+    )
+    p.add_argument(
+        "--mat-layout",
+        choices=MAT_LAYOUTS,
+        help="layout of each signal in a .mat output (default: as the recording's .mat came "
+        "in, else structure-with-time, the Simulink scope's 'Structure With Time')",
     )
     p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
     p.add_argument(
@@ -81,14 +94,17 @@ def run(args) -> int:
     import numpy as np
 
     import jaxcart as jc
+    from jaxcart import plausibility
     from jaxcart.errors import SimulationDiverged, UserError
     from jaxcart.files import read_experiment
 
-    recording = None
-    if args.experiment:
-        recording = read_experiment(args.experiment)
+    recording = read_experiment(args.experiment) if args.experiment else None
+    # Outputs first: a bad path fails now, not after the run.
+    csv_path, toml_path, png_path = _outputs(args, recording)
+    if recording is not None:
         source = str(recording.path)
         plant, controller = recording.plant(), recording.controller
+        _check_horizon(args.horizon, recording.sample_time, recording.n_samples)
         experiment = (
             recording.experiment_for(args.horizon)
             if args.horizon is not None
@@ -102,6 +118,7 @@ def run(args) -> int:
             raise UserError(f"--horizon {horizon!r}: give a positive number of seconds")
         plant = jc.handout_plant()
         controller = jc.PID(v_limit=DEFAULT_V_LIMIT, **DEFAULT_GAINS)
+        _check_horizon(horizon, 0.001, None)
         experiment = jc.step(DEFAULT_STEP, horizon=horizon)
         overrides = {}
     if args.plant:
@@ -111,7 +128,10 @@ def run(args) -> int:
         plant = dataclasses.replace(chosen, motor_connected=plant.motor_connected)
         overrides = plant_values(plant)
     controller = _with_options(args, controller, experiment, source)
-    csv_path, toml_path, png_path = _outputs(args, recording)
+    if controller is not None:
+        # Before the run: an unstable or implausible loop is said, not discovered in the output.
+        for message in plausibility.check_controller(controller, plant, where="controller"):
+            plausibility.warn(message)
 
     response = _simulate(args.exact, plant, controller, experiment)
     if bool(np.asarray(response.diverged)):
@@ -125,16 +145,21 @@ def run(args) -> int:
         response = dataclasses.replace(response, time=np.asarray(response.time) + recording.time[0])
 
     method = "exact" if args.exact else "smooth"
-    from jaxcart.files import write_experiment
-
-    write_experiment(
-        toml_path,
-        response,
+    written = dict(
         controller=controller if experiment.kind == "closed_loop" else None,
         plant_overrides=overrides,
         description=f"jaxcart simulate ({method} simulator) of {source}",
         force=args.force,
     )
+    if csv_path.suffix.lower() == ".mat":
+        from jaxcart.matfile import source_layout, write_mat_experiment
+
+        layout = source_layout(recording) if recording is not None else None
+        write_mat_experiment(csv_path, response, layout=args.mat_layout, source=layout, **written)
+    else:
+        from jaxcart.files import write_experiment
+
+        write_experiment(toml_path, response, **written)
     if png_path is not None:
         _plot(png_path, response, recording, controller, plant, source, method)
     _summary(
@@ -185,40 +210,76 @@ def _with_options(args, controller, experiment, source):
 
 
 def _outputs(args, recording):
-    """(csv, toml, png or None), refusing existing files unless --force, before simulating."""
+    """(data: .csv or .mat, toml, png or None), refusing existing files unless --force, before
+    simulating."""
     from jaxcart.errors import UserError
     from jaxcart.files import experiment_paths
-    from jaxcart.outputs import OUT_DIR, free_names
+    from jaxcart.matfile import mat_paths
+    from jaxcart.outputs import OUT_DIR, check_writable, free_names
 
     if args.out:
         out = Path(args.out)
-        if out.suffix.lower() not in (".csv", ".toml"):
+        if out.suffix.lower() not in (".csv", ".toml", ".mat"):
             raise UserError(
-                f"--out {args.out}: give a name ending in .csv (the TOML is written beside it)"
+                f"--out {args.out}: give a name ending in .csv or .mat (the TOML is written "
+                "beside it)"
             )
-        toml_path, csv_path = experiment_paths(out)
+        if out.suffix.lower() == ".mat":
+            toml_path, csv_path = mat_paths(out)
+        else:
+            toml_path, csv_path = experiment_paths(out)
         png_path = Path(args.plot) if args.plot else None
     else:
         stem = "run" if recording is None else f"{recording.path.stem}-sim"
-        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (".csv", ".toml", ".png"))
+        data = ".mat" if args.mat_layout or _mat_data(recording) else ".csv"
+        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", ".png"))
         png_path = Path(args.plot) if args.plot else auto_png
-    if not args.force:
-        for path in (csv_path, toml_path, png_path):
-            if path is not None and path.exists():
-                raise UserError(
-                    f"{path} exists; choose another name or pass --force to overwrite it"
-                )
+    if args.mat_layout and csv_path.suffix.lower() != ".mat":
+        raise UserError(f"--mat-layout {args.mat_layout}: the output {csv_path} is not .mat")
+    option = "--out" if args.out else None
+    check_writable(csv_path, suffixes=(".csv", ".mat"), option=option, force=args.force)
+    check_writable(toml_path, suffixes=(".toml",), option=option, force=args.force)
+    if png_path is not None:
+        check_writable(
+            png_path,
+            suffixes=PLOT_SUFFIXES,
+            option="--plot" if args.plot else None,
+            force=args.force,
+        )
     return csv_path, toml_path, png_path
+
+
+def _check_horizon(horizon, sample_time, n_recorded):
+    """Refuse, before any array is built, a run that would not fit in memory."""
+    from jaxcart import longrun
+
+    if horizon is not None and not (math.isfinite(horizon) and horizon > 0):
+        return  # the experiment's own check names the bad value
+    n = n_recorded if horizon is None else int(round(horizon / sample_time)) + 1
+    what = f"--horizon {horizon:g}" if horizon is not None else "the recording"
+    longrun.check_size(n, sample_time, what)
+
+
+def _mat_data(recording) -> bool:
+    """Whether the recording's data came from MATLAB .mat files (then the run goes back so)."""
+    data = recording.meta.get("data") if recording is not None else None
+    return isinstance(data, dict) and any(
+        str(source).rpartition(":")[0].lower().endswith(".mat") for source in data.values()
+    )
 
 
 def _simulate(exact, plant, controller, experiment):
     import jax
 
     import jaxcart as jc
+    from jaxcart import longrun
     from jaxcart.errors import UserError
 
     pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
+    columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
     if not exact:
+        if experiment.n_samples > longrun.LONG_SAMPLES:
+            return longrun.simulate_chunked(plant, pid, experiment, n_columns=columns)
         return jax.jit(jc.simulate)(plant, pid, experiment)
     try:
         from jaxcart.exact import simulate_exact
@@ -228,6 +289,9 @@ def _simulate(exact, plant, controller, experiment):
         raise UserError(
             "--exact: the exact simulator (jaxcart/exact.py) is not installed; run without --exact"
         ) from None
+    if experiment.n_samples > longrun.EXACT_PROBE:
+        seconds = longrun.estimate_exact(plant, pid, experiment)
+        longrun.announce(seconds, experiment.n_samples, columns, experiment.sample_time)
     return simulate_exact(plant, pid, experiment)
 
 
@@ -251,6 +315,7 @@ def _plot(path, response, recording, controller, plant, source, method):
     if response.kind == "closed_loop":
         runs.append(plots.reference_run(response.time, response.reference))
     runs.append(plots.run_from_response(response, f"simulated ({method})"))
+    runs = [_thinned(run) for run in runs]  # a 1e7-sample curve: minutes in matplotlib
     title = Path(source).name if recording is not None else "default: step 0.5 m"
     if controller is not None:
         title += f" | {_gains(controller)}"
@@ -260,6 +325,24 @@ def _plot(path, response, recording, controller, plant, source, method):
         path=path,
         voltage=response.kind != "tap",
         v_limit=_voltage_limit(plant, controller),
+    )
+
+
+def _thinned(run):
+    """The run with at most about longrun.PLOT_POINTS samples, each block's extremes kept."""
+    import numpy as np
+
+    from jaxcart.longrun import thin_indices
+
+    keep = thin_indices(len(run.time), run.position, run.voltage)
+    if keep.size == len(run.time):
+        return run
+    voltage = None if run.voltage is None else np.asarray(run.voltage)[keep]
+    return dataclasses.replace(
+        run,
+        time=np.asarray(run.time)[keep],
+        position=np.asarray(run.position)[keep],
+        voltage=voltage,
     )
 
 
@@ -320,5 +403,9 @@ def _summary(source, experiment, method, controller, plant, response, recording,
             f"  position minus recording: rms {1e3 * np.sqrt(np.mean(diff**2)):.2f} mm, "
             f"max |.| {1e3 * np.abs(diff).max():.2f} mm over {k} samples"
         )
+    from jaxcart.plausibility import check_track
+
+    for message in check_track(response, "warning"):  # in the summary, beside the metrics
+        print(f"  {message}")
     print("  wrote " + ", ".join(str(p) for p in paths if p is not None))
     sys.stdout.flush()

@@ -1,0 +1,400 @@
+"""Recordings and simulation results as MATLAB .mat files, in the Simulink layouts that
+:mod:`jaxcart.files` reads (docs/experiment-files.md, "MATLAB .mat layouts").
+
+One run is written as ``name.mat`` (one variable per signal) and ``name.toml`` (the experiment
+file, whose [data] table maps each signal to its variable), so that jaxcart reads it back and
+MATLAB loads it as the lab's Simulink scopes save it. Layouts (``LAYOUTS``), for a signal y:
+
+- ``"structure-with-time"`` (the default): ``y.time`` (N x 1 [s]), ``y.signals.values``
+  (N x 1), ``y.signals.dimensions`` (1), ``y.signals.label``, ``y.blockName``;
+- ``"structure"``: the same with ``y.time`` empty (the lab's 2.1pos.mat; samples then
+  ``sample_time`` apart from t = 0);
+- ``"array"``: ``y`` an N x 2 array [t, value];
+- ``"vector"``: ``y`` an N x 1 column, with the time in a variable ``t``.
+
+A run simulated from a recording whose data came from .mat files is written back as it came
+in (:func:`source_layout`): the same layout, variable names and block names per signal.
+
+>>> write_mat_experiment("run.mat", response, controller=pid)    # doctest: +SKIP
+(PosixPath('run.toml'), PosixPath('run.mat'))
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hw import expfile as _expfile
+from jaxcart.errors import UserError
+
+LAYOUTS = ("structure-with-time", "structure", "array", "vector")
+DEFAULT_LAYOUT = "structure-with-time"
+#: Signals written per kind (as in the CSV writer): t [s], y [m], v [V], r [m], e [m].
+SIGNALS = {"closed_loop": ("y", "v", "r", "e"), "open_loop": ("y", "v"), "tap": ("y",)}
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}\Z")  # a MATLAB variable name
+
+
+@dataclass(frozen=True)
+class SignalLayout:
+    """How one signal is stored: layout (one of ``LAYOUTS``), MATLAB variable name, and for
+    the structures the scope's block name and signal label."""
+
+    layout: str = DEFAULT_LAYOUT
+    variable: str = "y"
+    block_name: str = ""
+    label: str = ""
+
+
+def mat_paths(path) -> tuple[Path, Path]:
+    """(TOML, MAT) paths for a name given as ``name.mat``, ``name.toml`` or ``name``."""
+    path = Path(path)
+    if path.suffix.lower() in (".toml", ".mat"):
+        return path.with_suffix(".toml"), path.with_suffix(".mat")
+    return path.with_name(path.name + ".toml"), path.with_name(path.name + ".mat")
+
+
+# ---------------------------------------------------------------- the layout a file came in
+
+
+def classify(obj) -> str | None:
+    """The layout of one variable as ``scipy.io.loadmat(..., squeeze_me=True,
+    struct_as_record=False)`` returns it, or None when it is none of ``LAYOUTS``."""
+    from scipy.io.matlab import mat_struct
+
+    if isinstance(obj, mat_struct):
+        if not isinstance(getattr(obj, "signals", None), mat_struct):
+            return None
+        time = np.asarray(getattr(obj, "time", np.zeros(0)))
+        return "structure-with-time" if time.size else "structure"
+    arr = np.asarray(obj)
+    if arr.dtype.kind not in "biuf":
+        return None
+    arr = np.squeeze(arr)
+    if arr.ndim == 2 and 2 in arr.shape:
+        return "array"
+    return "vector" if arr.ndim == 1 else None
+
+
+def source_layout(recording) -> dict[str, SignalLayout]:
+    """{signal: :class:`SignalLayout`} of each signal of ``recording`` (a
+    :class:`jaxcart.files.Recording`) that was read from a .mat file; {} for CSV data."""
+    import scipy.io
+
+    data = recording.meta.get("data")
+    if not isinstance(data, dict):
+        return {}
+    folder = Path(recording.path).parent
+    out, cache = {}, {}
+    for name, source in data.items():
+        file, _, variable = str(source).rpartition(":")
+        if name == "t" or not file.lower().endswith(".mat"):
+            continue
+        if file not in cache:  # read_experiment has read it: it loads, unless changed since
+            try:
+                cache[file] = scipy.io.loadmat(
+                    folder / file, squeeze_me=True, struct_as_record=False
+                )
+            except (OSError, ValueError, NotImplementedError):
+                cache[file] = {}
+        obj = cache[file].get(variable)
+        layout = classify(obj)
+        if layout is None:
+            continue
+        block = label = ""
+        if layout.startswith("structure"):
+            block = _text(getattr(obj, "blockName", ""))
+            label = _text(getattr(obj.signals, "label", ""))
+        out[name] = SignalLayout(layout, variable, block, label)
+    return out
+
+
+def _text(value) -> str:
+    return value if isinstance(value, str) else ""
+
+
+def plan_layout(signals, layout=None, source=None) -> dict[str, SignalLayout]:
+    """The :class:`SignalLayout` of each of ``signals``: ``layout`` for all when given, else
+    each signal as ``source`` (from :func:`source_layout`) has it, the rest as the position's
+    (or the default). Variable names are the source's when valid and distinct, else the
+    signal's name."""
+    source = dict(source or {})
+    if layout is not None and layout not in LAYOUTS:
+        raise UserError(f"layout {layout!r}: use one of {', '.join(LAYOUTS)}")
+    fallback = layout or (source["y"].layout if "y" in source else DEFAULT_LAYOUT)
+    plan, used = {}, set()
+    for name in signals:
+        src = source.get(name)
+        variable = src.variable if src is not None and _NAME.match(src.variable) else name
+        if variable in used or variable == "t":
+            variable = name
+        while variable in used or variable == "t":  # t is the vector layout's time
+            variable += "_"
+        used.add(variable)
+        chosen = layout or (src.layout if src is not None else fallback)
+        block = src.block_name if src is not None and src.block_name else f"jaxcart/{name}"
+        label = src.label if src is not None else name
+        plan[name] = SignalLayout(chosen, variable, block, label)
+    return plan
+
+
+# ---------------------------------------------------------------- writing
+
+
+def _variable(values, time, spec: SignalLayout):
+    column = np.asarray(values, dtype=float).reshape(-1, 1)
+    if spec.layout == "array":
+        return np.column_stack([time, column[:, 0]])
+    if spec.layout == "vector":
+        return column
+    timed = spec.layout == "structure-with-time"
+    return {
+        "time": time.reshape(-1, 1) if timed else np.zeros((0, 0)),
+        "signals": {"values": column, "dimensions": 1.0, "label": spec.label},
+        "blockName": spec.block_name,
+    }
+
+
+def write_mat_experiment(
+    path,
+    response,
+    *,
+    controller=None,
+    plant_overrides: dict | None = None,
+    description: str | None = None,
+    layout: str | None = None,
+    source: dict | None = None,
+    force: bool = False,
+) -> tuple[Path, Path]:
+    """Write one simulated run (a :class:`jaxcart.Response`) as ``name.mat`` + ``name.toml``;
+    returns their paths (TOML, MAT).
+
+    Signals: y [m] and, by kind, the command v [V], reference r [m] and error e [m], each a
+    variable in ``layout`` (one of ``LAYOUTS``; None: as in ``source``, else
+    "structure-with-time"). ``controller`` goes to [controller] (closed loop), ``plant_overrides``
+    to [plant]. Values are float64 (an exact round trip). Refuses existing files unless
+    ``force``, a batch of runs, a diverged run and non-finite values, as the CSV writer does.
+    """
+    arrays = {
+        "y": response.position,
+        "v": response.command,
+        "r": response.reference,
+        "e": response.error,
+    }
+    _, mat_path = mat_paths(path)
+    if bool(np.any(np.asarray(response.diverged))):
+        raise UserError(f"{mat_path}: the simulated run diverged; nothing written")
+    yd0 = float(np.asarray(response.velocity, dtype=float).reshape(-1)[0])
+    signals = {name: arrays[name] for name in SIGNALS[response.kind]}
+    return _write(
+        path,
+        response.kind,
+        response.time,
+        signals,
+        controller=controller if response.kind == "closed_loop" else None,
+        overrides=plant_overrides,
+        description=description,
+        yd0=yd0,
+        layout=layout,
+        source=source,
+        force=force,
+    )
+
+
+def write_mat_recording(path, recording, *, layout: str | None = None, force: bool = False):
+    """Write a recording (a :class:`jaxcart.files.Recording`, e.g. from the hardware loop's
+    CSV) as ``name.mat`` + ``name.toml``, in the layout its .mat data came in (default
+    "structure-with-time"); returns (TOML, MAT). Its own signals only (y, and v and r where it
+    has them, e = r - y with r), its controller, [plant], initial_velocity, description and
+    provenance tables ([notes], [device], [timing], [run])."""
+    signals = {"y": recording.position}
+    if recording.command is not None:
+        signals["v"] = recording.command
+    if recording.reference is not None:
+        signals["r"] = recording.reference
+        signals["e"] = recording.reference - recording.position
+    meta = recording.meta
+    tables = {k: meta[k] for k in _expfile.FREE_TABLES if isinstance(meta.get(k), dict)}
+    return _write(
+        path,
+        recording.kind,
+        recording.time,
+        signals,
+        controller=recording.controller,
+        overrides=recording.plant_overrides,
+        description=meta.get("description"),
+        yd0=float(recording.experiment.yd0),
+        layout=layout,
+        source=source_layout(recording),
+        force=force,
+        tables=tables,
+        motor_connected=bool(meta.get("tap", {}).get("motor_connected", False)),
+    )
+
+
+def _write(
+    path,
+    kind,
+    time,
+    signals,
+    *,
+    controller,
+    overrides,
+    description,
+    yd0,
+    layout,
+    source,
+    force,
+    tables=None,
+    motor_connected=False,
+):
+    """Check everything, then write the .mat and the TOML (never over a file unless force)."""
+    import scipy.io
+
+    from jaxcart.files import check_plant_overrides
+
+    toml_path, mat_path = mat_paths(path)
+    try:
+        _expfile.check_free((toml_path, mat_path), force)
+    except _expfile.ExpFileError as exc:
+        raise UserError(str(exc)) from None
+    names = tuple(signals)
+    time = np.asarray(time, dtype=float)
+    signals = {name: np.asarray(values, dtype=float) for name, values in signals.items()}
+    if time.ndim != 1 or any(s.shape != time.shape for s in signals.values()):
+        raise UserError(
+            f"{mat_path}: the response holds a batch of runs (shape "
+            f"{signals['y'].shape}); write one run at a time"
+        )
+    for name, values in {"t": time, **signals}.items():
+        if not np.all(np.isfinite(values)):
+            raise UserError(f"{mat_path}: signal {name} has non-finite values; nothing written")
+    n = time.size
+    if n < 2:
+        raise UserError(f"{mat_path}: the response has {n} sample(s); need at least 2")
+    ts = float(f"{(time[-1] - time[0]) / (n - 1):.12g}")
+    if controller is not None and abs(controller.sample_time - ts) > 1e-9 * ts:
+        raise UserError(
+            f"{mat_path}: controller sample_time {controller.sample_time} s differs from the "
+            f"response's {ts} s"
+        )
+    plan = plan_layout(names, layout, source)
+    if time[0] != 0 and any(p.layout == "structure" for p in plan.values()):
+        time = time - time[0]  # the Structure layout has no time: samples count from t = 0
+    variables = {plan[k].variable: _variable(signals[k], time, plan[k]) for k in names}
+    mapping = {k: f"{mat_path.name}:{plan[k].variable}" for k in names}
+    if any(p.layout == "vector" for p in plan.values()):
+        variables["t"] = time.reshape(-1, 1)
+        mapping = {"t": f"{mat_path.name}:t", **mapping}
+    overrides = check_plant_overrides(overrides or {}, f"{toml_path} [plant]")
+    try:
+        lines = _toml_lines(
+            kind, ts, mapping, plan, controller, overrides, description, yd0, tables
+        )
+    except _expfile.ExpFileError as exc:
+        raise UserError(f"{toml_path}: {exc}") from None
+    if motor_connected:
+        lines = ["motor_connected = true" if x == "motor_connected = false" else x for x in lines]
+    _make_folder(mat_path)
+    mode = "wb" if force else "xb"  # "x": never over a file that appeared since the check
+    try:
+        with mat_path.open(mode) as f:
+            scipy.io.savemat(f, variables, oned_as="column", long_field_names=True)
+        with toml_path.open(mode[0]) as f:
+            f.write("\n".join(lines) + "\n")
+    except FileExistsError as exc:
+        raise UserError(
+            f"{exc.filename} exists; choose another name or pass --force (force=True) to "
+            "overwrite it"
+        ) from None
+    except OSError as exc:
+        raise UserError(f"{mat_path}: cannot write it ({exc.strerror})") from None
+    return toml_path, mat_path
+
+
+def _make_folder(path: Path) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(
+            f"{path}: cannot create the folder {path.parent} ({exc.strerror or exc}); choose "
+            "another place"
+        ) from None
+
+
+def _toml_lines(kind, ts, mapping, plan, controller, overrides, description, yd0, tables):
+    """The experiment file's lines: the CSV writer's, its data line replaced by [data]."""
+    lines = _expfile.toml_lines(
+        kind=kind,
+        sample_time=ts,
+        csv_name="-",
+        columns=(),
+        controller=controller if kind == "closed_loop" else None,
+        plant=overrides,
+        description=description,
+        initial_velocity=yd0,
+        tables=tables,
+    )
+    at = next(i for i, line in enumerate(lines) if line.startswith("data = "))
+    units = _expfile.COLUMN_UNITS
+    table = ["", "[data]   # MATLAB .mat variables (jaxcart.matfile)"]
+    for name, where in mapping.items():
+        note = f"{plan[name].layout}, " if name in plan else ""
+        table.append(f"{name} = {_expfile.toml_str(where)}   # {note}[{units[name]}]")
+    return lines[:at] + table + lines[at + 1 :]
+
+
+# ---------------------------------------------------------------- results
+
+
+def _field(name, used) -> str:
+    """A valid, unique MATLAB field name for a key ("B_eq,f_c" -> "B_eq_f_c")."""
+    text = re.sub(r"\W", "_", str(name)) or "x"
+    if not text[0].isalpha():
+        text = "x" + text
+    text, base, k = text[:63], text[:60], 2
+    while text in used:
+        text, k = f"{base}_{k}", k + 1
+    used.add(text)
+    return text
+
+
+def _matlab(value):
+    """A JSON-like value as savemat writes it: dicts as structs, None as NaN, lists of numbers
+    as row vectors, other lists as cell arrays."""
+    if isinstance(value, dict):
+        used: set = set()
+        return {_field(k, used): _matlab(v) for k, v in value.items()}
+    if value is None:
+        return np.nan
+    if isinstance(value, list | tuple):
+        if value and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
+            return np.asarray(value, dtype=float)[None, :]
+        cell = np.empty((1, len(value)), dtype=object)
+        for i, x in enumerate(value):
+            cell[0, i] = _matlab(x)
+        return cell
+    return value
+
+
+def write_mat_report(path, report: dict, *, name: str = "report", force: bool = False) -> Path:
+    """Write a JSON-like result (e.g. ``fit --json``'s report) as one MATLAB struct ``name``
+    in a .mat file: keys become field names (invalid characters to "_"), None becomes NaN,
+    lists of numbers row vectors, other lists cell arrays. Refuses an existing file unless
+    ``force``."""
+    import scipy.io
+
+    path = Path(path)
+    if path.exists() and not force:
+        raise UserError(f"{path} exists; choose another name or pass --force to overwrite it")
+    _make_folder(path)
+    try:
+        with path.open("wb" if force else "xb") as f:
+            scipy.io.savemat(f, {name: _matlab(report)}, long_field_names=True)
+    except FileExistsError:
+        raise UserError(f"{path} exists; choose another name or pass --force") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write it ({exc.strerror})") from None
+    return path

@@ -1,0 +1,373 @@
+"""Does a recording, or a controller, make physical sense for the lab's cart?
+
+A file in the wrong units or with the wrong gains reads without complaint and then gives absurd
+fits (a tap in mm "fits" f_c = 461 N). These checks run whenever a recording is read
+(:func:`jaxcart.files.read_experiment`) and before a simulation:
+
+- positions: the track is 0.99 m long and the cart travels 0.814 m (``jaxcart.params``);
+  positions far beyond that are an error that names the likely unit, beyond the travel a warning;
+- velocity and acceleration (warnings only: test signals are often faster) against what the
+  plant can reach at its voltage limit V (the software limit or amplifier saturation, else
+  6 V, the lab's range): the steady speed gamma V / c and the acceleration 2 gamma V / m
+  (full voltage against full-speed damping);
+  a tap (motor unplugged, pushed by hand) must coast to rest within the travel, so v(0) <=
+  travel c / m, and its push has no limit;
+- the sample time against the lab's 1 kHz loop;
+- the recorded command against the command the file's own controller computes from the
+  recorded position and reference (:mod:`hw.control_law`, up to a sample of delay);
+- the controller: the eigenvalues of the discrete closed loop of the linear part (nominal
+  plant with zero-order hold, the PID with its derivative filter): unstable when one lies
+  outside the unit circle; implausible when its linear range v_limit / kp is below one encoder
+  count (the loop is a relay), when one count of noise swings the derivative term over the
+  whole range, or when a mode rings faster than the 1 kHz loop resolves (above fs / 8).
+
+Errors are :class:`UserError` (one line: file, column, value, fix); warnings are strings, which
+:func:`warn` prints once to stderr.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+
+from jaxcart.errors import UserError
+from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL
+
+#: The lab amplifier's range [V] when neither the controller nor the plant states a limit.
+LAB_VOLTAGE = 6.0
+#: Positions beyond this many track lengths are a unit error, not a cart off its track.
+ABSURD_TRACK_LENGTHS = 5.0
+#: Margin on the velocity and acceleration limits before a warning (a lower B_eq than the
+#: nominal, the transient of a step, difference noise).
+MARGIN = 1.5
+#: Window of the differences that estimate velocity and acceleration [s] (one encoder count
+#: over 10 ms is 2.3 mm/s, and 0.45 m/s^2 in the second difference).
+DIFF_WINDOW = 0.01
+#: Sample times the lab's loop runs at [s]: outside, a warning (the lab runs at 1 kHz).
+SAMPLE_TIME_RANGE = (1e-4, 0.02)
+#: The recorded command agrees with the file's controller when the median |difference| is
+#: below COMMAND_TOL_V + COMMAND_TOL_REL * max |command| (rounding, DAC quantization): the
+#: lab's recordings agree to 1 mV, gains 10 % off differ by 15-26 mV (6 V peak).
+COMMAND_TOL_V = 0.01
+COMMAND_TOL_REL = 0.001
+#: Closed-loop modes above fs / 8 are beyond what the sampled loop resolves.
+MAX_MODE_FRACTION = 1.0 / 8.0
+#: Eigenvalues this far outside the unit circle are unstable (an integrator sits on it).
+UNIT_CIRCLE_TOL = 1e-6
+
+_printed: set[str] = set()
+
+
+def warn(message: str) -> None:
+    """Print a warning to stderr, once per process for each distinct message."""
+    if message in _printed:
+        return
+    _printed.add(message)
+    print(f"jaxcart: warning: {message}", file=sys.stderr)
+
+
+# ---------------------------------------------------------------- recordings
+
+
+def check_recording(rec) -> list[str]:
+    """Check a :class:`jaxcart.files.Recording` for physical sense: raises :class:`UserError`
+    for clear absurdities (positions in mm), returns the warnings (strings, not printed)."""
+    # Values near the float range overflow in differences: inf is then the honest answer.
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _check_recording(rec)
+
+
+def _check_recording(rec) -> list[str]:
+    where = str(rec.path)
+    y = np.asarray(rec.position, dtype=float)
+    warnings = []
+    warnings += _check_positions(where, _label(rec, "y"), y)
+    warnings += _check_sample_time(where, rec.sample_time)
+    plant = rec.plant()
+    volts = _voltage_range(rec, plant)
+    warnings += _check_motion(where, _label(rec, "y"), rec, plant, volts)
+    if rec.kind == "closed_loop" and rec.controller is not None:
+        warnings += check_controller(rec.controller, plant, where=f"{where} [controller]")
+        if rec.command is not None:
+            warnings += _check_command(where, _label(rec, "v"), rec)
+    return warnings
+
+
+def _label(rec, column: str) -> str:
+    data = rec.meta.get("data")
+    if isinstance(data, dict):
+        return f"[data] {column} ({data.get(column, '?')})"
+    return f"{data} column {column}"
+
+
+def _check_positions(where, label, y) -> list[str]:
+    extent = float(max(np.max(np.abs(y)), np.ptp(y)))
+    if extent > ABSURD_TRACK_LENGTHS * TRACK_LENGTH:
+        units = [(u, f) for u, f in (("cm", 100), ("mm", 1000)) if extent / f <= TRACK_LENGTH]
+        if len(units) == 2:
+            guess = "recorded in cm (or mm)? divide by 100 (or 1000) for metres"
+        elif units:
+            guess = f"recorded in {units[0][0]}? divide by {units[0][1]} for metres"
+        else:
+            guess = "not a position in metres? convert it to metres"
+        raise UserError(
+            f"{where}: {label}: positions up to {extent:.4g} m on a {TRACK_LENGTH} m track: "
+            f"{guess} (docs/experiment-files.md: y is in m)"
+        )
+    if float(np.ptp(y)) > TRAVEL * 1.02:
+        return [
+            f"{where}: {label}: the cart moves over {float(np.ptp(y)):.3g} m, more than its "
+            f"{TRAVEL} m travel (the end stops); a run off the track, or positions not in m?"
+        ]
+    return []
+
+
+def _check_sample_time(where, ts) -> list[str]:
+    low, high = SAMPLE_TIME_RANGE
+    if low <= ts <= high:
+        return []
+    hint = " (time recorded in ms? give t in s)" if ts > high else ""
+    return [
+        f"{where}: sample time {ts:g} s is outside {low:g}-{high:g} s; the lab's loop runs at "
+        f"1 kHz (0.001 s){hint}"
+    ]
+
+
+def _voltage_range(rec, plant) -> float:
+    """The largest voltage the cart can have received [V] (see the module docstring)."""
+    from jaxcart.params import voltage_limit
+
+    limit = float(voltage_limit(plant, rec.controller))
+    if math.isfinite(limit):
+        return limit
+    if rec.command is not None:
+        return max(LAB_VOLTAGE, float(np.max(np.abs(rec.command))))
+    if rec.kind == "open_loop":
+        return max(LAB_VOLTAGE, float(np.max(np.abs(np.asarray(rec.experiment.signal)))))
+    return LAB_VOLTAGE
+
+
+def _differences(y, ts):
+    w = max(1, int(round(DIFF_WINDOW / ts)))
+    if y.size <= 2 * w:
+        return None, None
+    h = w * ts
+    velocity = (y[w:] - y[:-w]) / h
+    acceleration = (y[2 * w :] - 2 * y[w:-w] + y[: -2 * w]) / h**2
+    return velocity, acceleration
+
+
+def _check_motion(where, label, rec, plant, volts) -> list[str]:
+    y = np.asarray(rec.position, dtype=float)
+    velocity, acceleration = _differences(y, rec.sample_time)
+    if velocity is None:
+        return []
+    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    if rec.kind == "tap":
+        v_max = TRAVEL * c / m if c > 0 else math.inf
+        why = f"a tap coasting to rest within the {TRAVEL} m travel (travel c/m, c = {c:.3g} kg/s)"
+        limits = [("velocity", velocity, v_max, "m/s", why)]
+    else:
+        v_max = gamma * volts / c if c > 0 else math.inf
+        a_max = 2 * gamma * volts / m
+        limits = [
+            ("velocity", velocity, v_max, "m/s", f"gamma V/c at V = {volts:g} V"),
+            ("acceleration", acceleration, a_max, "m/s^2", f"2 gamma V/m at V = {volts:g} V"),
+        ]
+    out = []
+    for what, values, limit, unit, why in limits:
+        peak = float(np.max(np.abs(values)))
+        if peak > MARGIN * limit:
+            out.append(
+                f"{where}: {label}: {what} up to {peak:.3g} {unit}, {peak / limit:.3g} times "
+                f"what the cart can reach ({limit:.3g} {unit}, {why}); positions not in m, "
+                f"time not in s, or a wrong [plant]?"
+            )
+    return out
+
+
+def _check_command(where, label, rec) -> list[str]:
+    """The recorded command against the file's controller run on the recorded y and r."""
+    pid = rec.controller
+    u_rec = np.asarray(rec.command, dtype=float)
+    u_calc = controller_command(pid, np.asarray(rec.reference, float), rec.position)
+    u_rec = u_rec[: u_calc.size]
+    peak = float(np.max(np.abs(u_rec)))
+    if not math.isfinite(float(pid.v_limit)) and peak > 0:
+        # No software limit in the file: an unlisted amplifier limit shows as a flat top.
+        u_calc = np.clip(u_calc, -peak, peak)
+    tol = COMMAND_TOL_V + COMMAND_TOL_REL * peak
+    best = min(_median_gap(u_rec, u_calc, shift) for shift in (0, 1, -1))
+    if best <= tol or not math.isfinite(best):  # not finite: gains beyond range, said above
+        return []
+    gains = f"kp={float(pid.kp):g} ki={float(pid.ki):g} kd={float(pid.kd):g}"
+    scale = float(np.dot(u_rec, u_calc) / np.dot(u_calc, u_calc)) if np.any(u_calc) else 0.0
+    hint = f"; the recorded u is about {scale:.3g} times it" if abs(scale - 1) > 0.1 else ""
+    return [
+        f"{where}: {label}: the recorded u is not what {gains} (v_limit {float(pid.v_limit):g} V)"
+        f" produce from the recorded y and r (median difference {best:.3g} V{hint}): wrong "
+        f"gains or limit in [controller], or v in other units?"
+    ]
+
+
+def _median_gap(a, b, shift):
+    if shift > 0:
+        a, b = a[shift:], b[:-shift]
+    elif shift < 0:
+        a, b = a[:shift], b[-shift:]
+    return float(np.median(np.abs(a - b))) if a.size else math.inf
+
+
+#: The command check looks at the first samples only (the transient, where gains show); the
+#: exact loop (anti-windup makes the law nonlinear) at fewer, since it runs in Python.
+COMMAND_PREFIX = 100_000
+EXACT_PREFIX = 5_000
+
+
+def controller_command(pid, r, y) -> np.ndarray:
+    """The command u_k [V] the canonical PID (:mod:`hw.control_law`) sends for the recorded
+    r_k, y_k [m], over the first ``COMMAND_PREFIX`` samples: vectorized when the law is linear
+    up to its final clip (no anti-windup), else the exact loop over ``EXACT_PREFIX`` samples.
+    The array is that prefix."""
+    from hw.control_law import float_pid, pid_init, pid_update
+
+    pid = float_pid(pid)
+    r, y = np.asarray(r, float), np.asarray(y, float)
+    if pid.anti_windup != "none" and math.isfinite(pid.v_limit):
+        n = min(r.size, EXACT_PREFIX)
+        state = pid_init(pid, float(r[0]), float(y[0]))
+        out = np.empty(n)
+        for k in range(n):
+            out[k], _, state = pid_update(pid, state, float(r[k]), float(y[k]))
+        return out
+    r, y = r[:COMMAND_PREFIX], y[:COMMAND_PREFIX]
+    ts = pid.sample_time
+    e = r - y
+    s = e if pid.derivative_on == "error" else -y
+    integral = ts * np.concatenate([[0.0], np.cumsum(e[:-1])])
+    # d_k = a d_{k-1} + b (s_k - s_{k-1}), d_-1 = 0, s_-1 = s_0: a convolution with b a^j,
+    # cut where a^j < 1e-17 (below float64 rounding).
+    a, b = pid.tau / (pid.tau + ts), 1.0 / (pid.tau + ts)
+    taps = 1 if a == 0 else min(e.size, int(math.ceil(math.log(1e-17) / math.log(a))) + 1)
+    kernel = b * a ** np.arange(taps)
+    d = np.convolve(np.diff(s, prepend=s[0]), kernel)[: e.size]
+    return np.clip(pid.kp * e + pid.ki * integral + pid.kd * d, -pid.v_limit, pid.v_limit)
+
+
+# ---------------------------------------------------------------- controllers
+
+
+def plant_matrices(plant, ts):
+    """The nominal plant's zero-order-hold discretization (Ad, Bd) for x = [y, y'] [m, m/s]
+    and the held voltage [V]: m y'' + c y' = gamma u, effects left out (exact exponential)."""
+    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    a = c / m
+    e = math.exp(-a * ts)
+    if a * ts > 1e-8:
+        phi1 = (1 - e) / a  # integral of exp(-a s) over [0, ts]
+        phi2 = (ts - phi1) / a  # double integral
+    else:
+        phi1, phi2 = ts - a * ts**2 / 2, ts**2 / 2 - a * ts**3 / 6
+    ad = np.array([[1.0, phi1], [0.0, e]])
+    bd = (gamma / m) * np.array([phi2, phi1])
+    return ad, bd
+
+
+def closed_loop_matrix(pid, plant) -> np.ndarray:
+    """The 5 x 5 matrix of the discrete closed loop (r = 0, no limit): state [y, y', I, d_{k-1},
+    s_{k-1}] of the plant and the canonical PID (derivative on error and on measurement have
+    the same loop when r = 0)."""
+    ts = float(pid.sample_time)
+    kp, ki, kd, tau = (float(pid.kp), float(pid.ki), float(pid.kd), float(pid.tau))
+    ad, bd = plant_matrices(plant, ts)
+    cy = np.array([1.0, 0.0, 0.0, 0.0, 0.0])  # y_k
+    # d_k = (tau d_{k-1} + s_k - s_{k-1}) / (tau + Ts), s_k = e_k = -y_k
+    d_row = np.array([-1.0, 0.0, 0.0, tau, -1.0]) / (tau + ts)
+    u_row = -kp * cy + ki * np.eye(5)[2] + kd * d_row
+    a = np.zeros((5, 5))
+    a[:2, :2] = ad
+    a[:2, :] += np.outer(bd, u_row)
+    a[2] = np.eye(5)[2] - ts * cy
+    a[3] = d_row
+    a[4] = -cy
+    return a
+
+
+def closed_loop_eigenvalues(pid, plant) -> np.ndarray:
+    """Eigenvalues of :func:`closed_loop_matrix` (discrete time, |z| < 1 stable); all inf
+    when gains beyond float range (1e308) make the matrix overflow."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        a = closed_loop_matrix(pid, plant)
+    if not np.all(np.isfinite(a)):
+        return np.full(5, np.inf + 0j)
+    return np.linalg.eigvals(a)
+
+
+def check_controller(pid, plant, *, where: str = "controller") -> list[str]:
+    """Warnings (strings) for an unstable or implausible PID on ``plant``'s linear part."""
+    from jaxcart.params import voltage_limit
+
+    gains = f"kp={float(pid.kp):g} ki={float(pid.ki):g} kd={float(pid.kd):g}"
+    if not all(math.isfinite(float(getattr(pid, k))) for k in ("kp", "ki", "kd", "tau")):
+        return [f"{where}: {gains}: not finite"]
+    z = closed_loop_eigenvalues(pid, plant)
+    if not np.all(np.isfinite(z)):
+        return [f"{where}: {gains}: gains beyond any cart (the loop overflows float64)"]
+    out = []
+    worst = z[np.argmax(np.abs(z))]
+    if abs(worst) > 1 + UNIT_CIRCLE_TOL:
+        out.append(
+            f"{where}: {gains} make the loop unstable on the nominal plant (discrete eigenvalue "
+            f"{_complex(worst)}, |z| = {abs(worst):.4g} > 1): the cart runs away, or oscillates "
+            f"where a voltage limit holds it; check the gains' signs and sizes"
+        )
+    volts = float(voltage_limit(plant, pid))
+    volts = volts if math.isfinite(volts) else LAB_VOLTAGE
+    q = ENCODER_RESOLUTION
+    kp, kd, ts = abs(float(pid.kp)), abs(float(pid.kd)), float(pid.sample_time)
+    if kp * q > volts:
+        out.append(
+            f"{where}: kp={float(pid.kp):g} V/m is implausible: one encoder count ({q:g} m) "
+            f"already asks {kp * q:.3g} V, beyond the {volts:g} V range, so the loop acts as a "
+            f"relay; the lab's gains are 10-250 V/m"
+        )
+    if kd * q / (float(pid.tau) + ts) > volts:
+        out.append(
+            f"{where}: kd={float(pid.kd):g} V s/m is implausible with tau = {float(pid.tau):g} s:"
+            f" one encoder count swings the derivative term by "
+            f"{kd * q / (float(pid.tau) + ts):.3g} V, beyond the {volts:g} V range"
+        )
+    fast = z[(np.abs(z) > 0.5) & (np.abs(np.angle(z)) > 2 * math.pi * MAX_MODE_FRACTION)]
+    if fast.size and abs(worst) <= 1 + UNIT_CIRCLE_TOL:
+        f_mode = float(np.max(np.abs(np.angle(fast)))) / (2 * math.pi * ts)
+        out.append(
+            f"{where}: {gains} give a closed-loop mode at {f_mode:.0f} Hz, beyond what the "
+            f"{1 / ts:g} Hz loop resolves ({MAX_MODE_FRACTION / ts:g} Hz): implausible gains"
+        )
+    return out
+
+
+def _complex(z) -> str:
+    z = complex(z)
+    if abs(z.imag) < 1e-12 * max(1.0, abs(z)):
+        return f"{z.real:.5g}"
+    return f"{z.real:.5g} {'+' if z.imag >= 0 else '-'} j{abs(z.imag):.5g}"
+
+
+def check_track(response, where: str) -> list[str]:
+    """A warning when a simulated cart leaves the track: |y - y0| beyond the travel [m]."""
+    y = np.asarray(response.position, dtype=float)
+    if y.ndim != 1 or y.size == 0:
+        return []
+    excursion = float(np.max(np.abs(y - y[0])))
+    if excursion <= TRAVEL:
+        return []
+    k = int(np.argmax(np.abs(y - y[0]) > TRAVEL))
+    t = float(np.asarray(response.time)[k])
+    return [
+        f"{where}: the simulated cart leaves the track: |y - y0| reaches {excursion:.3g} m "
+        f"(beyond the {TRAVEL} m travel from t = {t:.3g} s); the real cart would hit the end "
+        f"stop"
+    ]

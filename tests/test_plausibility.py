@@ -1,0 +1,228 @@
+"""Physical sense of recordings and controllers (jaxcart.plausibility), outputs checked before a
+run (jaxcart.outputs.check_writable) and long runs (jaxcart.longrun)."""
+
+import io
+import shutil
+from pathlib import Path
+
+import control
+import jax
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart import longrun, plausibility
+from jaxcart.errors import UserError
+from jaxcart.files import read_experiment
+from jaxcart.outputs import check_writable
+
+DATA = Path(jc.__file__).parent / "data"
+#: Eigenvalues of the closed loop against python-control's (a 4th-order loop with roots near
+#: z = 1; both are eigenvalues of well-scaled matrices).
+EIG_TOL = 1e-9
+#: The chunked run repeats the same steps as one scan: the same floats up to XLA's fusion.
+CHUNKED_TOL = 1e-12
+
+simulate = jax.jit(jc.simulate)
+
+
+def _copy(tmp_path, name):
+    for suffix in (".toml", ".csv"):
+        shutil.copy(DATA / f"{name}{suffix}", tmp_path / f"{name}{suffix}")
+    return tmp_path / f"{name}.toml"
+
+
+def _scale_column(path, column, factor):
+    text = path.read_text().splitlines()
+    header = text[0].split(",")
+    i = header.index(column)
+    rows = [line.split(",") for line in text[1:]]
+    for row in rows:
+        row[i] = repr(float(row[i]) * factor)
+    path.write_text("\n".join([text[0]] + [",".join(r) for r in rows]) + "\n")
+
+
+# ---------------------------------------------------------------- controllers
+
+
+def _control_poles(pid, plant):
+    """Poles of the same loop built with python-control: the plant discretized by its c2d
+    (zero-order hold), the PID as its transfer function in z, unity feedback."""
+    ts = pid.sample_time
+    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    cart = control.ss([[0, 1], [0, -c / m]], [[0], [gamma / m]], [[1, 0]], [[0]])
+    cart_d = control.c2d(cart, ts, method="zoh")
+    z = control.tf([1, 0], [1], ts)
+    law = pid.kp + pid.ki * ts / (z - 1) + pid.kd * (z - 1) / ((pid.tau + ts) * z - pid.tau)
+    loop = control.feedback(control.tf2ss(law) * cart_d, 1)
+    return np.sort_complex(np.linalg.eigvals(loop.A))
+
+
+@pytest.mark.parametrize(
+    "gains",
+    [
+        dict(kp=40.0, kd=5.0, ki=5.0),
+        dict(kp=250.0, kd=15.0, ki=30.0),
+        dict(kp=-100.0, ki=1.0, kd=0.5),
+    ],
+)
+def test_closed_loop_eigenvalues_match_python_control(gains):
+    pid, plant = jc.PID(v_limit=6.0, **gains), jc.handout_plant(B_eq=4.6)
+    ours = plausibility.closed_loop_eigenvalues(pid, plant)
+    # Our 5-state form carries s_{k-1} and d_{k-1}: one extra eigenvalue at 0.
+    ours = np.sort_complex(np.delete(ours, np.argmin(np.abs(ours))))
+    np.testing.assert_allclose(ours, _control_poles(pid, plant), rtol=0, atol=EIG_TOL)
+
+
+def test_unstable_and_implausible_controllers_are_flagged_lab_gains_are_not():
+    plant = jc.handout_plant()
+    for gains in (dict(kp=40.0, kd=5.0, ki=5.0), dict(kp=100.0, kd=6.0), dict(kp=250.0, kd=15.0)):
+        assert plausibility.check_controller(jc.PID(v_limit=6.0, **gains), plant) == []
+    (unstable,) = plausibility.check_controller(jc.PID(kp=-100.0, v_limit=6.0), plant)
+    assert "unstable" in unstable and "kp=-100" in unstable and "|z| = 1.0" in unstable
+    # The eigenvalue says what a simulation of the linear loop (no limit) shows: growth.
+    res = simulate(plant, jc.PID(kp=-100.0), jc.step(0.01, horizon=3.0))  # shares a compile
+    z = np.max(np.abs(plausibility.closed_loop_eigenvalues(jc.PID(kp=-100.0), plant)))
+    y = np.abs(np.asarray(res.position))
+    growth = (y[1000] / y[800]) ** (1 / 200)  # per sample, once the unstable mode dominates
+    assert abs(growth - z) < 1e-4
+    big = plausibility.check_controller(jc.PID(kp=1e6, v_limit=6.0), plant)
+    assert any("implausible" in m and "encoder count" in m and "relay" in m for m in big)
+    fast = plausibility.check_controller(jc.PID(kp=200.0, kd=3000.0, tau=0.0), plant)
+    assert any("kd=3000" in m and "implausible" in m for m in fast)
+
+
+# ---------------------------------------------------------------- recordings
+
+
+def test_built_in_and_real_recordings_read_without_warnings(realdata, capsys):
+    names = [p for p in DATA.glob("*.toml") if p.name != "lab.toml"]
+    for path in names + sorted(Path(realdata).glob("*.toml")):
+        rec = read_experiment(path)
+        assert rec.warnings == (), (path, rec.warnings)
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_positions_in_mm_are_one_line_errors(tmp_path):
+    path = _copy(tmp_path, "tap")
+    _scale_column(tmp_path / "tap.csv", "y", 1000.0)
+    with pytest.raises(UserError) as err:
+        read_experiment(path)
+    msg = str(err.value)
+    assert "\n" not in msg and str(path) in msg and "column y" in msg
+    assert "recorded in mm? divide by 1000" in msg and "0.99 m track" in msg
+    # In cm: the message names cm.
+    _scale_column(tmp_path / "tap.csv", "y", 0.1)
+    with pytest.raises(UserError, match=r"recorded in cm \(or mm\)\? divide by 100"):
+        read_experiment(path)
+
+
+def test_motion_beyond_the_cart_and_a_fast_clock_are_warnings(tmp_path, capsys):
+    path = _copy(tmp_path, "tap")
+    _scale_column(tmp_path / "tap.csv", "t", 0.1)
+    path.write_text(path.read_text().replace("sample_time = 0.001", "sample_time = 0.0001"))
+    rec = read_experiment(path)
+    (warning,) = rec.warnings
+    # A tap coasts to rest within the travel: v(0) <= travel c / m (unplugged: c = B_eq).
+    plant = rec.plant()
+    limit = 0.814 * float(plant.c) / float(plant.m)
+    assert "velocity up to" in warning and f"{limit:.3g} m/s" in warning
+    err = capsys.readouterr().err
+    assert err.count("warning:") == 1
+    read_experiment(path)  # printed once per process
+    assert "warning" not in capsys.readouterr().err
+    slow = _copy(tmp_path, "p10")
+    _scale_column(tmp_path / "p10.csv", "t", 100.0)
+    slow.write_text(slow.read_text().replace("sample_time = 0.001", "sample_time = 0.1"))
+    assert any("time recorded in ms" in w for w in read_experiment(slow).warnings)
+
+
+def test_recorded_command_checked_against_the_files_controller(tmp_path):
+    path = _copy(tmp_path, "p50")
+    assert read_experiment(path).warnings == ()
+    rec = read_experiment(path)
+    # The vectorized command is the canonical control law's, sample by sample.
+    from hw.control_law import float_pid, pid_init, pid_update
+
+    pid = float_pid(jc.PID(kp=50.0, kd=2.0, ki=3.0, v_limit=6.0))
+    state, ref = pid_init(pid, rec.reference[0], rec.position[0]), []
+    for r, y in zip(rec.reference, rec.position, strict=True):
+        u, _, state = pid_update(pid, state, r, y)
+        ref.append(u)
+    ours = plausibility.controller_command(pid, rec.reference, rec.position)
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)
+    path.write_text(path.read_text().replace("kp = 50.0", "kp = 80.0"))
+    (warning,) = read_experiment(path).warnings
+    assert "recorded u is not what kp=80" in warning and "wrong gains" in warning
+    path.write_text(path.read_text().replace("kp = 80.0", "kp = 50.0"))
+    _scale_column(tmp_path / "p50.csv", "v", 1000.0)  # v in mV
+    (warning,) = read_experiment(path).warnings
+    assert "about 1e+03 times" in warning
+
+
+def test_simulated_cart_leaving_the_track_is_flagged():
+    res = simulate(jc.handout_plant(), jc.PID(kp=-100.0, v_limit=6.0), jc.step(0.5, horizon=3.0))
+    (warning,) = plausibility.check_track(res, "run")
+    assert "leaves the track" in warning and "0.814 m travel" in warning
+    ok = simulate(jc.handout_plant(), jc.PID(kp=40.0, kd=5.0, v_limit=6.0), jc.step(0.5))
+    assert plausibility.check_track(ok, "run") == []
+
+
+# ---------------------------------------------------------------- outputs
+
+
+def test_check_writable(tmp_path):
+    (tmp_path / "file").write_text("x")
+    assert check_writable(tmp_path / "new" / "a.csv", suffixes=(".csv",)) == tmp_path / "new/a.csv"
+    cases = [
+        (tmp_path / "file" / "a.csv", "is a file, so nothing can be written under it"),
+        (tmp_path / "a.txt", "unknown suffix '.txt'; give a name ending in .csv"),
+        (tmp_path, "is a folder"),
+    ]
+    for path, expected in cases:
+        with pytest.raises(UserError, match=expected) as err:
+            check_writable(path, suffixes=(".csv",), option="--out")
+        assert str(err.value).startswith(f"--out {path}") and "\n" not in str(err.value)
+    (tmp_path / "old.csv").write_text("mine")
+    with pytest.raises(UserError, match="exists; choose another name or pass --force"):
+        check_writable(tmp_path / "old.csv", force=False)
+    assert (tmp_path / "old.csv").read_text() == "mine"
+    ro = Path("/proc/jaxcart-test/a.csv")  # a file system nobody writes to, root included
+    if Path("/proc").is_dir():
+        with pytest.raises(UserError, match="not writable"):
+            check_writable(ro)
+
+
+# ---------------------------------------------------------------- long runs
+
+
+def test_chunked_run_is_the_same_run_and_reports_progress():
+    plant, pid = jc.handout_plant(), jc.PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0)
+    exp = jc.step(0.5, horizon=3.0)  # the compile of the other tests' runs
+    out = io.StringIO()
+    chunked = longrun.simulate_chunked(plant, pid, exp, chunk=1024, out=out)
+    whole = simulate(plant, pid, exp)
+    for field in ("position", "velocity", "command", "voltage", "error"):
+        np.testing.assert_allclose(
+            getattr(chunked, field), np.asarray(getattr(whole, field)), rtol=0, atol=CHUNKED_TOL
+        )
+    assert "simulate: 100% (3001 of 3001 samples" in out.getvalue()
+    assert (
+        longrun.announce(100.0, 10**8, 5, 0.001, out) and "--horizon to shorten" in out.getvalue()
+    )
+    assert not longrun.announce(1.0, 100, 5, 0.001, out)
+
+
+def test_long_runs_refused_before_they_start(monkeypatch):
+    monkeypatch.setattr(longrun, "memory_budget", lambda: 1e6)
+    with pytest.raises(UserError, match=r"--horizon 100: 1e\+05 samples need about 12.8 MB"):
+        longrun.check_size(100_001, 0.001, "--horizon 100")
+
+
+def test_thinned_curves_keep_their_envelope():
+    rng = np.random.default_rng(1)
+    y = np.cumsum(rng.normal(size=100_000))
+    v = rng.normal(size=y.size)
+    keep = longrun.thin_indices(y.size, y, v, points=2000)
+    assert keep.size <= 2100 and keep[0] == 0 and keep[-1] == y.size - 1
+    assert y[keep].max() == y.max() and y[keep].min() == y.min() and v[keep].max() == v.max()
