@@ -1,5 +1,5 @@
-"""Many runs in one call: step metrics for a batch of gain triples (or plants), chunked so the
-working set stays in cache, sharded over every JAX device.
+"""Many runs in one call: step metrics for a batch of gain triples, chunked so the working set
+stays in cache, sharded over every local device by :func:`jaxcart.parallel.map_blocks`.
 
 Devices come from :mod:`jaxcart.parallel` (on a CPU, :func:`jaxcart.parallel.use_cpu_devices`
 splits the cores into devices before JAX starts, as the command line does).
@@ -18,60 +18,51 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
 
+from jaxcart import parallel
 from jaxcart.metrics import StepInfo, step_metrics
 from jaxcart.smooth import EXACT_FORMS
 
 #: Runs per chunk: 4096 lanes x ~10 state values fit in L2; measured best on 2 cores.
 DEFAULT_CHUNK = 4096
+#: Chunks per device in one host-side block: bounds the device working set of a large batch.
+CHUNKS_PER_CALL = 64
+
+_FNS: dict = {}
 
 
-def _metrics_fn(plant, base, experiment, smoothing, substeps):
-    def one(gains):
-        controller = dataclasses.replace(base, kp=gains[0], kd=gains[1], ki=gains[2])
-        return step_metrics(plant, controller, experiment, smoothing=smoothing, substeps=substeps)
-
-    return jax.vmap(one)
-
-
-_CACHE: dict = {}
-
-
-def _compiled(plant, base, experiment, smoothing, substeps, chunk, n_dev, dtype):
-    """One jitted, sharded evaluator per static configuration (cached: no re-tracing)."""
+def _metrics_fn(plant, base, experiment, smoothing, substeps, worst):
+    """``fn(gains, plant, base, experiment)`` for one gain triple (``worst``: the field-wise
+    worst over a stacked plant set); one object per static configuration, so
+    :func:`jaxcart.parallel.sharded_map` reuses its compilation."""
     # Smoothing is baked in (not an argument): widths known to be 0 select the exact forms.
     widths = tuple(float(w) for w in jax.tree_util.tree_leaves(smoothing))
-    key = (
-        jax.tree_util.tree_structure((plant, base, experiment)),
-        widths,
-        substeps,
-        chunk,
-        n_dev,
-        dtype,
-    )
-    if key in _CACHE:
-        return _CACHE[key]
-    mesh = Mesh(np.array(jax.devices()[:n_dev]), ("batch",))
+    key = (jax.tree_util.tree_structure((plant, base, experiment)), widths, substeps, worst)
+    if key not in _FNS:
 
-    def local(plant, base, experiment, gains):
-        f = _metrics_fn(plant, base, experiment, smoothing, substeps)
-        blocks = gains.reshape(-1, chunk, 3)
-        out = jax.lax.map(f, blocks)
-        return jax.tree_util.tree_map(lambda a: a.reshape(-1), out)
+        def one(gains, plant, base, experiment):
+            controller = dataclasses.replace(base, kp=gains[0], kd=gains[1], ki=gains[2])
+            return step_metrics(
+                plant, controller, experiment, smoothing=smoothing, substeps=substeps
+            )
 
-    rep = P()
-    sharded = jax.shard_map(
-        local,
-        mesh=mesh,
-        in_specs=(rep, rep, rep, P("batch")),
-        out_specs=P("batch"),
-        check_vma=False,
-    )
-    fn = jax.jit(sharded)
-    _CACHE[key] = (fn, NamedSharding(mesh, P("batch")))
-    return _CACHE[key]
+        def over_plants(gains, plants, base, experiment):
+            info = jax.vmap(one, in_axes=(None, 0, None, None))(gains, plants, base, experiment)
+            return StepInfo(
+                *(jnp.any(v) if k == "diverged" else jnp.max(v) for k, v in info._asdict().items())
+            )
+
+        _FNS[key] = over_plants if worst else one
+    return _FNS[key]
+
+
+def stack_plants(plants):
+    """One plant pytree whose leaves have a leading plant axis (the plants must share their
+    effects); a clear error otherwise."""
+    structures = {jax.tree_util.tree_structure(p) for p in plants}
+    if len(structures) != 1:
+        raise ValueError("a plant set must share its effects (one pytree structure)")
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *plants)
 
 
 def step_metrics_batch(
@@ -88,10 +79,12 @@ def step_metrics_batch(
 ) -> StepInfo:
     """:class:`StepInfo` arrays for each row (kp, kd, ki) of ``gains`` (shape (B, 3)).
 
-    The other controller settings come from ``controller``. Default ``smoothing`` is the
+    ``plant``: one plant, or a list of plants (a plant set): then every metric is the worst
+    over the set (the largest value; diverged if any diverged). The other controller settings
+    come from ``controller``. Default ``smoothing`` is the
     exact forms (hard clip): the grid reports what the real loop would do. ``dtype`` casts the
     computation (``jnp.float32`` for speed). Memory is bounded: gains are processed in
-    super-batches of at most 64 chunks per device. ``progress(done, total)`` is called after each.
+    blocks of at most 64 chunks per device. ``progress(done, total)`` is called after each.
     """
     gains = np.asarray(gains)
     if gains.ndim != 2 or gains.shape[1] != 3:
@@ -99,34 +92,26 @@ def step_metrics_batch(
     dtype = jnp.dtype(dtype or jnp.result_type(float))
     # float64 needs x64 on; enable it here rather than silently computing in float32.
     with jax.enable_x64(dtype == jnp.float64 or bool(jax.config.jax_enable_x64)):
-        return _run(
-            plant, controller, experiment, gains, smoothing, substeps, chunk, dtype, progress
+        cast = _caster(dtype)
+        worst = isinstance(plant, list | tuple)
+        plant = stack_plants([cast(p) for p in plant]) if worst else cast(plant)
+        controller, experiment = cast(controller), cast(experiment)
+        n_dev = len(parallel.devices())
+        total = gains.shape[0]
+        # One chunk size for every block of this batch (the last block is padded to it).
+        chunk = int(min(chunk, max(8, -(-total // n_dev))))
+        fn = _metrics_fn(plant, controller, experiment, smoothing, substeps, worst)
+        out = parallel.map_blocks(
+            fn,
+            gains.astype(dtype),
+            plant,
+            controller,
+            experiment,
+            chunk=chunk,
+            block=chunk * n_dev * CHUNKS_PER_CALL,
+            progress=progress,
         )
-
-
-def _run(plant, controller, experiment, gains, smoothing, substeps, chunk, dtype, progress):
-    cast = _caster(dtype)
-    plant, controller, experiment = cast(plant), cast(controller), cast(experiment)
-    n_dev = len(jax.devices())
-    total = gains.shape[0]
-    chunk = int(min(chunk, max(8, -(-total // n_dev))))
-    unit = chunk * n_dev
-    per_call = unit * 64
-    fn, sharding = _compiled(
-        plant, controller, experiment, smoothing, substeps, chunk, n_dev, jnp.dtype(dtype).name
-    )
-    pieces = []
-    for start in range(0, total, per_call):
-        block = gains[start : start + per_call]
-        padded = -(-block.shape[0] // unit) * unit
-        block = np.concatenate([block, np.repeat(block[-1:], padded - block.shape[0], 0)])
-        block = jax.device_put(jnp.asarray(block, dtype=dtype), sharding)
-        out = fn(plant, controller, experiment, block)
-        n = min(per_call, total - start)
-        pieces.append([np.asarray(a)[:n] for a in out])
-        if progress is not None:
-            progress(min(start + per_call, total), total)
-    return StepInfo(*(np.concatenate(parts) for parts in zip(*pieces, strict=True)))
+    return StepInfo(*out)
 
 
 def _caster(dtype):

@@ -12,6 +12,11 @@ chunks are sharded over the mesh. The batch is padded to a whole number of chunk
 padding dropped again, so any batch size works. Compiled functions are cached by
 ``(fn, chunk, devices)``: pass the same ``fn`` object to reuse them.
 
+Past one machine: :func:`cluster_settings` and :func:`init_distributed` join a
+``jax.distributed`` run (options, JAXCART_* variables, or SLURM / Open MPI); each process
+computes its :func:`partition` of the work on its own devices and :func:`publish` /
+:func:`fetch` carry results to process 0 through the runtime's key-value store.
+
 >>> import jax.numpy as jnp
 >>> square = sharded_map(lambda x, k: k * x**2)
 >>> [float(v) for v in square(jnp.arange(5.0), 2.0)]
@@ -83,14 +88,18 @@ def padded_size(n: int, chunk: int, n_dev: int) -> int:
 
 
 def pad(batch, size: int):
-    """Pad every leaf's leading axis to ``size`` by repeating its last item (a valid input)."""
+    """Pad every leaf's leading axis to ``size`` by repeating its last item (a valid input).
+
+    Host (numpy) leaves are padded on the host, so a large batch never lands on one device
+    before it is split over the mesh."""
 
     def leaf(a):
-        a = jnp.asarray(a)
+        xp = np if isinstance(a, np.ndarray) else jnp
+        a = xp.asarray(a)
         extra = size - a.shape[0]
         if extra <= 0:
             return a
-        return jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)])
+        return xp.concatenate([a, xp.repeat(a[-1:], extra, axis=0)])
 
     return jax.tree.map(leaf, batch)
 
@@ -106,16 +115,20 @@ def batch_size(batch) -> int:
 _COMPILED: dict = {}
 
 
-def sharded_map(fn: Callable, *, chunk: int | None = None, devs: list | None = None) -> Callable:
+def sharded_map(
+    fn: Callable, *, chunk: int | None = None, devs: list | None = None, cache: bool = True
+) -> Callable:
     """``run(batch, *shared)``: ``vmap(fn)`` over ``batch``'s leading axis, sharded.
 
     ``chunk``: most items one device evaluates at once (default: the whole per-device share,
     i.e. a single vmap); smaller chunks bound memory, e.g. of a backward pass. ``shared``
     arguments are replicated. The result is a pytree of arrays with the batch's leading size.
+    ``cache=False`` for a one-off ``fn`` (a closure over one problem's data): the caller keeps
+    the returned function, and it is freed with it.
     """
     devs = list(devs or devices())
     key = (fn, chunk, tuple(d.id for d in devs))
-    if key in _COMPILED:
+    if cache and key in _COMPILED:
         return _COMPILED[key]
     m = mesh(devs)
     n_dev = len(devs)
@@ -149,7 +162,8 @@ def sharded_map(fn: Callable, *, chunk: int | None = None, devs: list | None = N
         out = compiled(len(shared), step)(padded, *shared)
         return jax.tree.map(lambda a: a[:n], out)
 
-    _COMPILED[key] = run
+    if cache:
+        _COMPILED[key] = run
     return run
 
 
@@ -163,21 +177,176 @@ def map_blocks(
 ):
     """:func:`sharded_map` over ``batch`` in host-side blocks of at most ``block`` items,
     returned as numpy arrays: memory stays bounded by the block whatever the batch size.
+    A short last block is padded to the full block, so every block runs one compiled program.
     ``progress(done, total)`` is called after each block."""
     run = sharded_map(fn, chunk=chunk)
     total = batch_size(batch)
-    block = block or total
+    block = min(block or total, total)
     pieces = []
     for start in range(0, total, block):
         part = jax.tree.map(lambda a, s=start: a[s : s + block], batch)
-        pieces.append(jax.tree.map(np.asarray, run(part, *shared)))
+        n = min(block, total - start)
+        out = run(pad(part, block), *shared)
+        pieces.append(jax.tree.map(lambda a, n=n: np.asarray(a)[:n], out))
         if progress is not None:
-            progress(min(start + block, total), total)
+            progress(start + n, total)
     return jax.tree.map(lambda *xs: np.concatenate(xs), *pieces)
+
+
+# ---------------------------------------------------------------- past one machine
+#
+# jax.distributed (JAX's multi-controller runtime) joins N processes, one per host or GPU
+# group. Each computes on its own local devices (devices() above) the share of the blocks that
+# partition() gives it; results reach process 0 through the runtime's key-value store
+# (publish / fetch), so no shared file system is needed.
+
+#: Environment variables read when the options are not given (then SLURM / Open MPI).
+ENV = {
+    "coordinator": "JAXCART_COORDINATOR",
+    "num_processes": "JAXCART_NUM_PROCESSES",
+    "process_id": "JAXCART_PROCESS_ID",
+}
+
+
+def cluster_settings(coordinator=None, num_processes=None, process_id=None, environ=None):
+    """``(coordinator, num_processes, process_id)`` from the options, else the JAXCART_*
+    variables; ``"auto"`` when none is set but a scheduler (SLURM, Open MPI) started several
+    processes (jax.distributed detects the rest); ``None`` for a single process.
+
+    A clear :class:`jaxcart.errors.UserError` names a bad or missing setting."""
+    from jaxcart.errors import UserError
+
+    env = os.environ if environ is None else environ
+    given = {"coordinator": coordinator, "num_processes": num_processes, "process_id": process_id}
+    where = {}
+    for name, value in given.items():
+        where[name] = f"--{name.replace('_', '-')}"
+        if value is None and env.get(ENV[name], "").strip():
+            given[name], where[name] = env[ENV[name]].strip(), ENV[name]
+    if all(v is None for v in given.values()):
+        if _scheduler_processes(env) > 1:
+            return "auto"
+        return None
+    missing = [f"--{n.replace('_', '-')} (or {ENV[n]})" for n, v in given.items() if v is None]
+    if missing:
+        raise UserError(f"a distributed run needs {', '.join(missing)} as well")
+    host, _, port = str(given["coordinator"]).rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise UserError(
+            f"{where['coordinator']} {given['coordinator']!r}: give HOST:PORT of process 0, "
+            "e.g. node0:12345"
+        )
+    try:
+        n = int(given["num_processes"])
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise UserError(
+            f"{where['num_processes']} {given['num_processes']!r}: give a whole number >= 1"
+        )
+    try:
+        i = int(given["process_id"])
+    except ValueError:
+        i = -1
+    if not 0 <= i < n:
+        raise UserError(
+            f"{where['process_id']} {given['process_id']!r}: give a whole number from 0 to {n - 1}"
+        )
+    return None if n == 1 else (str(given["coordinator"]), n, i)
+
+
+def _scheduler_processes(env) -> int:
+    # Set by mpirun and by srun for each task of a job step (not by salloc/sbatch alone,
+    # where one process runs the command and must not wait for partners).
+    for name in ("OMPI_COMM_WORLD_SIZE", "SLURM_STEP_NUM_TASKS"):
+        if env.get(name, "").isdigit():
+            return int(env[name])
+    return 1
+
+
+def init_distributed(settings, *, timeout_s: int = 300) -> bool:
+    """Join the cluster of :func:`cluster_settings` (before any computation); True when this
+    process is one of several. Safe to call twice."""
+    from jax._src import distributed as _dist  # the runtime's state: was it started?
+
+    from jaxcart.errors import UserError
+
+    if settings is None:
+        return False
+    if _dist.global_state.client is not None:
+        return True
+    try:
+        if settings == "auto":
+            jax.distributed.initialize(initialization_timeout=timeout_s)
+        else:
+            coordinator, n, i = settings
+            jax.distributed.initialize(coordinator, n, i, initialization_timeout=timeout_s)
+    except Exception as exc:  # the runtime raises XlaRuntimeError, RuntimeError, ValueError
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        what = "the cluster" if settings == "auto" else f"{settings[0]} as process {settings[2]}"
+        raise UserError(
+            f"cannot join {what}: {first[:200]}; start process 0 first and check the address"
+        ) from None
+    return True
+
+
+def process_index() -> int:
+    """This process's index in a distributed run (0 alone)."""
+    return jax.process_index()
+
+
+def process_count() -> int:
+    """Number of processes in a distributed run (1 alone)."""
+    return jax.process_count()
+
+
+def partition(n_items: int, index: int | None = None, count: int | None = None) -> range:
+    """Items (e.g. grid blocks) this process computes: every ``count``-th from ``index``
+    (round robin balances the load and gives process 0 the first item)."""
+    index = process_index() if index is None else index
+    count = process_count() if count is None else count
+    return range(index, n_items, count)
+
+
+def _client():
+    from jax._src import distributed as _dist
+
+    if _dist.global_state.client is None:
+        raise RuntimeError("no distributed runtime: call init_distributed first")
+    return _dist.global_state.client
+
+
+def publish(key: str, data: bytes) -> None:
+    """Store ``data`` under ``key`` in the distributed runtime (process 0 reads it)."""
+    _client().key_value_set_bytes(key, data)
+
+
+def fetch(key: str, timeout_s: float = 3600.0, *, delete: bool = True) -> bytes:
+    """The bytes another process published under ``key``, waiting up to ``timeout_s``."""
+    client = _client()
+    data = client.blocking_key_value_get_bytes(key, int(timeout_s * 1000))
+    if delete:
+        client.key_value_delete(key)
+    return data
+
+
+def barrier(name: str, timeout_s: float = 3600.0) -> None:
+    """Wait until every process reaches the barrier ``name``; no-op for a single process."""
+    if process_count() > 1:
+        _client().wait_at_barrier(name, int(timeout_s * 1000))
 
 
 __all__ = [
     "AXIS",
+    "ENV",
+    "barrier",
+    "cluster_settings",
+    "fetch",
+    "init_distributed",
+    "partition",
+    "process_count",
+    "process_index",
+    "publish",
     "batch_sharding",
     "batch_size",
     "devices",

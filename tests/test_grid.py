@@ -45,10 +45,11 @@ def reference(setup):
 
 @pytest.fixture(scope="module")
 def grids(setup):
-    """The small grid in float32 and float64."""
+    """The small grid in float32 and float64 (in blocks of 8 points: 3 blocks, the last
+    one short, reduced as they stream in)."""
     return {
-        name: grid.grid_search(*setup, KP, KD, KI, dtype=dtype, **SPEC)
-        for name, dtype in (("float32", jnp.float32), ("float64", jnp.float64))
+        name: grid.grid_search(*setup, KP, KD, KI, dtype=dtype, block=block, **SPEC)
+        for name, dtype, block in (("float32", jnp.float32, 64), ("float64", jnp.float64, 8))
     }
 
 
@@ -215,6 +216,9 @@ def test_command_writes_npz_and_png_and_never_overwrites(tmp_path, monkeypatch, 
     assert first.is_file() and png.read_bytes()[:4] == b"\x89PNG"
     for text in ("feasible:", "best gains:", "points/s", "grid.npz", "grid.png"):
         assert text in out
+    # The best kp is the grid's largest: said, with the advice; the blocks are cleaned up.
+    assert "on a bound: kp is at the upper end of its range (120); widen it" in out
+    assert not (tmp_path / "jaxcart-out/grid-blocks").exists()
     with np.load(first) as data:
         assert data["settling_time"].shape == (3, 3, 2) == data["feasible"].shape
         assert data["feasible"].sum() == int(out.split("feasible: ")[1].split()[0])
@@ -286,3 +290,118 @@ def test_cli_reports_bad_option_in_one_line(capsys):
     assert main(["grid", "--kp", "150:10:64"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("jaxcart grid: error: --kp '150:10:64'") and "\n" not in err
+
+
+# ---------------------------------------------------------------- blocks, checkpoints, streaming
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.fixture(scope="module")
+def blocked(grids):
+    """The small grid (18 points) in float64 in blocks of 8."""
+    return grids["float64"]
+
+
+def _assert_same(a, b):
+    for name in jc.StepInfo._fields:
+        np.testing.assert_array_equal(getattr(a.info, name), getattr(b.info, name), name)
+    np.testing.assert_array_equal(a.feasible, b.feasible)
+    assert (a.best_index, a.best_feasible, a.best_info) == (
+        b.best_index,
+        b.best_feasible,
+        b.best_info,
+    )
+
+
+def test_killed_run_resumes_from_its_blocks(setup, blocked, tmp_path, monkeypatch):
+    calls = []
+    real = grid.step_metrics_batch
+    monkeypatch.setattr(
+        grid, "step_metrics_batch", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+
+    def killed_after_one_block(done, total):
+        raise _Stop
+
+    run = dict(dtype=jnp.float64, block=8, checkpoint=tmp_path, **SPEC)
+    with pytest.raises(_Stop):
+        grid.grid_search(*setup, KP, KD, KI, progress=killed_after_one_block, **run)
+    (folder,) = tmp_path.iterdir()  # one folder, named by the problem's hash
+    assert len(list(folder.glob("block-*.npz"))) == 1 and len(calls) == 1
+    resumed = grid.grid_search(*setup, KP, KD, KI, **run)
+    assert len(calls) == 3  # only the two missing blocks were computed
+    _assert_same(resumed, blocked)
+    # The same problem built again reuses every block; a changed one (another step) none.
+    grid.grid_search(setup[0], setup[1], jc.step(0.5, horizon=1.5), KP, KD, KI, **run)
+    assert len(calls) == 3
+    grid.grid_search(setup[0], setup[1], jc.step(0.4, horizon=1.5), KP, KD, KI, **run)
+    assert len(calls) == 6 and len(list(tmp_path.iterdir())) == 2
+    resumed.store.remove()
+    assert not folder.exists()
+
+
+def test_streaming_reduction_equals_full_arrays(setup, blocked, tmp_path):
+    streamed = grid.grid_search(
+        *setup, KP, KD, KI, dtype=jnp.float64, block=8, keep_full=False, **SPEC
+    )
+    assert streamed.info is None and streamed.feasible is None
+    assert (streamed.best_index, streamed.best_info) == (blocked.best_index, blocked.best_info)
+    assert streamed.n_feasible == blocked.n_feasible
+    np.testing.assert_array_equal(blocked.ki_feasible, blocked.feasible.sum(axis=(0, 1)))
+    np.testing.assert_array_equal(streamed.ki_feasible, blocked.ki_feasible)
+    ts, ok = streamed.slices([1])
+    np.testing.assert_array_equal(ts, blocked.info.settling_time[:, :, [1]])
+    np.testing.assert_array_equal(ok, blocked.feasible[:, :, [1]])
+    # The .npz written block by block from the store holds the same arrays.
+    grid.save_npz(streamed, tmp_path / "s.npz")
+    grid.save_npz(blocked, tmp_path / "f.npz")
+    with np.load(tmp_path / "s.npz") as s, np.load(tmp_path / "f.npz") as f:
+        assert sorted(s.files) == sorted(f.files)
+        for name in f.files:
+            np.testing.assert_array_equal(s[name], f[name], name)
+    assert grid.plot_slices(streamed) is not None
+
+
+def test_best_on_a_bound_is_flagged_with_advice(blocked, tmp_path):
+    inner = dataclasses.replace(blocked, best_index=(1, 1, 0))
+    assert grid.edge_notes(inner) == []
+    corner = dataclasses.replace(blocked, best_index=(2, 0, 0))
+    notes = grid.edge_notes(corner)
+    # kp at its top, kd at its bottom (1 > 0); ki at 0, a physical bound, is not flagged.
+    assert len(notes) == 2 and all("widen it" in n for n in notes)
+    assert notes[0].startswith("kp is at the upper end") and notes[1].startswith(
+        "kd is at the lower"
+    )
+    import json
+
+    grid.save_json(corner, tmp_path / "s.json")
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert doc["on_edge"] == notes and doc["best_gains"] == {"kp": 130.0, "kd": 1.0, "ki": 0.0}
+    assert "(on the range's bound: kp, kd)" in grid._title(corner)
+
+
+def test_figure_says_which_ki_slices_it_shows(blocked):
+    fig = grid.plot_slices(blocked)
+    assert "all 2 $k_i$ slices shown" in fig._suptitle.get_text()
+    many = dataclasses.replace(blocked, axes=(KP, KD, np.linspace(0.0, 30.0, 64)))
+    note = grid.slice_note(many, [0, 21, 42, 63])
+    assert note.startswith("$k_i$ slices shown: 4 of 64 (0, 10, 20, 30 V/(m s))")
+
+
+@pytest.mark.parametrize(
+    "argv, start",
+    [
+        (["--coordinator", "nohost", "--num-processes", "2", "--process-id", "0"], "--coordinator"),
+        (["--coordinator", "h:1", "--num-processes", "2", "--process-id", "5"], "--process-id"),
+        (["--block", "0"], "--block 0"),
+    ],
+)
+def test_cli_bad_distributed_options_in_one_line(capsys, argv, start):
+    from tuning.cli import main
+
+    assert main(["grid", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"jaxcart grid: error: {start}") and "\n" not in err

@@ -73,3 +73,23 @@ def test_batch_float32_close_to_float64():
 def test_batch_rejects_badly_shaped_gains():
     with pytest.raises(ValueError, match="shape"):
         step_metrics_batch(jc.handout_plant(), jc.PID(), jc.step(0.5), np.zeros((4, 2)))
+
+
+def test_batch_over_a_plant_set_is_the_worst_of_single_runs():
+    """Metrics over a plant set are the field-wise worst of each plant's stored run."""
+    plants = [jc.handout_plant().replace(B_eq=b) for b in (3.0, 5.4, 7.0)]
+    gains = np.array([[40.0, 5.0, 0.0], [90.0, 3.0, 2.0]])
+    base, exp = jc.PID(v_limit=6.0), jc.step(0.5, horizon=1.5)
+    info = step_metrics_batch(plants, base, exp, gains)
+    for i, g in enumerate(gains):
+        pid = jc.PID(kp=g[0], kd=g[1], ki=g[2], v_limit=6.0)
+        refs = [
+            jc.step_info(jc.simulate(p, pid, exp, smoothing=jc.EXACT_FORMS), v_limit=6.0)
+            for p in plants
+        ]
+        for name in ("settling_time", "overshoot", "rise_time", "peak_voltage"):
+            worst = max(getattr(r, name) for r in refs)
+            assert getattr(info, name)[i] == pytest.approx(worst, abs=1e-9), name
+        assert info.diverged[i] == any(r.diverged for r in refs)
+    # The plants differ enough that the worst is not the nominal one's.
+    assert len({round(r.overshoot, 6) for r in refs}) == 3

@@ -8,8 +8,11 @@ overshoot < ``overshoot``, not diverged: :meth:`jaxcart.StepInfo.meets`).
 
 Memory stays bounded for any grid: the gains of a block of points are generated from the axes
 when the block is evaluated (the (B, 3) gain array of the whole grid is never built), each block
-goes through :func:`jaxcart.batch.step_metrics_batch` (chunked, sharded over every JAX device)
-and its metrics are written into preallocated arrays, about 30 bytes per point.
+goes through :func:`jaxcart.batch.step_metrics_batch` (chunked, sharded over every local
+device) and is kept by :mod:`tuning.gridrun` (checkpoint files, the share of each process of a
+distributed run, the streaming reduction). A grid of up to :data:`tuning.gridrun.FULL_LIMIT`
+points also keeps its metric arrays (about 30 bytes per point); a larger one keeps summaries.
+With a plant set (a list of plants) every metric is the worst over the set.
 
 >>> import numpy as np, jaxcart as jc
 >>> res = grid_search(jc.handout_plant(), jc.PID(v_limit=6.0), jc.step(0.5, horizon=1.5),
@@ -31,12 +34,10 @@ import numpy as np
 
 from jaxcart.batch import DEFAULT_CHUNK, step_metrics_batch
 from jaxcart.errors import UserError
+from jaxcart.longrun import duration_text
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth import EXACT_FORMS
-
-#: Chunks per device in one evaluated block: the progress granularity (65,536 points per
-#: block on 2 devices); also what bounds the working set beside the output arrays.
-CHUNKS_PER_BLOCK = 8
+from tuning import gridrun
 
 #: Metric names with their units, in the order they are reported.
 METRICS = {
@@ -56,8 +57,11 @@ class GridResult:
 
     info: :class:`jaxcart.StepInfo` of arrays, each of ``shape`` ((nkp, nkd, nki) for a grid,
         (B,) for a list): rise/settling/saturation time [s], overshoot [%], steady-state
-        error [m], peak voltage [V], diverged (bool)
-    feasible: bool array of ``shape``, True where the point meets the specification
+        error [m], peak voltage [V], diverged (bool); None for a grid too large to hold
+        (:data:`tuning.gridrun.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
+        blocks back from ``store``
+    feasible: bool array of ``shape``, True where the point meets the specification (None
+        with ``info``)
     best_index: index (into ``shape``) of the best feasible point (smallest settling time,
         ties broken by overshoot); when none is feasible, of the point closest to feasibility
     best_feasible: whether the best point is feasible (False: none is)
@@ -66,10 +70,18 @@ class GridResult:
     settling_spec: settling time bound [s]; overshoot_spec: overshoot bound [%]
     dtype: the floating type of the evaluation ("float32" or "float64")
     elapsed: wall time of the evaluation [s] (compilation included)
+    grid_shape: the shape of the metric arrays; feasible_count: feasible points
+    best: :class:`StepInfo` (Python scalars) of the best point
+    ki_feasible: feasible points in each k_i slice (grids)
+    settling_range: (min, max) finite settling time of any point [s] (nan, nan if none)
+    n_plants: plants of the set the metrics are the worst over (1: one plant)
+    store: the :class:`tuning.gridrun.BlockStore` of the blocks; block: points per block
+    n_computed: points this process computed in this call (fewer when it resumed from a
+        checkpoint or shared the work with other processes)
     """
 
-    info: StepInfo
-    feasible: np.ndarray
+    info: StepInfo | None
+    feasible: np.ndarray | None
     best_index: tuple[int, ...]
     best_feasible: bool
     axes: tuple[np.ndarray, np.ndarray, np.ndarray] | None
@@ -78,22 +90,32 @@ class GridResult:
     overshoot_spec: float
     dtype: str
     elapsed: float
+    grid_shape: tuple[int, ...] = ()
+    feasible_count: int = 0
+    best: StepInfo | None = None
+    ki_feasible: np.ndarray | None = None
+    settling_range: tuple[float, float] = (float("nan"), float("nan"))
+    n_plants: int = 1
+    store: object = None
+    block: int = gridrun.BLOCK
+    n_computed: int = 0
 
     @property
     def shape(self) -> tuple[int, ...]:
-        return self.feasible.shape
+        return self.grid_shape
 
     @property
     def n_points(self) -> int:
-        return int(self.feasible.size)
+        return int(np.prod(self.grid_shape))
 
     @property
     def n_feasible(self) -> int:
-        return int(np.count_nonzero(self.feasible))
+        return self.feasible_count
 
     @property
     def points_per_second(self) -> float:
-        return self.n_points / self.elapsed if self.elapsed > 0 else float("inf")
+        """Points this process computed per second of :attr:`elapsed`."""
+        return self.n_computed / self.elapsed if self.elapsed > 0 else float("inf")
 
     def gains_at(self, index) -> tuple[float, float, float]:
         """(kp [V/m], kd [V s/m], ki [V/(m s)]) of the point at ``index`` (into ``shape``)."""
@@ -108,7 +130,29 @@ class GridResult:
     @property
     def best_info(self) -> StepInfo:
         """:class:`StepInfo` (Python scalars) of the best point, as the grid computed it."""
-        return StepInfo(*(v[self.best_index].item() for v in self.info))
+        return self.best
+
+    def slices(self, ks) -> tuple[np.ndarray, np.ndarray]:
+        """(settling time [s], feasible) of the k_i slices ``ks`` of a grid, each shaped
+        (nkp, nkd, len(ks)); read from the blocks when the grid keeps no full arrays."""
+        ks = [int(k) for k in ks]
+        if self.info is not None:
+            return self.info.settling_time[:, :, ks], self.feasible[:, :, ks]
+        nkp, nkd, nki = self.grid_shape
+        where = np.full(nki, -1)
+        where[ks] = np.arange(len(ks))
+        ts = np.full((nkp * nkd, len(ks)), np.nan)
+        ok = np.zeros((nkp * nkd, len(ks)), bool)
+        needs = ("settling_time", "overshoot", "diverged")
+        for start, flat in gridrun.blocks(self.store, self.n_points, self.block, needs):
+            idx = start + np.arange(flat["settling_time"].size)
+            col = where[idx % nki]
+            pick = col >= 0
+            ts[idx[pick] // nki, col[pick]] = flat["settling_time"][pick]
+            ok[idx[pick] // nki, col[pick]] = feasible_mask(
+                flat, self.settling_spec, self.overshoot_spec
+            )[pick]
+        return ts.reshape(nkp, nkd, -1), ok.reshape(nkp, nkd, -1)
 
 
 # ---------------------------------------------------------------- evaluation
@@ -133,15 +177,25 @@ def grid_search(
     smoothing=EXACT_FORMS,
     chunk: int = DEFAULT_CHUNK,
     progress=None,
-) -> GridResult:
+    checkpoint=None,
+    keep_full: bool | None = None,
+    block: int = gridrun.BLOCK,
+    say=None,
+) -> GridResult | None:
     """Evaluate every point of the grid kp x kd x ki (1-D axes [V/m], [V s/m], [V/(m s)]).
 
-    plant, controller (its other settings: tau, v_limit, ...), experiment: a closed-loop step,
-    as for :func:`jaxcart.simulate`. settling_time [s], overshoot [%]: the specification.
+    plant (or a list of plants: every metric is then the worst over the set), controller (its
+    other settings: tau, v_limit, ...), experiment: a closed-loop step, as for
+    :func:`jaxcart.simulate`. settling_time [s], overshoot [%]: the specification.
     dtype: ``jnp.float32`` (default, fast) or ``jnp.float64``; the evaluation runs in exactly
     that precision whatever ``jax_enable_x64`` says. smoothing: default the exact forms (hard
     clip), right for plants without friction. ``progress(done, total)`` after each block.
-    Metric arrays are shaped (len(kp), len(kd), len(ki)).
+    checkpoint: a folder for the block files (a rerun of the same problem resumes from them;
+    ``say(text)`` is told so);
+    keep_full: hold every metric array (default: when the grid has at most
+    :data:`tuning.gridrun.FULL_LIMIT` points). Metric arrays are shaped (len(kp), len(kd),
+    len(ki)). In a distributed run (:func:`jaxcart.parallel.init_distributed`) every process
+    computes its share of the blocks; process 0 returns the result, the others None.
     """
     _check_spec(settling_time, overshoot)
     axes = tuple(_axis(name, a) for name, a in (("kp", kp), ("kd", kd), ("ki", ki)))
@@ -151,18 +205,24 @@ def grid_search(
         i, j, k = np.unravel_index(np.arange(start, stop), shape)
         return np.stack([axes[0][i], axes[1][j], axes[2][k]], axis=1)
 
-    flat, elapsed = _evaluate(
+    return _evaluate(
         plant,
         controller,
         experiment,
-        int(np.prod(shape)),
+        shape,
         rows,
+        axes=axes,
+        gains=None,
+        spec=(settling_time, overshoot),
         dtype=dtype,
         smoothing=smoothing,
         chunk=chunk,
         progress=progress,
+        checkpoint=checkpoint,
+        keep_full=keep_full,
+        block=block,
+        say=say,
     )
-    return _result(flat, shape, axes, None, settling_time, overshoot, dtype, elapsed)
 
 
 def evaluate_list(
@@ -177,10 +237,13 @@ def evaluate_list(
     smoothing=EXACT_FORMS,
     chunk: int = DEFAULT_CHUNK,
     progress=None,
-) -> GridResult:
+    checkpoint=None,
+    block: int = gridrun.BLOCK,
+    say=None,
+) -> GridResult | None:
     """Evaluate each row (kp [V/m], kd [V s/m], ki [V/(m s)]) of ``gains`` (shape (B, 3)).
 
-    Same options as :func:`grid_search`; the metric arrays are shaped (B,).
+    Same options as :func:`grid_search`; the metric arrays are shaped (B,) and always kept.
     """
     _check_spec(settling_time, overshoot)
     gains = np.asarray(gains, dtype=float)
@@ -188,18 +251,24 @@ def evaluate_list(
         raise UserError(f"gains must have shape (B, 3) with rows (kp, kd, ki); got {gains.shape}")
     if not np.all(np.isfinite(gains)):
         raise UserError("gains contain a value that is not finite; give finite numbers")
-    flat, elapsed = _evaluate(
+    return _evaluate(
         plant,
         controller,
         experiment,
-        gains.shape[0],
+        gains.shape[:1],
         lambda start, stop: gains[start:stop],
+        axes=None,
+        gains=gains,
+        spec=(settling_time, overshoot),
         dtype=dtype,
         smoothing=smoothing,
         chunk=chunk,
         progress=progress,
+        checkpoint=checkpoint,
+        keep_full=True,
+        block=block,
+        say=say,
     )
-    return _result(flat, gains.shape[:1], None, gains, settling_time, overshoot, dtype, elapsed)
 
 
 def _check_spec(settling_time, overshoot):
@@ -219,11 +288,32 @@ def _axis(name, values) -> np.ndarray:
     return axis
 
 
-def _evaluate(plant, controller, experiment, n, rows, *, dtype, smoothing, chunk, progress):
-    """Metrics of the n points whose gains ``rows(start, stop)`` gives, block by block."""
+def _evaluate(
+    plant,
+    controller,
+    experiment,
+    shape,
+    rows,
+    *,
+    axes,
+    gains,
+    spec,
+    dtype,
+    smoothing,
+    chunk,
+    progress,
+    checkpoint,
+    keep_full,
+    block,
+    say,
+):
+    """Metrics of the points whose gains ``rows(start, stop)`` gives, block by block."""
     if experiment.kind != "closed_loop":
         raise UserError(f"a gain grid needs a closed-loop step experiment, not {experiment.kind}")
-    if any(e.stage == "force" for e in plant.effects) and smoothing == EXACT_FORMS:
+    plants = list(plant) if isinstance(plant, list | tuple) else [plant]
+    if not plants:
+        raise UserError("the plant set is empty; give at least one plant")
+    if any(e.stage == "force" for e in plants[0].effects) and smoothing == EXACT_FORMS:
         raise UserError(
             "the exact (hard) forms are for saturation only; with friction in the plant pass a "
             "smoothing (jaxcart.Smoothing) to the grid"
@@ -231,63 +321,99 @@ def _evaluate(plant, controller, experiment, n, rows, *, dtype, smoothing, chunk
     dtype = np.dtype(dtype)
     if dtype not in (np.float32, np.float64):
         raise UserError(f"dtype {dtype}: use float32 or float64")
+    n = int(np.prod(shape))
     # Same block size on every call (the last one padded) so the evaluator compiles once.
-    block = min(n, len(jax.devices()) * chunk * CHUNKS_PER_BLOCK)
-    flat = {name: np.empty(n, dtype) for name in StepInfo._fields}
-    flat["diverged"] = np.empty(n, bool)
+    block = int(min(n, block))
+    keep_full = n <= gridrun.FULL_LIMIT if keep_full is None else bool(keep_full)
+    where = plants if len(plants) > 1 else plants[0]
+    key = gridrun.problem_key(
+        where,
+        controller,
+        experiment,
+        smoothing,
+        dtype.name,
+        chunk,
+        block,
+        axes if axes is not None else gains,
+    )
+    if checkpoint is not None:
+        store = gridrun.BlockStore(checkpoint, key)
+    elif keep_full:
+        store = gridrun.BlockStore(None, key)
+    else:
+        store = gridrun.temporary_store(key)
+
+    def compute(i):
+        start, stop = i * block, min(n, (i + 1) * block)
+        g = rows(start, stop)
+        if stop - start < block:
+            g = np.concatenate([g, np.repeat(g[-1:], block - (stop - start), 0)])
+        info = step_metrics_batch(
+            where, controller, experiment, g, smoothing=smoothing, chunk=chunk, dtype=dtype.type
+        )
+        flat = {k: np.asarray(v)[: stop - start] for k, v in info._asdict().items()}
+        # t90 - t10 of a run that never reaches 10 % of the step is inf - inf: report inf.
+        flat["rise_time"][np.isnan(flat["rise_time"])] = np.inf
+        return flat
+
     start_time = time.perf_counter()
     # Exactly the requested precision whatever jax_enable_x64 says globally: float64 needs it
     # on (the command line runs with it off); float32 must not pick up the default float64.
     with jax.enable_x64(dtype == np.float64):
-        for start in range(0, n, block):
-            stop = min(n, start + block)
-            gains = rows(start, stop)
-            if stop - start < block:
-                gains = np.concatenate([gains, np.repeat(gains[-1:], block - (stop - start), 0)])
-            info = step_metrics_batch(
-                plant,
-                controller,
-                experiment,
-                gains,
-                smoothing=smoothing,
-                chunk=chunk,
-                dtype=dtype.type,
-            )
-            for name, values in zip(StepInfo._fields, info, strict=True):
-                flat[name][start:stop] = np.asarray(values)[: stop - start]
-            if progress is not None:
-                progress(stop, n)
+        first, computed = gridrun.fill(store, n, block, compute, progress=progress, say=say)
+        if not first:
+            return None  # another process of a distributed run: process 0 reports
     elapsed = time.perf_counter() - start_time
-    # t90 - t10 of a run that never reaches 10 % of the step is inf - inf: report inf.
-    flat["rise_time"][np.isnan(flat["rise_time"])] = np.inf
-    return flat, elapsed
-
-
-def _result(flat, shape, axes, gains, settling_spec, overshoot_spec, dtype, elapsed):
-    ts, os_, bad = flat["settling_time"], flat["overshoot"], flat["diverged"]
-    feasible = ~bad & (ts < settling_spec) & (os_ < overshoot_spec)
-    best, best_feasible = _best(flat, feasible, settling_spec, overshoot_spec)
-    info = StepInfo(*(flat[name].reshape(shape) for name in StepInfo._fields))
-    return GridResult(
-        info=info,
-        feasible=feasible.reshape(shape),
+    reducer = gridrun.Reducer(
+        n, dtype, *spec, keep_full=keep_full, nki=shape[2] if axes is not None else None
+    )
+    for start, flat in gridrun.blocks(store, n, block):
+        reducer.add(start, flat)
+    best, best_feasible, best_values = reducer.best()
+    full = reducer.full
+    if full is not None and store.dir is None:
+        store.remove()  # the full arrays hold it all: no second copy in memory
+    lo, hi = reducer.finite
+    result = GridResult(
+        info=None
+        if full is None
+        else StepInfo(*(full[k].reshape(shape) for k in StepInfo._fields)),
+        feasible=None if full is None else full["feasible"].reshape(shape),
         best_index=tuple(int(i) for i in np.unravel_index(best, shape)),
         best_feasible=best_feasible,
         axes=axes,
         gains=gains,
-        settling_spec=float(settling_spec),
-        overshoot_spec=float(overshoot_spec),
-        dtype=np.dtype(dtype).name,
+        settling_spec=float(spec[0]),
+        overshoot_spec=float(spec[1]),
+        dtype=dtype.name,
         elapsed=float(elapsed),
+        grid_shape=tuple(shape),
+        feasible_count=reducer.n_feasible,
+        best=StepInfo(**{k: best_values[k] for k in StepInfo._fields}),
+        ki_feasible=reducer.ki_feasible if axes is not None else None,
+        settling_range=(lo, hi) if lo <= hi else (float("nan"), float("nan")),
+        n_plants=len(plants),
+        store=store,
+        block=block,
+        n_computed=computed,
     )
+    return result
 
 
-def _best(flat, feasible, settling_spec, overshoot_spec) -> tuple[int, bool]:
+def feasible_mask(flat, settling_spec, overshoot_spec) -> np.ndarray:
+    """True where a point meets the specification (settles in time, small overshoot, not
+    diverged): :meth:`jaxcart.StepInfo.meets` on arrays."""
+    ts, os_, bad = flat["settling_time"], flat["overshoot"], flat["diverged"]
+    return ~bad & (ts < settling_spec) & (os_ < overshoot_spec)
+
+
+def best_of(flat, feasible, settling_spec, overshoot_spec) -> tuple[int, bool]:
     """Flat index of the best point and whether it is feasible.
 
     Feasible: smallest settling time, ties (times are whole samples) broken by overshoot.
     None feasible: smallest relative violation max(0, ts/spec - 1) + max(0, os/spec - 1), ties
     (e.g. all never settle) broken by steady-state error, then overshoot; diverged runs last.
+    Remaining ties go to the lowest index, so the best of blocks' bests is the best of all.
     """
     ts, os_ = flat["settling_time"], flat["overshoot"]
     if feasible.any():
@@ -300,6 +426,9 @@ def _best(flat, feasible, settling_spec, overshoot_spec) -> tuple[int, bool]:
     candidates = np.flatnonzero(pool & (violation == violation[pool].min()))
     order = np.lexsort((os_[candidates], flat["steady_state_error"][candidates]))
     return int(candidates[order[0]]), False
+
+
+_best = best_of  # the earlier name
 
 
 # ---------------------------------------------------------------- exact re-check
@@ -315,6 +444,22 @@ def recheck(plant, controller, experiment, gains) -> tuple[StepInfo, str]:
         controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
     )
     return step_info_exact(plant, pid, experiment), "exact simulator"
+
+
+def recheck_set(plants, controller, experiment, gains) -> tuple[StepInfo, str]:
+    """:func:`recheck` on every plant of a set: the field-wise worst (largest value, diverged
+    if any) and a label naming the simulator and the number of plants."""
+    plants = list(plants) if isinstance(plants, list | tuple) else [plants]
+    infos = [recheck(p, controller, experiment, gains)[0] for p in plants]
+    if len(infos) == 1:
+        return infos[0], "exact simulator"
+    worst = StepInfo(
+        **{
+            k: any(v) if k == "diverged" else float(np.max(v))
+            for k, v in zip(StepInfo._fields, zip(*infos, strict=True), strict=True)
+        }
+    )
+    return worst, f"exact, worst of {len(infos)}"
 
 
 def comparison(result: GridResult, exact: StepInfo, label: str = "exact") -> str:
@@ -357,6 +502,51 @@ def edge_notes(result: GridResult) -> list[str]:
     return notes
 
 
+def summary(result: GridResult, exact: StepInfo | None = None) -> dict:
+    """The result as JSON-ready data: grid, best point (gains, metrics, the exact re-check),
+    feasible count and ``on_edge``: the notes of :func:`edge_notes` (empty: not on a bound)."""
+
+    digits = 7 if result.dtype == "float32" else 17  # no float32 noise digits in the file
+
+    def metrics(info):
+        return {
+            f"{name} [{unit}]": (float(f"{v:.{digits}g}") if np.isfinite(v) else None)
+            for name, unit in METRICS.items()
+            for v in [float(getattr(info, name))]
+        } | {"diverged": bool(info.diverged)}
+
+    doc = {
+        "shape": list(result.shape),
+        "n_points": result.n_points,
+        "n_feasible": result.n_feasible,
+        "n_plants": result.n_plants,
+        "dtype": result.dtype,
+        "spec": {"settling_time [s]": result.settling_spec, "overshoot [%]": result.overshoot_spec},
+        "best_feasible": result.best_feasible,
+        "best_gains": dict(zip(GAIN_UNITS, result.best_gains, strict=True)),
+        "gain_units": GAIN_UNITS,
+        "best_metrics": metrics(result.best_info),
+        "on_edge": edge_notes(result),
+    }
+    if result.axes is not None:
+        doc["axes"] = {
+            name: {"lo": float(a[0]), "hi": float(a[-1]), "n": int(a.size)}
+            for name, a in zip(GAIN_UNITS, result.axes, strict=True)
+        }
+    if exact is not None:
+        doc["exact_metrics"] = metrics(exact)
+    return doc
+
+
+def save_json(result: GridResult, path, *, exact: StepInfo | None = None, force=False):
+    """Write :func:`summary` to ``path``; refuses to overwrite unless ``force``."""
+    import json
+
+    with _open(path, force) as f:
+        f.write((json.dumps(summary(result, exact), indent=2) + "\n").encode())
+    return path
+
+
 def describe_gains(gains) -> str:
     """'kp = 95.2 V/m, kd = 8.1 V s/m, ki = 0 V/(m s)'."""
     return ", ".join(
@@ -373,32 +563,66 @@ def save_npz(result: GridResult, path, *, exact: StepInfo | None = None, force=F
 
     Arrays: kp, kd, ki (grid axes) or gains (list, (B, 3)); each metric of :data:`METRICS`
     and diverged, feasible (shaped like the grid); best_index, best_gains, best_feasible;
-    settling_spec [s], overshoot_spec [%], dtype, units (JSON of the units); and exact_<metric>
-    of the best point's re-check when ``exact`` is given.
+    on_edge (JSON list of the notes of :func:`edge_notes`: the best point on a bound of its
+    range); n_plants (the metrics are the worst over that many plants); settling_spec [s],
+    overshoot_spec [%], dtype, units (JSON of the units); and exact_<metric> of the best
+    point's re-check when ``exact`` is given. A grid without full arrays is written block by
+    block from its store (memory stays bounded).
     """
     import json
+    import zipfile
 
-    arrays = {}
+    small = {}
     if result.axes is not None:
-        arrays.update(kp=result.axes[0], kd=result.axes[1], ki=result.axes[2])
+        small.update(kp=result.axes[0], kd=result.axes[1], ki=result.axes[2])
     else:
-        arrays["gains"] = result.gains
-    arrays.update({name: getattr(result.info, name) for name in StepInfo._fields})
-    arrays.update(
-        feasible=result.feasible,
+        small["gains"] = result.gains
+    small.update(
         best_index=np.asarray(result.best_index),
         best_gains=np.asarray(result.best_gains),
         best_feasible=np.asarray(result.best_feasible),
+        on_edge=np.asarray(json.dumps(edge_notes(result))),
+        n_plants=np.asarray(result.n_plants),
         settling_spec=np.asarray(result.settling_spec),
         overshoot_spec=np.asarray(result.overshoot_spec),
         dtype=np.asarray(result.dtype),
         units=np.asarray(json.dumps({**GAIN_UNITS, **METRICS})),
     )
     if exact is not None:
-        arrays.update({f"exact_{name}": np.asarray(v) for name, v in exact._asdict().items()})
-    with _open(path, force) as f:
-        np.savez(f, **arrays)
+        small.update({f"exact_{name}": np.asarray(v) for name, v in exact._asdict().items()})
+    names = (*StepInfo._fields, "feasible")
+    with _open(path, force) as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
+        if result.info is not None:
+            full = {**result.info._asdict(), "feasible": result.feasible}
+            for name in names:
+                _write_member(zf, name, full[name])
+        else:
+            for name in names:
+                _stream_member(zf, name, result)
+        for name, value in small.items():
+            _write_member(zf, name, value)
     return path
+
+
+def _write_member(zf, name, array) -> None:
+    with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+        np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+
+
+def _stream_member(zf, name, result) -> None:
+    """One metric of every block, in order, as one .npy member shaped like the grid."""
+    dtype = np.dtype(bool if name in ("diverged", "feasible") else result.dtype)
+    header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False}
+    header["shape"] = tuple(result.shape)
+    with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+        np.lib.format.write_array_header_2_0(member, header)
+        needs = ("settling_time", "overshoot", "diverged") if name == "feasible" else (name,)
+        for _start, flat in gridrun.blocks(result.store, result.n_points, result.block, needs):
+            if name == "feasible":
+                values = feasible_mask(flat, result.settling_spec, result.overshoot_spec)
+            else:
+                values = flat[name]
+            member.write(np.ascontiguousarray(values, dtype=dtype).tobytes())
 
 
 def _open(path, force):
@@ -430,7 +654,7 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
         fig = _plot_list(result)
     else:
         kp, kd, ki = result.axes
-        per_slice = result.feasible.sum(axis=(0, 1))
+        per_slice = result.ki_feasible
         # Spread the slices over the ki range that has feasible points (all of it if none).
         span = int(np.flatnonzero(per_slice).max()) + 1 if per_slice.any() else ki.size
         slices = _slices(span, result.best_index[2], n_slices)
@@ -445,12 +669,17 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
             sharey=True,
             layout="constrained",
         )
-        shown = result.feasible if result.best_feasible else np.isfinite(result.info.settling_time)
-        values = np.where(shown, result.info.settling_time, np.nan)
-        lo = np.nanmin(values) if np.any(shown) else 0.0
-        hi = result.settling_spec if result.best_feasible else np.nanmax(values, initial=1.0)
+        settling, ok = result.slices(slices)
+        shown = ok if result.best_feasible else np.isfinite(settling)
+        values = np.where(shown, settling, np.nan)
+        if result.best_feasible:
+            lo, hi = result.best_info.settling_time, result.settling_spec
+        elif np.isfinite(result.settling_range[0]):
+            lo, hi = result.settling_range
+        else:
+            lo, hi = 0.0, 1.0
         mesh = None
-        for ax, k in zip(axs.flat, slices, strict=False):
+        for col, (ax, k) in enumerate(zip(axs.flat, slices, strict=False)):
             ax.add_patch(
                 Rectangle(
                     (0, 0),
@@ -464,7 +693,7 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
                     zorder=0,
                 )
             )
-            z = np.ma.masked_invalid(values[:, :, k].T)
+            z = np.ma.masked_invalid(values[:, :, col].T)
             mesh = ax.pcolormesh(
                 _edges(kp),
                 _edges(kd),
@@ -486,7 +715,12 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
                     linestyle="none",
                     zorder=3,
                 )
-            ax.set_title(f"$k_i$ = {ki[k]:.4g} V/(m s): {per_slice[k]} feasible")
+            mark = ", best" if k == result.best_index[2] else ""
+            ax.set_title(
+                f"$k_i$ = {ki[k]:.4g} V/(m s) (slice {k + 1} of {ki.size}{mark}): "
+                f"{per_slice[k]} feasible",
+                fontsize="medium",
+            )
         for ax in axs.flat[len(slices) :]:
             ax.set_visible(False)
         for ax in axs[-1]:
@@ -513,11 +747,21 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
             ),
         ]
         fig.legend(handles=handles, loc="outside lower center", ncols=2, frameon=False)
-        fig.suptitle(_title(result))
+        fig.suptitle(_title(result) + "\n" + slice_note(result, slices))
     if path is not None:
         with _open(path, force) as f:
             fig.savefig(f, format="png", dpi=110)
     return fig
+
+
+def slice_note(result: GridResult, slices) -> str:
+    """Which k_i slices a figure shows (spread over the k_i range with feasible points, the
+    best point's included), e.g. 'k_i slices shown: 4 of 64 (0, 9.5, 20, 30 V/(m s)), ...'."""
+    ki = result.axes[2]
+    if len(slices) == ki.size:
+        return f"all {ki.size} $k_i$ slices shown"
+    values = ", ".join(f"{ki[k]:.4g}" for k in slices)
+    return f"$k_i$ slices shown: {len(slices)} of {ki.size} ({values} V/(m s)), with the best's"
 
 
 def _plot_list(result):
@@ -560,10 +804,13 @@ def _title(result) -> str:
     b = result.best_gains
     info = result.best_info
     head = "best" if result.best_feasible else "no feasible point; closest"
+    edge = [n.split(" is at the ")[0] for n in edge_notes(result)]
+    edge = f" (on the range's bound: {', '.join(edge)})" if edge else ""
+    where = f" (worst of {result.n_plants} plants)" if result.n_plants > 1 else ""
     return (
-        f"{result.n_feasible} of {result.n_points} points feasible; {head}: "
+        f"{result.n_feasible} of {result.n_points} points feasible{where}; {head}: "
         f"$k_p$ = {b[0]:.4g}, $k_d$ = {b[1]:.4g}, $k_i$ = {b[2]:.4g}\n"
-        f"settling time {info.settling_time:.4g} s, overshoot {info.overshoot:.3g} %"
+        f"settling time {info.settling_time:.4g} s, overshoot {info.overshoot:.3g} %{edge}"
     )
 
 
@@ -593,15 +840,37 @@ def _edges(axis: np.ndarray) -> np.ndarray:
     return np.concatenate([[2 * axis[0] - mid[0]], mid, [2 * axis[-1] - mid[-1]]])
 
 
-def progress_line(label: str = "grid", stream=None):
-    """A ``progress(done, total)`` that keeps one status line on stderr."""
+def progress_line(label: str = "grid", stream=None, *, devices: str = ""):
+    """A ``progress(done, total)`` that keeps one status line on stderr with the time left;
+    after the second report (the first includes compilation) it prints, once, a cost estimate
+    "about N min on <devices>" when the rest will take over a minute."""
     stream = stream or sys.stderr
     start = time.perf_counter()
     tty = stream.isatty()
+    state = {"calls": 0, "first": None}
 
     def report(done, total):
-        rate = done / max(time.perf_counter() - start, 1e-9)
+        now = time.perf_counter()
+        state["calls"] += 1
+        if state["calls"] == 1:
+            state["first"] = (now, done)
+        rate = done / max(now - start, 1e-9)
+        if state["calls"] >= 2:  # rate without the compilation
+            t0, d0 = state["first"]
+            rate = (done - d0) / max(now - t0, 1e-9)
+        left = (total - done) / max(rate, 1e-9)
+        if state["calls"] == 2 and left > 60:
+            where = devices or "this machine"
+            print(
+                ("\n" if tty else "")
+                + f"estimate: about {duration_text(now - start + left)} on {where} "
+                f"({rate:,.0f} points/s)",
+                file=stream,
+                flush=True,
+            )
         text = f"{label}: {done}/{total} points ({100 * done / total:.0f} %), {rate:,.0f} points/s"
+        if done < total and state["calls"] >= 2:
+            text += f", {duration_text(left)} left"
         end = "\n" if done >= total or not tty else ""
         print(("\r" if tty else "") + text, end=end, file=stream, flush=True)
 

@@ -3,9 +3,13 @@
     jaxcart grid                              # 64 x 64 x 64 over the default ranges
     jaxcart grid --kp 20:120:32 --ki 0:5:8    # ranges as lo:hi:n (n evenly spaced, both ends)
     jaxcart grid --gains-file list.csv        # any list: CSV columns kp, kd, ki
+    jaxcart grid --robust                     # worst case over a plant set (as tune --robust)
+    jaxcart grid --coordinator node0:12345 --num-processes 4 --process-id 0   # on 4 hosts
 
 Writes an .npz of the metric arrays and a PNG of settling-time heat maps (infeasible region
 hatched, best point marked), re-checks the best gains on the exact simulator and prints both.
+Finished blocks are kept in a checkpoint folder (default jaxcart-out/grid-blocks/) until the
+outputs are written: a killed run, started again with the same options, resumes there.
 """
 
 from __future__ import annotations
@@ -69,6 +73,57 @@ def register(subparsers) -> None:
         help="design model: a plant file (fit --out, diagnose) or an experiment file whose "
         "[plant] applies; default the handout's nominal plant",
     )
+    p.add_argument(
+        "--robust",
+        action="store_true",
+        help="every metric the worst over a plant set: B_eq in [3, 7] kg/s, f_c in [0, 1] N, "
+        "M within +/-10 %% (corners and centre, as tune --robust; change with --range)",
+    )
+    p.add_argument(
+        "--range",
+        dest="ranges",
+        action="append",
+        default=[],
+        metavar="NAME=LO,HI",
+        help="robust interval, e.g. B_eq=3,7 (as tune --range); repeatable",
+    )
+    run_ = p.add_argument_group("long and distributed runs")
+    run_.add_argument(
+        "--checkpoint",
+        metavar="DIR",
+        help="folder of the finished blocks, kept until the outputs are written (default "
+        "grid-blocks/ beside --out); a rerun of the same problem resumes from them",
+    )
+    run_.add_argument(
+        "--keep-blocks",
+        action="store_true",
+        help="keep the block files after the outputs are written",
+    )
+    run_.add_argument(
+        "--block",
+        type=int,
+        default=None,
+        metavar="N",
+        help="points per block: the unit of checkpoints, processes and progress (65536)",
+    )
+    run_.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="jax.distributed: address of process 0 (or JAXCART_COORDINATOR; under SLURM or "
+        "Open MPI none of these is needed)",
+    )
+    run_.add_argument(
+        "--num-processes",
+        metavar="N",
+        help="jax.distributed: number of processes (or JAXCART_NUM_PROCESSES)",
+    )
+    run_.add_argument(
+        "--process-id",
+        metavar="I",
+        help="jax.distributed: this process, 0 to N-1; 0 writes the outputs (or "
+        "JAXCART_PROCESS_ID)",
+    )
+    p.add_argument("--json", metavar="OUT", help="also write a summary JSON (best point, notes)")
     p.set_defaults(func=run)
 
 
@@ -231,15 +286,35 @@ def _check_memory(n_points: int) -> None:
         )
 
 
+def _plants(args, plant):
+    """The plant, or the robust plant set of --robust / --range (as tune builds it)."""
+    from tuning.commands.tune import _robust
+    from tuning.tune import robust_plants
+
+    robust = _robust(args)
+    if robust is False:
+        return plant
+    plants, _values = robust_plants(plant, None if robust is True else robust)
+    return plants
+
+
 def run(args) -> int:
+    from jaxcart import parallel
+
+    _check_args(args)
+    if args.block is not None and args.block < 1:
+        raise UserError(f"--block {args.block}: give a whole number of points >= 1")
+    # jax.distributed joins before any computation starts a backend.
+    settings = parallel.cluster_settings(args.coordinator, args.num_processes, args.process_id)
+    distributed = parallel.init_distributed(settings)
+
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     import jaxcart as jc
-    from tuning import grid
+    from tuning import grid, gridrun
 
-    _check_args(args)
     if args.gains_file is not None:
         given = [f"--{n}" for n in DEFAULT_RANGES if getattr(args, n) is not None]
         if given:
@@ -251,75 +326,107 @@ def run(args) -> int:
             parse_range(f"--{n}", getattr(args, n) or DEFAULT_RANGES[n]) for n in DEFAULT_RANGES
         ]
         n_points = math.prod(a.size for a in axes)
-    _check_memory(n_points)
-    out_path, plot_path = output_paths(args.out, args.plot, args.force)
+    if args.gains_file is not None or n_points <= gridrun.FULL_LIMIT:
+        _check_memory(n_points)  # a larger grid streams: summaries only, bounded memory
+    me = parallel.process_index()
+    if me == 0:
+        out_path, plot_path = output_paths(args.out, args.plot, args.force)
+        json_path = _json_path(args.json, args.force)
+        folder = out_path.parent
+    else:
+        folder = Path(args.out).parent if args.out else DEFAULT_DIR
+    checkpoint = Path(args.checkpoint) if args.checkpoint else folder / "grid-blocks"
 
     from jaxcart.plantspec import describe_plant, load_plant
 
     plant = load_plant(args.plant) if args.plant else jc.handout_plant()
+    where = _plants(args, plant)
+    plants = where if isinstance(where, list) else [where]
     # Hard forms for a plant without force effects (what the real loop does); with friction
     # or other forces the smooth loop at a tenth of the default widths, re-checked exactly.
-    smoothing = jc.Smoothing().scaled(0.1) if plant.stage("force") else jc.EXACT_FORMS
+    smoothing = jc.Smoothing().scaled(0.1) if plants[0].stage("force") else jc.EXACT_FORMS
     print(f"plant: {describe_plant(plant)}", file=sys.stderr)
+    if len(plants) > 1:
+        print(f"plant set: worst case over {len(plants)} plants", file=sys.stderr)
     controller = jc.PID(v_limit=6.0)
     with jax.enable_x64(True):  # the reference in float64; the grid casts it to its dtype
         experiment = jc.step(args.step, horizon=args.horizon)
     dtype = jnp.float64 if args.float64 else jnp.float32
+    block = args.block or gridrun.BLOCK
     spec = dict(settling_time=args.settling, overshoot=args.overshoot)
-    progress = grid.progress_line("grid")
+    n_dev = len(parallel.devices())
+    where_run = f"{n_dev} device(s)"
+    if distributed:
+        where_run += f" in process {me} of {parallel.process_count()}"
+    progress = grid.progress_line("grid", devices=where_run)
+    common = dict(
+        dtype=dtype,
+        progress=progress,
+        smoothing=smoothing,
+        checkpoint=checkpoint,
+        block=block,
+        say=lambda text: print(text, file=sys.stderr),
+        **spec,
+    )
     if args.gains_file is not None:
         shape = f"{n_points} gain triples from {args.gains_file}"
-        print(
-            f"evaluating {shape}, {np.dtype(dtype).name}, {len(jax.devices())} device(s)",
-            file=sys.stderr,
-        )
-        result = grid.evaluate_list(
-            plant,
-            controller,
-            experiment,
-            gains,
-            dtype=dtype,
-            progress=progress,
-            smoothing=smoothing,
-            **spec,
-        )
     else:
         shape = " x ".join(str(a.size) for a in axes) + f" = {n_points} points"
-        print(
-            f"evaluating {shape}, {np.dtype(dtype).name}, {len(jax.devices())} device(s)",
-            file=sys.stderr,
-        )
-        result = grid.grid_search(
-            plant,
-            controller,
-            experiment,
-            *axes,
-            dtype=dtype,
-            progress=progress,
-            smoothing=smoothing,
-            **spec,
-        )
-    exact, label = grid.recheck(plant, controller, experiment, result.best_gains)
+    print(f"evaluating {shape}, {np.dtype(dtype).name}, {where_run}", file=sys.stderr)
+    if args.gains_file is not None:
+        result = grid.evaluate_list(where, controller, experiment, gains, **common)
+    else:
+        result = grid.grid_search(where, controller, experiment, *axes, **common)
+    if result is None:  # another process of a distributed run: process 0 writes the outputs
+        print(f"process {me}: its blocks are computed and sent to process 0")
+        return 0
+    exact, label = grid.recheck_set(plants, controller, experiment, result.best_gains)
 
     for path in (out_path, plot_path):
         path.parent.mkdir(parents=True, exist_ok=True)
     grid.save_npz(result, out_path, exact=exact, force=args.force)
     grid.plot_slices(result, plot_path, force=args.force)
+    notes = grid.edge_notes(result)
+    if json_path is not None:
+        grid.save_json(result, json_path, exact=exact, force=args.force)
+    if not args.keep_blocks:
+        result.store.remove()
 
     print(f"grid: {shape}, {result.dtype}, step {args.step:g} m, horizon {args.horizon:g} s")
+    if len(plants) > 1:
+        print(f"metrics: the worst over {len(plants)} plants of the robust set")
     print(
         f"feasible: {result.n_feasible} of {result.n_points} points "
         f"(settling < {args.settling:g} s, overshoot < {args.overshoot:g} %)"
     )
     head = "best gains" if result.best_feasible else "no feasible point; closest to the spec"
     print(f"{head}: {grid.describe_gains(result.best_gains)}")
-    for note in grid.edge_notes(result):
-        print(f"  note: {note}")
+    for note in notes:
+        print(f"  on a bound: {note}")
     print(grid.comparison(result, exact, label))
-    print(
-        f"throughput: {result.n_points} points in {result.elapsed:.2f} s = "
-        f"{result.points_per_second:,.0f} points/s (compilation included)"
-    )
-    print(f"wrote {out_path}")
-    print(f"wrote {plot_path}")
+    others = result.n_points - result.n_computed
+    if result.n_computed:
+        print(
+            f"throughput: {result.n_computed} points in {result.elapsed:.2f} s = "
+            f"{result.points_per_second:,.0f} points/s (compilation included)"
+            + (f"; {others} points from the checkpoint or other processes" if others else "")
+        )
+    else:
+        print(f"all {others} points from the checkpoint {result.store.dir}")
+    for path in (out_path, plot_path, json_path):
+        if path is not None:
+            print(f"wrote {path}")
+    if args.keep_blocks:
+        print(f"kept the blocks in {result.store.dir}")
     return 0
+
+
+def _json_path(json, force):
+    if json is None:
+        return None
+    path = Path(json)
+    if path.exists() and not force:
+        raise UserError(
+            f"--json {path} exists; pass --force to overwrite it or choose another name"
+        )
+    return path

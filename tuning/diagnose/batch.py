@@ -1,4 +1,4 @@
-"""Batched fits of candidate structures: one superset plant, one jit(vmap(Levenberg-Marquardt)).
+"""Batched fits of candidate structures: one superset plant, one sharded Levenberg-Marquardt step.
 
 Every candidate structure is the same pytree: a *superset* plant that holds every candidate
 effect (delay, deadzone, saturation, Coulomb, stiction, spring, current limit), each one neutral
@@ -6,7 +6,8 @@ effect (delay, deadzone, saturation, Coulomb, stiction, spring, current limit), 
 candidate is a vector of index slots into one full parameter vector (its free parameters; unused
 slots point at a dummy entry) and a base vector (the neutral or start values). One compiled
 Levenberg-Marquardt step (Jacobian by ``jax.jacfwd``: a few parameters, forward mode is cheap)
-is vmapped over the candidates; every recording of a joint diagnosis is simulated inside it
+is mapped over the candidates (:func:`jaxcart.parallel.sharded_map`: sharded over every local
+device); every recording of a joint diagnosis is simulated inside it
 (one plant, each file's controller), so the same compiled step serves every round.
 """
 
@@ -120,6 +121,7 @@ class BatchFitter:
         import jax
         import jax.numpy as jnp
 
+        from jaxcart.parallel import sharded_map
         from jaxcart.plantspec import with_values
         from jaxcart.smooth import simulate
         from jaxcart.smoothing import Smoothing
@@ -191,7 +193,11 @@ class BatchFitter:
             lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
             return theta_out, lam_out, jnp.where(ok, cost_new, cost), jac, r
 
-        self._step = jax.jit(jax.vmap(step, in_axes=(0, 0, 0, 0, 0, None)))
+        # One candidate per item, the width shared; sharded over every local device.
+        run = sharded_map(lambda item, width: step(*item, width), cache=False)
+        self._step = lambda theta, lam, idx, free, base, width: run(
+            (theta, lam, idx, free, base), width
+        )
         self._jnp = jnp
 
     def base_vector(self, values: dict) -> np.ndarray:
