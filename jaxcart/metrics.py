@@ -114,12 +114,15 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
     limit = voltage_limit(plant, controller)
     dtype = jnp.result_type(experiment.signal)
     inf = jnp.asarray(jnp.inf, dtype)
+    # Speed (results bit for bit as with separate values): under vmap every carried value is
+    # one XLA loop per sample, so pairs of accumulators ride as one complex value (one loop
+    # computes both), and the last sample is taken outside the scan so y_{n-1} needs no carry.
+    # W1 per CPU-second (2-core CPU): 2.0x on one device; level (1.03-1.08x) on two devices.
+    pair = jax.lax.complex
 
-    def body(carry, xs):
-        inner, acc = carry
-        k, signal_k = xs
-        inner, s = step(inner, signal_k)
-        t10, t90, last_out, peak, n_sat, peak_v, bad, _ = acc
+    def update(acc, k, s):
+        times, peaks, last_out, n_sat, bad = acc
+        t10, t90, peak, peak_v = times.real, times.imag, peaks.real, peaks.imag
         z = (s.position - experiment.y0) * inv_amplitude
         tk = k * ts
         t10 = jnp.where((t10 == inf) & (z >= RISE_LIMITS[0]), tk, t10)
@@ -130,13 +133,26 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
         n_sat = n_sat + (jnp.abs(s.unlimited) > limit)
         peak_v = jnp.maximum(peak_v, jnp.abs(s.voltage))
         bad = bad | ~(jnp.abs(s.position) <= DIVERGED_POSITION)
-        return (inner, (t10, t90, last_out, peak, n_sat, peak_v, bad, s.position)), None
+        return (pair(t10, t90), pair(peak, peak_v), last_out, n_sat, bad)
+
+    def body(carry, xs):
+        inner, acc = carry
+        k, signal_k = xs
+        inner, s = step(inner, signal_k)
+        return (inner, update(acc, k, s)), None
 
     zero = jnp.zeros((), dtype)
-    acc0 = (inf, inf, jnp.asarray(-1, jnp.int32), -inf, zero, zero, jnp.asarray(False), zero)
+    acc0 = (pair(inf, inf), pair(-inf, zero), jnp.asarray(-1, jnp.int32), zero, jnp.asarray(False))
     steps = jnp.arange(n, dtype=jnp.int32)
-    (_, acc), _ = jax.lax.scan(body, (init, acc0), (steps, experiment.signal), unroll=_UNROLL)
-    t10, t90, last_out, peak, n_sat, peak_v, bad, y_last = acc
+    carry = (init, acc0)
+    carry, _ = jax.lax.scan(
+        body, carry, (steps[: n - 1], experiment.signal[: n - 1]), unroll=_UNROLL
+    )
+    inner, acc = carry
+    _, last = step(inner, experiment.signal[n - 1])
+    times, peaks, last_out, n_sat, bad = update(acc, steps[n - 1], last)
+    t10, t90, peak, peak_v = times.real, times.imag, peaks.real, peaks.imag
+    y_last = last.position
     settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
     bad = bad | ~jnp.isfinite(y_last)
     return StepInfo(

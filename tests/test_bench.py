@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import jaxcart
-from tuning import bench
+from jaxcart import parallel
+from tuning import bench, ckernel
 from tuning.cli import main
 
 HORIZON = 0.3  # s: short runs keep the file fast; the loop and its checks are unchanged
@@ -35,18 +36,40 @@ def result():
 
 def test_schema(result):
     names = [row["name"] for row in result["rows"]]
-    assert names == ["jaxcart", "python-control", "scipy", "numpy-vectorized"]
+    assert names == [
+        "jaxcart",
+        "jaxcart-float64",
+        "c-kernel",
+        "python-control",
+        "scipy",
+        "numpy-vectorized",
+    ]
     for row in result["rows"]:
+        if "skipped" in row:  # only the C kernel, without a compiler
+            assert row["name"] == "c-kernel" and ckernel.compiler() is None
+            continue
         assert row["sims_per_s"] > 0 and np.isfinite(row["sims_per_s"])
         assert row["jaxcart_ratio"] > 0
     assert result["rows"][0]["jaxcart_ratio"] == 1.0
+    jax32, jax64, c_row = result["rows"][:3]
+    assert (jax32["dtype"], jax64["dtype"]) == ("float32", "float64")
+    assert jax32["sims_per_cpu_s"] > 0 and jax64["sims_per_cpu_s"] > 0
+    if "skipped" not in c_row:
+        for row in (jax32, jax64):
+            own = c_row["by_dtype"][row["dtype"]]["sims_per_cpu_s"]
+            assert row["ceiling_ratio"] == pytest.approx(row["sims_per_cpu_s"] / own)
+        assert c_row["threads"] == 1 and c_row["scalar_loop"]["sims_per_cpu_s"] > 0
+        assert "c-kernel" in bench.format_table(result)
     assert result["grad_sims_per_s"] > 0 and result["grid_sims_per_s"] > 0
     assert result["compile_s"] >= 0
-    assert result["devices"] == len(jax.devices())
+    assert result["devices"] == len(parallel.devices())
+    assert result["device_kind"] == parallel.devices()[0].device_kind
     assert result["backend"] == jax.default_backend()
     assert result["grid"]["runs"] == 4**3
     assert result["grad"]["all_finite"]
-    assert set(result["ratios"]) == set(bench.PEERS)
+    assert set(result["ratios"]) == {*bench.PEERS, "jaxcart-float64"} | (
+        set() if "skipped" in result["rows"][2] else {"c-kernel"}
+    )
     assert "not the benchmark" in result["workload"]["name"]  # a short horizon says so
     assert result["workload"]["samples"] == 301
     json.dumps(bench.to_json(result), allow_nan=False)  # plain JSON, no Infinity
@@ -162,6 +185,7 @@ def test_command_line(result, monkeypatch, tmp_path, capsys):
     table = capsys.readouterr().out
     for name in ("jaxcart", "python-control", "scipy", "numpy-vectorized", "grad", "grid"):
         assert name in table
+    assert "jaxcart-float64" in table and "c-kernel" in table
     written = json.loads(out.read_text())
     assert [row["name"] for row in written["rows"]][0] == "jaxcart"
     assert written["grad_sims_per_s"] == result["grad_sims_per_s"]
@@ -205,3 +229,86 @@ def test_peers_model_an_amplifier_saturation_as_the_simulators_do():
         assert np.max(np.abs(np.asarray(y_ivp)[: exact.size] - exact)) < 1e-6
         with pytest.raises(ValueError, match="coulomb"):
             bench.scipy_run(jaxcart.handout_plant(f_c=0.3), controller, experiment, gains)
+
+
+# ---------------------------------------------------------------- the C kernel (ceiling row)
+
+needs_cc = pytest.mark.skipif(ckernel.compiler() is None, reason="no C compiler on PATH")
+
+
+@needs_cc
+def test_c_kernel_computes_w1(result):
+    """The kernel against float64 jaxcart.simulate (EXACT_FORMS) on the check runs: positions
+    within TOLERANCE (measured ~4e-13 m), times to the sample, overshoot to 1e-8 %; in float32
+    against jaxcart float32 on the whole batch: rounding only (a crossing may move 3 samples)."""
+    check = result["checks"]["c-kernel"]
+    assert check["max_position_diff_m"] <= bench.TOLERANCE
+    diff = check["max_metric_diff"]
+    for key in ("rise_time", "settling_time", "saturation_time", "diverged"):
+        assert diff[key] == 0.0, key
+    assert diff["overshoot"] < 1e-8 and diff["peak_voltage"] < 1e-9
+    diff = result["checks"]["c-kernel-float32-vs-jaxcart-float32"]["max_metric_diff"]
+    assert diff["overshoot"] < 1e-3  # %
+    assert diff["steady_state_error"] < 1e-5  # m
+    assert diff["peak_voltage"] < 1e-3  # V
+    for key in ("rise_time", "settling_time", "saturation_time"):
+        assert diff[key] <= 3.5e-3, key  # s
+    assert diff["diverged"] == 0.0
+
+
+@needs_cc
+def test_c_kernel_scalar_loop_and_divergence():
+    """The scalar loop and the vectorized blocks agree (1e-12 m: only FMA contraction differs),
+    a batch that is not a multiple of the block is complete, and an unstable loop (no limit,
+    kp < 0) is reported diverged with infinite times, as jaxcart reports it."""
+    with jax.enable_x64(True):
+        plant, controller, experiment = bench.w1_problem(HORIZON)
+        unlimited = jaxcart.PID(tau=bench.TAU, sample_time=bench.SAMPLE_TIME)
+        gains = np.concatenate([bench.w1_gains(19), [[-4000.0, 0.0, 0.0]]])
+        info, trace = ckernel.run_w1(plant, unlimited, experiment, gains, record=20)
+        scalar, trace1 = ckernel.run_w1(plant, unlimited, experiment, gains, record=20, lanes=False)
+        ref = bench.jaxcart_metrics(plant, unlimited, experiment, gains, jnp.float64)
+    np.testing.assert_allclose(trace[:19], trace1[:19], rtol=0, atol=1e-12)
+    assert info["diverged"].tolist() == [False] * 19 + [True]
+    assert ref["diverged"].tolist() == info["diverged"].tolist()
+    assert np.isinf(info["rise_time"][-1]) and np.isinf(info["settling_time"][-1])
+    assert max(bench._max_diff(info, scalar).values()) < 1e-9
+    assert max(bench._max_diff({k: v[:19] for k, v in info.items()},
+                               {k: v[:19] for k, v in ref.items()}).values()) < 1e-9  # fmt: skip
+    with pytest.raises(ValueError, match="coulomb"):
+        ckernel.run_w1(jaxcart.handout_plant(f_c=0.3), controller, experiment, gains)
+
+
+def test_c_kernel_skipped_without_a_compiler(monkeypatch, tmp_path, result):
+    """No compiler: the row says why (and the table prints it); a compiler that fails says so."""
+    monkeypatch.setattr(ckernel, "_LOADED", {})
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    monkeypatch.delenv("CC", raising=False)
+    assert ckernel.compiler() is None
+    row = bench._c_kernel(None, None, None, None, None, {}, lambda m: None)
+    assert row == {"name": "c-kernel", "skipped": "no C compiler on PATH (looked for $CC, cc, "
+                   "gcc, clang)"}  # fmt: skip
+    skipped = dict(result, rows=[*result["rows"][:2], row, *result["rows"][3:]])
+    assert "c-kernel                  skipped: no C compiler" in bench.format_table(skipped)
+    fake = tmp_path / "cc"
+    fake.write_text("#!/bin/sh\necho 'fake cc 1.0'\necho 'w1.c: error: no' >&2\nexit 1\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("CC", str(fake))
+    with pytest.raises(ckernel.KernelUnavailable, match="did not build w1.c.*error: no"):
+        ckernel.load()
+
+
+@needs_cc
+def test_c_kernel_is_built_once_into_the_cache(monkeypatch, tmp_path):
+    """The library lands in the user's cache folder beside the JAX cache and is reused."""
+    monkeypatch.setattr(ckernel, "_LOADED", {})
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    _, build = ckernel.load()
+    path = tmp_path / "jaxcart" / "ckernel"
+    assert build["path"].startswith(str(path)) and build["flags"][0] == "-O3"
+    assert [p.suffix for p in path.iterdir()] == [".so"]  # no temporary file left behind
+    stamp = (path / build["path"].rsplit("/", 1)[1]).stat().st_mtime_ns
+    monkeypatch.setattr(ckernel, "_LOADED", {})
+    assert ckernel.load()[1]["path"] == build["path"]
+    assert (path / build["path"].rsplit("/", 1)[1]).stat().st_mtime_ns == stamp

@@ -22,18 +22,33 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from jaxcart.errors import UserError
-from jaxcart.metrics import SETTLING_BAND
-from jaxcart.smooth import simulate
+from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo
+from jaxcart.params import voltage_limit
+from jaxcart.running import accumulate, value_and_jacfwd
+from jaxcart.smooth import DIVERGED_POSITION, simulate
 from jaxcart.smoothing import Smoothing
-from jaxcart.surrogates import SmoothStepInfo, band_excess, smooth_step_info, soft_max
+from jaxcart.surrogates import (
+    SmoothStepInfo,
+    _log_not,
+    band_excess,
+    smooth_relu,
+    smooth_step,
+    smooth_step_info,
+    soft_max,
+)
 
 #: Gain order of every array of gains in tuning (as in jaxcart.batch): kp, kd, ki.
 GAIN_NAMES = ("kp", "kd", "ki")
+#: Every number of the PID the tuner can free, in the order of its parameter vector: the
+#: gains, then the derivative filter tau [s], the back-calculation gain kb [1/s] and the
+#: software voltage limit v_limit [V] (the numeric fields of hw.control_law.PID).
+PARAM_NAMES = GAIN_NAMES + ("tau", "kb", "v_limit")
 
 
 @dataclass(frozen=True)
@@ -87,13 +102,21 @@ class LossSettings:
 
 
 def gains_from_theta(theta, fixed, free_mask):
-    """(kp, kd, ki) from log gains ``theta`` (free entries) and ``fixed`` values (the rest)."""
+    """Parameters (order :data:`PARAM_NAMES`, or its first three: the gains) from their logs
+    ``theta`` (free entries) and ``fixed`` values (the rest)."""
     return jnp.where(free_mask, jnp.exp(theta), fixed)
 
 
 def controller_with(controller, gains):
-    """``controller`` with kp, kd, ki from ``gains`` (array of 3, order kp, kd, ki)."""
-    return dataclasses.replace(controller, kp=gains[0], kd=gains[1], ki=gains[2])
+    """``controller`` with its numbers from ``gains``: kp, kd, ki (3 entries) or every entry of
+    :data:`PARAM_NAMES` (6)."""
+    names = PARAM_NAMES[: len(gains)]
+    return dataclasses.replace(controller, **{n: gains[i] for i, n in enumerate(names)})
+
+
+def params_of(controller) -> tuple[float, ...]:
+    """The controller's numbers in :data:`PARAM_NAMES` order."""
+    return tuple(float(getattr(controller, n)) for n in PARAM_NAMES)
 
 
 def plant_loss(
@@ -128,22 +151,139 @@ def plant_loss(
     return loss, info
 
 
+class LossInfo(NamedTuple):
+    """The smooth metrics a streaming loss sees: settling_time [s], overshoot [%] (the
+    surrogates of :mod:`jaxcart.surrogates`), excess (band excess after target x T_max, in band
+    units), steady_state_error [m], diverged; metrics: the exact step metrics
+    (:class:`jaxcart.metrics.StepInfo`, hard thresholds) of the same smooth run, counted in the
+    same loop (no derivative: they track which iterate is best)."""
+
+    settling_time: jax.Array
+    overshoot: jax.Array
+    excess: jax.Array
+    steady_state_error: jax.Array
+    diverged: jax.Array
+    metrics: StepInfo
+
+
+def stream_loss(
+    gains, plant, controller, experiment, spec: Spec, settings: LossSettings, scale, substeps=None
+):
+    """(loss, LossInfo): :func:`plant_loss`'s loss, summed inside the simulation loop.
+
+    Same surrogates, no stored trace (tests/test_losses.py holds it to plant_loss). The
+    settling surrogate Ts sum_k (1 - prod_{j>=k} (1 - p_j)) runs backwards in time; with
+    P_k = sum_{j<k} log(1 - p_j) it is Ts (n - exp(P_n) sum_k exp(-P_k)), and the sum is kept
+    as a running log-sum-exp (stable: -P_k only grows). The soft maximum of the overshoot is an
+    online softmax (running max, rescaled sums).
+    """
+    smoothing = settings.smoothing.scaled(scale)
+    width = settings.width * scale
+    band = spec.band
+    after = settings.target * spec.settling_time
+    r_final = experiment.signal[-1]
+    dtype = jnp.result_type(experiment.signal, float)
+    late_count = jnp.maximum(jnp.sum((experiment.time - experiment.time[0]) >= after), 1)
+
+    pid = controller_with(controller, gains)
+    limit = voltage_limit(plant, pid)
+    inf = jnp.asarray(jnp.inf, dtype)
+
+    def hard(acc, k, tk, s):
+        # StepInfo's counters (as jaxcart.metrics.step_metrics), on values without tangents.
+        y, u, v = (jax.lax.stop_gradient(x) for x in (s.position, s.unlimited, s.voltage))
+        t10, t90, last_out, top, n_sat, peak_v = acc
+        z = (y - experiment.y0) / (r_final - experiment.y0)
+        t10 = jnp.where((t10 == inf) & (z >= RISE_LIMITS[0]), tk, t10)
+        t90 = jnp.where((t90 == inf) & (z >= RISE_LIMITS[1]), tk, t90)
+        out = jnp.abs(y - r_final) > band * jnp.abs(r_final - experiment.y0)
+        last_out = jnp.where(out, k, last_out)
+        n_sat = n_sat + (jnp.abs(u) > jax.lax.stop_gradient(limit))
+        return (t10, t90, last_out, jnp.maximum(top, z), n_sat, jnp.maximum(peak_v, jnp.abs(v)))
+
+    def update(acc, k, tk, s):
+        y0, p, lse, peak, den, num, excess, bad, _, counts = acc
+        counts = hard(counts, k, tk, s)
+        y0 = jnp.where(k == 0, s.position, y0)
+        z = (s.position - y0) / (r_final - y0)
+        distance = jnp.abs(z - 1.0) - band
+        lse = jnp.logaddexp(lse, -p)
+        p = p + _log_not(smooth_step(distance / width))
+        top = jnp.maximum(peak, z)
+        fade = jnp.exp((peak - top) / width)
+        w = jnp.exp((z - top) / width)
+        den, num = den * fade + w, num * fade + z * w
+        excess = excess + jnp.where(tk >= after, jax.nn.relu(distance) / band, 0.0)
+        bad = bad | ~(jnp.abs(s.position) <= DIVERGED_POSITION)
+        return (y0, p, lse, top, den, num, excess, bad, s.position, counts)
+
+    zero = jnp.zeros((), dtype)
+    counts = (inf, inf, jnp.asarray(-1, jnp.int32), -inf, zero, zero)
+    init = (zero, zero, -inf, zero - 1e30, zero, zero, zero, jnp.asarray(False), zero, counts)
+    y0, p, lse, _, den, num, excess, bad, y_last, counts = accumulate(
+        plant,
+        pid,
+        experiment,
+        init,
+        update,
+        smoothing=smoothing,
+        substeps=substeps,
+    )
+    n = experiment.n_samples
+    ts_s = experiment.sample_time * (n - jnp.exp(p + lse))
+    os_pct = 100.0 * smooth_relu(num / den - 1.0, width)
+    excess = excess / late_count
+    e = r_final - y_last
+    sse = jnp.sqrt(e * e + (width * (r_final - y0)) ** 2)
+    bad = bad | ~jnp.isfinite(y_last)
+    ts = ts_s / spec.settling_time
+    os = os_pct / spec.overshoot
+    penalty = jax.nn.relu(os - settings.target) + jax.nn.relu(ts - settings.target) + excess
+    loss = ts + settings.weight * penalty
+    loss = jnp.where(bad | ~jnp.isfinite(loss), 1e3, loss)
+    t10, t90, last_out, top, n_sat, peak_v = counts
+    dt = experiment.sample_time
+    settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * dt))
+    y_end = jax.lax.stop_gradient(y_last)
+    metrics = StepInfo(
+        rise_time=jnp.where(bad | (t90 == inf), inf, t90 - t10),
+        settling_time=jnp.where(bad, inf, settling),
+        overshoot=jnp.where(bad, inf, jnp.maximum(0.0, (top - 1.0) * 100.0)),
+        steady_state_error=jnp.where(bad, inf, jnp.abs(r_final - y_end)),
+        peak_voltage=peak_v,
+        saturation_time=n_sat * dt,
+        diverged=bad,
+    )
+    return loss, LossInfo(ts_s, os_pct, excess, sse, bad, metrics)
+
+
 def make_loss(
-    controller, experiment, spec: Spec, settings: LossSettings, *, robust: bool, substeps=None
+    controller,
+    experiment,
+    spec: Spec,
+    settings: LossSettings,
+    *,
+    robust: bool,
+    substeps=None,
+    stream: bool = True,
 ):
     """loss(theta, fixed, free_mask, plants, scale) -> (loss, aux) for one start.
 
-    theta: log gains (3,) (entries where ``free_mask`` is False are ignored); fixed: gains
-    (kp, kd, ki) used where ``free_mask`` is False; scale: continuation factor of the widths.
-    ``plants`` is one Plant (aux: SmoothStepInfo), or for robust tuning a Plant whose leaves
-    carry a leading axis of plant samples: the loss is then the soft maximum over them (aux:
-    (per-plant loss, SmoothStepInfo per plant)). Everything but the static configuration is an
-    argument, so one compiled function serves every start, bound and continuation stage.
+    theta: log parameters (3: the gains, or 6: :data:`PARAM_NAMES`; entries where
+    ``free_mask`` is False are ignored); fixed: the values used where ``free_mask`` is False;
+    scale: continuation factor of the widths. ``plants`` is one Plant (aux: LossInfo, or
+    SmoothStepInfo with ``stream=False``), or for robust tuning a Plant whose leaves carry a
+    leading axis of plant samples: the loss is then the soft maximum over them (aux: (per-plant
+    loss, info per plant)). Everything but the static configuration is an argument, so one
+    compiled function serves every start, bound and continuation stage. ``stream``: the loss
+    summed inside the loop (:func:`stream_loss`) rather than from a stored response
+    (:func:`plant_loss`); the same number.
     """
+    per_plant = stream_loss if stream else plant_loss
 
     def one(theta, fixed, free_mask, plant, scale):
         gains = gains_from_theta(theta, fixed, free_mask)
-        return plant_loss(
+        return per_plant(
             gains, plant, controller, experiment, spec, settings, scale, substeps=substeps
         )
 
@@ -172,9 +312,31 @@ def batched_value_and_grad(loss):
     return jax.value_and_grad(total, has_aux=True)
 
 
+def batched_value_and_jacfwd(loss):
+    """Loss and gradient w.r.t. the free entries of theta for a batch of starts, by forward
+    mode (one tangent per free parameter, the loss summed inside the loop: a few forward runs'
+    cost, nothing stored). ``(theta (S, P), free (F,) int indices, fixed, free_mask, plants,
+    scale) -> (losses (S,), aux, grad (S, P))``; the number F of free entries is static, their
+    indices are not (other free sets of the same size reuse the compiled function)."""
+
+    def one(theta, free, fixed, free_mask, plants, scale):
+        def of_free(u):
+            return loss(theta.at[free].set(u), fixed, free_mask, plants, scale)
+
+        (value, aux), g = value_and_jacfwd(of_free, has_aux=True)(theta[free])
+        return value, aux, jnp.zeros_like(theta).at[free].set(g)
+
+    return jax.vmap(one, in_axes=(0, None, None, None, None, None))
+
+
 __all__ = [
     "GAIN_NAMES",
+    "PARAM_NAMES",
     "Spec",
+    "LossInfo",
+    "stream_loss",
+    "params_of",
+    "batched_value_and_jacfwd",
     "LossSettings",
     "SmoothStepInfo",
     "gains_from_theta",

@@ -1,20 +1,26 @@
 """Gradient PID tuning through the smoothed simulator, every result re-checked on the exact one.
 
-    start gains --> [multi-start batch, log space] --> adam steps on the smooth loss
-                        ^                                   |  (tuning/losses.py; continuation:
-                        |                                   v   widths shrink as gains settle)
-                        '--- project into bounds <--- every few steps: metrics of every start on
-                                                      the hard-clip loop -> best feasible so far
+    start parameters --> [multi-start batch, log space] --> adam steps on the smooth loss
+                            ^                                  |  (tuning/losses.py: summed in
+                            |                                  v   the loop, forward mode)
+                            '--- project into bounds <--- exact-threshold metrics of the same
+                                                          smooth runs -> best so far; widths
+                                                          shrink as the parameters settle
     end: best candidates -> exact simulator (jaxcart.exact) -> gains, or the best effort and the
-    constraint that fails
+    constraint that fails; every free parameter on a bound of the box is named
 
-The default problem is the lab's: move 0.5 m, settling (2 % band) under 1 s, overshoot under
-5 %, 6 V saturation, handout plant, from the handout's gains kp = 40, kd = 5, ki = 5. Among gains
-that meet it, the loss keeps driving the settling time down toward the physical limit.
+One compiled function does a whole iteration (loss, forward-mode gradient with one tangent per
+free parameter, adam step, projection, metrics), so a cold run compiles one program. The free
+parameters are any of the PID's numbers (:data:`tuning.losses.PARAM_NAMES`: kp, kd, ki, tau,
+kb, v_limit). The default problem is the lab's: move 0.5 m, settling (2 % band) under 1 s,
+overshoot under 5 %, 6 V saturation, handout plant, from the handout's gains kp = 40, kd = 5,
+ki = 5. Among gains that meet it, the loss keeps driving the settling time down toward the
+physical limit; the tuner stops when no better point appeared for ``patience`` iterations at
+the finest width.
 
->>> res = tune(max_iterations=60, n_starts=4)  # about 5 s on 2 cores  # doctest: +SKIP
->>> res.meets, round(res.exact.settling_time, 3)  # doctest: +SKIP
-(True, 0.707)
+>>> res = tune()  # doctest: +SKIP
+>>> res.meets, round(res.exact.settling_time, 3), res.on_bound  # doctest: +SKIP
+(True, 0.708, {'kp': ('upper', 250.0)})
 """
 
 from __future__ import annotations
@@ -30,24 +36,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hw.control_law import PID, float_pid
 from jaxcart.errors import UserError
 from jaxcart.experiments import step
-from jaxcart.metrics import StepInfo, step_metrics
+from jaxcart.metrics import StepInfo
+from jaxcart.parallel import batch_sharding, devices, replicated
 from jaxcart.params import Plant, handout_plant, voltage_limit
 from jaxcart.plantspec import with_values
 from jaxcart.smooth import EXACT_FORMS
 from jaxcart.smoothing import continuation
 from tuning.losses import (
     GAIN_NAMES,
+    PARAM_NAMES,
     LossSettings,
     Spec,
-    batched_value_and_grad,
+    batched_value_and_jacfwd,
     controller_with,
     gains_from_theta,
     make_loss,
+    params_of,
 )
 
 #: The handout's suggested starting gains (kp [V/m], kd [V s/m], ki [V/(m s)]).
@@ -56,9 +64,18 @@ HANDOUT_START = (40.0, 5.0, 5.0)
 #: beyond it the loop is near bang-bang and gains only ~10 ms of settling on the model (0.715 s
 #: at kp ~ 150 against 0.704 s at kp ~ 830, measured), while unmodelled delay and amplifier
 #: dynamics make such gains chatter on a real cart. Widen with bounds= / --range.
-DEFAULT_BOUNDS = {"kp": (1e-2, 250.0), "kd": (1e-3, 50.0), "ki": (1e-3, 200.0)}
-#: Where a free gain starts when its start value is 0 (log space needs a positive value).
-ZERO_START = {"kp": 1.0, "kd": 0.1, "ki": 0.1}
+#: The other parameters: derivative filter tau [s] (0.1 ms to 0.1 s), back-calculation gain kb
+#: [1/s] and the software limit v_limit [V] (at most the lab's 6 V amplifier range).
+DEFAULT_BOUNDS = {
+    "kp": (1e-2, 250.0),
+    "kd": (1e-3, 50.0),
+    "ki": (1e-3, 200.0),
+    "tau": (1e-4, 0.1),
+    "kb": (1e-2, 1e3),
+    "v_limit": (0.5, 6.0),
+}
+#: Where a free parameter starts when its start value is 0 (log space needs a positive value).
+ZERO_START = {"kp": 1.0, "kd": 0.1, "ki": 0.1, "tau": 1e-3, "kb": 1.0, "v_limit": 6.0}
 #: Robust tuning's default plant set: intervals of parameters (M as a fraction of nominal).
 DEFAULT_ROBUST = {"B_eq": (3.0, 7.0), "f_c": (0.0, 1.0), "M": (0.9, 1.1)}
 #: Sub-steps per sample of the smooth simulator where friction acts, in tuning: measured on the
@@ -83,7 +100,9 @@ class TuneResult:
     call [s] (compilation included); seconds_to_spec: wall time until gains that meet the
     specification were first found [s] (None if never); worst: robust tuning's worst case over
     the check set (exact simulator): a StepInfo whose fields are each the worst over the set;
-    plant_set: per plant checked, its parameters and exact metrics.
+    plant_set: per plant checked, its parameters and exact metrics; free: the tuned
+    parameters; bounds: their search box {name: (lo, hi)}; on_bound: {name: (side, bound)} for
+    each free parameter on or within 1 % of a bound (:func:`on_bounds`).
     """
 
     gains: PID
@@ -101,6 +120,32 @@ class TuneResult:
     n_starts: int = 1
     worst: StepInfo | None = None
     plant_set: list | None = None
+    free: tuple[str, ...] = GAIN_NAMES
+    bounds: dict = field(default_factory=dict)
+    on_bound: dict = field(default_factory=dict)
+
+    def bound_note(self, widen: str | None = None) -> str | None:
+        """One line naming every free parameter on (or within 1 % of) a bound of the search
+        box, and how to widen it (``widen``: the way to say it, default the ``bounds=``
+        argument of :func:`tune`); None when there is none."""
+        if not self.on_bound:
+            return None
+        parts = [
+            f"{n} = {getattr(self.gains, n):.4g} on its {side} bound {b:g}"
+            for n, (side, b) in self.on_bound.items()
+        ]
+        if widen is None:
+            wider = ", ".join(
+                f"{n!r}: ({self.bounds[n][0]:g}, {self.bounds[n][1] * 4:g})"
+                if side == "upper"
+                else f"{n!r}: ({self.bounds[n][0] / 4:g}, {self.bounds[n][1]:g})"
+                for n, (side, _) in self.on_bound.items()
+            )
+            widen = f"bounds={{{wider}}}"
+        return (
+            "on a bound: " + "; ".join(parts) + f" (the search box limits this result: widen "
+            f"it with {widen} to see whether it improves)"
+        )
 
     def as_json(self) -> dict:
         """The ``--json`` document: gains, exact and smooth metrics, wall time [s], ..."""
@@ -117,6 +162,13 @@ class TuneResult:
             "spec": dataclasses.asdict(self.spec),
             "iterations": self.iterations,
             "starts": self.n_starts,
+            "free": list(self.free),
+            "bounds": {n: list(b) for n, b in self.bounds.items()},
+            "on_bound": {
+                n: {"side": side, "bound": b, "value": float(getattr(self.gains, n))}
+                for n, (side, b) in self.on_bound.items()
+            },
+            "bound_note": self.bound_note(),
         }
         doc["gains"]["v_limit"] = _num(doc["gains"]["v_limit"])
         if self.worst is not None:
@@ -134,54 +186,85 @@ def _num(x):
 
 
 def _start_and_template(start, controller, free):
-    """(start gains array (kp, kd, ki), controller template) from the user's arguments."""
+    """(start parameters (:data:`PARAM_NAMES` order), controller template) from the user's
+    arguments: the template's tau, kb and v_limit unless ``start`` names them."""
     if isinstance(start, PID):
         template = controller or start
-        gains = (start.kp, start.kd, start.ki)
+        values = dict(zip(PARAM_NAMES, params_of(template), strict=True))
+        values.update(zip(GAIN_NAMES, (start.kp, start.kd, start.ki), strict=True))
     else:
         template = controller or PID(tau=0.01, v_limit=6.0, sample_time=0.001)
-        if start is None:  # the handout's start, without the terms that are not free
-            gains = tuple(
-                g if n in free else 0.0 for n, g in zip(GAIN_NAMES, HANDOUT_START, strict=True)
+        values = dict(zip(PARAM_NAMES, params_of(template), strict=True))
+        if start is None:  # the handout's start, without the gains that are not free
+            values.update(
+                (n, g if n in free else 0.0) for n, g in zip(GAIN_NAMES, HANDOUT_START, strict=True)
             )
         elif isinstance(start, Mapping):
-            unknown = set(start) - set(GAIN_NAMES)
+            unknown = set(start) - set(PARAM_NAMES)
             if unknown:
                 raise UserError(
-                    f"start gains: unknown name(s) {', '.join(sorted(unknown))}; use kp, kd, ki"
+                    f"start: unknown name(s) {', '.join(sorted(unknown))}; use "
+                    f"{', '.join(PARAM_NAMES)}"
                 )
-            gains = tuple(float(start.get(n, 0.0)) for n in GAIN_NAMES)
+            values.update((n, 0.0) for n in GAIN_NAMES)
+            values.update((n, float(v)) for n, v in start.items())
         else:
-            gains = tuple(start)
-            if len(gains) != 3:
-                raise UserError(f"start = {start!r}: give three gains kp, kd, ki")
-    gains = tuple(float(g) for g in gains)
-    for name, g in zip(GAIN_NAMES, gains, strict=True):
+            given = tuple(start)
+            if len(given) not in (3, len(PARAM_NAMES)):
+                raise UserError(
+                    f"start = {start!r}: give three gains kp, kd, ki (or all of "
+                    f"{', '.join(PARAM_NAMES)})"
+                )
+            values.update(zip(PARAM_NAMES, (float(g) for g in given), strict=False))
+    for name in PARAM_NAMES:
+        g = float(values[name])
+        if name == "v_limit" and g == math.inf and name not in free:
+            continue  # no software limit: fine while it is not tuned
         if not (math.isfinite(g) and g >= 0):
-            raise UserError(f"start gain {name} = {g!r}: give a finite number >= 0")
-    return np.array(gains), template
+            what = "gain" if name in GAIN_NAMES else "value"
+            raise UserError(f"start {what} {name} = {g!r}: give a finite number >= 0")
+    return np.array([float(values[n]) for n in PARAM_NAMES]), template
 
 
 def _free_mask(free) -> np.ndarray:
     free = tuple(free)
-    unknown = [n for n in free if n not in GAIN_NAMES]
+    unknown = [n for n in free if n not in PARAM_NAMES]
     if unknown or not free:
-        raise UserError(f"free gains {', '.join(free) or '(none)'}: name one or more of kp, kd, ki")
-    return np.array([n in free for n in GAIN_NAMES])
+        raise UserError(
+            f"free gains {', '.join(free) or '(none)'}: name one or more of "
+            f"{', '.join(PARAM_NAMES)}"
+        )
+    return np.array([n in free for n in PARAM_NAMES])
 
 
 def _bounds(bounds):
+    """(log lower, log upper) bounds in :data:`PARAM_NAMES` order, and the merged dict."""
     merged = dict(DEFAULT_BOUNDS)
     for name, pair in (bounds or {}).items():
-        if name not in GAIN_NAMES:
-            raise UserError(f"bounds: unknown gain {name!r}; use kp, kd, ki")
+        if name not in PARAM_NAMES:
+            raise UserError(f"bounds: unknown gain {name!r}; use {', '.join(PARAM_NAMES)}")
         lo, hi = (float(v) for v in pair)
         if not (0 < lo < hi < math.inf):
             raise UserError(f"bounds {name} = ({lo}, {hi}): need 0 < low < high < inf")
         merged[name] = (lo, hi)
-    lo = np.log([merged[n][0] for n in GAIN_NAMES])
-    hi = np.log([merged[n][1] for n in GAIN_NAMES])
-    return lo, hi
+    lo = np.log([merged[n][0] for n in PARAM_NAMES])
+    hi = np.log([merged[n][1] for n in PARAM_NAMES])
+    return lo, hi, merged
+
+
+def on_bounds(values: Mapping, free: Sequence[str], bounds: Mapping, rel: float = 0.01) -> dict:
+    """The free parameters that sit on, or within ``rel`` (1 %) of, a bound: {name: (side,
+    bound)} with side "upper" or "lower". Such a result is the box's answer, not the problem's:
+    widening that bound may improve it."""
+    out = {}
+    for name in free:
+        lo, hi = bounds[name]
+        v = float(values[name])
+        if v >= hi * (1 - rel):
+            out[name] = ("upper", float(hi))
+        elif v <= lo * (1 + rel):
+            out[name] = ("lower", float(lo))
+    return out
 
 
 def _with_params(plant: Plant, values: Mapping) -> Plant:
@@ -280,9 +363,9 @@ def tune(
     spread: float = 0.5,
     max_iterations: int = 400,
     learning_rate: float = 0.25,
-    patience: int = 20,
-    stage_iterations: int = 30,
-    check_every: int = 5,
+    patience: int = 8,
+    stage_iterations: int = 10,
+    check_every: int = 1,
     bounds: Mapping | None = None,
     settings: LossSettings | None = None,
     substeps: int | None = None,
@@ -290,34 +373,42 @@ def tune(
     seed: int = 0,
     progress: bool | Callable[[dict], None] | None = None,
 ) -> TuneResult:
-    """Tune the canonical PID's gains by gradient descent on the smooth simulator.
+    """Tune the canonical PID by gradient descent on the smooth simulator.
 
     plant: design model (default :func:`jaxcart.handout_plant`: the nominal model, B_eq = 5.4
         kg/s, no effects; the 6 V of the lab is the controller's ``v_limit``; a plant with
         force effects such as Coulomb friction is simulated with sub-steps, slower).
     spec: :class:`tuning.losses.Spec` (step 0.5 m, settling < 1 s, overshoot < 5 %).
-    start: (kp, kd, ki) [V/m, V s/m, V/(m s)], a {name: gain} dict or a PID; default the
-        handout's (40, 5, 5) with the gains that are not free set to 0. Gains not in ``free``
-        stay at their start value.
-    free: the gains to tune, e.g. ("kp", "kd") for a PD controller.
-    controller: template for the other settings (tau, derivative_on, anti_windup, v_limit,
+    start: (kp, kd, ki) [V/m, V s/m, V/(m s)], all six of :data:`PARAM_NAMES`, a {name:
+        value} dict or a PID; default the handout's (40, 5, 5) with the gains that are not
+        free set to 0, and tau, kb, v_limit from ``controller``. What is not free stays at its
+        start value.
+    free: the parameters to tune among kp, kd, ki, tau [s], kb [1/s] (back-calculation
+        anti-windup) and v_limit [V], e.g. ("kp", "kd") for a PD controller.
+    controller: template for the other settings (tau, derivative_on, anti_windup, kb, v_limit,
         sample_time); default tau = 0.01 s, on error, no anti-windup, 6 V, 1 ms.
     robust: False; True for the default plant set (B_eq in [3, 7] kg/s, f_c in [0, 1] N, M
         within +/-10 %); a {name: (lo, hi)} dict (M as a fraction of nominal); or a list of
         Plants. The loss is then the soft maximum over the set (vmapped), and the result is
-        checked on the set plus ``n_check`` random plants of the box.
+        checked on the set plus ``n_check`` random plants of the box (a list: on itself).
     n_starts: starts in the vmapped batch: the given one and log-normal perturbations of the
-        free gains (``spread``: standard deviation of log gain); rounded up to a multiple of
-        the number of JAX devices, over which the batch is sharded.
-    max_iterations, learning_rate (adam, cosine decay, in log gain: 0.25 is a 25 % step),
-        stage_iterations (most iterations at one smoothing width; fewer once the gains stop
-        moving), patience (iterations at the final width without a better feasible point
-        before stopping), check_every (iterations between checks on the hard-clip loop).
-    bounds: {name: (lo, hi)} limits of the gains (default :data:`DEFAULT_BOUNDS`).
+        free parameters (``spread``: standard deviation of their logs); sharded over the
+        devices (jaxcart.parallel), padded with copies of the first start to a multiple of
+        their number, so the result is the same on any number of devices.
+    max_iterations, learning_rate (adam, cosine decay, in log parameter: 0.25 is a 25 % step),
+        stage_iterations (most iterations at one smoothing width; fewer once the parameters
+        stop moving), patience (iterations at the final width without a better point before
+        stopping), check_every (iterations between looks at the exact-threshold metrics of the
+        smooth runs, which pick the candidates).
+    bounds: {name: (lo, hi)} limits (default :data:`DEFAULT_BOUNDS`).
     settings: :class:`tuning.losses.LossSettings` (weights, margins, widths).
     substeps: sub-steps per sample of the smooth simulator (default 1 without friction,
         :data:`FRICTION_SUBSTEPS` with it).
     progress: True for a status line on stderr, or a callable receiving each history dict.
+
+    Gradients are forward-mode (one tangent per free parameter, the loss summed inside the
+    simulation loop) and one compiled function does the whole iteration: loss, gradient, adam
+    step, projection and the step metrics that track the best point.
 
     Never raises for a specification it cannot meet: ``meets`` is False, ``failing`` names the
     constraints and ``message`` says so; the best effort is returned.
@@ -327,9 +418,15 @@ def tune(
     settings = settings or LossSettings()
     plant = handout_plant() if plant is None else plant
     free_mask = _free_mask(free)
-    start_gains, template = _start_and_template(start, controller, free)
+    free = tuple(n for n in PARAM_NAMES if n in free)
+    start_params, template = _start_and_template(start, controller, free)
     template = float_pid(template)
-    lo, hi = _bounds(bounds)
+    if "kb" in free and template.anti_windup != "back_calculation":
+        raise UserError(
+            "free kb: the back-calculation gain acts only with anti_windup='back_calculation' "
+            "(--anti-windup back_calculation)"
+        )
+    lo, hi, box = _bounds(bounds)
     experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
     ts = template.sample_time
 
@@ -361,57 +458,51 @@ def tune(
         friction = _has_friction(plant)
     is_robust = check_plants is not None
 
-    # Starts: the given one, then log-normal perturbations of the free gains.
+    # Starts: the given one, then log-normal perturbations of the free parameters.
     base = np.where(
-        free_mask & (start_gains <= 0), [ZERO_START[n] for n in GAIN_NAMES], start_gains
+        free_mask & (start_params <= 0), [ZERO_START[n] for n in PARAM_NAMES], start_params
     )
     theta0 = np.log(np.where(free_mask, base, 1.0))
     rng = np.random.default_rng(seed)
-    # The batch of starts is sharded over every JAX device: round it up to a multiple.
-    devices = jax.devices()
-    n_starts = -(-max(1, n_starts) // len(devices)) * len(devices)
-    noise = spread * rng.standard_normal((n_starts - 1, 3))
+    n_starts = max(1, n_starts)
+    noise = spread * rng.standard_normal((n_starts - 1, len(PARAM_NAMES)))
     theta = np.concatenate([theta0[None], theta0[None] + noise]) * free_mask
     theta = np.clip(theta, lo, hi) * free_mask
-    mesh = Mesh(np.array(devices), ("starts",))
-    sharding = NamedSharding(mesh, PartitionSpec("starts"))
-    theta = jax.device_put(jnp.asarray(theta), sharding)
-    fixed = jnp.asarray(start_gains)
+    # The batch of starts is sharded over every device: pad it to a multiple with copies of the
+    # first start (never new random ones), so the result does not depend on the device count.
+    n_dev = len(devices())
+    theta = np.concatenate([theta, np.repeat(theta[:1], -n_starts % n_dev, axis=0)])
+    theta = jax.device_put(jnp.asarray(theta), batch_sharding())
+    fixed = jnp.asarray(np.where(np.isfinite(start_params), start_params, 1e30))
     mask = jnp.asarray(free_mask)
+    free_idx = jnp.asarray(np.flatnonzero(free_mask), dtype=jnp.int32)
 
     if substeps is None and friction:
         substeps = FRICTION_SUBSTEPS
-    update, check, adam = _compiled(
+    update, adam = _compiled(
         template, spec, settings, is_robust, substeps, jax.tree.structure(plants_arg)
     )
-    # Tracking: the hard-clip loop (the exact model without friction); with friction, the
-    # smooth loop at a quarter of the finest width (the exact simulator has the last word).
-    zero = jnp.zeros(())
-    tracking = jax.tree.map(
-        lambda w: zero + w,
-        settings.smoothing.scaled(SCALES[-1] / 4) if friction else settings.smoothing.scaled(0.0),
-    )
     # The optimizer state lives where the update puts it (else the second step recompiles).
-    replicated = NamedSharding(mesh, PartitionSpec())
     opt_state = jax.tree.map(
-        lambda x: jax.device_put(x, sharding if x.ndim == 2 else replicated), adam.init(theta)
+        lambda x: jax.device_put(x, batch_sharding() if x.ndim == 2 else replicated()),
+        adam.init(theta),
     )
     lo_j, hi_j = jnp.asarray(lo)[None], jnp.asarray(hi)[None]
 
     report = _progress(progress)
     history: list[dict] = []
-    candidates: dict[tuple, tuple] = {}  # rounded gains -> (key, gains, settling, overshoot)
+    candidates: dict[tuple, tuple] = {}  # rounded params -> (key, params, settling, overshoot)
     best = {"key": (math.inf, math.inf), "improved_at": None, "seconds_to_spec": None}
 
-    def record(theta, it):
-        """Metrics of every start on the tracking loop; keep them as candidates."""
-        gains_now, info_now = check(theta, fixed, mask, plants_arg, tracking)
-        gains_now = np.asarray(gains_now)
-        settle, over = np.asarray(info_now.settling_time), np.asarray(info_now.overshoot)
-        for g, s, o in zip(gains_now, settle, over, strict=True):
-            feasible = s < spec.settling_time and o < spec.overshoot
+    def record(params, metrics, it, scale):
+        """The step metrics (exact thresholds) of every start's smooth run: candidates."""
+        settle, over = np.asarray(metrics.settling_time), np.asarray(metrics.overshoot)
+        bad = np.asarray(metrics.diverged)
+        for g, s, o, b in zip(np.asarray(params), settle, over, bad, strict=True):
+            feasible = (not b) and s < spec.settling_time and o < spec.overshoot
             key = (s, o) if feasible else (math.inf, _violation(s, o, spec))
-            candidates[tuple(float(f"{x:.5g}") for x in g)] = (key, g, s, o)
+            # The finest widths rank first among equals: they are closest to the exact loop.
+            candidates[tuple(float(f"{x:.5g}") for x in g)] = (key, g, s, o, scale)
             if key < best["key"]:
                 # Progress is half a sample or more of settling time (or the first feasible).
                 if feasible and key[0] < best["key"][0] - 0.5 * ts:
@@ -425,43 +516,39 @@ def tune(
     it = 0
     for it in range(max_iterations):  # noqa: B007 (it is used after the loop)
         scale = jnp.asarray(SCALES[stage], dtype=theta.dtype)
-        if it % check_every == 0:
-            record(theta, it)
         lr = _cosine(learning_rate, it, max_iterations)
-        theta, opt_state, values_now, aux = update(
-            theta, opt_state, lr, fixed, mask, plants_arg, scale, lo_j, hi_j
+        params, theta, opt_state, values_now, info, metrics = update(
+            theta, opt_state, lr, free_idx, fixed, mask, plants_arg, scale, lo_j, hi_j
         )
+        if it % check_every == 0:
+            record(params, metrics, it, SCALES[stage])
 
         values_np = np.asarray(values_now)
         j = int(np.argmin(values_np))
-        info = aux[1] if is_robust else aux
-        settle_s = np.asarray(info.settling_time)[j]
-        over_s = np.asarray(info.overshoot)[j]
         entry = {
             "iteration": it,
             "seconds": time.perf_counter() - t0,
             "scale": float(scale),
             "loss": float(values_np[j]),
-            "settling_time": float(np.max(settle_s)),
-            "overshoot": float(np.max(over_s)),
+            "settling_time": float(np.max(np.asarray(info.settling_time)[j])),
+            "overshoot": float(np.max(np.asarray(info.overshoot)[j])),
             "best_settling_time": float(best["key"][0]),
         }
         history.append(entry)
         report(entry)
 
-        # Continuation: shrink the widths once the gains stop moving at this width.
+        # Continuation: shrink the widths once the parameters stop moving at this width.
         done_in_stage = it + 1 - stage_start
-        if done_in_stage % 10 == 0:
-            moved = float(np.max(np.abs(np.asarray(theta) - anchor)))  # over 10 iterations
+        if done_in_stage % 5 == 0:
+            moved = float(np.max(np.abs(np.asarray(theta) - anchor)))  # over 5 iterations
             if stage + 1 < len(SCALES) and (moved < 0.02 or done_in_stage >= stage_iterations):
                 stage, stage_start = stage + 1, it + 1
             anchor = np.asarray(theta)
-        # Early stop: finest width, feasible, and no better point for a while.
+        # Early stop: finest width and no better point for ``patience`` iterations.
         if stage == len(SCALES) - 1 and it - stage_start >= patience:
             last = best["improved_at"] if best["improved_at"] is not None else stage_start
             if it - max(last, stage_start) >= patience:
                 break
-    record(theta, it + 1)  # the last iterate too
     report(None)
     iterations = it + 1
     seconds_to_spec = best["seconds_to_spec"]
@@ -469,10 +556,11 @@ def tune(
     chosen, exact, checked = _verify(
         candidates, template, plant, experiment, spec, check_plants if is_robust else None
     )
-    gains = dataclasses.replace(
-        float_pid(template), kp=float(chosen[0]), kd=float(chosen[1]), ki=float(chosen[2])
+    tuned = controller_with(float_pid(template), [float(x) for x in chosen])
+    gains = float_pid(tuned)
+    smooth = _smooth_report(
+        update, opt_state, gains, plant, plants_arg, is_robust, theta, free_idx, (lo_j, hi_j)
     )
-    smooth = _smooth_report(check, gains, plant, plants_arg, is_robust, theta, settings)
 
     worst = plant_set = None
     if is_robust:
@@ -491,6 +579,7 @@ def tune(
     if not meets:
         seconds_to_spec = None
     message = _message(meets, failing, judged, spec, is_robust, len(check_plants or []))
+    values = dict(zip(PARAM_NAMES, params_of(gains), strict=True))
     return TuneResult(
         gains=gains,
         exact=exact,
@@ -507,65 +596,81 @@ def tune(
         n_starts=int(theta.shape[0]),
         worst=worst,
         plant_set=plant_set,
+        free=free,
+        bounds={n: box[n] for n in free},
+        on_bound=on_bounds(values, free, box),
     )
 
 
-#: Compiled loss-and-gradient and check functions, by static configuration: a second tune()
-#: with other starts, bounds or free gains (same batch size) compiles nothing.
+#: Compiled iteration functions, by static configuration: a second tune() with other starts,
+#: bounds or free parameters (as many, same batch size) compiles nothing.
 _CACHE: dict = {}
 
 
 def _compiled(template, spec, settings, robust, substeps, treedef):
-    """(update, check, adam) for a static configuration, jitted once.
+    """(update, adam) for a static configuration, jitted once.
 
-    update(theta, opt_state, lr, fixed, mask, plants, scale, lo, hi) -> (theta, opt_state,
-        per-start losses, aux): one adam step (lr [log gain]) on the batch of starts,
-        projected into the bounds [lo, hi] (log gains);
-    check(theta, fixed, mask, plants, smoothing) -> (gains, StepInfo) per start.
-    One compiled step, not a chain of small eager operations: measured, the eager adam update
-    alone cost about 1 s of first-call compilation and a few ms per iteration.
+    update(theta, opt_state, lr, free, fixed, mask, plants, scale, lo, hi) -> (params, theta,
+        opt_state, per-start losses, LossInfo, StepInfo): the parameters at ``theta``, one adam
+        step (lr [log parameter]) on the batch of starts projected into [lo, hi] (logs), the
+        loss, its smooth metrics and the exact-threshold step metrics of the same smooth runs
+        (robust: the worst over the plants), all from one forward-mode pass.
+    One compiled function, not a chain of small eager operations or a second checking
+    program: each distinct program costs seconds of first-call compilation.
     """
     key = (template, spec, settings, robust, substeps, treedef)
     if key not in _CACHE:
         experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
         loss = make_loss(template, experiment, spec, settings, robust=robust, substeps=substeps)
-        value_and_grad = batched_value_and_grad(loss)
+        value_and_grad = batched_value_and_jacfwd(loss)
         adam = optax.scale_by_adam()
-        checker = _checker(template, experiment, robust, substeps)
 
-        def update(theta, opt_state, lr, fixed, mask, plants, scale, lo, hi):
-            (_, (values, aux)), grad = value_and_grad(theta, fixed, mask, plants, scale)
+        def update(theta, opt_state, lr, free, fixed, mask, plants, scale, lo, hi):
+            values, aux, grad = value_and_grad(theta, free, fixed, mask, plants, scale)
+            info = aux[1] if robust else aux
+            metrics = info.metrics
+            if robust:  # field-wise worst over the plants (axis 1)
+                metrics = StepInfo(
+                    *(
+                        jnp.any(x, axis=1) if name == "diverged" else jnp.max(x, axis=1)
+                        for name, x in zip(StepInfo._fields, metrics, strict=True)
+                    )
+                )
             grad = jnp.where(jnp.isfinite(grad), grad, 0.0)  # a blown-up run teaches nothing
             direction, opt_state = adam.update(grad, opt_state, theta)
+            params = gains_from_theta(theta, fixed[None], mask[None])
             theta = jnp.clip(theta - lr * direction, lo, hi) * mask[None]
-            return theta, opt_state, values, aux
+            return params, theta, opt_state, values, info, metrics
 
-        def check(theta, fixed, mask, plants, smoothing):
-            gains = gains_from_theta(theta, fixed[None], mask[None])
-            return gains, checker(gains, plants, smoothing)
-
-        _CACHE[key] = (jax.jit(update), jax.jit(check), adam)
+        _CACHE[key] = (jax.jit(update), adam)
     return _CACHE[key]
 
 
-def _smooth_report(check, gains, plant, plants_arg, robust, theta, settings) -> StepInfo:
-    """StepInfo of ``gains`` on ``plant``, smooth loop at the finest width of the continuation
-    (through the compiled check: no new compilation unless the plant set differs)."""
-    final = jax.tree.map(lambda w: jnp.zeros(()) + w, settings.smoothing.scaled(SCALES[-1]))
-    fixed = jnp.asarray([gains.kp, gains.kd, gains.ki])
-    mask = jnp.zeros(3, dtype=bool)  # every row: the fixed gains
+def _smooth_report(update, state, gains, plant, plants_arg, robust, theta, free_idx, box):
+    """StepInfo of ``gains`` on ``plant``, smooth loop at the finest width of the continuation,
+    through the compiled update (every row the fixed ``gains``, same shapes: nothing new to
+    compile; for robust tuning every plant of the stack is the nominal one)."""
+    fixed = jnp.asarray(params_of(gains))
+    mask = jnp.zeros(len(PARAM_NAMES), dtype=bool)  # every row: the fixed parameters
     if robust:
-        # One plant with the set's effects (friction included even where f_c = 0).
+        # The nominal plant with the set's effects (friction included even where f_c = 0).
         values = {n: float(plant.get(n)) for n in ("M", "B_eq") if n in plant.param_names()}
         values["f_c"] = float(plant.get("f_c")) if plant.effect("coulomb") is not None else 0.0
-        nominal = _stack([_with_params(plant, values)])
-        if jax.tree.structure(nominal) != jax.tree.structure(plants_arg):
-            nominal = _stack([plant])
-        plants_arg = nominal
+        nominal = _with_params(plant, values)
+        n_plants = jax.tree.leaves(plants_arg)[0].shape[0]
+        one = jax.tree.map(lambda x: x[0], plants_arg)
+        if jax.tree.structure(nominal) != jax.tree.structure(one):
+            nominal = plant
+        plants_arg = _stack([nominal] * n_plants)
     else:
         plants_arg = plant
-    _, info = check(jnp.zeros_like(theta), fixed, mask, plants_arg, final)
-    return StepInfo(*(np.asarray(x)[0].item() for x in info))
+    scale = jnp.asarray(SCALES[-1], dtype=theta.dtype)
+    out = update(theta, state, 0.0, free_idx, fixed, mask, plants_arg, scale, *box)
+    info = out[4]
+    metrics = info.metrics
+    if robust:
+        metrics = StepInfo(*(np.asarray(x)[:, 0] for x in metrics))
+    return StepInfo(*(np.asarray(x)[0].item() for x in metrics))
 
 
 def _cosine(lr0: float, k: int, n: int, alpha: float = 0.1) -> float:
@@ -573,53 +678,18 @@ def _cosine(lr0: float, k: int, n: int, alpha: float = 0.1) -> float:
     return lr0 * ((1 - alpha) * 0.5 * (1 + math.cos(math.pi * min(k, n) / n)) + alpha)
 
 
-def _checker(template, experiment, robust, substeps):
-    """metrics(gains (S, 3), plants, smoothing) -> StepInfo per start (for robust tuning, the
-    field-wise worst over the plants); a run that blew up reports inf.
+def _verify(candidates, template, plant, experiment, spec, check_plants, tries=None):
+    """Best of the leading candidates on the exact simulator; else the one closest to spec.
 
-    ``smoothing`` is an argument: all-zero widths (traced, so not recognised as the exact forms
-    at trace time) give exactly the hard clip and sign() anyway, since the smooth forms reduce to
-    them at width 0; the same compiled function then serves the hard-clip tracking and the
-    final report at the finest width.
+    The candidates were ranked by the smooth runs, which differ a little from the exact loop
+    (most at wide smoothing), so the leading ``tries`` (default 6 for one plant, 3 for a set)
+    are all checked and the best exact result wins. Returns (parameters, exact StepInfo on
+    ``plant``, per-plant exact StepInfos or None).
     """
-
-    def one(gains, plant, smoothing):
-        info = step_metrics(
-            plant,
-            controller_with(template, gains),
-            experiment,
-            smoothing=smoothing,
-            substeps=substeps,
-        )
-        bad = info.diverged
-        return info._replace(
-            settling_time=jnp.where(bad, jnp.inf, info.settling_time),
-            overshoot=jnp.where(bad, jnp.inf, info.overshoot),
-        )
-
-    if robust:
-
-        def worst(gains, plants, smoothing):
-            infos = jax.vmap(one, in_axes=(None, 0, None))(gains, plants, smoothing)
-            return StepInfo(
-                *(
-                    jnp.any(x) if name == "diverged" else jnp.max(x)
-                    for name, x in zip(StepInfo._fields, infos, strict=True)
-                )
-            )
-
-        return jax.vmap(worst, in_axes=(0, None, None))
-    return jax.vmap(one, in_axes=(0, None, None))
-
-
-def _verify(candidates, template, plant, experiment, spec, check_plants, tries: int = 4):
-    """Best candidate that the exact simulator confirms; else the one closest to the spec.
-
-    Returns (gains, exact StepInfo on ``plant``, per-plant exact StepInfos or None).
-    """
-    ranked = sorted(candidates.values(), key=lambda c: c[0])
+    tries = tries or (6 if check_plants is None else 3)
+    ranked = sorted(candidates.values(), key=lambda c: (c[0], c[4]))
     best = None
-    for _key, g, _s, _o in ranked[:tries]:
+    for _key, g, _s, _o, _scale in ranked[:tries]:
         pid = controller_with(float_pid(template), [float(x) for x in g])
         if check_plants is None:
             info = exact_info(plant, pid, experiment)
@@ -628,14 +698,14 @@ def _verify(candidates, template, plant, experiment, spec, check_plants, tries: 
             per_plant = [exact_info(p, pid, experiment) for p in check_plants]
             judged = _worst(per_plant)
             info = exact_info(plant, pid, experiment)
+        ok = not failing_constraints(judged, spec)
         score = (
-            0 if not failing_constraints(judged, spec) else 1,
+            0 if ok else 1,
+            float(judged.settling_time) if ok else 0.0,
             _violation(judged.settling_time, judged.overshoot, spec),
         )
         if best is None or score < best[0]:
             best = (score, g, info, per_plant)
-        if score[0] == 0:
-            break
     _, g, info, per_plant = best
     return g, info, per_plant
 
@@ -733,74 +803,133 @@ def penalty_objective(
     return ts + settings.weight * (max(os - settings.target, 0.0) + max(ts - settings.target, 0.0))
 
 
+#: The benchmark problems of :func:`compare_tuners`: the lab's (kp, kd, ki on the nominal
+#: plant); robust over 25 plants (the default box's centre and 8 corners, plus 16 random
+#: plants of it); wide: all six numbers of the PID (kp, kd, ki, tau, kb with back-calculation
+#: anti-windup, v_limit) robust over the box's centre and corners (9 plants).
+PROBLEMS = ("lab", "robust", "wide")
+#: Most Nelder-Mead evaluations per problem (each one is a run per plant on the exact
+#: simulator), and the most seconds it may take.
+NM_EVALUATIONS = {"lab": 600, "robust": 400, "wide": 600}
+NM_SECONDS = 600.0
+
+
+def compare_problem(problem: str, plant: Plant | None = None, *, seed: int = 0):
+    """(free, controller, robust, n_check, plants, starts) of a benchmark problem of
+    :data:`PROBLEMS` on ``plant`` (default the handout's): ``robust`` and ``n_check`` as
+    :func:`tune` takes them (False for the lab problem), ``plants`` the set every result is
+    judged on (None: the plant alone), the same set tune checks on."""
+    plant = handout_plant() if plant is None else plant
+    if problem == "lab":
+        return GAIN_NAMES, None, False, 0, None, 8
+    if problem == "robust":
+        # The gradient tuner trains on the box's centre and corners and is judged, like
+        # Nelder-Mead, on those and 16 random plants: 25.
+        plants, _ = robust_plants(plant, DEFAULT_ROBUST, n_random=16, seed=seed + 1)
+        return GAIN_NAMES, None, DEFAULT_ROBUST, 16, plants, 2
+    if problem == "wide":
+        plants, _ = robust_plants(plant, DEFAULT_ROBUST)
+        pid = PID(tau=0.01, v_limit=6.0, kb=1.0, anti_windup="back_calculation")
+        return PARAM_NAMES, pid, DEFAULT_ROBUST, 0, plants, 4
+    raise UserError(f"--problem {problem}: use one of {', '.join(PROBLEMS)}")
+
+
 def compare_tuners(
     plant: Plant | None = None,
     *,
+    problem: str = "lab",
     spec: Spec | None = None,
     start=None,
-    free: Sequence[str] = GAIN_NAMES,
+    free: Sequence[str] | None = None,
     controller: PID | None = None,
     seed: int = 0,
     bounds: Mapping | None = None,
-    nm_max_evaluations: int = 600,
+    nm_max_evaluations: int | None = None,
+    nm_max_seconds: float = NM_SECONDS,
+    grid: bool | None = None,
     progress: bool = False,
 ) -> dict:
-    """Benchmark :func:`tune` against scipy's Nelder-Mead on the exact simulator (penalty
-    objective, same start, log gains) and against the best point of a quasi-random (Sobol)
-    grid over :data:`GRID_BOX` evaluated on the batched hard-clip simulator for the same wall
-    time as :func:`tune` took (compilation included in both). All three search the same gain
-    box: ``bounds`` (default :data:`DEFAULT_BOUNDS`), for the grid intersected with GRID_BOX.
+    """Benchmark :func:`tune` against scipy's Nelder-Mead on the exact simulator, in one run.
 
-    Returns a dict: one entry per method (settling_time [s], overshoot [%] on the exact
-    simulator, seconds, seconds_to_spec, evaluations, gains) plus "ratios" and a printable
-    "table".
+    problem: one of :data:`PROBLEMS` (its free parameters, controller and plant set, unless
+    ``free`` / ``controller`` are given). Nelder-Mead minimizes the same penalty objective
+    (:func:`penalty_objective`, of the worst case over the plant set) on the exact simulator,
+    from the same start, in log parameters projected into the same box (``bounds``, default
+    :data:`DEFAULT_BOUNDS`). For the lab problem (and ``grid=True``) a third row is the best
+    point of a quasi-random (Sobol) grid over :data:`GRID_BOX` on the batched hard-clip
+    simulator for the same wall time as :func:`tune` took. Wall times include compilation.
+
+    Returns a dict: one entry per method (settling_time [s], overshoot [%]: exact, worst over
+    the set; seconds, seconds_to_spec, evaluations, gains, and for Nelder-Mead
+    seconds_to_gradient: when its best point first matched the gradient result's worst-case
+    settling time, to 0.5 ms, or None), "ratios" and a printable "table".
     """
     from scipy.optimize import minimize
-    from scipy.stats import qmc
-
-    from jaxcart.batch import step_metrics_batch
 
     spec = spec or Spec()
     plant = handout_plant() if plant is None else plant
+    p_free, p_controller, robust, n_check, plants, n_starts = compare_problem(
+        problem, plant, seed=seed
+    )
+    free = tuple(free or p_free)
+    controller = controller or p_controller
+    nm_max_evaluations = nm_max_evaluations or NM_EVALUATIONS[problem]
     free_mask = _free_mask(free)
-    start_gains, template = _start_and_template(start, controller, free)
+    start_params, template = _start_and_template(start, controller, free)
+    template = float_pid(template)
     experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
+    check = plants if plants is not None else [plant]
     say = (
         (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     )
 
     # 1. Gradient tuning (this module).
-    say("compare: gradient tuner ...")
+    say(f"compare ({problem}): gradient tuner ...")
     ours = tune(
         plant,
         spec=spec,
         start=start,
         free=free,
-        controller=controller,
+        controller=template,
+        robust=robust,
+        n_check=n_check,
+        n_starts=n_starts,
         seed=seed,
         bounds=bounds,
         progress=progress,
     )
     budget = ours.seconds
-    log_lo, log_hi = _bounds(bounds)
+    ours_info = ours.worst if ours.worst is not None else ours.exact
+    log_lo, log_hi, _ = _bounds(bounds)
 
     # 2. Nelder-Mead on the exact simulator, penalty objective, same start.
-    say("compare: Nelder-Mead on the exact simulator ...")
+    say(f"compare ({problem}): Nelder-Mead on the exact simulator, {len(check)} plant(s) ...")
     base = np.where(
-        free_mask & (start_gains <= 0), [ZERO_START[n] for n in GAIN_NAMES], start_gains
+        free_mask & (start_params <= 0), [ZERO_START[n] for n in PARAM_NAMES], start_params
     )
-    nm = {"evaluations": 0, "best": None, "first_feasible": None}
+    nm = {"evaluations": 0, "best": None, "first_feasible": None, "to_gradient": None}
+    target = float(ours_info.settling_time) + 0.5 * template.sample_time
+    ours_ok = not failing_constraints(ours_info, spec)
     t0 = time.perf_counter()
 
+    class _Done(Exception):
+        pass
+
     def objective(x):
-        g = np.where(free_mask, base, start_gains)
-        # Projected into the tuner's box, so both search the same gains.
+        if time.perf_counter() - t0 > nm_max_seconds:
+            raise _Done
+        g = base.copy()
+        # Projected into the tuner's box, so both search the same parameters.
         g[free_mask] = np.exp(np.clip(x, log_lo[free_mask], log_hi[free_mask]))
-        info = exact_info(plant, controller_with(template, list(g)), experiment)
+        pid = controller_with(template, list(g))
+        info = _worst([exact_info(p, pid, experiment) for p in check])
         nm["evaluations"] += 1
         feasible = not failing_constraints(info, spec)
+        now = time.perf_counter() - t0
         if feasible and nm["first_feasible"] is None:
-            nm["first_feasible"] = time.perf_counter() - t0
+            nm["first_feasible"] = now
+        if feasible and ours_ok and nm["to_gradient"] is None and info.settling_time <= target:
+            nm["to_gradient"] = now
         key = (
             0 if feasible else 1,
             float(info.settling_time)
@@ -812,60 +941,40 @@ def compare_tuners(
         return penalty_objective(info.settling_time, info.overshoot, info.steady_state_error, spec)
 
     x0 = np.log(base[free_mask])
-    # Initial simplex: +/- 30 % steps in each log gain (scipy's default 5 % is too timid here).
+    # Initial simplex: +/- 30 % steps in each log parameter (scipy's 5 % is too timid here).
     simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(x0.size)[i] for i in range(x0.size)])
-    minimize(
-        objective,
-        x0,
-        method="Nelder-Mead",
-        options={
-            "maxfev": nm_max_evaluations,
-            "xatol": 1e-3,
-            "fatol": 1e-4,
-            "initial_simplex": simplex,
-        },
-    )
-    nm_seconds = time.perf_counter() - t0
-    _, nm_gains, nm_info = nm["best"]
-
-    # 3. Quasi-random grid on the batched simulator for the same wall time.
-    say(f"compare: grid of equal wall time ({budget:.1f} s) ...")
-    friction = _has_friction(plant)
-    smoothing = EXACT_FORMS if not friction else LossSettings().smoothing.scaled(SCALES[-1] / 4)
-    lo = np.maximum(np.log([GRID_BOX[n][0] for n in GAIN_NAMES]), log_lo)
-    hi = np.minimum(np.log([GRID_BOX[n][1] for n in GAIN_NAMES]), log_hi)
-    sobol = qmc.Sobol(d=3, scramble=True, seed=seed)
-    batch = 4096
-    t0 = time.perf_counter()
-    n_points, grid_best, grid_first = 0, None, None
-    while time.perf_counter() - t0 < budget:
-        g = np.exp(lo + sobol.random(batch) * (hi - lo))
-        g = np.where(free_mask, g, start_gains)
-        info = step_metrics_batch(plant, template, experiment, g, smoothing=smoothing)
-        n_points += batch
-        ok = (
-            (~info.diverged)
-            & (info.settling_time < spec.settling_time)
-            & (info.overshoot < spec.overshoot)
+    try:
+        minimize(
+            objective,
+            x0,
+            method="Nelder-Mead",
+            options={
+                "maxfev": nm_max_evaluations,
+                "xatol": 1e-3,
+                "fatol": 1e-4,
+                "initial_simplex": simplex,
+            },
         )
-        if ok.any():
-            if grid_first is None:
-                grid_first = time.perf_counter() - t0
-            i = int(np.argmin(np.where(ok, info.settling_time, np.inf)))
-            if grid_best is None or info.settling_time[i] < grid_best[0]:
-                grid_best = (float(info.settling_time[i]), g[i])
-    grid_seconds = time.perf_counter() - t0
-    if grid_best is not None:
-        grid_gains = grid_best[1]
-        grid_info = exact_info(plant, controller_with(template, list(grid_gains)), experiment)
-    else:
-        grid_gains, grid_info = None, None
+        nm_stopped = "converged or evaluation cap"
+    except _Done:
+        nm_stopped = f"time cap {nm_max_seconds:g} s"
+    nm_seconds = time.perf_counter() - t0
+    _, nm_params, nm_info = nm["best"]
 
-    def entry(gains, info, seconds, to_spec, evaluations):
+    # 3. Quasi-random grid on the batched simulator for the same wall time (lab problem).
+    grid = (problem == "lab") if grid is None else grid
+    grid_entry = None
+    if grid:
+        say(f"compare ({problem}): grid of equal wall time ({budget:.1f} s) ...")
+        grid_entry = _grid_baseline(
+            plant, template, experiment, spec, free_mask, start_params, log_lo, log_hi, budget, seed
+        )
+
+    def entry(params, info, seconds, to_spec, evaluations):
         return {
             "gains": None
-            if gains is None
-            else dict(zip(GAIN_NAMES, map(float, gains), strict=True)),
+            if params is None
+            else dict(zip(PARAM_NAMES, map(float, params), strict=True)),
             "settling_time": None if info is None else _num(info.settling_time),
             "overshoot": None if info is None else _num(info.overshoot),
             "meets": info is not None and not failing_constraints(info, spec),
@@ -875,18 +984,25 @@ def compare_tuners(
         }
 
     result = {
+        "problem": problem,
+        "free": list(free),
+        "plants": len(check),
         "gradient": entry(
-            (ours.gains.kp, ours.gains.kd, ours.gains.ki),
-            ours.exact,
+            params_of(ours.gains),
+            ours_info,
             ours.seconds,
             ours.seconds_to_spec,
             ours.iterations * ours.n_starts,
         ),
         "nelder_mead": entry(
-            nm_gains, nm_info, nm_seconds, nm["first_feasible"], nm["evaluations"]
+            nm_params, nm_info, nm_seconds, nm["first_feasible"], nm["evaluations"]
         ),
-        "grid": entry(grid_gains, grid_info, grid_seconds, grid_first, n_points),
     }
+    result["gradient"]["on_bound"] = sorted(ours.on_bound)
+    result["nelder_mead"]["seconds_to_gradient"] = nm["to_gradient"]
+    result["nelder_mead"]["stopped"] = nm_stopped
+    if grid_entry is not None:
+        result["grid"] = entry(*grid_entry)
 
     def ratio(a, b):
         try:
@@ -900,23 +1016,77 @@ def compare_tuners(
         "settling_nelder_mead_over_gradient": ratio(
             result["nelder_mead"]["settling_time"], g["settling_time"]
         ),
-        "settling_grid_over_gradient": ratio(result["grid"]["settling_time"], g["settling_time"]),
         "seconds_nelder_mead_over_gradient": ratio(nm_seconds, ours.seconds),
+        # Nelder-Mead's time to the gradient tuner's worst case, over the gradient's time;
+        # where it never got there, its whole run is a lower bound (reported as such).
+        "seconds_to_gradient_result_nelder_mead_over_gradient": ratio(
+            nm["to_gradient"] if nm["to_gradient"] is not None else nm_seconds, ours.seconds
+        ),
+        "nelder_mead_reached_gradient_result": nm["to_gradient"] is not None,
         "seconds_to_spec_nelder_mead_over_gradient": ratio(
             nm["first_feasible"], ours.seconds_to_spec
         ),
     }
+    if "grid" in result:
+        result["ratios"]["settling_grid_over_gradient"] = ratio(
+            result["grid"]["settling_time"], g["settling_time"]
+        )
     result["table"] = _compare_table(result)
     return result
+
+
+def _grid_baseline(
+    plant, template, experiment, spec, free_mask, start_params, log_lo, log_hi, budget, seed
+):
+    """Best Sobol point of GRID_BOX (kp, kd, ki) on the batched hard-clip simulator within
+    ``budget`` seconds: (params, exact StepInfo, seconds, seconds to spec, points)."""
+    from scipy.stats import qmc
+
+    from jaxcart.batch import step_metrics_batch
+
+    friction = _has_friction(plant)
+    smoothing = EXACT_FORMS if not friction else LossSettings().smoothing.scaled(SCALES[-1] / 4)
+    gain_mask = free_mask[:3]
+    lo = np.maximum(np.log([GRID_BOX[n][0] for n in GAIN_NAMES]), log_lo[:3])
+    hi = np.minimum(np.log([GRID_BOX[n][1] for n in GAIN_NAMES]), log_hi[:3])
+    sobol = qmc.Sobol(d=3, scramble=True, seed=seed)
+    batch = 4096
+    t0 = time.perf_counter()
+    n_points, best, first = 0, None, None
+    while time.perf_counter() - t0 < budget:
+        g = np.exp(lo + sobol.random(batch) * (hi - lo))
+        g = np.where(gain_mask, g, start_params[:3])
+        info = step_metrics_batch(plant, template, experiment, g, smoothing=smoothing)
+        n_points += batch
+        ok = (
+            (~info.diverged)
+            & (info.settling_time < spec.settling_time)
+            & (info.overshoot < spec.overshoot)
+        )
+        if ok.any():
+            if first is None:
+                first = time.perf_counter() - t0
+            i = int(np.argmin(np.where(ok, info.settling_time, np.inf)))
+            if best is None or info.settling_time[i] < best[0]:
+                best = (float(info.settling_time[i]), g[i])
+    seconds = time.perf_counter() - t0
+    if best is None:
+        return None, None, seconds, first, n_points
+    params = np.concatenate([best[1], start_params[3:]])
+    info = exact_info(plant, controller_with(template, list(params)), experiment)
+    return params, info, seconds, first, n_points
 
 
 def _compare_table(result) -> str:
     def f(x, digits=3):
         return "-" if x is None else (x if isinstance(x, str) else f"{x:.{digits}f}")
 
+    worst = "worst " if result["plants"] > 1 else ""
     lines = [
-        f"{'method':<34s}{'settling [s]':>13s}{'overshoot [%]':>15s}{'meets':>7s}"
-        f"{'wall [s]':>10s}{'to spec [s]':>13s}{'evaluations':>13s}"
+        f"problem {result['problem']}: free {', '.join(result['free'])}; "
+        f"{result['plants']} plant(s), exact simulator",
+        f"{'method':<36s}{worst + 'settling [s]':>19s}{worst + 'overshoot [%]':>21s}"
+        f"{'meets':>7s}{'wall [s]':>10s}{'to spec [s]':>13s}{'evaluations':>13s}",
     ]
     names = {
         "gradient": "gradient (this tuner, exact check)",
@@ -924,22 +1094,41 @@ def _compare_table(result) -> str:
         "grid": "Sobol grid, equal wall time",
     }
     for key, label in names.items():
+        if key not in result:
+            continue
         e = result[key]
         lines.append(
-            f"{label:<34s}{f(e['settling_time']):>13s}{f(e['overshoot'], 2):>15s}"
+            f"{label:<36s}{f(e['settling_time']):>19s}{f(e['overshoot'], 2):>21s}"
             f"{'yes' if e['meets'] else 'no':>7s}{f(e['seconds'], 1):>10s}"
             f"{f(e['seconds_to_spec'], 2):>13s}{e['evaluations']:>13,d}"
         )
     r = result["ratios"]
+    nm = result["nelder_mead"]
+    reached = (
+        f"Nelder-Mead reached the gradient result after {nm['seconds_to_gradient']:.1f} s: "
+        f"{f(r['seconds_to_gradient_result_nelder_mead_over_gradient'], 2)}x the gradient's time"
+        if r["nelder_mead_reached_gradient_result"]
+        else "Nelder-Mead never reached the gradient result (stopped: "
+        f"{nm['stopped']}); its whole run is "
+        f"{f(r['seconds_to_gradient_result_nelder_mead_over_gradient'], 2)}x the gradient's time"
+    )
     lines.append(
-        "ratios: settling NM/gradient {}, grid/gradient {}; wall time NM/gradient {}; "
-        "time to spec NM/gradient {}".format(
+        "ratios: settling NM/gradient {}; wall time NM/gradient {}; time to spec NM/gradient "
+        "{}".format(
             f(r["settling_nelder_mead_over_gradient"]),
-            f(r["settling_grid_over_gradient"]),
             f(r["seconds_nelder_mead_over_gradient"], 2),
             f(r["seconds_to_spec_nelder_mead_over_gradient"], 2),
         )
     )
+    lines.append(reached)
+    if "settling_grid_over_gradient" in r:
+        lines.append(f"settling grid/gradient {f(r['settling_grid_over_gradient'])}")
+    if result["gradient"].get("on_bound"):
+        lines.append(
+            "note: the gradient result has "
+            + ", ".join(result["gradient"]["on_bound"])
+            + " on a bound of the search box (both methods search the same box)"
+        )
     return "\n".join(lines)
 
 
@@ -952,6 +1141,9 @@ __all__ = [
     "exact_info",
     "failing_constraints",
     "compare_tuners",
+    "compare_problem",
+    "on_bounds",
+    "PROBLEMS",
     "penalty_objective",
     "HANDOUT_START",
     "DEFAULT_BOUNDS",

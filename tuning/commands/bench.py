@@ -3,7 +3,10 @@
     jaxcart bench [--json OUT] [--batch N] [--quick]
 
 Prints a table (sims/s and jaxcart's ratio to python-control, scipy and vectorized numpy, all
-measured in this process) and a progress line per stage on stderr. Every peer is first checked
+measured in this process; jaxcart in float32 and float64 as a fraction of the "c-kernel"
+ceiling, a C kernel of W1 built with the system's compiler, per CPU-second; the device kind
+and count) and a progress line per stage on stderr. Without a C compiler the ceiling row is
+skipped and says why. Every peer is first checked
 to compute the same loop as jaxcart (positions within 1e-6 m of float64 jaxcart); a peer that
 does not stops the benchmark with exit status 1. ``--json OUT`` writes the whole result
 (an existing file is kept unless --force).
@@ -22,8 +25,10 @@ def register(subparsers) -> None:
         description=(
             "Simulations per second of workload W1 (PID with 6 V saturation, 0.5 m step, 3 s "
             "at 1 ms, handout plant, a batch of random gain triples): jaxcart's "
-            "step_metrics_batch in float32 beside python-control, scipy solve_ivp and "
-            "vectorized numpy doing the same loop, plus gradients and a 64^3 grid."
+            "step_metrics_batch in float32 and float64 beside python-control, scipy solve_ivp "
+            "and vectorized numpy doing the same loop, and a C kernel of W1 built with the "
+            "system's C compiler as the ceiling (per CPU-second), plus gradients and a 64^3 "
+            "grid; runs on every local device (CPU cores or GPUs)."
         ),
     )
     parser.add_argument(

@@ -14,10 +14,12 @@ import math
 from pathlib import Path
 
 from jaxcart.errors import UserError
-from jaxcart.outputs import OUT_DIR, free_names
+from jaxcart.outputs import OUT_DIR, check_writable, free_names
 
 GAINS = ("kp", "kd", "ki")
-UNITS = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)"}
+#: What --free may name (tuning.losses.PARAM_NAMES, without importing jax for --help).
+PARAMS = GAINS + ("tau", "kb", "v_limit")
+UNITS = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)", "tau": "s", "kb": "1/s", "v_limit": "V"}
 
 
 def register(subparsers) -> None:
@@ -86,8 +88,18 @@ def register(subparsers) -> None:
         "--free",
         default="kp,kd,ki",
         metavar="NAMES",
-        help="gains to tune, e.g. kp,kd for a PD controller (default kp,kd,ki); "
-        "the others keep their --start value",
+        help="parameters to tune among kp,kd,ki,tau,kb,v_limit, e.g. kp,kd for a PD "
+        "controller (default kp,kd,ki); the others keep their --start / option value",
+    )
+    ctl.add_argument(
+        "--bound",
+        dest="bounds",
+        action="append",
+        default=[],
+        metavar="NAME=LO,HI",
+        help="search box of a parameter, e.g. kp=0.01,1000 (defaults: kp 0.01..250 V/m, kd "
+        "0.001..50 V s/m, ki 0.001..200 V/(m s), tau 1e-4..0.1 s, kb 0.01..1000 1/s, "
+        "v_limit 0.5..6 V); repeatable",
     )
     ctl.add_argument(
         "--sample-time",
@@ -117,6 +129,13 @@ def register(subparsers) -> None:
         default=0.01,
         metavar="S",
         help="derivative filter time constant [s] (default 0.01)",
+    )
+    ctl.add_argument(
+        "--kb",
+        type=float,
+        default=1.0,
+        metavar="PER_S",
+        help="back-calculation anti-windup gain [1/s] (default 1)",
     )
     ctl.add_argument(
         "--v-limit",
@@ -184,8 +203,15 @@ def register(subparsers) -> None:
     run_.add_argument(
         "--compare",
         action="store_true",
-        help="benchmark: this tuner vs scipy Nelder-Mead on the exact simulator "
-        "vs a quasi-random grid of equal wall time; prints ratios",
+        help="benchmark: this tuner vs scipy Nelder-Mead on the exact simulator (and, for "
+        "the lab problem, a quasi-random grid of equal wall time); prints ratios",
+    )
+    run_.add_argument(
+        "--problem",
+        default="lab",
+        choices=("lab", "robust", "wide", "all"),
+        help="with --compare: lab (kp, kd, ki, nominal plant; default), robust (25 plants), "
+        "wide (all six PID numbers, robust over 9 plants; minutes) or all",
     )
     run_.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run)
@@ -207,22 +233,31 @@ def run(args) -> int:
     if args.starts < 1 or args.iterations < 1:
         raise UserError("--starts and --iterations must be at least 1")
 
+    bounds = _bounds(args.bounds)
     if args.compare:
         if robust is not False:
-            raise UserError("--compare benchmarks the nominal problem; drop --robust/--range")
+            raise UserError(
+                "--compare sets its own plant sets; drop --robust/--range and use --problem"
+            )
         json_path = _json_path(args)
-        report = compare_tuners(
-            plant,
-            spec=spec,
-            start=start,
-            free=free,
-            controller=controller,
-            seed=args.seed,
-            progress=not args.quiet,
-        )
-        print(report["table"])
+        problems = ("lab", "robust", "wide") if args.problem == "all" else (args.problem,)
+        docs = {}
+        for problem in problems:
+            report = compare_tuners(
+                plant,
+                problem=problem,
+                spec=spec,
+                start=start,
+                free=free if args.free != "kp,kd,ki" else None,
+                controller=controller if problem != "wide" else None,
+                seed=args.seed,
+                bounds=bounds,
+                progress=not args.quiet,
+            )
+            print(report["table"], flush=True)
+            docs[problem] = {k: v for k, v in report.items() if k != "table"}
         if json_path is not None:
-            _write_json(json_path, {k: v for k, v in report.items() if k != "table"})
+            _write_json(json_path, docs if len(docs) > 1 else docs[problems[0]])
         return 0
 
     gains_path, png_path = _outputs(args)
@@ -237,6 +272,7 @@ def run(args) -> int:
         n_starts=args.starts,
         max_iterations=args.iterations,
         seed=args.seed,
+        bounds=bounds,
         progress=not args.quiet,
     )
     _print_summary(result, robust is not False)
@@ -255,6 +291,8 @@ def run(args) -> int:
         if start is not None
         else "handout: kp 40, kd 5, ki 5 for the free gains, 0 for the others",
         "free": list(free),
+        "bounds": {n: list(b) for n, b in result.bounds.items()},
+        "on_bound": {n: {"side": side, "bound": b} for n, (side, b) in result.on_bound.items()},
         "seconds": result.seconds,
     }
     if result.worst is not None:
@@ -312,10 +350,31 @@ def _spec(args):
 
 def _free(text):
     names = tuple(n.strip() for n in text.split(",") if n.strip())
-    bad = [n for n in names if n not in GAINS]
+    bad = [n for n in names if n not in PARAMS]
     if bad or not names:
-        raise UserError(f"--free {text}: name gains among kp, kd, ki, e.g. --free kp,kd")
+        raise UserError(
+            f"--free {text}: name parameters among {', '.join(PARAMS)}, e.g. --free kp,kd"
+        )
     return names
+
+
+def _bounds(texts):
+    bounds = {}
+    for text in texts:
+        name, _, rest = text.partition("=")
+        name = name.strip()
+        try:
+            lo, hi = (float(s) for s in rest.split(","))
+        except ValueError:
+            raise UserError(
+                f"--bound {text}: write NAME=LO,HI, e.g. --bound kp=0.01,1000"
+            ) from None
+        if name not in PARAMS:
+            raise UserError(f"--bound {text}: {name!r} is not one of {', '.join(PARAMS)}")
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+            raise UserError(f"--bound {text}: need finite 0 < LO < HI")
+        bounds[name] = (lo, hi)
+    return bounds or None
 
 
 def _start(text):
@@ -338,8 +397,10 @@ def _controller(args):
     _finite(args.tau, "--tau", nonnegative=True)
     if not args.v_limit > 0:
         raise UserError(f"--v-limit {args.v_limit}: give a positive limit [V] (inf for none)")
+    _finite(args.kb, "--kb", nonnegative=True)
     return PID(
         tau=args.tau,
+        kb=args.kb,
         v_limit=args.v_limit,
         sample_time=args.sample_time,
         derivative_on=args.derivative_on,
@@ -390,23 +451,19 @@ def _robust(args):
 
 
 def _outputs(args):
-    """(gains path, png path), refusing existing files unless --force, before tuning."""
+    """(gains path, png path), each checked writable (and refused where it exists, unless
+    --force) before tuning, so a bad path fails at once, not after the computation."""
     if args.out:
-        gains_path = Path(args.out)
-        if gains_path.suffix.lower() != ".json":
-            raise UserError(f"--out {args.out}: give a name ending in .json")
+        gains_path = check_writable(args.out, suffixes=(".json",), option="--out", force=args.force)
         png_path = Path(args.plot) if args.plot else gains_path.with_suffix(".png")
-        if not args.force:
-            for path in (gains_path, png_path):
-                if path.exists():
-                    raise UserError(
-                        f"{path} exists; choose another name or pass --force to overwrite it"
-                    )
-        return gains_path, png_path
-    gains_path, auto_png = free_names(OUT_DIR, "gains", (".json", ".png"))
-    png_path = Path(args.plot) if args.plot else auto_png
-    if png_path.exists() and not args.force:
-        raise UserError(f"{png_path} exists; choose another name or pass --force")
+    else:
+        gains_path, png_path = free_names(OUT_DIR, "gains", (".json", ".png"))
+        gains_path = check_writable(gains_path, option="output", force=args.force)
+        png_path = Path(args.plot) if args.plot else png_path
+    option = "--plot" if args.plot else "figure"
+    png_path = check_writable(
+        png_path, suffixes=(".png", ".svg", ".pdf"), option=option, force=args.force
+    )
     return gains_path, png_path
 
 
@@ -415,10 +472,7 @@ def _json_path(args):
         return None
     if args.json == "-":
         return "-"
-    path = Path(args.json)
-    if path.exists() and not args.force:
-        raise UserError(f"{path} exists; choose another name or pass --force to overwrite it")
-    return path
+    return check_writable(args.json, option="--json", force=args.force)
 
 
 def _write_json(path, doc):
@@ -460,6 +514,9 @@ def _print_summary(result, robust):
             f"{_fmt(info.rise_time):>10s}{_fmt(info.steady_state_error, digits=5):>14s}"
         )
     print(result.message)
+    note = result.bound_note(widen=_bound_flags(result))
+    if note is not None:
+        print(note)
     to_spec = (
         ""
         if result.seconds_to_spec is None
@@ -471,20 +528,27 @@ def _print_summary(result, robust):
     )
 
 
+def _bound_flags(result) -> str:
+    """--bound options that widen, 4x, each bound a result sits on."""
+    flags = []
+    for name, (side, _) in result.on_bound.items():
+        lo, hi = result.bounds[name]
+        lo, hi = (lo, hi * 4) if side == "upper" else (lo / 4, hi)
+        flags.append(f"--bound {name}={lo:g},{hi:g}")
+    return " ".join(flags)
+
+
 def _plot(path, result, experiment):
+    """The exact simulator's step response (and the worst plant of a robust set). The smooth
+    run at the final widths is not drawn: it lies on the exact one (the printed metrics give
+    both), and simulating it here cost a compilation and seconds of eager operations."""
     import numpy as np
 
     from jaxcart.exact import simulate_exact
     from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
-    from jaxcart.smooth import simulate
-    from tuning.losses import LossSettings
-    from tuning.tune import SCALES
 
     g, spec = result.gains, result.spec
     exact = simulate_exact(result.plant, g, experiment)
-    smooth = simulate(
-        result.plant, g, experiment, smoothing=LossSettings().smoothing.scaled(SCALES[-1])
-    )
     t = np.asarray(exact.time)
     r = float(spec.step)
     band = spec.band * abs(r)
@@ -497,7 +561,6 @@ def _plot(path, result, experiment):
             f"exact simulator (settling {_fmt(result.exact.settling_time)}"
             f" s, overshoot {_fmt(result.exact.overshoot, digits=2)} %)",
         ),
-        run_from_response(smooth, "smooth simulator (final widths)"),
     ]
     if result.plant_set:
         worst = max(

@@ -1,0 +1,121 @@
+"""`tune` says when a result sits on a bound of its search box, and checks its outputs before
+computing anything (tuning/tune.py, tuning/commands/tune.py).
+
+The bound flags are checked against the gains and the box directly (1 % of the bound); the
+output checks run with tune() replaced by a function that fails the test if it is called.
+"""
+
+import json
+
+import pytest
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from tuning.tune import DEFAULT_BOUNDS, on_bounds, tune
+
+
+def test_on_bounds_flags_within_one_percent_of_either_bound():
+    box = {"kp": (1.0, 250.0), "kd": (0.001, 50.0), "ki": (0.001, 200.0)}
+    values = {"kp": 248.0, "kd": 0.00101, "ki": 3.0}
+    assert on_bounds(values, ("kp", "kd", "ki"), box) == {
+        "kp": ("upper", 250.0),
+        "kd": ("lower", 0.001),
+    }
+    assert on_bounds({"kp": 246.0}, ("kp",), box) == {}  # 1.6 % below: inside
+    assert on_bounds(values, ("ki",), box) == {}  # only free parameters count
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    """A short lab run (the compiled iteration is shared with tests/test_tune.py's PD run)."""
+    return tune(free=("kp", "kd"), max_iterations=30, n_starts=4, patience=5)
+
+
+def test_result_names_every_gain_on_a_bound(short_run):
+    res = short_run
+    expected = {}
+    for name in res.free:
+        lo, hi = DEFAULT_BOUNDS[name]
+        value = getattr(res.gains, name)
+        if value >= 0.99 * hi:
+            expected[name] = "upper"
+        elif value <= 1.01 * lo:
+            expected[name] = "lower"
+    assert {n: side for n, (side, _) in res.on_bound.items()} == expected
+    doc = res.as_json()
+    assert set(doc["on_bound"]) == set(expected)
+    json.dumps(doc, allow_nan=False)
+    if expected:  # the lab's optimum pushes kp to its 250 V/m cap
+        note = res.bound_note()
+        assert all(n in note for n in expected) and "widen" in note
+    else:
+        assert res.bound_note() is None
+
+
+def test_command_line_prints_the_bound_and_how_to_widen_it(tmp_path, capsys, short_run):
+    from tuning.cli import main
+
+    summary = tmp_path / "s.json"
+    args = ["tune", "--out", str(tmp_path / "g.json"), "--json", str(summary), "--quiet"]
+    args += ["--free", "kp,kd", "--starts", "4", "--iterations", "30"]
+    code = main(args)
+    out = capsys.readouterr().out
+    doc = json.loads(summary.read_text())
+    assert code in (0, 1)
+    gains = json.loads((tmp_path / "g.json").read_text())
+    for name, entry in doc["on_bound"].items():
+        lo, hi = DEFAULT_BOUNDS[name]
+        bound = hi if entry["side"] == "upper" else lo
+        assert abs(doc["gains"][name] - bound) <= 0.01 * bound
+        assert f"--bound {name}=" in out
+    assert gains["on_bound"] == {
+        n: {"side": e["side"], "bound": e["bound"]} for n, e in doc["on_bound"].items()
+    }
+
+
+@pytest.fixture
+def no_tuning(monkeypatch):
+    import tuning.tune
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("tune() ran although an output cannot be written")
+
+    monkeypatch.setattr(tuning.tune, "tune", refuse)
+    monkeypatch.setattr(tuning.tune, "compare_tuners", refuse)
+
+
+@pytest.mark.parametrize("option", ["--out", "--json", "--plot"])
+def test_unwritable_outputs_fail_before_tuning(tmp_path, capsys, no_tuning, option):
+    from tuning.cli import main
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    names = {"--out": "g.json", "--json": "s.json", "--plot": "f.png"}
+    argv = ["tune", "--out", str(tmp_path / "ok.json"), option, str(blocker / names[option])]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and option in err and "a-file" in err
+    assert not (tmp_path / "ok.json").exists()
+
+
+def test_compare_json_is_checked_before_the_benchmark(tmp_path, capsys, no_tuning):
+    from tuning.cli import main
+
+    (tmp_path / "x").write_text("")
+    assert main(["tune", "--compare", "--json", str(tmp_path / "x" / "c.json")]) == 2
+    assert "--json" in capsys.readouterr().err
+
+
+def test_new_parameters_are_checked():
+    with pytest.raises(UserError, match="back_calculation"):
+        tune(free=("kp", "kb"))
+    with pytest.raises(UserError, match="bounds tau"):
+        tune(free=("kp", "tau"), bounds={"tau": (0.1, 0.01)})
+    with pytest.raises(UserError, match="start value tau"):
+        tune(start={"kp": 40.0, "tau": -1.0})
+    # A PID start keeps its own tau, kb and v_limit (the template's numbers).
+    from tuning.tune import _start_and_template
+
+    pid = jc.PID(kp=50.0, kd=4.0, ki=1.0, tau=0.02, kb=3.0, v_limit=5.0)
+    params, template = _start_and_template(pid, None, ("kp",))
+    assert list(params) == [50.0, 4.0, 1.0, 0.02, 3.0, 5.0] and template is pid
