@@ -7,11 +7,14 @@ that survive autocorrelated residuals, and identifiability.
     theta = [log B_eq, log f_c, ... (shared) | y0, yd0 of each recording (nuisance)]
                                v
     residuals r(theta) = y_model(theta) - y_measured      (every segment, metres)
-      smoothing width wide -> narrow:  adam on |r|^2 (widest only), Levenberg-Marquardt
-      (J = jax.jacfwd of r through jaxcart.simulate, float64)
+      smoothing width wide -> narrow:  Levenberg-Marquardt, each iteration trying four
+      damping values in one batched, sharded run (J = jax.jacfwd of r through
+      jaxcart.simulate, float64; adam first at the widest, ``adam_steps``)
       -> Gauss-Newton on jaxcart.exact.simulate_exact (residuals and Jacobian exact)
       -> robust covariance -> "not identifiable" where the relative standard error exceeds
          max_rel_stderr (held at its start value, the rest refitted) -> RMS before and after
+      -> the residual against the noise floor: a model that does not explain the data is
+         flagged and its standard errors widened to what the residual supports
 
 Nuisance values: a tap's position and velocity where its coasting starts (free); a closed or
 open loop's start position, bounded to the encoder count it starts in (the encoder reads 0
@@ -25,7 +28,12 @@ P-controlled step 10-20 times). The reported error is the sandwich (J^T J)^-1 S 
 scores enter a Newey-West long-run covariance, and the encoder's known share (q^2/12 per run)
 is a floor. Checked over many seeds (tests/test_fit.py): about 68 % of the truths within one
 standard error and 95 % within two, slightly conservative on encoder-only data. The naive value
-is kept beside it (``stderr_naive``).
+is kept beside it (``stderr_naive``). Where the RMS error exceeds MISFIT_RATIO times the noise
+floor (q / sqrt(12) and white noise) the residual is model error, not noise: the fit says the
+model does not explain the data, and each standard error is at least the naive one times
+sqrt(N / n_eff), n_eff the independent samples the residual's autocorrelation leaves
+(tests/test_fit_honesty.py). A parameter held, and an optimizer stopped at its iteration cap,
+are reported (``FitResult.warnings``: the printout, the JSON and the plant file's [fit] table).
 
 >>> import jaxcart as jc
 >>> from tuning.synthetic import make_recording
@@ -55,6 +63,7 @@ from hw.control_law import PID
 from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
+from jaxcart.parallel import sharded_map
 from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant
 from jaxcart.smooth import simulate
 from jaxcart.smoothing import Smoothing, continuation
@@ -112,10 +121,28 @@ class Nuisance(NamedTuple):
 STAIRCASE_STEP = 0.03
 #: Largest Levenberg-Marquardt step per iteration, in internal units.
 MAX_STEP = 1.0
+#: Damping values tried at once in each Levenberg-Marquardt iteration, as multiples of the
+#: current one (the classic sequence lambda, 4 lambda, ... in one batch; the least damped that
+#: decreases the cost is taken, then lambda / 5): a batch of K trial steps costs about one run
+#: on a CPU (loop overhead bound), so a rejected step no longer costs a run of its own.
+LM_DAMPING = (1.0, 4.0, 16.0, 64.0)
+#: Points per batched evaluation (every call is padded to a multiple: one compiled program).
+LM_BATCH = len(LM_DAMPING)
+#: Levenberg-Marquardt converges when the step moves the parameters by less than this fraction
+#: of a standard error (one that the residual supports, :func:`effective_samples`): at the
+#: narrowest width, and at the wider ones of the continuation (whose result is only a start).
+LM_TOLERANCE = 0.01
+LM_TOLERANCE_WIDE = 0.1
 #: Bounded nuisance values stay within sigmoid(+-BOUNDED_LIMIT) of their range.
 BOUNDED_LIMIT = 6.0
 #: Segments are padded to a multiple of this many samples (fewer recompilations).
 PAD = 256
+#: A fit whose RMS error exceeds this many times the noise floor (:func:`noise_floor`) is
+#: reported as a model that does not explain the data (the fits of correct models on encoder
+#: data end at 1.0-1.3 times it).
+MISFIT_RATIO = 3.0
+#: Smallest noise floor [m]: a smooth model differs from the exact one by about this much.
+FLOOR_MIN = 1e-6
 #: Format tag of a fitted-plant file (``--out fitted.json``).
 FITTED_FORMAT = "jaxcart.fitted_plant"
 
@@ -126,7 +153,8 @@ class FitSettings:
 
     widths: velocity smoothing of friction's sign(), wide -> narrow (continuation) [m/s]
     voltage_width: smoothing of the clip corners [V]
-    adam_steps: adam iterations at the widest width (0: Levenberg-Marquardt only)
+    adam_steps: adam iterations at the widest width (0: Levenberg-Marquardt only; adam leads
+        ill-conditioned fits, e.g. friction along the track, to a better minimum)
     learning_rate: adam step in internal units (log of a parameter, or mm and 0.1 m/s)
     lm_iterations: at most this many Levenberg-Marquardt iterations at each width
     exact_iterations: at most this many Gauss-Newton iterations on the exact simulator
@@ -160,12 +188,15 @@ class Estimate:
     identifiable: bool = True
     stderr_naive: float | None = None
     note: str = ""
+    held_at: float | None = None  # the value a parameter not identified is held at [SI]
 
     def to_json(self) -> dict:
         out = {"value": _finite(self.value), "stderr": _finite(self.stderr)}
         if not self.identifiable:
             out["identifiable"] = False
             out["note"] = self.note
+            if self.held_at is not None:
+                out["held_at"] = _finite(self.held_at)
         else:
             out["stderr_naive"] = _finite(self.stderr_naive)
         return out
@@ -239,7 +270,12 @@ class FitResult:
     correlation: {(a, b): correlation} of the identified parameters; n_data: samples fitted;
     seconds: wall time [s]; smoothing: the narrowest smoothing used; history: (width [m/s],
     Levenberg-Marquardt iterations, RMS [m]) per width; exact_polish: True when the last polish
-    ran on the exact simulator.
+    ran on the exact simulator; stages: each optimizer run ({"stage", "iterations", "cap",
+    "converged"}); noise_floor: the RMS error [m] a correct model would leave (encoder count
+    q/sqrt(12) and white noise); n_effective: independent samples the final residual is worth
+    (:func:`effective_samples`); misfit: why the model does not explain the data ("" when it
+    does: RMS within :data:`MISFIT_RATIO` of the noise floor), in which case the standard errors
+    are widened to what the residual supports.
     """
 
     params: dict
@@ -251,6 +287,32 @@ class FitResult:
     smoothing: Smoothing
     history: list = field(default_factory=list)
     exact_polish: bool = False
+    stages: list = field(default_factory=list)
+    noise_floor: float = 0.0
+    n_effective: float = 0.0
+    misfit: str = ""
+
+    @property
+    def converged(self) -> bool:
+        """False when an optimizer stopped at its iteration cap (the fit may be unfinished)."""
+        return all(s["converged"] for s in self.stages)
+
+    @property
+    def warnings(self) -> list[str]:
+        """One line for each thing the numbers do not show: a model that does not explain the
+        data, a parameter held at its start value, an optimizer stopped at its cap."""
+        out = [self.misfit] if self.misfit else []
+        held = {n: e for n, e in self.params.items() if not e.identifiable}
+        for n, e in held.items():
+            at = f" at {e.held_at:.4g} {UNITS.get(n, '')}".rstrip() if e.held_at is not None else ""
+            out.append(f"{n} held{at} ({e.note}); the other errors are conditional on that value")
+        for s in self.stages:
+            if not s["converged"]:
+                out.append(
+                    f"{s['stage']} stopped at its iteration cap ({s['cap']}) before converging; "
+                    "the values may not be the best fit"
+                )
+        return out
 
     def _total(self, attr) -> float | None:
         parts = [(getattr(s, attr), s.measured.size) for s in self.segments]
@@ -313,6 +375,13 @@ class FitResult:
             "correlation": {f"{a},{b}": c for (a, b), c in self.correlation.items()},
             "values": dict(self.values),
             "seconds": self.seconds,
+            "model_explains_data": not self.misfit,
+            "noise_floor": self.noise_floor,
+            "n_effective": self.n_effective,
+            "optimizer": list(self.stages),
+            "converged": self.converged,
+            "held": {n: e.held_at for n, e in self.params.items() if not e.identifiable},
+            "warnings": self.warnings,
         }
 
 
@@ -644,14 +713,31 @@ def _positions(theta, data, smoothing, layout: _Layout):
     return jnp.concatenate(out)
 
 
-@partial(jax.jit, static_argnames="layout")
 def _residuals_jacobian(theta, data, measured, weight, smoothing, layout):
+    """(r, dr/dtheta) of one theta: forward mode (a few parameters, many samples)."""
+    TRACES[layout] = TRACES.get(layout, 0) + 1  # runs when traced, not when called
+
     def residuals(th):
         r = (_positions(th, data, smoothing, layout) - measured) * weight
         return r, r
 
     jac, r = jax.jacfwd(residuals, has_aux=True)(theta)
     return r, jac
+
+
+_BATCHED: dict = {}
+#: How often the residual function was traced, per layout (tests check it is once).
+TRACES: dict = {}
+
+
+def _batched_residuals(layout: _Layout):
+    """``run(thetas (K, m), data, measured, weight, smoothing) -> (r (K, n), J (K, n, m))``:
+    one compiled program per layout, sharded over the devices (:mod:`jaxcart.parallel`).
+    The CPU's per-step loop overhead dominates a single run, so K trial points cost little more
+    than one."""
+    if layout not in _BATCHED:
+        _BATCHED[layout] = sharded_map(partial(_residuals_jacobian, layout=layout))
+    return _BATCHED[layout]
 
 
 _positions_jit = jax.jit(_positions, static_argnames="layout")
@@ -678,6 +764,7 @@ class _Problem:
                 index += 1
             layout.append((ps, tuple(nu)))
         self.layout = _Layout(self.params, tuple(layout), settings.substeps)
+        self.evaluations = 0  # smooth-model points evaluated (r and J)
         self.theta0 = np.asarray(theta, dtype=float)
         # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
         # nearly the same length then share one compiled residual function.
@@ -739,12 +826,23 @@ class _Problem:
             r = _positions_jit(th, self.data, self.smoothing(width), self.layout) - self.measured
             r = np.asarray(r)[self.rows]
             return r, np.zeros((r.size, 0))
-        r, jac = _residuals_jacobian(
-            th, self.data, self.measured, self.weight, self.smoothing(width), self.layout
+        r, jac = self.evaluate_batch(th[None, :], width)
+        return r[0], jac[0]
+
+    def evaluate_batch(self, thetas, width):
+        """(r (K, n), J (K, n, m)) of K points theta at once (one program, padded to
+        :data:`LM_BATCH` points); r = inf for a point whose simulation is not finite."""
+        thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
+        k = thetas.shape[0]
+        size = -(-k // LM_BATCH) * LM_BATCH
+        padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - k, axis=0)])
+        self.evaluations += k
+        r, jac = _batched_residuals(self.layout)(
+            jnp.asarray(padded), self.data, self.measured, self.weight, self.smoothing(width)
         )
-        r, jac = np.asarray(r)[self.rows], np.asarray(jac)[self.rows]
-        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
-            r = np.full_like(r, np.inf)
+        r, jac = np.asarray(r)[:k, self.rows], np.asarray(jac)[:k, self.rows]
+        bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(jac), axis=(1, 2)))
+        r[bad] = np.inf
         return r, jac
 
     def segment_values(self, theta, k):
@@ -850,9 +948,13 @@ def _adam(problem, theta, active, width, steps, lr):
     return best, best_cost
 
 
-def _lm(problem, theta, active, width, iterations):
-    """Levenberg-Marquardt (Marquardt's diagonal scaling) on the active entries of theta.
-    Returns (theta, r, J, iterations done)."""
+def _lm(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) on the active entries of theta; each
+    iteration tries the damping values :data:`LM_DAMPING` in one batched evaluation and keeps
+    the least damped that decreases the cost. Converged when a step moves the parameters by
+    under ``tolerance`` of a standard error that the residual supports (or no step decreases
+    the cost).
+    Returns (theta, r, J, iterations done, converged)."""
     r, jac = problem.evaluate(theta, width)
     cost = float(r @ r)
     if not math.isfinite(cost):
@@ -864,7 +966,8 @@ def _lm(problem, theta, active, width, iterations):
     done = 0
     idx = np.flatnonzero(active)
     if idx.size == 0:
-        return theta, r, jac, 0
+        return theta, r, jac, 0, True
+    n_eff = effective_samples(problem.split(r))
     while done < iterations:
         done += 1
         ja = jac[:, idx]
@@ -872,37 +975,65 @@ def _lm(problem, theta, active, width, iterations):
         b = ja.T @ ja
         d = np.diag(b).copy()
         d[d <= 0] = 1.0
-        improved = False
-        while lam < 1e10:
-            try:
-                step = np.linalg.solve(b + lam * np.diag(d), -g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            # Trust region: each entry moves at most MAX_STEP internal units (an e-fold of a
-            # parameter, 1 mm of y0) per iteration; far from the optimum the Gauss-Newton step
-            # can throw a log-parameter to where the data no longer depend on it.
-            clipped = bool(np.any(np.abs(step[idx < problem.n_params]) > MAX_STEP))
-            step = np.clip(step, -MAX_STEP, MAX_STEP)
-            trial = theta.copy()
-            trial[idx] += step
-            trial = problem.clip_bounded(trial)
-            r2, jac2 = problem.evaluate(trial, width)
-            cost2 = float(r2 @ r2)
-            if math.isfinite(cost2) and cost2 <= cost:
-                improved = True
-                break
-            lam *= 4
-        if not improved:
-            break
-        decrease = cost - cost2
-        theta, r, jac, cost = trial, r2, jac2, cost2
-        lam = max(lam / 5, 1e-12)
-        # Converged when the cost falls by less than 1e-4 sigma^2: near the minimum
-        # d cost = sum (d theta / stderr)^2 sigma^2, so the step moved by ~1 % of a stderr.
-        if not clipped and decrease <= 1e-4 * cost / max(r.size - idx.size, 1):
-            break
-    return theta, r, jac, done
+        best = None
+        while best is None and lam < 1e10:
+            lams = lam * np.asarray(LM_DAMPING)
+            trials, clipped = [], []
+            for lam_k in lams:
+                try:
+                    step = np.linalg.solve(b + lam_k * np.diag(d), -g)
+                except np.linalg.LinAlgError:
+                    step = np.zeros(idx.size)
+                # Trust region: each entry moves at most MAX_STEP internal units (an e-fold
+                # of a parameter, 1 mm of y0) per iteration; far from the optimum the
+                # Gauss-Newton step can throw a log-parameter to where the data no longer
+                # depend on it.
+                clipped.append(bool(np.any(np.abs(step[idx < problem.n_params]) > MAX_STEP)))
+                trial = theta.copy()
+                trial[idx] += np.clip(step, -MAX_STEP, MAX_STEP)
+                trials.append(problem.clip_bounded(trial))
+            r_k, jac_k = problem.evaluate_batch(trials, width)
+            costs = np.einsum("kn,kn->k", r_k, r_k)
+            costs[~np.isfinite(costs)] = np.inf
+            ok = np.flatnonzero(costs <= cost)
+            if ok.size:
+                best = int(ok[0])
+                lam = max(lams[best] / 5, 1e-12)
+            else:
+                lam = lams[-1] * 4
+        if best is None:
+            return theta, r, jac, done, True  # no step decreases the cost: a minimum
+        decrease = cost - float(costs[best])
+        theta, r, jac, cost = trials[best], r_k[best], jac_k[best], float(costs[best])
+        # Near the minimum d cost = sum (d theta / stderr)^2 sigma^2 N / n_eff (the stderr that
+        # n_eff independent samples support): under tolerance^2 the step moved by less than
+        # ``tolerance`` of a standard error.
+        if not clipped[best] and decrease <= tolerance**2 * cost / n_eff:
+            return theta, r, jac, done, True
+    return theta, r, jac, done, False
+
+
+def effective_samples(parts) -> float:
+    """Effective number of independent residuals, summed over parts (arrays, one per segment):
+    N / tau per part,
+    tau = 1 + 2 sum rho_k the integrated autocorrelation time of the residual about zero (a
+    bias counts as correlation), summed to the first lag where rho_k <= 0 (Geyer's cut-off).
+    Encoder error held for hundreds of samples, or a smooth model error, make tau large."""
+    total = 0.0
+    for part in parts:
+        part = np.asarray(part, dtype=float)
+        n = part.size
+        if n < 2 or not np.all(np.isfinite(part)) or not np.any(part):
+            total += max(n, 1)
+            continue
+        spec = np.fft.rfft(part, 2 * n)
+        acf = np.fft.irfft(spec * np.conj(spec))[:n]
+        rho = acf / acf[0]
+        neg = np.flatnonzero(rho[1:] <= 0)
+        cut = int(neg[0]) + 1 if neg.size else n
+        tau = max(1.0, 1.0 + 2.0 * float(np.sum(rho[1:cut])))
+        total += n / tau
+    return max(total, 1.0)
 
 
 def _exact_polish(problem, theta, active, jac, iterations):
@@ -914,7 +1045,8 @@ def _exact_polish(problem, theta, active, jac, iterations):
     noise of a few micrometres that little is a bias of several standard errors, in the fitted
     values and in the Jacobian the standard errors come from. The exact model is piecewise
     smooth in the parameters (stop times are found in closed form), so its difference quotients
-    are clean. Returns (theta, exact residuals, Jacobian with exact active columns, iterations).
+    are clean. Returns (theta, exact residuals, Jacobian with exact active columns, iterations,
+    converged).
     """
     # A bounded nuisance may have been pushed to its bound by the smooth model's own errors
     # (the breakaway lag); restart it from the middle, where the exact model decides.
@@ -924,7 +1056,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
     idx = np.flatnonzero(active)
     jac = jac.copy()
     if idx.size == 0 or not math.isfinite(cost):
-        return theta, r, jac, 0
+        return theta, r, jac, 0, True
     smooth_norm = np.linalg.norm(jac[:, idx], axis=0)
 
     def columns(theta, r):
@@ -944,6 +1076,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
 
     jac[:, idx] = columns(theta, r)
     done = 0
+    converged = False
     while done < iterations:
         done += 1
         ja = jac[:, idx]
@@ -961,12 +1094,14 @@ def _exact_polish(problem, theta, active, jac, iterations):
                 break
             t /= 2
         else:
+            converged = True  # no descent along the Gauss-Newton direction: a minimum
             break
         theta, r, cost = trial, r2, cost2
         jac[:, idx] = columns(theta, r)
         if np.all(np.abs(t * step) <= 1e-2 * scale):
+            converged = True
             break
-    return theta, r, jac, done
+    return theta, r, jac, done, converged
 
 
 # ---------------------------------------------------------------- standard errors
@@ -1153,7 +1288,14 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         f"{', '.join(params) or 'nothing'} (+{theta.size - p} nuisance); "
         f"RMS before {_rms(r0) * 1e3:.4g} mm"
     )
-    history = []
+    history, stages = [], []
+
+    def stage(name, iterations, cap, converged):
+        # Every optimizer run, so that one stopped at its iteration cap is reported.
+        stages.append(
+            {"stage": name, "iterations": iterations, "cap": cap, "converged": bool(converged)}
+        )
+
     for k, width in enumerate(widths):
         # Gradient descent where the model is smoothest, to leave a poor start; from there
         # Levenberg-Marquardt converges in a few iterations at each narrower width.
@@ -1164,11 +1306,13 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
                 f"width {width:g} m/s: adam {steps} steps, RMS "
                 f"{math.sqrt(cost / r0.size) * 1e3:.4g} mm"
             )
-        theta, r, jac, n_it = _lm(problem, theta, active, width, settings.lm_iterations)
+        tol = LM_TOLERANCE if width == narrow else LM_TOLERANCE_WIDE
+        theta, r, jac, n_it, ok = _lm(problem, theta, active, width, settings.lm_iterations, tol)
         history.append((width, n_it, _rms(r)))
+        stage(f"Levenberg-Marquardt at width {width:g} m/s", n_it, settings.lm_iterations, ok)
         say(
-            f"width {width:g} m/s: Levenberg-Marquardt {n_it} iterations, RMS "
-            f"{_rms(r) * 1e3:.4g} mm"
+            f"width {width:g} m/s: Levenberg-Marquardt {n_it} iterations"
+            f"{'' if ok else ' (stopped at its cap)'}, RMS {_rms(r) * 1e3:.4g} mm"
         )
 
     exact = exact and problem.exact_available()
@@ -1176,8 +1320,13 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
     def polish(theta, r, jac):
         if not exact:
             return theta, r, jac
-        theta, r, jac, n_it = _exact_polish(problem, theta, active, jac, settings.exact_iterations)
-        say(f"exact simulator: {n_it} Gauss-Newton iterations, RMS {_rms(r) * 1e3:.4g} mm")
+        cap = settings.exact_iterations
+        theta, r, jac, n_it, ok = _exact_polish(problem, theta, active, jac, cap)
+        stage("Gauss-Newton on the exact simulator", n_it, cap, ok)
+        say(
+            f"exact simulator: {n_it} Gauss-Newton iterations"
+            f"{'' if ok else ' (stopped at its cap)'}, RMS {_rms(r) * 1e3:.4g} mm"
+        )
         return theta, r, jac
 
     theta, r, jac = polish(theta, r, jac)
@@ -1212,10 +1361,28 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         say(f"{name}: {notes[name]}; holding it at {held_at:.4g}")
         active[i] = False
         theta[i] = problem.theta0[i]
-        theta, r, jac, _ = _lm(problem, theta, active, narrow, settings.lm_iterations)
+        theta, r, jac, n_it, ok = _lm(problem, theta, active, narrow, settings.lm_iterations)
+        stage(f"Levenberg-Marquardt without {name}", n_it, settings.lm_iterations, ok)
         theta, r, jac = polish(theta, r, jac)
 
-    se_internal = dict(zip(idx.tolist(), np.sqrt(np.diag(hac)), strict=True))
+    floor = noise_floor(segments)
+    n_eff = effective_samples(problem.split(r))
+    se_hac = np.sqrt(np.diag(hac))
+    misfit = ""
+    if _rms(r) > MISFIT_RATIO * floor:
+        # The residual is model error (or uninformative data), not noise: its n_eff
+        # independent samples support sigma^2 (J^T J)^-1 N / n_eff, which the sandwich can
+        # miss when the error is one slow wave; report the larger.
+        tau = r.size / n_eff
+        se_hac = np.maximum(se_hac, np.sqrt(np.diag(naive) * tau))
+        misfit = (
+            f"the model does not explain the data: RMS {_rms(r) * 1e3:.3g} mm is "
+            f"{_rms(r) / floor:.0f} times the encoder/noise level {floor * 1e3:.2g} mm; the "
+            f"residual is worth {n_eff:.0f} independent samples of {r.size}, and the standard "
+            "errors are widened to that; an effect may be missing (jaxcart diagnose)"
+        )
+        say(misfit)
+    se_internal = dict(zip(idx.tolist(), se_hac, strict=True))
     se_naive = dict(zip(idx.tolist(), np.sqrt(np.diag(naive)), strict=True))
     estimates = {}
     for asked, name in zip(params, problem.params, strict=True):
@@ -1227,7 +1394,14 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
                 asked, value, slope * float(se_internal[i]), stderr_naive=slope * float(se_naive[i])
             )
         else:
-            estimates[asked] = Estimate(asked, None, None, identifiable=False, note=notes[name])
+            estimates[asked] = Estimate(
+                asked,
+                None,
+                None,
+                identifiable=False,
+                note=notes[name],
+                held_at=float(to_value(name, problem.theta0[i])),
+            )
     correlation = {}
     ident = [j for j, i in enumerate(idx) if i < p]
     for a in ident:
@@ -1283,13 +1457,32 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         problem.smoothing(narrow),
         history,
         exact,
+        stages,
+        floor,
+        n_eff,
+        misfit,
     )
+    for line in result.warnings[1 if misfit else 0 :]:
+        say(f"warning: {line}")
     if exact:
         say(
             f"RMS after {result.rms_after * 1e3:.4g} mm (smooth), "
             f"{result.rms_after_exact * 1e3:.4g} mm (exact); {result.seconds:.1f} s"
         )
     return result
+
+
+def noise_floor(segments) -> float:
+    """RMS position error [m] a correct model leaves on these segments: the encoder's
+    q / sqrt(12), or for data that are not whole counts their white noise (:func:`noise_level`);
+    at least :data:`FLOOR_MIN`."""
+    total = n = 0
+    for seg in segments:
+        # Encoder data are whole counts (their noise is in the counts); other data: white noise.
+        var = seg.quantization**2 / 12 if seg.quantization > 0 else noise_level(seg.measured) ** 2
+        total += seg.measured.size * var
+        n += seg.measured.size
+    return max(math.sqrt(total / max(n, 1)), FLOOR_MIN)
 
 
 def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:
@@ -1346,8 +1539,9 @@ def _rms(x) -> float:
 
 def fit_table(result: FitResult, sources=()) -> dict:
     """What a fit knows, for a plant file's [fit] table: the structure fitted, every fitted
-    parameter's value and standard error, the parameters held or not identifiable (with why),
-    the RMS before and after [m], the recordings."""
+    parameter's value and standard error, the parameters held or not identifiable (the value
+    held at, why), the RMS before and after and the noise floor [m], whether the model explains
+    the data and the optimizers converged, the warnings, the recordings."""
     doc = result.to_json()
     fitted = {n: e for n, e in result.params.items() if e.identifiable and e.value is not None}
     held = {n: e.note for n, e in result.params.items() if not e.identifiable}
@@ -1357,9 +1551,18 @@ def fit_table(result: FitResult, sources=()) -> dict:
         "value": {canonical(n): e.value for n, e in fitted.items()},
         "stderr": {canonical(n): e.stderr for n, e in fitted.items()},
         "held": [canonical(n) for n in held],
+        "held_at": {
+            canonical(n): e.held_at
+            for n, e in result.params.items()
+            if not e.identifiable and e.held_at is not None
+        },
         "why_held": {canonical(n): note or "" for n, note in held.items()},
         "rms_before": doc["rms_before"],
         "rms_after": doc["rms_after"],
+        "noise_floor": result.noise_floor,
+        "model_explains_data": not result.misfit,
+        "converged": result.converged,
+        "warnings": result.warnings,
         "recordings": [str(x) for x in sources],
     }
     return {k: v for k, v in table.items() if v is not None}

@@ -17,6 +17,9 @@ from pathlib import Path
 
 from jaxcart.errors import UserError
 
+#: Figure formats matplotlib writes (checked before fitting, not after).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -40,7 +43,12 @@ def register(subparsers) -> None:
         metavar="FILE",
         help="start from this plant file (jaxcart fit --out, diagnose): its effects and values",
     )
-    p.add_argument("--json", dest="json_out", metavar="OUT", help="write the report as JSON")
+    p.add_argument(
+        "--json",
+        dest="json_out",
+        metavar="OUT",
+        help="write the report as JSON (or, for a name ending in .mat, as a MATLAB struct)",
+    )
     p.add_argument("--plot", metavar="PNG", help="overlay plot of recordings and model")
     p.add_argument(
         "--out",
@@ -69,10 +77,7 @@ def run(args) -> int:
         raise UserError("--cross needs at least two recordings")
     if args.out and not str(args.out).lower().endswith(".toml"):
         raise UserError(f"--out {args.out}: a plant file is TOML; give a name ending in .toml")
-    outputs = [x for x in (args.json_out, args.plot, args.out) if x]
-    for out in outputs:
-        if Path(out).exists() and not args.force:
-            raise UserError(f"{out} exists; choose another name or pass --force to overwrite it")
+    check_outputs(args)
     recordings = [read_experiment(path) for path in args.experiments]
     initial = {}
     if args.plant_file:
@@ -91,7 +96,12 @@ def run(args) -> int:
         cross = cross_table(recordings, params, progress=not args.quiet)
         print(format_cross(cross))
         report["cross_prediction"] = cross
-    if args.json_out:
+    if args.json_out and str(args.json_out).lower().endswith(".mat"):
+        from jaxcart.matfile import write_mat_report
+
+        write_mat_report(args.json_out, report, name="fit", force=args.force)
+        print(f"report: {args.json_out}")
+    elif args.json_out:
         from hw.jsonio import write_json
 
         write_json(args.json_out, report, force=args.force)
@@ -103,6 +113,20 @@ def run(args) -> int:
         F.plot_fit(result, args.plot)
         print(f"plot: {args.plot}")
     return 0
+
+
+def check_outputs(args) -> None:
+    """Every output path writable (not under a file, not in a read-only folder, not an
+    existing file without --force), checked before the fit computes anything."""
+    from jaxcart.outputs import check_writable
+
+    for option, path, suffixes in (
+        ("--json", args.json_out, None),
+        ("--plot", args.plot, PLOT_SUFFIXES),
+        ("--out", args.out, (".toml",)),
+    ):
+        if path:
+            check_writable(path, suffixes=suffixes, option=option, force=args.force)
 
 
 def _write(path, text: str, force: bool) -> None:
@@ -138,7 +162,8 @@ def format_result(result) -> str:
     for name, e in result.params.items():
         unit = UNITS.get(name, "")
         if not e.identifiable:
-            lines.append(f"{name:<14}{e.note}")
+            held = f"held at {e.held_at:.6g} {unit}; " if e.held_at is not None else ""
+            lines.append(f"{name:<14}{held}{e.note}")
             continue
         lines.append(f"{name:<14}{e.value:>14.6g}{e.stderr:>12.3g}{e.stderr_naive:>12.3g}  {unit}")
     for s in result.segments:
@@ -159,6 +184,8 @@ def format_result(result) -> str:
             )
     for (a, b), c in result.correlation.items():
         lines.append(f"correlation {a}, {b}: {c:+.3f}")
+    for text in result.warnings:
+        lines.append(f"warning: {text}")
     lines.append(f"fitted in {result.seconds:.1f} s")
     return "\n".join(lines)
 
