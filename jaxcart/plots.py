@@ -70,13 +70,23 @@ def reference_run(time, reference, label: str = "reference r") -> Run:
 
 
 def plot_runs(
-    runs, *, title: str, path, voltage: bool = True, v_limit: float | None = None, dpi: int = DPI
+    runs,
+    *,
+    title: str,
+    path,
+    voltage: bool = True,
+    v_limit: float | None = None,
+    band: float | None = None,
+    dpi: int = DPI,
 ) -> Path:
     """Plot runs on position (and voltage) panels sharing the time axis; save a PNG at ``path``.
 
     runs: :class:`Run` objects (or anything with label, time, position, voltage, role).
     voltage: add the voltage panel when any run has a voltage. v_limit: draw +/- v_limit [V].
-    Uses matplotlib's object API (no pyplot state). Returns the path written.
+    band: draw the settling band, +/- ``band`` (a fraction, 0.02 for 2 %) of the step around
+    the reference's final value, dotted (the reference itself is dashed); the step runs from
+    the first non-reference run's start. Uses matplotlib's object API (no pyplot state).
+    Returns the path written.
     """
     from matplotlib.figure import Figure
 
@@ -96,6 +106,8 @@ def plot_runs(
         v = getattr(run, "voltage", None)
         if ax_v is not None and v is not None and role != "reference":
             ax_v.plot(t, np.asarray(v, dtype=float), label=run.label, **style)
+    if band:
+        _settling_band(ax_y, runs, band)
     ax_y.set_ylabel("position y [m]")
     ax_y.set_title(title)
     ax_y.legend(loc="best", fontsize="small")
@@ -121,6 +133,25 @@ def plot_runs(
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
     return path
+
+
+def _settling_band(ax, runs, band: float) -> None:
+    ref = next((r for r in runs if getattr(r, "role", None) == "reference"), None)
+    moved = next((r for r in runs if getattr(r, "role", None) != "reference"), None)
+    if ref is None or moved is None or np.size(ref.position) == 0:
+        return
+    target = float(np.asarray(ref.position, dtype=float)[-1])
+    width = band * abs(target - float(np.asarray(moved.position, dtype=float)[0]))
+    if width > 0:
+        for sign in (1, -1):
+            ax.axhline(
+                target + sign * width,
+                color="0.35",
+                lw=0.8,
+                ls=":",
+                zorder=1,
+                label=f"±{band * 100:g} % settling band" if sign > 0 else None,
+            )
 
 
 def _style(role, n, styles) -> dict:

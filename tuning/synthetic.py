@@ -42,7 +42,7 @@ from jaxcart.params import ENCODER_RESOLUTION, Plant
 from jaxcart.smooth import Response
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)  # kw_only: Recording's last fields have defaults
 class SyntheticRecording(Recording):
     """A :class:`jaxcart.files.Recording` made by simulation, with its truth.
 

@@ -12,6 +12,8 @@ embedded), results.json, gains.json and figures/*.png.
 
 from __future__ import annotations
 
+import contextlib
+import signal
 from pathlib import Path
 
 
@@ -69,5 +71,25 @@ def run(args) -> int:
         from jaxcart.plantspec import load_plant
 
         plant = load_plant(args.plant)
-    run_lab(args.data, args.out, force=args.force, plant=plant, diagnosis=not args.no_diagnosis)
+    with _terminate_as_interrupt():  # a killed job removes its half-written report too
+        run_lab(args.data, args.out, force=args.force, plant=plant, diagnosis=not args.no_diagnosis)
     return 0
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a scheduler's or ``kill``'s stop) raises KeyboardInterrupt like Ctrl-C, so the
+    report's staging folder is removed on the way out."""
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread: leave the default
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -2,8 +2,11 @@
 
 Modules: :mod:`~tuning.lab.report` (the run and its outputs), :mod:`~tuning.lab.inputs` (which
 recording is which part), :mod:`~tuning.lab.prelab` (appendix constants, the k_i bound),
-:mod:`~tuning.lab.parts` (Parts (i) to (v)), :mod:`~tuning.lab.data` (the built-in example
-recordings), :mod:`~tuning.lab.figures` and :mod:`~tuning.lab.html` (figures, Markdown/HTML).
+:mod:`~tuning.lab.parts` (Parts (i) to (v)), :mod:`~tuning.lab.deadband` (the Coulomb dead
+band of Part (iii) as a finite, encoder-read run meets it), :mod:`~tuning.lab.data` (the built-in
+example recordings), :mod:`~tuning.lab.figures` and :mod:`~tuning.lab.html` (figures,
+Markdown/HTML). The report is written into a hidden staging folder and renamed into place when
+complete (:func:`~tuning.lab.report.staged`).
 """
 
 from tuning.lab.data import TRUE, builtin_dir, generate

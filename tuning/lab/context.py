@@ -78,12 +78,14 @@ class Lab:
     results: dict = field(default_factory=dict)
     B_eq: float = HANDOUT_B_EQ
     B_eq_source: str = "the handout's estimate"
+    B_eq_stderr: float | None = None  # [kg/s], when B_eq was fitted
     f_c: float = 0.0
     f_c_source: str = "none yet (the handout's model)"
     tuned: object = None  # tuning.tune.TuneResult of the pre-lab
     base: Plant | None = None  # the --plant model (its effects carry through), or None
     started: float = field(default_factory=time.perf_counter)
     figures: list = field(default_factory=list)
+    diagnosis: bool = True  # the report has the diagnosis section
 
     # -------------------------------------------------------------- progress
 

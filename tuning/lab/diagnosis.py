@@ -55,9 +55,18 @@ def section(lab: Lab) -> None:
     b_eq = {k: v for k, v in b_eq.items() if v is not None}
     if len(b_eq) > 1:
         spread = max(b_eq.values()) - min(b_eq.values())
+        agreement = lab.results.get("part_ii", {}).get("B_eq_agreement")
+        before = ""
+        if agreement:
+            before = (
+                f"With the handout's model (viscous and Coulomb friction only) Part (i) found "
+                f"B_eq = {agreement['B_eq_tap']:.4g} kg/s from the tap and Part (ii) "
+                f"{agreement['B_eq_step']:.4g} kg/s from the P 50 step. "
+            )
         doc.paragraph(
-            "B_eq is one cart's viscous friction, so a sound diagnosis gives the same value from "
-            f"every recording: here it ranges over {spread:.3g} kg/s ("
+            before + "B_eq is one cart's viscous friction, so a sound diagnosis gives the same "
+            f"value from every recording: with the effects it found it ranges over "
+            f"{spread:.3g} kg/s ("
             + ", ".join(f"{PARTS.get(k, k)}: {v:.3g}" for k, v in b_eq.items())
             + "). Where it still differs, or where no structure reaches the encoder floor, "
             "physics outside the library is at work. `jaxcart diagnose` on the files gives "

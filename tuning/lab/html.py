@@ -134,7 +134,7 @@ class Document:
 
 
 def _inline(text: str) -> str:
-    """Escape, then render `code` and **bold**."""
+    """Escape, then render `code`, **bold** and links to sections, [text](#anchor)."""
     parts = re.split(r"(`[^`]*`)", text)
     out = []
     for part in parts:
@@ -142,5 +142,6 @@ def _inline(text: str) -> str:
             out.append(f"<code>{html.escape(part[1:-1])}</code>")
         else:
             escaped = html.escape(part)
-            out.append(re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", escaped))
+            escaped = re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", escaped)
+            out.append(re.sub(r"\[([^\]]+)\]\((#[a-z0-9-]+)\)", r'<a href="\2">\1</a>', escaped))
     return "".join(out)

@@ -84,15 +84,40 @@ class Inputs:
 def _read_experiment(path):
     from jaxcart.files import read_experiment
 
-    return read_experiment(path)
+    return check_recording(read_experiment(path))
+
+
+def check_recording(recording):
+    """The lab's own sanity check of a recording before any part computes with it (the file
+    readers check the format): finite positions that fit on the track. Returns it."""
+    from jaxcart.params import TRACK_LENGTH
+
+    y = np.asarray(recording.position, dtype=float)
+    name = recording.path
+    if y.size < 2 or not np.all(np.isfinite(y)):
+        raise UserError(
+            f"{name}: column y needs at least two finite positions [m]; fix the data file"
+        )
+    span = float(np.ptp(y))
+    if span > TRACK_LENGTH:
+        unit = " (recorded in mm? divide y by 1000)" if span > 100 * TRACK_LENGTH else ""
+        raise UserError(
+            f"{name}: the positions y span {span:.4g} m, more than the {TRACK_LENGTH:g} m "
+            f"track{unit}; give y in metres"
+        )
+    return recording
 
 
 def _load_toml(path: Path) -> dict:
+    if path.is_dir():
+        raise UserError(f"{path}: a folder, not an experiment file; rename or move it away")
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc}); fix the file or move it away") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot be read ({exc.strerror or exc}); check it") from None
 
 
 def guess_slot(recording) -> tuple[str | None, str]:
@@ -165,6 +190,11 @@ def find_inputs(folder) -> Inputs:
                     f"{', '.join(SLOTS)}"
                 )
             path = folder / str(name)
+            if path.is_dir():
+                raise UserError(
+                    f"{index_path}: [recordings] {slot} = {name!r} is a folder; name the "
+                    f"experiment file (TOML) inside it"
+                )
             if not path.is_file():
                 raise UserError(
                     f"{index_path}: [recordings] {slot} = {name!r}: no such file in {folder}"
@@ -182,6 +212,9 @@ def find_inputs(folder) -> Inputs:
     candidates = sorted(p for p in folder.glob("*.toml") if p.name != INDEX_NAME)
     for path in candidates:
         if path.resolve() in taken:
+            continue
+        if path.is_dir():
+            inputs.unused.append((path.name, "a folder, not an experiment file"))
             continue
         meta = _load_toml(path)
         if "kind" not in meta:

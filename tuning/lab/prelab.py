@@ -24,6 +24,7 @@ import math
 import numpy as np
 from scipy.optimize import brentq
 
+from jaxcart.metrics import SETTLING_BAND
 from jaxcart.params import Plant
 
 
@@ -145,15 +146,46 @@ def routh_and_locus(lab, m, c, gamma, k, *, name, part, title, key):
         "ki_max_locus": ki_locus,
         "crossing_omega": omega,
         "relative_difference": rel,
-        "poles_at_bound": [[float(p.real), float(p.imag)] for p in poles],
+        "poles_at_bound": [[p.real, p.imag] for p in map(clean_pole, poles)],
     }
 
 
+def clean_pole(p, rel: float = 1e-9) -> complex:
+    """A pole with the round-off of its real or imaginary part (below ``rel`` of |p|) set to 0."""
+    p = complex(p)
+    tiny = rel * max(1.0, abs(p))
+    return complex(0.0 if abs(p.real) < tiny else p.real, 0.0 if abs(p.imag) < tiny else p.imag)
+
+
 def _pole(p) -> str:
-    if abs(p.imag) < 1e-9 * max(1.0, abs(p)):
-        return f"{p.real:.4f}"
+    p = clean_pole(p)
     sign = "+" if p.imag > 0 else "−"
-    return f"{p.real:.2e} {sign} j{abs(p.imag):.4f}"
+    if p.imag == 0:
+        return f"{p.real:.4f}"
+    if p.real == 0:
+        return f"{sign}j{abs(p.imag):.4f}"
+    return f"{p.real:.4f} {sign} j{abs(p.imag):.4f}"
+
+
+def gains_on_bounds(result, bounds=None, rel: float = 0.01) -> dict:
+    """{name: (side, bound)} for each tuned parameter on, or within ``rel`` of, the tuner's
+    box (side "upper" or "lower"): the tuner's own ``on_bound`` when its result carries it,
+    else computed from ``bounds`` (default :data:`tuning.tune.DEFAULT_BOUNDS`)."""
+    flag = getattr(result, "on_bound", None)
+    if isinstance(flag, dict):
+        return {n: (str(v[0]), float(v[1])) for n, v in flag.items()}
+    from tuning.tune import DEFAULT_BOUNDS
+
+    box = DEFAULT_BOUNDS if bounds is None else bounds
+    hit = {}
+    for name in getattr(result, "free", ("kp", "kd", "ki")):
+        lo, hi = box[name]
+        value = float(getattr(result.gains, name))
+        if value >= hi * (1 - rel):
+            hit[name] = ("upper", float(hi))
+        elif value <= lo * (1 + rel):
+            hit[name] = ("lower", float(lo))
+    return hit
 
 
 def section(lab) -> None:
@@ -225,7 +257,10 @@ def section(lab) -> None:
         f"ki = {g.ki:.4g} V/(m s); step 0.5 m",
         path=path,
         v_limit=6.0,
+        band=SETTLING_BAND,
     )
+    message = res.message.strip().rstrip(".")
+    message = message[:1].upper() + message[1:]
     doc.paragraph(
         "The design problem: move 0.5 m, 2 % settling time under 1 s, overshoot under 5 %, "
         "with the 6 V saturation, on the handout's model (B_eq = 5.4 kg/s). `jaxcart tune "
@@ -233,8 +268,24 @@ def section(lab) -> None:
         f"(gradient descent through the smooth simulator, {TUNE_OPTIONS['n_starts']} starts, "
         f"{TUNE_OPTIONS['max_iterations']} iterations, from the handout's kp = 40, kd = 5, "
         f"ki = 5) found the gains below in {res.seconds:.1f} s; the metrics are those of the "
-        f"exact simulator (hard clip, 1 ms digital loop). {res.message}."
+        f"exact simulator (hard clip, 1 ms digital loop). {message}."
     )
+    on_bounds = gains_on_bounds(res)
+    if on_bounds:
+        units = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)", "tau": "s"}
+        listed = ", ".join(
+            f"{n} = {float(getattr(g, n)):.4g} {units.get(n, '')} on its {side} bound "
+            f"({b:g} {units.get(n, '')})".replace(" )", ")")
+            for n, (side, b) in on_bounds.items()
+        )
+        doc.note(
+            f"The tuned gains sit on the tuner's search box: {listed}. This is the box's "
+            f"answer, not the problem's: gains beyond it may settle faster on the model. The "
+            f"box is deliberate (beyond kp ≈ 250 V/m the loop is near bang-bang and gains "
+            f"about 10 ms of settling on the model, while unmodelled delay and amplifier "
+            f"dynamics make such gains chatter on a real cart); `jaxcart tune` widens it "
+            f"(see its --help)."
+        )
     rows = [
         ["kp", f"{g.kp:.4g}", "V/m"],
         ["kd", f"{g.kd:.4g}", "V s/m"],
@@ -283,6 +334,7 @@ def section(lab) -> None:
             "meets": info.meets(),
             "tune_seconds": res.seconds,
             "tune_message": res.message,
+            "on_bounds": {n: {"side": side, "bound": b} for n, (side, b) in on_bounds.items()},
         },
     }
     lab.say(

@@ -16,6 +16,10 @@ folder of real ones.
 
 from __future__ import annotations
 
+import contextlib
+import math
+import os
+import shutil
 import time
 from pathlib import Path
 
@@ -28,30 +32,91 @@ from tuning.lab.html import Document
 from tuning.lab.inputs import SLOTS, find_inputs
 
 DEFAULT_OUT = Path("jaxcart-lab")
+#: Prefix of the hidden staging folder the report is written into before it is renamed.
+STAGING_PREFIX = "."
 #: Files the report writes (besides figures/*.png): never replaced without ``force``.
 OUTPUTS = ("report.md", "report.html", "results.json", "gains.json")
 TITLE = "Position control of the IP02 cart: pre-lab and lab report"
 
 
 def output_dir(out=None, *, force: bool = False) -> Path:
-    """The report folder, created: ``out`` (refused if it holds files, unless ``force``), or
-    ./jaxcart-lab, or the first free ./jaxcart-lab-N."""
+    """The report folder, checked but not created: ``out`` (refused if it is a file, or a
+    folder that holds files unless ``force``), or ./jaxcart-lab, or the first free
+    ./jaxcart-lab-N. The report is written by :func:`staged` and appears there complete."""
     if out is None:
         path, n = DEFAULT_OUT, 1
         while path.exists():
             n += 1
             path = DEFAULT_OUT.with_name(f"{DEFAULT_OUT.name}-{n}")
-    else:
-        path = Path(out)
-        if path.exists() and not path.is_dir():
-            raise UserError(f"--out {path}: a file of that name exists; give a folder name")
-        if path.is_dir() and any(path.iterdir()) and not force:
-            raise UserError(
-                f"--out {path}: the folder exists and is not empty; choose another "
-                f"name or pass --force to overwrite its report"
-            )
-    (path / "figures").mkdir(parents=True, exist_ok=True)
+        return path
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise UserError(f"--out {path}: a file of that name exists; give a folder name")
+    if path.is_dir() and any(path.iterdir()) and not force:
+        raise UserError(
+            f"--out {path}: the folder exists and is not empty; choose another "
+            f"name or pass --force to overwrite its report"
+        )
     return path
+
+
+@contextlib.contextmanager
+def staged(final: Path):
+    """Write into a hidden sibling ``.NAME.partial-PID/`` (yielded, figures/ made) and move it
+    to ``final`` when the block completes; on any error or interrupt it is removed, so an
+    interrupted lab leaves nothing that blocks a rerun. Into an existing, non-empty ``final``
+    (``--force``) only the report's own files and figures/ are replaced; other files stay."""
+    final = Path(final)
+    parent = final.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(
+            f"--out {final}: cannot create its folder {parent} ({exc.strerror or exc}); "
+            f"choose a folder you can write to"
+        ) from None
+    _remove_stale(parent, final.name)
+    tmp = parent / f"{STAGING_PREFIX}{final.name}.partial-{os.getpid()}"
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        (tmp / "figures").mkdir(parents=True)
+    except OSError as exc:
+        raise UserError(
+            f"--out {final}: cannot write in {parent} ({exc.strerror or exc}); choose a folder "
+            f"you can write to"
+        ) from None
+    try:
+        yield tmp
+        _publish(tmp, final)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _remove_stale(parent: Path, name: str) -> None:
+    """Staging folders of earlier runs that were killed (their process is gone)."""
+    for path in parent.glob(f"{STAGING_PREFIX}{name}.partial-*"):
+        try:
+            pid = int(path.name.rsplit("-", 1)[1])
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except (ValueError, OSError):  # not ours, or a live process of another user
+            continue
+
+
+def _publish(tmp: Path, final: Path) -> None:
+    if final.is_dir() and not any(final.iterdir()):
+        final.rmdir()
+    if not final.exists():
+        os.rename(tmp, final)
+        return
+    # --force into a folder with files: replace the report's own entries, keep the rest.
+    for entry in sorted(tmp.iterdir()):
+        target = final / entry.name
+        if entry.is_dir() and target.is_dir():
+            old = tmp / f"{STAGING_PREFIX}old-{entry.name}"
+            os.rename(target, old)
+        os.replace(entry, target)
 
 
 def run_lab(
@@ -75,9 +140,20 @@ def run_lab(
 def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True) -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
-    inputs = find_inputs(folder)
-    out = output_dir(out, force=force)
-    lab = Lab(out=out, inputs=inputs, doc=Document(TITLE), stream=stream, started=started)
+    inputs = find_inputs(folder)  # every input read and checked before anything is computed
+    final = output_dir(out, force=force)
+    with staged(final) as tmp:
+        lab = Lab(out=tmp, inputs=inputs, doc=Document(TITLE), stream=stream, started=started)
+        _sections(lab, folder, data is None, plant, diagnosis)
+    lab.say(
+        f"done: {final / 'report.md'}, {final / 'report.html'}, {final / 'results.json'} "
+        f"({len(lab.figures)} figures) in {time.perf_counter() - started:.1f} s"
+    )
+    return final
+
+
+def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool) -> None:
+    lab.diagnosis = diagnosis
     if plant is not None:
         from jaxcart.plantspec import describe_plant
 
@@ -86,9 +162,8 @@ def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True) -> Path:
         if plant.effect("coulomb") is not None:
             lab.f_c, lab.f_c_source = float(plant.get("f_c")), "the --plant file"
         lab.say(f"starting model: {describe_plant(plant)}")
-    builtin = data is None
     lab.say(f"data: {'built-in example recordings' if builtin else folder}")
-    for line in inputs.summary_lines():
+    for line in lab.inputs.summary_lines():
         lab.say("  " + line)
     _introduction(lab, folder, builtin)
     for section in (
@@ -103,15 +178,10 @@ def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True) -> Path:
         if section is not None:
             section(lab)
     _summary(lab)
-    elapsed = time.perf_counter() - started
+    elapsed = time.perf_counter() - lab.started
     lab.results["elapsed_seconds"] = elapsed
     lab.doc.paragraph(f"Report written by `jaxcart lab` in {elapsed:.0f} s.")
     _write(lab)
-    lab.say(
-        f"done: {out / 'report.md'}, {out / 'report.html'}, {out / 'results.json'} "
-        f"({len(lab.figures)} figures) in {elapsed:.1f} s"
-    )
-    return out
 
 
 # ---------------------------------------------------------------- sections
@@ -133,10 +203,10 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
     synthetic = inputs.synthetic
     if synthetic is not None:
         doc.note(
-            "These recordings are **synthetic**: generated once by the exact simulator "
-            f'({synthetic.get("made_by", "tuning.lab.data")}) from the "true" cart below, '
-            "which differs from the handout's model; positions are whole encoder counts. "
-            "The fits below should recover these values."
+            "These recordings are **synthetic**: generated once by jaxcart's exact simulator "
+            '(event-exact stick-slip, hard clip) from the "true" cart below, which differs '
+            "from the handout's model; positions are whole encoder counts. The fits below "
+            "should recover these values."
         )
         rows = []
         names = {
@@ -145,7 +215,7 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
             "f_c": ("Coulomb friction f_c", "N"),
             "v_sat": ("amplifier saturation", "V"),
             "quantization": ("encoder resolution", "m/count"),
-            "pid_kp": ("Part (v) recording's kp (fixed design)", "V/m"),
+            "pid_kp": ("Part (v) recording's kp (the pre-lab's tuned PID)", "V/m"),
             "pid_kd": ("Part (v) recording's kd", "V s/m"),
             "pid_ki": ("Part (v) recording's ki", "V/(m s)"),
             "seed": ("random seed (encoder phase)", ""),
@@ -154,6 +224,13 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
             if key in synthetic:
                 rows.append([label, f"{synthetic[key]:g}", unit])
         doc.table(["true parameter", "value", "unit"], rows, numeric=[False, True, False])
+    doubts = [
+        f"{Path(rec.path).name}: {w}"
+        for rec in inputs.recordings.values()
+        for w in getattr(rec, "warnings", ())
+    ]
+    if doubts:
+        doc.note("What looks physically doubtful in the recordings: " + "; ".join(doubts) + ".")
     missing = inputs.missing()
     if missing:
         parts_missing = sorted(
@@ -177,6 +254,7 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
         "how": dict(inputs.how),
         "missing": missing,
         "unused": [{"file": n, "reason": r} for n, r in inputs.unused],
+        "warnings": doubts,
     }
 
 
@@ -193,7 +271,10 @@ def _summary(lab: Lab) -> None:
         shown_unit = unit
         if unit == "m" and value is not None:
             value, shown_unit = value * 1e3, "mm"
-        row = [v.part, v.label, fmt(value), shown_unit]
+        shown = fmt(value)
+        if value is not None and math.isinf(value) and unit == "s":
+            shown, shown_unit = "does not settle within the horizon", ""
+        row = [v.part, v.label, shown, shown_unit]
         if synthetic:
             if v.true is None:
                 row += ["", ""]
