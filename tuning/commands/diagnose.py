@@ -49,9 +49,15 @@ def run(args) -> int:
     if not args.experiments:
         raise UserError("give at least one experiment file (EXPERIMENT.toml), or --suite")
     out = Path(args.out) if args.out else _default_out()
+    from jaxcart.outputs import check_writable
+
     for p in (out / "report.md", out / "corrected_plant.toml", args.json_out):
         if p and Path(p).exists() and not args.force:
             raise UserError(f"{p} exists; choose another --out/--json or pass --force")
+    # Before the minutes of diagnosis: a folder under a file or a read-only place fails now.
+    check_writable(out / "report.md", option="--out", force=True)
+    if args.json_out:
+        check_writable(args.json_out, option="--json", force=True)
     from jaxcart.files import read_experiment
     from tuning.diagnose import diagnose, write_outputs
 

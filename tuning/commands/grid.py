@@ -233,11 +233,14 @@ def output_paths(out, plot, force) -> tuple[Path, Path]:
     plot_path = Path(plot) if plot is not None else out_path.with_suffix(".png")
     if out_path == plot_path:
         raise UserError(f"--out and --plot are both {out_path}; give them different names")
+    from jaxcart.outputs import check_writable
+
     for option, path in (("--out", out_path), ("--plot", plot_path)):
         if path.exists() and not force:
             raise UserError(
                 f"{option} {path} exists; pass --force to overwrite it or choose another name"
             )
+        check_writable(path, option=option, force=True)
     return out_path, plot_path
 
 
@@ -424,9 +427,11 @@ def run(args) -> int:
 def _json_path(json, force):
     if json is None:
         return None
+    from jaxcart.outputs import check_writable
+
     path = Path(json)
     if path.exists() and not force:
         raise UserError(
             f"--json {path} exists; pass --force to overwrite it or choose another name"
         )
-    return path
+    return check_writable(path, option="--json", force=True)
