@@ -39,6 +39,14 @@ def read_numeric_csv(path, name: str, progress=None):
     line with the wrong number of fields or a value that is not a number. ``progress`` (a
     callable taking a fraction 0-1, or None) defaults to a line on stderr for large files.
     """
+    try:
+        return _read_numeric_csv(path, name, progress)
+    except csv.Error as exc:  # e.g. old Mac line ends (CR only): one line, not a traceback
+        what = "its lines end in CR only" if "new-line" in str(exc) else str(exc)
+        raise CSVError(f"{name}: {what}; save it as CSV with LF or CRLF line ends") from None
+
+
+def _read_numeric_csv(path, name: str, progress=None):
     with open(path, "rb") as f:
         size = f.seek(0, io.SEEK_END)
         f.seek(0)
@@ -128,7 +136,12 @@ def _parse(data: bytes, ncols: int, lineno: int, header, name):
         ends = np.flatnonzero(buf == 10)
         commas = np.cumsum(buf == 44, dtype=np.int64)
         per_line = np.diff(np.concatenate([[0], commas[ends], [commas[-1]]]))
-        if np.all(per_line == ncols - 1):
+        # A blank cell (empty, or spaces only) would parse as -1.0 in np.fromstring: the slow
+        # path names it instead.
+        bare = body.translate(None, b" \t")
+        blank = bare.startswith(b",") or bare.endswith(b",") or b",," in bare
+        blank = blank or b"\n," in bare or b",\n" in bare
+        if np.all(per_line == ncols - 1) and not blank:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 try:

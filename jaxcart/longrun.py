@@ -197,4 +197,7 @@ def thin_indices(n: int, *series, points: int = PLOT_POINTS) -> np.ndarray:
         body = np.asarray(values, dtype=float)[: blocks * k].reshape(blocks, k)
         base = np.arange(blocks) * k
         keep += [base + np.nanargmin(body, axis=1), base + np.nanargmax(body, axis=1)]
+        tail = np.asarray(values, dtype=float)[blocks * k :]
+        if tail.size and np.isfinite(tail).any():  # the last, partial block's extremes too
+            keep += [[blocks * k + np.nanargmin(tail)], [blocks * k + np.nanargmax(tail)]]
     return np.unique(np.concatenate(keep))

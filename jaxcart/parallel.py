@@ -1,7 +1,9 @@
 """The one device layer: which devices a batch runs on, one mesh, one sharded map.
 
-Every batched computation in jaxcart (grid metrics, tuner starts, fit trial steps, diagnosis
-candidates, bench rows) goes through :func:`sharded_map`, so it runs on every local device:
+Every batched computation in jaxcart runs on this module's mesh: grid metrics, fit trial
+steps, diagnosis candidates and bench rows through :func:`sharded_map`, the tuner's starts
+(whose optimizer state stays on the devices between iterations) through
+:func:`batch_sharding`. So every local device is used:
 the CPU cores split into ``jax_num_cpu_devices`` devices (:func:`use_cpu_devices`, called by
 the command line before JAX starts), or every local GPU.
 

@@ -395,3 +395,23 @@ def test_csv_blocks_progress_and_exact_round_trip(tmp_path, monkeypatch, capsys)
     (tmp_path / "semi.csv").write_text("# exported\nt;y;v\n0;0;1\n")
     with pytest.raises(csvio.CSVError, match="semi.csv line 2: the fields are separated by semi"):
         csvio.read_numeric_csv(tmp_path / "semi.csv", "semi.csv")
+
+
+@pytest.mark.parametrize("cell", ["", " ", "\t", "  \t "])
+def test_blank_csv_cell_is_an_error_not_a_number(tmp_path, cell):
+    # np.fromstring would read a cell of spaces as -1.0: the fast reader must not.
+    from hw.csvio import CSVError, read_numeric_csv
+
+    path = tmp_path / "blank.csv"
+    path.write_text(f"t,y,v\n0,0,1\n0.001,{cell},1\n0.002,0,1\n")
+    with pytest.raises(CSVError, match="line 3, column y"):
+        read_numeric_csv(path, "blank.csv")
+
+
+def test_csv_with_cr_only_line_ends_is_one_line(tmp_path):
+    from hw.csvio import CSVError, read_numeric_csv
+
+    path = tmp_path / "mac.csv"
+    path.write_bytes(b"t,y,v\r0,0,1\r0.001,0,1\r")
+    with pytest.raises(CSVError, match="CR only"):
+        read_numeric_csv(path, "mac.csv")

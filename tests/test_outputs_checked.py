@@ -18,7 +18,16 @@ TAP = str(Path(__file__).parent.parent / "jaxcart" / "data" / "tap.toml")
         ["diagnose", TAP, "--out", "{d}/diag", "--json", "{f}/d.json"],
     ],
 )
-def test_output_under_a_file_fails_before_computing(tmp_path, capsys, argv):
+def test_output_under_a_file_fails_before_computing(tmp_path, capsys, monkeypatch, argv):
+    import tuning.diagnose
+    import tuning.grid
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("computed before checking the outputs")
+
+    for module, name in ((tuning.grid, "grid_search"), (tuning.grid, "evaluate_list")):
+        monkeypatch.setattr(module, name, refuse)
+    monkeypatch.setattr(tuning.diagnose, "diagnose", refuse)
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     argv = [a.format(f=blocker, d=tmp_path) for a in argv]

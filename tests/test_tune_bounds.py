@@ -57,15 +57,18 @@ def test_command_line_prints_the_bound_and_how_to_widen_it(tmp_path, capsys, sho
 
     summary = tmp_path / "s.json"
     args = ["tune", "--out", str(tmp_path / "g.json"), "--json", str(summary), "--quiet"]
-    args += ["--free", "kp,kd", "--starts", "4", "--iterations", "30"]
+    # kp capped at 20 V/m, far below where the design problem wants it: it must sit there.
+    args += ["--free", "kp,kd", "--starts", "4", "--iterations", "30", "--bound", "kp=1,20"]
     code = main(args)
     out = capsys.readouterr().out
     doc = json.loads(summary.read_text())
     assert code in (0, 1)
     gains = json.loads((tmp_path / "g.json").read_text())
+    assert doc["on_bound"]["kp"]["side"] == "upper" and doc["on_bound"]["kp"]["bound"] == 20.0
     for name, entry in doc["on_bound"].items():
-        lo, hi = DEFAULT_BOUNDS[name]
+        lo, hi = (1.0, 20.0) if name == "kp" else DEFAULT_BOUNDS[name]
         bound = hi if entry["side"] == "upper" else lo
+        assert entry["bound"] == bound
         assert abs(doc["gains"][name] - bound) <= 0.01 * bound
         assert f"--bound {name}=" in out
     assert gains["on_bound"] == {

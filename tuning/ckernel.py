@@ -27,7 +27,7 @@ SOURCE = Path(__file__).with_name("ckernel") / "w1.c"
 #: Flags tried in order: the first the compiler accepts builds the kernel. No -ffast-math:
 #: the metrics rely on IEEE comparisons (a NaN position marks a diverged run).
 FLAG_SETS = (("-O3", "-march=native"), ("-O3",))
-#: Runs per vector block in the source (W1_KERNEL(..., LANES)): float32 16, float64 8.
+#: Runs per vector block in the source (W1_KERNEL(..., LANES)): float32 64, float64 16.
 LANES = {"float32": 64, "float64": 16}
 _C_TYPES = {"float32": ctypes.c_float, "float64": ctypes.c_double}
 METRIC_NAMES = ("rise_time", "settling_time", "overshoot", "steady_state_error", "peak_voltage")
@@ -132,6 +132,7 @@ def coefficients(plant, controller, experiment) -> np.ndarray:
 
     Only W1's loop: a linear plant with at most an amplifier saturation, derivative on
     error, no anti-windup; anything else raises ValueError naming what is not modelled."""
+    from jaxcart.metrics import SETTLING_BAND
     from jaxcart.params import voltage_limit
     from jaxcart.smooth import DIVERGED_POSITION
     from tuning.bench import zoh_matrices
@@ -166,7 +167,7 @@ def coefficients(plant, controller, experiment) -> np.ndarray:
             float(experiment.y0),
             float(experiment.yd0),
             1.0 / amplitude,
-            0.02 * abs(amplitude),
+            SETTLING_BAND * abs(amplitude),
             DIVERGED_POSITION,
         ]
     )

@@ -144,20 +144,38 @@ def fill(
         )
     share = sum(min(block, n - i * block) for i in todo)
     done = 0
-    for i in mine:
-        if i in todo:
-            store.save(i, compute(i))
-            done += min(block, n - i * block)
-            if progress is not None:
-                progress(done, share)
-        if me != 0:
-            parallel.publish(f"jaxcart-grid/{store.key}/{i}", store.read_bytes(i))
-    if me != 0:
-        return False, share
+    todo_set = set(todo)
+    # In block order, process 0 collecting the others' blocks between its own: the runtime's
+    # store then holds about one block per process at a time, whatever the grid's size.
     for i in range(n_blocks):
-        if i % count != 0 and not store.has(i):
-            store.write_bytes(i, parallel.fetch(f"jaxcart-grid/{store.key}/{i}", timeout_s))
-    return True, share
+        key = f"jaxcart-grid/{store.key}/{i}"
+        if i in mine:
+            if i in todo_set:
+                store.save(i, compute(i))
+                done += min(block, n - i * block)
+                if progress is not None:
+                    progress(done, share)
+            if me != 0:
+                _exchange(i, parallel.publish, key, store.read_bytes(i))
+        elif me == 0:
+            # Always fetch (it deletes the key), also when a shared folder already has it.
+            data = _exchange(i, parallel.fetch, key, timeout_s)
+            if not store.has(i):
+                store.write_bytes(i, data)
+    return me == 0, share
+
+
+def _exchange(i: int, step, *args):
+    """``step(*args)``: one publish or fetch of block ``i``; a failure of the runtime is one
+    line, not a trace."""
+    try:
+        return step(*args)
+    except Exception as exc:  # the runtime raises its own types (timeouts, lost peers)
+        raise UserError(
+            f"distributed grid: block {i} could not be exchanged with process 0 "
+            f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); check that "
+            "every process runs the same command and that the coordinator is reachable"
+        ) from None
 
 
 def blocks(store: BlockStore, n: int, block: int, names=None):

@@ -593,7 +593,7 @@ def tune(
         seconds=time.perf_counter() - t0,
         seconds_to_spec=seconds_to_spec,
         iterations=iterations,
-        n_starts=int(theta.shape[0]),
+        n_starts=n_starts,
         worst=worst,
         plant_set=plant_set,
         free=free,

@@ -128,8 +128,10 @@ def run(args) -> int:
         plant = dataclasses.replace(chosen, motor_connected=plant.motor_connected)
         overrides = plant_values(plant)
     controller = _with_options(args, controller, experiment, source)
-    if controller is not None:
-        # Before the run: an unstable or implausible loop is said, not discovered in the output.
+    checked = recording is not None and not args.plant and controller == recording.controller
+    if controller is not None and not checked:
+        # Before the run: an unstable or implausible loop is said, not discovered in the output
+        # (a recording's own controller was checked when it was read).
         for message in plausibility.check_controller(controller, plant, where="controller"):
             plausibility.warn(message)
 

@@ -592,16 +592,16 @@ def part_iii(lab: Lab) -> None:
 
     from tuning.lab import figures
 
-    gamma = float(jc.Plant().gamma)
     doc.heading("Steady-state error of P control, k = 10 V/m", 3)
     rec = lab.recording("p_error")
     source = _source(lab, "p_error")
     controller = _controller(rec, jc.PID(kp=10.0))
     k = float(controller.kp)
-    bound = deadband.band(lab.f_c, k, gamma)
     exp = _experiment(rec, "p_error")
     lab.say("Part (iii): steady-state error, measured and simulated")
     plant = _plant_for(lab, rec)
+    gamma = float(plant.gamma)  # the simulated loop's own gain (a plant file may scale it)
+    bound = deadband.band(lab.f_c, k, gamma)
     sim = _exact(plant, controller, exp)
     sim_lin = _exact(_plant_for(lab, rec, coulomb=False), controller, exp)
     e_sim = _final_error(sim.time, sim.error)

@@ -167,25 +167,10 @@ def _pole(p) -> str:
     return f"{p.real:.4f} {sign} j{abs(p.imag):.4f}"
 
 
-def gains_on_bounds(result, bounds=None, rel: float = 0.01) -> dict:
-    """{name: (side, bound)} for each tuned parameter on, or within ``rel`` of, the tuner's
-    box (side "upper" or "lower"): the tuner's own ``on_bound`` when its result carries it,
-    else computed from ``bounds`` (default :data:`tuning.tune.DEFAULT_BOUNDS`)."""
-    flag = getattr(result, "on_bound", None)
-    if isinstance(flag, dict):
-        return {n: (str(v[0]), float(v[1])) for n, v in flag.items()}
-    from tuning.tune import DEFAULT_BOUNDS
-
-    box = DEFAULT_BOUNDS if bounds is None else bounds
-    hit = {}
-    for name in getattr(result, "free", ("kp", "kd", "ki")):
-        lo, hi = box[name]
-        value = float(getattr(result.gains, name))
-        if value >= hi * (1 - rel):
-            hit[name] = ("upper", float(hi))
-        elif value <= lo * (1 + rel):
-            hit[name] = ("lower", float(lo))
-    return hit
+def gains_on_bounds(result) -> dict:
+    """{name: (side, bound)} for each tuned parameter on, or within 1 % of, the tuner's box
+    (side "upper" or "lower"), as :func:`tuning.tune.tune` flags it."""
+    return {n: (str(v[0]), float(v[1])) for n, v in (result.on_bound or {}).items()}
 
 
 def section(lab) -> None:
@@ -278,13 +263,17 @@ def section(lab) -> None:
             f"({b:g} {units.get(n, '')})".replace(" )", ")")
             for n, (side, b) in on_bounds.items()
         )
+        why = ""
+        if on_bounds.get("kp", ("",))[0] == "upper":
+            why = (
+                " The cap on kp is deliberate: beyond it the loop is near bang-bang and "
+                "settles only a few milliseconds sooner on the model, while unmodelled delay "
+                "and amplifier dynamics make such gains chatter on a real cart."
+            )
         doc.note(
             f"The tuned gains sit on the tuner's search box: {listed}. This is the box's "
-            f"answer, not the problem's: gains beyond it may settle faster on the model. The "
-            f"box is deliberate (beyond kp ≈ 250 V/m the loop is near bang-bang and gains "
-            f"about 10 ms of settling on the model, while unmodelled delay and amplifier "
-            f"dynamics make such gains chatter on a real cart); `jaxcart tune` widens it "
-            f"(see its --help)."
+            f"answer, not the problem's: gains beyond it may do better on the model.{why} "
+            f"`jaxcart tune --bound NAME=LO,HI` widens the box."
         )
     rows = [
         ["kp", f"{g.kp:.4g}", "V/m"],
