@@ -79,6 +79,7 @@ def run(args) -> int:
         raise UserError(f"--out {args.out}: a plant file is TOML; give a name ending in .toml")
     check_outputs(args)
     recordings = [read_experiment(path) for path in args.experiments]
+    _warn_if_long(recordings)
     initial = {}
     if args.plant_file:
         from jaxcart.plantspec import load_plant, plant_values
@@ -113,6 +114,22 @@ def run(args) -> int:
         F.plot_fit(result, args.plot)
         print(f"plot: {args.plot}")
     return 0
+
+
+#: Samples beyond which a fit is said to be long before it starts (each of its ~100
+#: evaluations simulates every sample; the lab's recordings have 2,000-20,000).
+LONG_FIT_SAMPLES = 300_000
+
+
+def _warn_if_long(recordings) -> None:
+    n = sum(int(r.n_samples) for r in recordings)
+    if n > LONG_FIT_SAMPLES:
+        print(
+            f"jaxcart fit: warning: {n:,} samples; each of the fit's ~100 evaluations "
+            "simulates all of them, so this can take many minutes. The parameters live in a "
+            "few seconds of coast or step response: crop the recording to those.",
+            file=sys.stderr,
+        )
 
 
 def check_outputs(args) -> None:
