@@ -221,8 +221,12 @@ def test_document_escapes_html():
 
 def test_builtin_report_has_every_output(builtin_report):
     out, results = builtin_report
-    for name in ("report.md", "report.html", "results.json", "gains.json"):
+    for name in ("report.md", "report.html", "results.json", "results.mat", "gains.json"):
         assert (out / name).is_file(), name
+    import scipy.io
+
+    mat = scipy.io.loadmat(out / "results.mat", squeeze_me=True, struct_as_record=False)
+    assert float(mat["results"].prelab.pid.gains.kp) == results["prelab"]["pid"]["gains"]["kp"]
     figures = {p.stem for p in (out / "figures").glob("*.png")}
     assert figures == FIGURES
     md = (out / "report.md").read_text()

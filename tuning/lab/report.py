@@ -7,11 +7,12 @@ folder of real ones.
     pre-lab -> Part (i) -> (ii) -> (iii) -> (iv) -> (v) -> summary      (progress on stderr)
         |          each part: numbers, figures/*.png, its section of the report
         v
-    REPORT_DIR/report.md, report.html (figures embedded), results.json, gains.json, figures/
+    REPORT_DIR/report.md, report.html (figures embedded), results.json (and .mat), gains.json,
+    figures/
 
 >>> out = run_lab(out="/tmp/jaxcart-lab-demo", force=True)     # doctest: +SKIP
 >>> sorted(p.name for p in out.iterdir())                        # doctest: +SKIP
-['figures', 'gains.json', 'report.html', 'report.md', 'results.json']
+['figures', 'gains.json', 'report.html', 'report.md', 'results.json', 'results.mat']
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ DEFAULT_OUT = Path("jaxcart-lab")
 #: Prefix of the hidden staging folder the report is written into before it is renamed.
 STAGING_PREFIX = "."
 #: Files the report writes (besides figures/*.png): never replaced without ``force``.
-OUTPUTS = ("report.md", "report.html", "results.json", "gains.json")
+OUTPUTS = ("report.md", "report.html", "results.json", "results.mat", "gains.json")
 TITLE = "Position control of the IP02 cart: pre-lab and lab report"
 
 
@@ -287,7 +288,8 @@ def _summary(lab: Lab) -> None:
         rows.append(row)
     doc.table(header, rows, numeric=[False, False, True, False] + [True, True][: len(header) - 4])
     doc.paragraph(
-        "Every number is also in `results.json` (SI units); the tuned gains are in "
+        "Every number is also in `results.json` (SI units; `results.mat` holds the same as a "
+        "MATLAB struct `results`); the tuned gains are in "
         "`gains.json` (jaxcart gains-file format, every PID setting)."
     )
     lab.results["values"] = {k: v.as_json() for k, v in lab.values.items()}
@@ -298,10 +300,12 @@ def _summary(lab: Lab) -> None:
 
 def _write(lab: Lab) -> None:
     from hw.gains import write_gains
-    from hw.jsonio import write_json
+    from hw.jsonio import to_jsonable, write_json
+    from jaxcart.matfile import write_mat_report
 
     out = lab.out
     write_json(out / "results.json", lab.results, force=True)
+    write_mat_report(out / "results.mat", to_jsonable(lab.results), name="results", force=True)
     (out / "report.md").write_text(lab.doc.to_markdown())
     (out / "report.html").write_text(lab.doc.to_html(out))
     if lab.tuned is not None:
