@@ -27,6 +27,10 @@ from jaxcart.smooth import EXACT_FORMS
 DEFAULT_CHUNK = 4096
 #: Chunks per device in one host-side block: bounds the device working set of a large batch.
 CHUNKS_PER_CALL = 64
+#: XLA options of the batch program by backend. On a CPU, 512-bit vectors where the CPU has
+#: them (XLA prefers 256; a CPU without AVX-512 is unaffected): W1 1.2-1.4x per CPU-second
+#: on a 2-core AVX-512 machine (AMD EPYC), the metrics bit for bit the same (measured).
+COMPILER_OPTIONS = {"cpu": {"xla_cpu_prefer_vector_width": 512}}
 
 _FNS: dict = {}
 
@@ -110,6 +114,7 @@ def step_metrics_batch(
             chunk=chunk,
             block=chunk * n_dev * CHUNKS_PER_CALL,
             progress=progress,
+            compiler_options=COMPILER_OPTIONS.get(jax.default_backend()),
         )
     return StepInfo(*out)
 

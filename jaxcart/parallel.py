@@ -118,7 +118,14 @@ _COMPILED: dict = {}
 
 
 def sharded_map(
-    fn: Callable, *, chunk: int | None = None, devs: list | None = None, cache: bool = True
+    fn: Callable,
+    *,
+    chunk: int | None = None,
+    devs: list | None = None,
+    cache: bool = True,
+    name: str | None = None,
+    static=(),
+    compiler_options: dict | None = None,
 ) -> Callable:
     """``run(batch, *shared)``: ``vmap(fn)`` over ``batch``'s leading axis, sharded.
 
@@ -126,10 +133,17 @@ def sharded_map(
     i.e. a single vmap); smaller chunks bound memory, e.g. of a backward pass. ``shared``
     arguments are replicated. The result is a pytree of arrays with the batch's leading size.
     ``cache=False`` for a one-off ``fn`` (a closure over one problem's data): the caller keeps
-    the returned function, and it is freed with it.
+    the returned function, and it is freed with it. ``name`` (with ``static``, a value whose
+    ``repr`` names every setting ``fn`` closes over) keeps the traced programs on disk
+    (:mod:`jaxcart.aot`), so a new process does not trace them again. ``compiler_options``:
+    XLA options of the compiled program (plain jit only), e.g.
+    ``{"xla_cpu_prefer_vector_width": 512}``.
     """
     devs = list(devs or devices())
-    key = (fn, chunk, tuple(d.id for d in devs))
+    options = tuple(sorted((compiler_options or {}).items()))
+    if options and name is not None:
+        raise ValueError("sharded_map: compiler_options need name=None (plain jit)")
+    key = (fn, chunk, tuple(d.id for d in devs), options)
     if cache and key in _COMPILED:
         return _COMPILED[key]
     m = mesh(devs)
@@ -144,15 +158,19 @@ def sharded_map(
                 out = jax.lax.map(lambda blk: jax.vmap(lambda x: fn(x, *shared))(blk), blocks)
                 return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
 
-            jitted[n_shared, step] = jax.jit(
-                jax.shard_map(
-                    local,
-                    mesh=m,
-                    in_specs=(P(AXIS),) + (P(),) * n_shared,
-                    out_specs=P(AXIS),
-                    check_vma=False,
-                )
+            mapped = jax.shard_map(
+                local,
+                mesh=m,
+                in_specs=(P(AXIS),) + (P(),) * n_shared,
+                out_specs=P(AXIS),
+                check_vma=False,
             )
+            if name is None:
+                jitted[n_shared, step] = jax.jit(mapped, compiler_options=dict(options) or None)
+            else:
+                from jaxcart import aot
+
+                jitted[n_shared, step] = aot.jit(mapped, name, (static, n_shared, step, n_dev))
         return jitted[n_shared, step]
 
     def run(batch, *shared):
@@ -176,12 +194,13 @@ def map_blocks(
     chunk: int | None = None,
     block: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    compiler_options: dict | None = None,
 ):
     """:func:`sharded_map` over ``batch`` in host-side blocks of at most ``block`` items,
     returned as numpy arrays: memory stays bounded by the block whatever the batch size.
     A short last block is padded to the full block, so every block runs one compiled program.
     ``progress(done, total)`` is called after each block."""
-    run = sharded_map(fn, chunk=chunk)
+    run = sharded_map(fn, chunk=chunk, compiler_options=compiler_options)
     total = batch_size(batch)
     block = min(block or total, total)
     pieces = []

@@ -223,6 +223,8 @@ def _median_gap(a, b, shift):
 #: The command check looks at the first samples only (the transient, where gains show); the
 #: exact loop (anti-windup makes the law nonlinear) at fewer, since it runs in Python.
 COMMAND_PREFIX = 100_000
+#: Samples x kernel taps up to which the derivative filter is a direct convolution.
+DIRECT_CONVOLUTION_LIMIT = 20_000_000
 EXACT_PREFIX = 5_000
 
 
@@ -248,11 +250,17 @@ def controller_command(pid, r, y) -> np.ndarray:
     s = e if pid.derivative_on == "error" else -y
     integral = ts * np.concatenate([[0.0], np.cumsum(e[:-1])])
     # d_k = a d_{k-1} + b (s_k - s_{k-1}), d_-1 = 0, s_-1 = s_0: a convolution with b a^j,
-    # cut where a^j < 1e-17 (below float64 rounding).
+    # cut where a^j < 1e-17 (below float64 rounding). Direct for a short kernel, else by FFT
+    # (n log n however slow the filter; scipy.signal would cost a second of import).
     a, b = pid.tau / (pid.tau + ts), 1.0 / (pid.tau + ts)
     taps = 1 if a == 0 else min(e.size, int(math.ceil(math.log(1e-17) / math.log(a))) + 1)
     kernel = b * a ** np.arange(taps)
-    d = np.convolve(np.diff(s, prepend=s[0]), kernel)[: e.size]
+    x = np.diff(s, prepend=s[0])
+    if taps * e.size <= DIRECT_CONVOLUTION_LIMIT:
+        d = np.convolve(x, kernel)[: e.size]
+    else:
+        size = 1 << int(e.size + taps - 1).bit_length()
+        d = np.fft.irfft(np.fft.rfft(x, size) * np.fft.rfft(kernel, size), size)[: e.size]
     return np.clip(pid.kp * e + pid.ki * integral + pid.kd * d, -pid.v_limit, pid.v_limit)
 
 

@@ -69,6 +69,22 @@ def reference_run(time, reference, label: str = "reference r") -> Run:
     return Run(label, np.asarray(time), np.asarray(reference), None, "reference")
 
 
+def preload() -> None:
+    """Import matplotlib's figure and PNG writer in a background thread, so that a command
+    which plots at its end finds them loaded: the import (about half a second) overlaps the
+    computation, which runs in XLA outside the interpreter lock."""
+    import threading
+
+    def work():
+        try:
+            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.figure  # noqa: F401
+        except Exception:  # the plotting call reports any real problem itself
+            pass
+
+    threading.Thread(target=work, name="matplotlib-preload", daemon=True).start()
+
+
 def plot_runs(
     runs,
     *,

@@ -259,3 +259,36 @@ def test_real_cross_prediction(realdata):
             f"{row['fitted_on']} -> {row['predicting']}: {row['rms'] * 1e3:.4g} mm {row['values']}"
         )
         assert math.isfinite(row["rms"])
+
+
+def test_numpy_adam_is_optax_adam():
+    """The fit's adam stage (numpy) takes optax.adam's steps with a cosine-decayed rate."""
+    import jax.numpy as jnp
+    import optax
+
+    from tuning.fit import _adam
+
+    a = np.array([[1.0, 0.5], [0.0, 3.0], [2.0, -1.0]])
+    b = np.array([0.3, -1.0, 2.0])
+
+    class Linear:
+        def evaluate(self, theta, width):
+            return a @ theta[:2] - b, np.hstack([a, np.zeros((3, 1))])
+
+    theta0 = np.array([1.0, -2.0, 7.0])
+    active = np.array([True, True, False])
+    steps, lr = 15, 0.1
+    best, best_cost = _adam(Linear(), theta0, active, 0.0, steps, lr)
+    opt = optax.adam(optax.cosine_decay_schedule(lr, steps))
+    x = jnp.asarray(theta0[:2])
+    state = opt.init(x)
+    ref_best, ref_cost = None, math.inf
+    for _ in range(steps):
+        r = a @ np.asarray(x) - b
+        cost = float(r @ r)
+        if cost < ref_cost:
+            ref_best, ref_cost = np.asarray(x).copy(), cost
+        updates, state = opt.update(jnp.asarray(a.T @ r / cost), state, x)
+        x = optax.apply_updates(x, updates)
+    np.testing.assert_allclose(best[:2], ref_best, rtol=1e-12, atol=1e-14)
+    assert best[2] == 7.0 and best_cost == pytest.approx(ref_cost, rel=1e-12)

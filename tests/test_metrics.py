@@ -93,3 +93,24 @@ def test_batch_over_a_plant_set_is_the_worst_of_single_runs():
         assert info.diverged[i] == any(r.diverged for r in refs)
     # The plants differ enough that the worst is not the nominal one's.
     assert len({round(r.overshoot, 6) for r in refs}) == 3
+
+
+@pytest.mark.parametrize(
+    "kp, kd, y0",
+    [
+        (40.0, 5.0, 0.0),  # settles: not diverged
+        (-4000.0, 0.0, 0.0),  # grows past 1 km, finite
+        (-1e7, 0.0, 0.0),  # overflows to inf, then NaN
+        (40.0, 5.0, 1500.0),  # starts 1.5 km out, comes back within the run
+    ],
+)
+def test_streamed_divergence_flag_matches_the_stored_run(kp, kd, y0):
+    """diverged (|y_k| > 1 km or not finite at any sample) is streamed as a running max of
+    |y_k|, which propagates NaN: it must agree with the stored run's flag in every case."""
+    plant, pid = jc.Plant(effects=()), jc.PID(kp=kp, kd=kd)
+    exp = jc.step(0.5, horizon=0.5, y0=y0)
+    stored = jc.simulate(plant, pid, exp, smoothing=jc.EXACT_FORMS)
+    streamed = jax.jit(jc.step_metrics)(plant, pid, exp, smoothing=jc.EXACT_FORMS)
+    assert bool(streamed.diverged) == bool(stored.diverged) == (kp < 0 or y0 > 1e3)
+    if kp < 0 or y0 > 1e3:
+        assert np.isinf(float(streamed.settling_time)) and np.isinf(float(streamed.overshoot))

@@ -226,3 +226,22 @@ def test_thinned_curves_keep_their_envelope():
     keep = longrun.thin_indices(y.size, y, v, points=2000)
     assert keep.size <= 2100 and keep[0] == 0 and keep[-1] == y.size - 1
     assert y[keep].max() == y.max() and y[keep].min() == y.min() and v[keep].max() == v.max()
+
+
+def test_slow_derivative_filter_by_fft_is_the_control_law(monkeypatch):
+    """A slow derivative filter (tau = 0.5 s: a long kernel) goes by FFT; it still is the
+    canonical control law's command, sample by sample."""
+    from hw.control_law import float_pid, pid_init, pid_update
+
+    monkeypatch.setattr(plausibility, "DIRECT_CONVOLUTION_LIMIT", 0)
+    rng = np.random.default_rng(3)
+    n = 4000
+    r = np.where(np.arange(n) > 100, 0.3, 0.0)
+    y = np.cumsum(rng.normal(0, 1e-4, n))
+    pid = float_pid(jc.PID(kp=40.0, kd=3.0, ki=2.0, tau=0.5, v_limit=1e9))
+    state, ref = pid_init(pid, r[0], y[0]), []
+    for rk, yk in zip(r, y, strict=True):
+        u, _, state = pid_update(pid, state, rk, yk)
+        ref.append(u)
+    ours = plausibility.controller_command(pid, r, y)
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)

@@ -82,7 +82,7 @@ def test_pd_keeps_ki_zero():
     assert res.meets and info.settling_time < 1.0 and info.overshoot < 5.0
     # Other starts, free gains (as many) and bounds reuse the one compiled iteration.
     update, _ = tune_module._CACHE[next(reversed(tune_module._CACHE))]
-    traced = update._cache_size()
+    traced = update.cache_size()
     tune(
         start=(60.0, 4.0, 1.0),
         free=("kp", "ki"),
@@ -90,7 +90,7 @@ def test_pd_keeps_ki_zero():
         max_iterations=6,
         n_starts=4,
     )
-    assert update._cache_size() == traced
+    assert update.cache_size() == traced
 
 
 def test_impossible_spec_reports_the_failing_constraint():

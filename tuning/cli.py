@@ -48,6 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that write a figure by default (matplotlib is imported while they compute).
+PLOTTING = {"tune", "lab", "simulate", "diagnose", "grid"}
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -63,6 +67,10 @@ def main(argv=None) -> int:
     from jaxcart.parallel import use_cpu_devices
 
     use_cpu_devices()
+    if args.command in PLOTTING or getattr(args, "plot", None):
+        from jaxcart.plots import preload
+
+        preload()
     from hw.gains import GainsFileError
     from jaxcart.errors import UserError
 

@@ -736,7 +736,9 @@ def _batched_residuals(layout: _Layout):
     The CPU's per-step loop overhead dominates a single run, so K trial points cost little more
     than one."""
     if layout not in _BATCHED:
-        _BATCHED[layout] = sharded_map(partial(_residuals_jacobian, layout=layout))
+        _BATCHED[layout] = sharded_map(
+            partial(_residuals_jacobian, layout=layout), name="fit-residuals", static=layout
+        )
     return _BATCHED[layout]
 
 
@@ -923,17 +925,16 @@ def _padded_experiment(experiment: Experiment, n: int) -> Experiment:
 # ---------------------------------------------------------------- optimizers
 
 
-def _adam(problem, theta, active, width, steps, lr):
-    import optax
-
+def _adam(problem, theta, active, width, steps, lr, b1=0.9, b2=0.999, eps=1e-8):
+    """Adam with a cosine-decayed step (optax.adam(optax.cosine_decay_schedule(lr, steps))'s
+    arithmetic, in numpy: a handful of numbers need no device programs of their own)."""
     if steps <= 0 or not np.any(active):
         return theta, None
-    opt = optax.adam(optax.cosine_decay_schedule(lr, steps))
-    x = jnp.asarray(theta[active])
-    state = opt.init(x)
+    mu = np.zeros(int(np.count_nonzero(active)))
+    nu = np.zeros_like(mu)
     best, best_cost = theta.copy(), np.inf
     current = theta.copy()
-    for _ in range(steps):
+    for k in range(steps):
         r, jac = problem.evaluate(current, width)
         cost = float(r @ r)
         if not math.isfinite(cost):
@@ -941,10 +942,13 @@ def _adam(problem, theta, active, width, steps, lr):
         if cost < best_cost:
             best, best_cost = current.copy(), cost
         grad = jac[:, active].T @ r / max(cost, 1e-300)  # scale-free (adam normalizes anyway)
-        updates, state = opt.update(jnp.asarray(grad), state, x)
-        x = optax.apply_updates(x, updates)
+        mu = b1 * mu + (1 - b1) * grad
+        nu = b2 * nu + (1 - b2) * grad**2
+        step = lr * 0.5 * (1 + math.cos(math.pi * k / steps))
         current = current.copy()
-        current[active] = np.asarray(x)
+        current[active] -= (
+            step * (mu / (1 - b1 ** (k + 1))) / (np.sqrt(nu / (1 - b2 ** (k + 1))) + eps)
+        )
     return best, best_cost
 
 
@@ -1005,6 +1009,8 @@ def _lm(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
             return theta, r, jac, done, True  # no step decreases the cost: a minimum
         decrease = cost - float(costs[best])
         theta, r, jac, cost = trials[best], r_k[best], jac_k[best], float(costs[best])
+        # The residual whitens as the fit improves: n_eff of the current one, not the start's.
+        n_eff = effective_samples(problem.split(r))
         # Near the minimum d cost = sum (d theta / stderr)^2 sigma^2 N / n_eff (the stderr that
         # n_eff independent samples support): under tolerance^2 the step moved by less than
         # ``tolerance`` of a standard error.

@@ -38,6 +38,7 @@ import numpy as np
 import optax
 
 from hw.control_law import PID, float_pid
+from jaxcart import aot
 from jaxcart.errors import UserError
 from jaxcart.experiments import step
 from jaxcart.metrics import StepInfo
@@ -372,7 +373,8 @@ def tune(
     n_check: int = 16,
     seed: int = 0,
     progress: bool | Callable[[dict], None] | None = None,
-) -> TuneResult:
+    processes=None,
+) -> TuneResult | None:
     """Tune the canonical PID by gradient descent on the smooth simulator.
 
     plant: design model (default :func:`jaxcart.handout_plant`: the nominal model, B_eq = 5.4
@@ -405,6 +407,9 @@ def tune(
     substeps: sub-steps per sample of the smooth simulator (default 1 without friction,
         :data:`FRICTION_SUBSTEPS` with it).
     progress: True for a status line on stderr, or a callable receiving each history dict.
+    processes: a :class:`tuning.tunerun.StartShare` for a jax.distributed run: this process
+        iterates its share of the starts and every process sees the whole batch, so the result
+        is the single-process one; it is returned on process 0 only (None on the others).
 
     Gradients are forward-mode (one tangent per free parameter, the loss summed inside the
     simulation loop) and one compiled function does the whole iteration: loss, gradient, adam
@@ -482,6 +487,8 @@ def tune(
     update, adam = _compiled(
         template, spec, settings, is_robust, substeps, jax.tree.structure(plants_arg)
     )
+    if processes is not None:  # this process's starts computed, the whole batch returned
+        update = processes.wrap(update)
     # The optimizer state lives where the update puts it (else the second step recompiles).
     opt_state = jax.tree.map(
         lambda x: jax.device_put(x, batch_sharding() if x.ndim == 2 else replicated()),
@@ -550,6 +557,8 @@ def tune(
             if it - max(last, stage_start) >= patience:
                 break
     report(None)
+    if processes is not None and not processes.finish():
+        return None  # another process of a distributed run: process 0 verifies and reports
     iterations = it + 1
     seconds_to_spec = best["seconds_to_spec"]
 
@@ -642,7 +651,7 @@ def _compiled(template, spec, settings, robust, substeps, treedef):
             theta = jnp.clip(theta - lr * direction, lo, hi) * mask[None]
             return params, theta, opt_state, values, info, metrics
 
-        _CACHE[key] = (jax.jit(update), adam)
+        _CACHE[key] = (aot.jit(update, "tune-update", key), adam)
     return _CACHE[key]
 
 

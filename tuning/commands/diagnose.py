@@ -3,6 +3,7 @@ with it, and the fit improving.
 
     jaxcart diagnose run.toml [more.toml ...] [--plant START.toml] [--json OUT] [--out DIR]
     jaxcart diagnose --suite          # the concealed-effect suite, its score table
+    jaxcart diagnose run.toml --coordinator node0:12345 --num-processes 2 --process-id 0
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ def register(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
     p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
+    from tuning.commands.tune import add_cluster_options
+
+    add_cluster_options(p)
     p.set_defaults(func=run)
 
 
@@ -41,13 +45,8 @@ def _default_out() -> Path:
     return base / f"diagnose-{k}"
 
 
-def run(args) -> int:
-    if args.suite:
-        from tuning.diagnose.suite import main as suite_main
-
-        return suite_main(["--fast"] if args.fast else [])
-    if not args.experiments:
-        raise UserError("give at least one experiment file (EXPERIMENT.toml), or --suite")
+def _check_outputs(args) -> Path:
+    """The report folder, its files and --json checked writable (and absent unless --force)."""
     out = Path(args.out) if args.out else _default_out()
     from jaxcart.outputs import check_writable
 
@@ -58,6 +57,33 @@ def run(args) -> int:
     check_writable(out / "report.md", option="--out", force=True)
     if args.json_out:
         check_writable(args.json_out, option="--json", force=True)
+    return out
+
+
+def run(args) -> int:
+    if args.suite:
+        from tuning.diagnose.suite import main as suite_main
+
+        return suite_main(["--fast"] if args.fast else [])
+    if not args.experiments:
+        raise UserError("give at least one experiment file (EXPERIMENT.toml), or --suite")
+    from jaxcart import parallel
+
+    # jax.distributed joins before any computation starts a backend.
+    settings = parallel.cluster_settings(args.coordinator, args.num_processes, args.process_id)
+    # Process 0's outputs are checked before it joins where its index is known: a bad path
+    # fails at once instead of leaving the other processes waiting for it.
+    checked = settings is None or (settings != "auto" and settings[2] == 0)
+    if checked:
+        out = _check_outputs(args)
+    share = None
+    if parallel.init_distributed(settings):
+        from tuning.tunerun import Exchange
+
+        share = Exchange()
+    me = parallel.process_index()
+    if me == 0 and not checked:
+        out = _check_outputs(args)
     from jaxcart.files import read_experiment
     from tuning.diagnose import diagnose, write_outputs
 
@@ -67,7 +93,10 @@ def run(args) -> int:
         from jaxcart.plantspec import load_plant
 
         start = load_plant(args.plant_file)
-    d = diagnose(recordings, start=start, progress=not args.quiet)
+    d = diagnose(recordings, start=start, progress=not args.quiet and me == 0, processes=share)
+    if share is not None and not share.finish():
+        print(f"process {me} of {share.count}: done, results sent to process 0")
+        return 0 if d.status == "diagnosed" else 1
     written = write_outputs(d, out, json_path=args.json_out, force=args.force)
     print(d.verdict)
     if d.status == "diagnosed":

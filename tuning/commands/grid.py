@@ -309,6 +309,11 @@ def run(args) -> int:
         raise UserError(f"--block {args.block}: give a whole number of points >= 1")
     # jax.distributed joins before any computation starts a backend.
     settings = parallel.cluster_settings(args.coordinator, args.num_processes, args.process_id)
+    early = None
+    if settings not in (None, "auto") and settings[2] == 0:
+        # Process 0's outputs are checked before it joins: a bad one fails at once instead of
+        # leaving the other processes waiting for it in the runtime's barrier.
+        early = (*output_paths(args.out, args.plot, args.force), _json_path(args.json, args.force))
     distributed = parallel.init_distributed(settings)
 
     import jax
@@ -333,8 +338,10 @@ def run(args) -> int:
         _check_memory(n_points)  # a larger grid streams: summaries only, bounded memory
     me = parallel.process_index()
     if me == 0:
-        out_path, plot_path = output_paths(args.out, args.plot, args.force)
-        json_path = _json_path(args.json, args.force)
+        out_path, plot_path, json_path = early or (
+            *output_paths(args.out, args.plot, args.force),
+            _json_path(args.json, args.force),
+        )
         folder = out_path.parent
     else:
         folder = Path(args.out).parent if args.out else DEFAULT_DIR

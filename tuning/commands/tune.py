@@ -6,6 +6,7 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
     jaxcart tune --robust --out robust.json        # meet the spec for a whole set of plants
     jaxcart tune --plant fitted.toml --f-c 0.4
     jaxcart tune --compare                         # benchmark against Nelder-Mead and a grid
+    jaxcart tune --robust --starts 64 --coordinator node0:12345 --num-processes 4 --process-id 0
 """
 
 from __future__ import annotations
@@ -214,10 +215,45 @@ def register(subparsers) -> None:
         "wide (all six PID numbers, robust over 9 plants; minutes) or all",
     )
     run_.add_argument("--quiet", action="store_true", help="no progress line")
+    add_cluster_options(p)
     p.set_defaults(func=run)
 
 
+def add_cluster_options(parser) -> None:
+    """--coordinator, --num-processes, --process-id (as jaxcart grid): a jax.distributed run."""
+    group = parser.add_argument_group("distributed runs (jax.distributed)")
+    group.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="jax.distributed: address of process 0 (or JAXCART_COORDINATOR; under SLURM or "
+        "Open MPI none of these is needed)",
+    )
+    group.add_argument(
+        "--num-processes",
+        metavar="N",
+        help="jax.distributed: number of processes (or JAXCART_NUM_PROCESSES)",
+    )
+    group.add_argument(
+        "--process-id",
+        metavar="I",
+        help="jax.distributed: this process, 0 to N-1; 0 writes the outputs (or "
+        "JAXCART_PROCESS_ID)",
+    )
+
+
 def run(args) -> int:
+    from jaxcart import parallel
+
+    # jax.distributed joins before any computation starts a backend.
+    settings = parallel.cluster_settings(args.coordinator, args.num_processes, args.process_id)
+    if settings is not None and args.compare:
+        raise UserError("--compare runs in one process; drop --coordinator / --num-processes")
+    outputs = None
+    if settings not in (None, "auto") and settings[2] == 0:
+        # Process 0's output paths are checked before it joins: a bad one fails at once
+        # instead of leaving the other processes waiting for it.
+        outputs = (*_outputs(args), _json_path(args))
+    distributed = parallel.init_distributed(settings)
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -260,8 +296,14 @@ def run(args) -> int:
             _write_json(json_path, docs if len(docs) > 1 else docs[problems[0]])
         return 0
 
-    gains_path, png_path = _outputs(args)
-    json_path = _json_path(args)
+    share = None
+    if distributed:
+        from tuning.tunerun import StartShare
+
+        share = StartShare(args.starts)
+    me = parallel.process_index()
+    if me == 0:
+        gains_path, png_path, json_path = outputs or (*_outputs(args), _json_path(args))
     result = tune(
         plant,
         spec=spec,
@@ -273,9 +315,13 @@ def run(args) -> int:
         max_iterations=args.iterations,
         seed=args.seed,
         bounds=bounds,
-        progress=not args.quiet,
+        progress=not args.quiet and me == 0,
+        processes=share,
     )
-    _print_summary(result, robust is not False)
+    if result is None:  # another process of a distributed run: process 0 reports
+        print(f"process {me} of {parallel.process_count()}: done, results sent to process 0")
+        return 0
+    _print_summary(result, robust is not False, parallel.process_count())
 
     from hw.gains import GainsFileError, write_gains
 
@@ -495,7 +541,7 @@ def _fmt(value, unit="", digits=3):
     return f"{value:.{digits}f}{unit}"
 
 
-def _print_summary(result, robust):
+def _print_summary(result, robust, n_processes=1):
     g = result.gains
     print(
         f"tuned gains: kp = {g.kp:.4g} V/m, kd = {g.kd:.4g} V s/m, ki = {g.ki:.4g} V/(m s)"
@@ -522,9 +568,10 @@ def _print_summary(result, robust):
         if result.seconds_to_spec is None
         else f"; first gains meeting it after {result.seconds_to_spec:.1f} s"
     )
+    where = f" over {n_processes} processes" if n_processes > 1 else ""
     print(
-        f"{result.iterations} iterations x {result.n_starts} starts in {result.seconds:.1f} s"
-        f" (compilation included){to_spec}"
+        f"{result.iterations} iterations x {result.n_starts} starts{where} in "
+        f"{result.seconds:.1f} s (compilation included){to_spec}"
     )
 
 

@@ -216,9 +216,13 @@ class BatchFitter:
             base[a], base[b] = values.get(f"y0@{i}", exp.y0), values.get(f"yd0@{i}", exp.yd0)
         return base
 
-    def fit(self, problems, widths, iterations, progress=None, kmax=None):
+    def fit(self, problems, widths, iterations, progress=None, kmax=None, share=None):
         """LM on every problem at once. problems: list of (free names, start values dict,
-        base values dict). Returns list of (values dict, smooth cost, jac, r)."""
+        base values dict). Returns list of (values dict, smooth cost, jac, r).
+
+        share: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: this process fits
+        its :meth:`~tuning.tunerun.Exchange.items` of the problems and every process gets
+        every result (each problem's LM is independent of the others)."""
         jnp = self._jnp
         lay = self.layout
         kmax = max([len(p[0]) for p in problems] + [kmax or 0])
@@ -233,16 +237,51 @@ class BatchFitter:
                 idx[c, s] = j
                 free[c, s] = 1.0
                 theta[c, s] = _to_theta(n, base[c, j])
-        theta = jnp.asarray(theta)
-        lam = jnp.full(len(problems), 1e-2)
-        idx_j, free_j, base_j = jnp.asarray(idx), jnp.asarray(free), jnp.asarray(base)
+        n = len(problems)
+        rows = np.arange(n) if share is None else np.asarray(share.items(n), dtype=int)
+        if rows.size == 0:  # more processes than problems: this one only gathers
+            return self._gathered(share, problems, {}, progress, widths)
+        n_mine = rows.size
+        if share is not None:
+            # A whole number of problems per device (copies of the first): an uneven batch
+            # makes the sharded map reshard its output, which in a distributed run opens a
+            # cross-process (gloo) channel for what is a local computation.
+            from jaxcart.parallel import devices
+
+            rows = np.concatenate([rows, np.repeat(rows[:1], -n_mine % len(devices()))])
+        theta = jnp.asarray(theta[rows])
+        lam = jnp.full(rows.size, 1e-2)
+        idx_j, free_j, base_j = jnp.asarray(idx[rows]), jnp.asarray(free[rows]), base[rows]
+        base_j = jnp.asarray(base_j)
         cost = jac = r = None
         for width, its in zip(widths, iterations, strict=True):
             lam = jnp.maximum(lam, 1e-3)
             for _ in range(its):
                 theta, lam, cost, jac, r = self._step(theta, lam, idx_j, free_j, base_j, width)
-            if progress:
+            if progress and share is None:
                 progress(width, np.asarray(cost))
+        if share is not None:
+            arrays = {
+                k: np.asarray(v)[:n_mine]
+                for k, v in dict(theta=theta, cost=cost, jac=jac, r=r).items()
+            }
+            return self._gathered(share, problems, arrays, progress, widths)
+        return self._unpack(problems, theta, cost, jac, r)
+
+    def _gathered(self, share, problems, arrays, progress, widths):
+        """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
+        from tuning.tunerun import assemble
+
+        n = len(problems)
+        parts = share.allgather({k: np.asarray(v) for k, v in arrays.items()})
+        # A process without problems sent nothing.
+        owners = [o for o, p in zip(share.owners(n), parts, strict=True) if p]
+        full = assemble([p for p in parts if p], owners, n)
+        if progress:  # only the final costs are gathered: one line, at the last width
+            progress(widths[-1], full["cost"])
+        return self._unpack(problems, full["theta"], full["cost"], full["jac"], full["r"])
+
+    def _unpack(self, problems, theta, cost, jac, r):
         theta = np.asarray(theta)
         out = []
         for c, (names, _start, _b) in enumerate(problems):

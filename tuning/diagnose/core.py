@@ -449,12 +449,18 @@ def _progress_printer(progress):
     return lambda text: None
 
 
-def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Diagnosis:
+def diagnose(
+    recordings, *, start=None, progress=True, pairs: bool = True, processes=None
+) -> Diagnosis:
     """Diagnose one recording or several of one cart jointly.
 
     recordings: :class:`jaxcart.files.Recording` (or a list); start: a start plant (a plant
     file's :class:`jaxcart.Plant`; default the handout's); progress: True (print to stderr),
     False or a callable taking one line. Returns a :class:`Diagnosis`.
+
+    processes: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: the candidates'
+    batch fits, exact re-checks and exact polishes are split over the processes and every
+    result gathered on every one, which then all hold the same diagnosis (process 0 reports).
     """
     import jax
 
@@ -541,14 +547,19 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
             ITERATIONS,
             kmax=K_MAX + len(nuis),
             progress=lambda w, c: say(f"  width x{w:g}: smooth RMS {_fmt_list(c, fitter)}"),
+            share=processes,
         )
         say(f"  batch fit: {_time.perf_counter() - t_fit:.1f} s")
         for c, (vals, cost, jac, _r) in zip(cands, results, strict=False):
             c.values = vals
             c.rms_smooth = math.sqrt(cost)
             c.jac = jac
-        for c in cands:
-            res, _ = exact_residuals(c, segments, base_plants, c.values, layout)
+        rechecked = _spread(
+            processes,
+            cands,
+            lambda c: ({}, exact_residuals(c, segments, base_plants, c.values, layout)[0]),
+        )
+        for c, (_, res) in zip(cands, rechecked, strict=True):
             c.residuals = res
             c.rms_exact = _rms(res)
             c.score = score(c, c.rms_exact**2, floor2, n_eff)
@@ -572,13 +583,19 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
     tests = locate.residual_tests(segments, base.residuals, commands, n_eff)
 
     cands = list(round1)
+
+    def polished(c, start):
+        values = _polish(c, segments, base_plants, start, layout)
+        return values, exact_residuals(c, segments, base_plants, values, layout)[0]
+
     # A single structure that already explains the data to the encoder's own error leaves
     # nothing for a pair to explain: round 2 is skipped (it costs a second batch).
-    for c in sorted(round1[1:], key=lambda c: c.score)[:2]:  # a smooth fit may have stalled
-        polished = _polish(c, segments, base_plants, dict(c.values), layout)
-        res, _ = exact_residuals(c, segments, base_plants, polished, layout)
+    first = sorted(round1[1:], key=lambda c: c.score)[:2]  # a smooth fit may have stalled
+    for c, (values, res) in zip(
+        first, _spread(processes, first, lambda c: polished(c, dict(c.values))), strict=True
+    ):
         if _rms(res) < c.rms_exact:
-            c.values, c.residuals, c.rms_exact = polished, res, _rms(res)
+            c.values, c.residuals, c.rms_exact = values, res, _rms(res)
             c.score = score(c, c.rms_exact**2, floor2, n_eff)
     explained = min(c.rms_exact for c in round1) <= FLOOR_FACTOR * floor
     if explained:
@@ -629,20 +646,25 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
     t2 = _time.perf_counter()
     ranked = sorted(cands, key=lambda c: c.score)
 
-    def polish(c, start):
-        # Keep the exact re-fit only where it lowers the exact residual.
-        polished = _polish(c, segments, base_plants, start, layout)
-        res, _ = exact_residuals(c, segments, base_plants, polished, layout)
+    def polish_all(todo):
+        # Keep the exact re-fit only where it lowers the exact residual. Each (candidate,
+        # start) independent: split over the processes of a distributed run.
+        done = _spread(processes, todo, lambda item: polished(*item))
+        for (c, _start), (values, res) in zip(todo, done, strict=True):
+            keep(c, values, res)
+
+    def keep(c, values, res):
         if _rms(res) < c.rms_exact:
-            c.values, c.residuals, c.rms_exact = polished, res, _rms(res)
+            c.values, c.residuals, c.rms_exact = values, res, _rms(res)
             c.score = score(c, c.rms_exact**2, floor2, n_eff)
             say(
                 f"  exact polish {c.name:<20} exact {c.rms_exact * 1e3:8.4f} mm"
                 f"   score {c.score:10.1f}"
             )
 
-    for c in [x for x in ranked if x is not base][:POLISH] + [base]:
-        polish(c, dict(c.values))
+    polish_all(
+        [(c, dict(c.values)) for c in [x for x in ranked if x is not base][:POLISH] + [base]]
+    )
     say(f"exact polish: {_time.perf_counter() - t2:.1f} s")
     best = min(cands, key=lambda c: c.score)
     # Every structure no richer than the choice, re-fitted from the choice's shared values
@@ -660,7 +682,7 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
             break
         for c in nested:
             done.add(id(c))
-            polish(c, {k: best.values.get(k, c.values[k]) for k in c.values})
+        polish_all([(c, {k: best.values.get(k, c.values[k]) for k in c.values}) for c in nested])
         best = min(cands, key=lambda c: c.score)
     _window_evidence(cands, base, masks)
     ties = [
@@ -746,6 +768,28 @@ def diagnose(recordings, *, start=None, progress=True, pairs: bool = True) -> Di
         f"(encoder floor {floor * 1e3:.4f} mm), {d.seconds:.1f} s"
     )
     return d
+
+
+def _spread(processes, items, compute):
+    """``[compute(item) for item in items]``, each a ({name: float}, [arrays]) pair; with
+    ``processes`` (a :class:`tuning.tunerun.Exchange`) each item computed by one process and
+    every result gathered on every process."""
+    if processes is None:
+        return [compute(item) for item in items]
+    mine = {}
+    for i in processes.items(len(items)):
+        values, arrays = compute(items[i])
+        mine[f"n/{i}"] = np.array(len(arrays))
+        mine[f"k/{i}"] = np.array(list(values), dtype=str)
+        mine[f"v/{i}"] = np.array([values[k] for k in values], dtype=float)
+        mine.update({f"a/{i}/{j}": a for j, a in enumerate(arrays)})
+    every = {k: v for part in processes.allgather(mine) for k, v in part.items()}
+    out = []
+    for i in range(len(items)):
+        keys, vals = every[f"k/{i}"], every[f"v/{i}"]
+        values = {str(k): float(v) for k, v in zip(keys, vals, strict=True)}
+        out.append((values, [every[f"a/{i}/{j}"] for j in range(int(every[f"n/{i}"]))]))
+    return out
 
 
 def fitter_scale(segments) -> float:

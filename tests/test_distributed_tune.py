@@ -1,0 +1,141 @@
+"""jaxcart tune --robust and jaxcart diagnose across processes (jax.distributed): two processes
+on localhost on the CPU give the single-process result.
+
+Each process holds two CPU devices, as this test process does (conftest), so each device
+evaluates as many starts in both runs and the tuner's rows agree bit for bit. The diagnosis
+splits 4 candidates 2 + 2 against 4 on one process: the per-device batch differs, so its
+smooth fits may differ in the last bits (measured: 1e-12 relative); they are compared to 1e-8.
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from tuning import tunerun
+
+TAP = Path(jc.__file__).parent / "data" / "tap.toml"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _spawn(tmp_path, argv):
+    """Two processes of ``jaxcart ARGV``, each in its own folder p0/ p1/ (two CPU devices)."""
+    port = _free_port()
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+    }
+    procs = []
+    for i in range(2):
+        folder = tmp_path / f"p{i}"
+        folder.mkdir()
+        cluster = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2"]
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-m", "tuning", "--no-cache", *argv, *cluster],
+                cwd=folder,
+                env={**env, "JAXCART_PROCESS_ID": str(i)},  # the variable, not the option
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+        )
+    return procs
+
+
+def _wait(procs, codes=(0, 0)):
+    outs = [p.communicate(timeout=240) for p in procs]
+    for p, code, (_out, err) in zip(procs, codes, outs, strict=True):
+        assert p.returncode == code, err[-2000:]
+    return outs
+
+
+def test_tune_robust_two_processes_equal_one(tmp_path):
+    from tuning.losses import Spec
+    from tuning.tune import tune
+
+    argv = ["tune", "--robust", "--horizon", "1.5", "--iterations", "20", "--starts", "2"]
+    procs = _spawn(tmp_path, [*argv, "--quiet", "--out", "g.json", "--json", "r.json"])
+    # Meanwhile the same problem in this process (the command's controller and spec).
+    ref = tune(
+        robust=True,
+        n_starts=2,
+        max_iterations=20,
+        spec=Spec(horizon=1.5),
+        controller=jc.PID(tau=0.01, v_limit=6.0, sample_time=0.001),
+    )
+    outs = _wait(procs)
+    assert outs[1][0].strip() == "process 1 of 2: done, results sent to process 0"
+    assert not list((tmp_path / "p1").iterdir())  # only process 0 writes outputs
+    assert "over 2 processes" in outs[0][0]
+    doc = json.loads((tmp_path / "p0" / "r.json").read_text())
+    for name in ("kp", "kd", "ki"):
+        np.testing.assert_allclose(doc["gains"][name], getattr(ref.gains, name), rtol=1e-9)
+    assert doc["worst"]["settling_time"] == pytest.approx(ref.worst.settling_time, abs=1e-12)
+    assert doc["iterations"] == ref.iterations and doc["meets"] == ref.meets
+
+
+def test_diagnose_two_processes_equal_one(tmp_path):
+    from jaxcart.files import read_experiment
+    from tuning.diagnose import diagnose
+
+    procs = _spawn(tmp_path, ["diagnose", str(TAP), "--quiet", "--out", "d", "--json", "d.json"])
+    ref = diagnose([read_experiment(TAP)], progress=False)
+    outs = _wait(procs)
+    assert "results sent to process 0" in outs[1][0]
+    assert not list((tmp_path / "p1").iterdir())
+    doc = json.loads((tmp_path / "p0" / "d.json").read_text())
+    assert doc["chosen"] == ref.chosen and doc["left_out"] == ref.left_out
+    assert doc["equivalent"] == ref.equivalent
+    got = {c["name"]: c for c in doc["candidates"]}
+    assert set(got) == {c.name for c in ref.candidates}
+    for c in ref.candidates:
+        np.testing.assert_allclose(got[c.name]["score"], c.score, rtol=1e-8, err_msg=c.name)
+        for k, v in c.values.items():
+            if "@" not in k:
+                np.testing.assert_allclose(got[c.name]["values"][k], v, rtol=1e-8, err_msg=k)
+    for n, p in ref.parameters.items():
+        np.testing.assert_allclose(doc["parameters"][n]["value"], p["value"], rtol=1e-8)
+
+
+def test_every_start_and_row_has_one_owner():
+    # No runtime needed: the shares of 3 processes cover 7 starts once each.
+    shares = [tunerun.StartShare(7, i, 3) for i in range(3)]
+    rows = np.sort(np.concatenate([s.rows for s in shares]))
+    np.testing.assert_array_equal(rows, np.arange(7))
+    parts = [{"x": np.asarray(s.rows, float) * 10} for s in shares]
+    whole = tunerun.assemble(parts, shares[0].owners(7), 7)
+    np.testing.assert_array_equal(whole["x"], np.arange(7) * 10.0)
+    with pytest.raises(UserError, match="at least one start each; give --starts 3"):
+        tunerun.StartShare(2, 2, 3)
+
+
+def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):
+    from tuning.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    cluster = ["--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "0"]
+    assert main(["tune", "--compare", *cluster]) == 2
+    assert "--compare runs in one process" in capsys.readouterr().err
+    # Process 0's outputs are checked before it joins (nobody listens on port 1: a join would
+    # fail with another message, after the runtime's timeout).
+    (tmp_path / "g.json").write_text("{}")
+    assert main(["tune", "--robust", "--out", "g.json", *cluster]) == 2
+    assert "g.json exists" in capsys.readouterr().err
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "report.md").write_text("")
+    assert main(["diagnose", str(TAP), "--out", "d", *cluster]) == 2
+    assert "report.md exists" in capsys.readouterr().err
