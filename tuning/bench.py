@@ -451,13 +451,16 @@ def grad_evaluator(plant, controller, experiment, *, chunk: int):
     """f(gains (B, 3)) -> (loss (B,), d loss / d gains (B, 3)) by forward mode (three tangents
     per run, vmapped, the loss summed inside the loop: nothing stored for a backward pass), in
     chunks of ``chunk`` runs per device through :func:`jaxcart.parallel.sharded_map`."""
+    from jaxcart.batch import COMPILER_OPTIONS
     from jaxcart.parallel import sharded_map
     from jaxcart.running import value_and_jacfwd
 
     def one(g, p, c, e):
         return value_and_jacfwd(lambda x: smooth_loss(p, c, e, x))(g)
 
-    run_all = sharded_map(one, chunk=chunk, cache=False)
+    # The batch program's XLA options (the forward row's), so the two rows compare like.
+    options = COMPILER_OPTIONS.get(jax.default_backend())
+    run_all = sharded_map(one, chunk=chunk, cache=False, compiler_options=options)
 
     def run(gains):
         return run_all(jnp.asarray(gains), plant, controller, experiment)

@@ -31,7 +31,7 @@ from jaxcart.errors import UserError
 from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo
 from jaxcart.params import voltage_limit
 from jaxcart.running import accumulate, value_and_jacfwd
-from jaxcart.smooth import DIVERGED_POSITION, simulate
+from jaxcart.smooth import DIVERGED_POSITION, loop, simulate
 from jaxcart.smoothing import Smoothing
 from jaxcart.surrogates import (
     SmoothStepInfo,
@@ -188,23 +188,36 @@ def stream_loss(
     pid = controller_with(controller, gains)
     limit = voltage_limit(plant, pid)
     inf = jnp.asarray(jnp.inf, dtype)
+    # y0: the first sample as the controller reads it, known before the loop (one more step,
+    # outside it), so 1 / (r_final - y0) is loop-invariant rather than carried.
+    start, first = loop(plant, pid, experiment, smoothing=smoothing, substeps=substeps)
+    y0 = first(start, experiment.signal[0])[1].position
+    lo = jnp.asarray(RISE_LIMITS, dtype)
+    v_max = jax.lax.stop_gradient(limit)
 
-    def hard(acc, k, tk, s):
-        # StepInfo's counters (as jaxcart.metrics.step_metrics), on values without tangents.
-        y, u, v = (jax.lax.stop_gradient(x) for x in (s.position, s.unlimited, s.voltage))
-        t10, t90, last_out, top, n_sat, peak_v = acc
-        z = (y - experiment.y0) / (r_final - experiment.y0)
-        t10 = jnp.where((t10 == inf) & (z >= RISE_LIMITS[0]), tk, t10)
-        t90 = jnp.where((t90 == inf) & (z >= RISE_LIMITS[1]), tk, t90)
-        out = jnp.abs(y - r_final) > band * jnp.abs(r_final - experiment.y0)
-        last_out = jnp.where(out, k, last_out)
-        n_sat = n_sat + (jnp.abs(u) > jax.lax.stop_gradient(limit))
-        return (t10, t90, last_out, jnp.maximum(top, z), n_sat, jnp.maximum(peak_v, jnp.abs(v)))
-
+    # Two groups of accumulators, not fifteen scalars: XLA on a CPU computes every carried
+    # array in its own pass over the loop body (its tangents in another), each recomputing
+    # what it depends on. ``soft`` (with tangents) is a tuple that accumulate packs into one
+    # vector where that pays (no force effects); ``hard`` (without) is one vector.
     def update(acc, k, tk, s):
-        y0, p, lse, peak, den, num, excess, bad, _, counts = acc
-        counts = hard(counts, k, tk, s)
-        y0 = jnp.where(k == 0, s.position, y0)
+        soft, hard = acc
+        p, lse, peak, den, num, excess, _ = soft
+        # StepInfo's counters (as jaxcart.metrics.step_metrics) and the divergence flag, on
+        # values without tangents: t10, t90, top, peak |v|, saturated samples, last sample
+        # outside the band, bad (0/1).
+        y, u, v = (jax.lax.stop_gradient(x) for x in (s.position, s.unlimited, s.voltage))
+        zh = (y - experiment.y0) / (r_final - experiment.y0)
+        t_rise = jnp.where((hard[:2] == inf) & (zh >= lo), tk, hard[:2])
+        out = jnp.abs(y - r_final) > band * jnp.abs(r_final - experiment.y0)
+        hard = jnp.concatenate(
+            [
+                t_rise,
+                jnp.maximum(hard[2:4], jnp.stack([zh, jnp.abs(v)])),
+                (hard[4] + (jnp.abs(u) > v_max))[None],
+                jnp.where(out, k.astype(dtype), hard[5])[None],
+                jnp.maximum(hard[6], ~(jnp.abs(y) <= DIVERGED_POSITION))[None],
+            ]
+        )
         z = (s.position - y0) / (r_final - y0)
         distance = jnp.abs(z - 1.0) - band
         lse = jnp.logaddexp(lse, -p)
@@ -214,21 +227,25 @@ def stream_loss(
         w = jnp.exp((z - top) / width)
         den, num = den * fade + w, num * fade + z * w
         excess = excess + jnp.where(tk >= after, jax.nn.relu(distance) / band, 0.0)
-        bad = bad | ~(jnp.abs(s.position) <= DIVERGED_POSITION)
-        return (y0, p, lse, top, den, num, excess, bad, s.position, counts)
+        soft = (p, lse, top, den, num, excess, s.position)
+        return soft, hard
 
     zero = jnp.zeros((), dtype)
-    counts = (inf, inf, jnp.asarray(-1, jnp.int32), -inf, zero, zero)
-    init = (zero, zero, -inf, zero - 1e30, zero, zero, zero, jnp.asarray(False), zero, counts)
-    y0, p, lse, _, den, num, excess, bad, y_last, counts = accumulate(
+    soft0 = (zero, zero, -inf, zero - 1e30, zero, zero, zero)
+    hard0 = jnp.asarray([jnp.inf, jnp.inf, -jnp.inf, 0.0, 0.0, -1.0, 0.0], dtype)
+    soft, hard = accumulate(
         plant,
         pid,
         experiment,
-        init,
+        (soft0, hard0),
         update,
         smoothing=smoothing,
         substeps=substeps,
+        pack=True,  # the tuner's batches are small: one vector, one pass (running.accumulate)
     )
+    p, lse, _, den, num, excess, y_last = soft
+    t10, t90, top, peak_v, n_sat, last_out, bad = (hard[i] for i in range(7))
+    bad = bad > 0
     n = experiment.n_samples
     ts_s = experiment.sample_time * (n - jnp.exp(p + lse))
     os_pct = 100.0 * smooth_relu(num / den - 1.0, width)
@@ -241,7 +258,6 @@ def stream_loss(
     penalty = jax.nn.relu(os - settings.target) + jax.nn.relu(ts - settings.target) + excess
     loss = ts + settings.weight * penalty
     loss = jnp.where(bad | ~jnp.isfinite(loss), 1e3, loss)
-    t10, t90, last_out, top, n_sat, peak_v = counts
     dt = experiment.sample_time
     settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * dt))
     y_end = jax.lax.stop_gradient(y_last)
