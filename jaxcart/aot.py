@@ -19,6 +19,7 @@ a function ``jax.export`` cannot take) falls back to plain ``jax.jit``, silently
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import pickle
@@ -37,25 +38,52 @@ _SOURCE_HASH: str | None = None
 
 
 def programs_dir() -> Path | None:
-    """Where exported programs are kept, or None when the caches are off."""
+    """Where exported programs are kept (jaxcart's own folder, beside the compilation cache
+    that :func:`jaxcart.cache.enable_persistent_cache` chose), or None when the caches are
+    off. Never a folder of the user's own JAX cache setting: programs are unpickled, so they
+    live only in a folder of jaxcart's that this user owns."""
+    from jaxcart import cache
+
     if os.environ.get("JAXCART_NO_CACHE", "").strip() not in ("", "0"):
         return None
-    folder = jax.config.jax_compilation_cache_dir
-    if not folder:  # programs are only worth keeping where their compilations are kept
+    if not jax.config.jax_compilation_cache_dir:  # only worth it where compilations are kept
         return None
-    return Path(folder).parent / "programs"
+    base = cache.ENABLED if cache.ENABLED is not None else cache.cache_dir()
+    return base.parent / "programs"
+
+
+def _trusted(path: Path) -> bool:
+    """The file and its folder belong to this user and nobody else may write them."""
+    if not hasattr(os, "getuid"):
+        return True
+    for p in (path.parent, path):
+        st = p.stat()
+        if st.st_uid != os.getuid() or st.st_mode & 0o022:
+            return False
+    return True
 
 
 def source_hash() -> str:
-    """Digest of the source of the packages whose code ends up in the programs."""
+    """Digest of what ends up in the programs: the source of jaxcart, tuning and hw (the
+    control law), and the versions of jaxlib and optax (traced into the tuner)."""
     global _SOURCE_HASH
     if _SOURCE_HASH is None:
+        from importlib import metadata
+
         h = hashlib.sha256()
+        for dist in ("jaxlib", "optax"):
+            try:
+                h.update(f"{dist}={metadata.version(dist)}".encode())
+            except metadata.PackageNotFoundError:
+                pass
         root = Path(__file__).resolve().parent.parent
-        for package in ("jaxcart", "tuning"):
+        for package in ("jaxcart", "tuning", "hw"):
             for path in sorted((root / package).rglob("*.py")):
                 h.update(str(path.relative_to(root)).encode())
-                h.update(path.read_bytes())
+                try:
+                    h.update(path.read_bytes())
+                except OSError:
+                    h.update(b"unreadable")
         _SOURCE_HASH = h.hexdigest()
     return _SOURCE_HASH
 
@@ -108,6 +136,8 @@ class Program:
 
     def __call__(self, *args):
         leaves, tree = jax.tree.flatten(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return self._jit(*args)  # inside another transformation: nest like jax.jit
         signature = (
             tree,
             tuple(_leaf_signature(x) for x in leaves),
@@ -115,8 +145,18 @@ class Program:
         )
         entry = self._calls.get(signature)
         if entry is None:
-            entry = self._calls[signature] = self._prepare(leaves, tree, signature)
-            self.sources.append("jit" if entry is False else entry[2])
+            entry = self._prepare(leaves, tree, signature)
+            if entry is not False:
+                try:  # the first call compiles: a program this JAX cannot take falls back
+                    out = entry[0](*map(_as_array, leaves))
+                except Exception:
+                    entry = False
+                else:
+                    self._calls[signature] = entry
+                    self.sources.append(entry[2])
+                    return jax.tree.unflatten(entry[1], out)
+            self._calls[signature] = False
+            self.sources.append("jit")
         if entry is False:
             return self._jit(*args)
         call, out_tree, _ = entry
@@ -150,13 +190,16 @@ class Program:
             return False
         path = folder / f"{self.name}-{self._key(signature)}.bin"
         try:
+            if not _trusted(path):
+                raise PermissionError(path)
             blob, out_tree = pickle.loads(path.read_bytes())
             exported = export.deserialize(bytearray(blob))
             return jax.jit(exported.call), out_tree, "disk"
         except FileNotFoundError:
             pass
-        except Exception:  # a damaged or stale file: replaced below
-            path.unlink(missing_ok=True)
+        except Exception:  # a damaged, stale or foreign file: replaced below
+            with contextlib.suppress(OSError):
+                path.unlink(missing_ok=True)
 
         holder = {}
 
@@ -170,14 +213,18 @@ class Program:
             blob = exported.serialize()
         except Exception:  # something jax.export cannot take (or no flatbuffers)
             return False
+        tmp = None
         try:
-            folder.mkdir(parents=True, exist_ok=True)
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
             data = pickle.dumps((bytes(blob), holder["tree"]))
             with tempfile.NamedTemporaryFile(dir=folder, delete=False, suffix=".tmp") as f:
+                tmp = f.name
                 f.write(data)
-            os.replace(f.name, path)
-        except (OSError, pickle.PicklingError, TypeError, AttributeError):
-            pass  # not kept: this process still runs the exported program
+            os.replace(tmp, path)
+        except Exception:  # not kept: this process still runs the exported program
+            if tmp is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
         # Run the exported program here too, so the compilation cache holds the very program
         # the next process will compile.
         return jax.jit(exported.call), holder["tree"], "export"

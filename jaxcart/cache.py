@@ -23,11 +23,18 @@ def cache_dir() -> Path:
     return Path(base) / "jaxcart" / "xla"
 
 
+#: The folder enable_persistent_cache chose (jaxcart's own; jaxcart.aot keeps its programs
+#: beside it).
+ENABLED: Path | None = None
+
+
 def enable_persistent_cache(folder: Path | None = None) -> Path | None:
     """Turn the cache on (unless JAXCART_NO_CACHE is set); returns the folder, or None."""
+    global ENABLED
     if os.environ.get("JAXCART_NO_CACHE", "").strip() not in ("", "0"):
         return None
     folder = Path(folder) if folder is not None else cache_dir()
+    ENABLED = folder
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:

@@ -143,7 +143,7 @@ def sharded_map(
     options = tuple(sorted((compiler_options or {}).items()))
     if options and name is not None:
         raise ValueError("sharded_map: compiler_options need name=None (plain jit)")
-    key = (fn, chunk, tuple(d.id for d in devs), options)
+    key = (fn, chunk, tuple(d.id for d in devs), options, name, static)
     if cache and key in _COMPILED:
         return _COMPILED[key]
     m = mesh(devs)

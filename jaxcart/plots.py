@@ -82,7 +82,9 @@ def preload() -> None:
         except Exception:  # the plotting call reports any real problem itself
             pass
 
-    threading.Thread(target=work, name="matplotlib-preload", daemon=True).start()
+    # Not a daemon: an exit mid-import waits for it (killed there, matplotlib's font-cache
+    # lock file could be left behind).
+    threading.Thread(target=work, name="matplotlib-preload").start()
 
 
 def plot_runs(

@@ -118,3 +118,23 @@ def test_a_new_process_finds_the_program(tmp_path):
     (src1, value1), (src2, value2) = (r.stdout.split() for r in runs)
     assert (src1, src2) == ("export", "disk")
     assert value1 == value2
+
+
+def test_a_file_others_may_write_is_not_loaded(programs):
+    """Programs are unpickled: only files of this user that nobody else can write are read."""
+    if not hasattr(os, "getuid"):
+        pytest.skip("POSIX permissions")
+    aot.jit(_loop, "test-perm")(*_args())
+    (path,) = programs.glob("test-perm-*.bin")
+    path.chmod(0o666)
+    fresh = aot.jit(_loop, "test-perm")
+    fresh(*_args())
+    assert fresh.sources == ["export"]
+    assert path.stat().st_mode & 0o022 == 0  # replaced by a file of our own
+
+
+def test_inside_a_transformation_it_nests_like_jit(programs):
+    prog = aot.jit(lambda x: jnp.sin(x) * 2.0, "test-nest")
+    out = jax.vmap(prog)(jnp.arange(3.0))
+    np.testing.assert_allclose(np.asarray(out), 2.0 * np.sin(np.arange(3.0)), rtol=1e-15)
+    assert prog.sources == []
