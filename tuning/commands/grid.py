@@ -22,6 +22,7 @@ from pathlib import Path
 
 from jaxcart.errors import UserError
 from jaxcart.outputs import OUT_DIR, free_names
+from tuning.commands.tune import add_cluster_options
 
 DEFAULT_RANGES = {"kp": "10:150:64", "kd": "0:15:64", "ki": "0:30:64"}
 DEFAULT_DIR = OUT_DIR
@@ -106,23 +107,7 @@ def register(subparsers) -> None:
         metavar="N",
         help="points per block: the unit of checkpoints, processes and progress (65536)",
     )
-    run_.add_argument(
-        "--coordinator",
-        metavar="HOST:PORT",
-        help="jax.distributed: address of process 0 (or JAXCART_COORDINATOR; under SLURM or "
-        "Open MPI none of these is needed)",
-    )
-    run_.add_argument(
-        "--num-processes",
-        metavar="N",
-        help="jax.distributed: number of processes (or JAXCART_NUM_PROCESSES)",
-    )
-    run_.add_argument(
-        "--process-id",
-        metavar="I",
-        help="jax.distributed: this process, 0 to N-1; 0 writes the outputs (or "
-        "JAXCART_PROCESS_ID)",
-    )
+    add_cluster_options(run_)
     p.add_argument("--json", metavar="OUT", help="also write a summary JSON (best point, notes)")
     p.set_defaults(func=run)
 

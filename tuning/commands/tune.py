@@ -11,6 +11,7 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
 
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
@@ -220,8 +221,13 @@ def register(subparsers) -> None:
 
 
 def add_cluster_options(parser) -> None:
-    """--coordinator, --num-processes, --process-id (as jaxcart grid): a jax.distributed run."""
-    group = parser.add_argument_group("distributed runs (jax.distributed)")
+    """--coordinator, --num-processes, --process-id (tune, diagnose, grid): a jax.distributed
+    run. ``parser``: a parser (the options get a group of their own) or an argument group."""
+    group = (
+        parser.add_argument_group("distributed runs (jax.distributed)")
+        if isinstance(parser, argparse.ArgumentParser)
+        else parser
+    )
     group.add_argument(
         "--coordinator",
         metavar="HOST:PORT",
