@@ -162,8 +162,22 @@ def step_metrics(plant, controller, experiment, *, smoothing=None, substeps=None
     n_sat, peak_v = volts.real, volts.imag
     bad = ~(y_max <= DIVERGED_POSITION)
     y_last = last.position
-    settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
     bad = bad | ~jnp.isfinite(y_last)
+    return info_from_accumulated(
+        t10, t90, last_out, n, ts, peak, r_final, y_last, peak_v, n_sat, bad
+    )
+
+
+def info_from_accumulated(
+    t10, t90, last_out, n, ts, peak, r_final, y_last, peak_v, n_sat, bad
+) -> StepInfo:
+    """:class:`StepInfo` from a run's accumulated quantities: the 10 % and 90 % crossing times
+    [s], the last sample index outside the band (-1: none) of n at sample time ts [s], the
+    peak as a fraction of the step, the final reference and position [m], the peak voltage
+    [V], the saturated samples and whether the run is bad (every metric inf then). Shared by
+    the streamed step metrics here and the tuner's loss (tuning.losses)."""
+    inf = jnp.inf
+    settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
     return StepInfo(
         rise_time=jnp.where(bad | (t90 == inf), inf, t90 - t10),
         settling_time=jnp.where(bad, inf, settling),

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcart.errors import UserError
-from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo
+from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo, info_from_accumulated
 from jaxcart.params import voltage_limit
 from jaxcart.running import accumulate, value_and_jacfwd
 from jaxcart.smooth import DIVERGED_POSITION, loop, simulate
@@ -258,17 +258,9 @@ def stream_loss(
     penalty = jax.nn.relu(os - settings.target) + jax.nn.relu(ts - settings.target) + excess
     loss = ts + settings.weight * penalty
     loss = jnp.where(bad | ~jnp.isfinite(loss), 1e3, loss)
-    dt = experiment.sample_time
-    settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * dt))
     y_end = jax.lax.stop_gradient(y_last)
-    metrics = StepInfo(
-        rise_time=jnp.where(bad | (t90 == inf), inf, t90 - t10),
-        settling_time=jnp.where(bad, inf, settling),
-        overshoot=jnp.where(bad, inf, jnp.maximum(0.0, (top - 1.0) * 100.0)),
-        steady_state_error=jnp.where(bad, inf, jnp.abs(r_final - y_end)),
-        peak_voltage=peak_v,
-        saturation_time=n_sat * dt,
-        diverged=bad,
+    metrics = info_from_accumulated(
+        t10, t90, last_out, n, experiment.sample_time, top, r_final, y_end, peak_v, n_sat, bad
     )
     return loss, LossInfo(ts_s, os_pct, excess, sse, bad, metrics)
 
