@@ -65,6 +65,9 @@ class Recording:
         position), ready for :func:`jaxcart.simulate`
     meta: the parsed TOML
     warnings: what looks physically doubtful (:mod:`jaxcart.plausibility`), one line each
+    signal: the experiment's signal as read (r_k [m] or u_k [V]), float64 numpy: the
+        Experiment's copy follows the JAX mode it was made in (float32 without x64, 0.4 m
+        kept as 0.40000001 m), so fits, which run in float64, start from this one
     """
 
     path: Path
@@ -79,6 +82,13 @@ class Recording:
     experiment: Experiment
     meta: dict
     warnings: tuple[str, ...] = ()
+    signal: np.ndarray | None = None
+
+    def signal64(self) -> np.ndarray:
+        """The experiment's signal in float64 [m or V] (see ``signal``)."""
+        if self.signal is not None:
+            return self.signal
+        return np.asarray(self.experiment.signal, dtype=np.float64)
 
     @property
     def n_samples(self) -> int:
@@ -124,7 +134,7 @@ class Recording:
         exp = self.experiment
         spec = self.meta.get("reference" if self.kind == "closed_loop" else "input", {})
         k = np.arange(n)
-        signal = np.asarray(exp.signal, dtype=float)
+        signal = self.signal64()
         if self.kind == "tap":
             new = np.zeros(n)
         elif spec.get("kind") == "ramp":
@@ -135,6 +145,14 @@ class Recording:
         else:
             new = np.concatenate([signal, np.full(n - signal.size, signal[-1])])
         return dataclasses.replace(exp, signal=jnp.asarray(new))
+
+
+def signal64(recording) -> np.ndarray:
+    """A recording's experiment signal in float64 [m or V]: :meth:`Recording.signal64` where
+    it has one, else its experiment's signal."""
+    if isinstance(recording, Recording):
+        return recording.signal64()
+    return np.asarray(recording.experiment.signal, dtype=np.float64)
 
 
 # ---------------------------------------------------------------- reading
@@ -173,6 +191,7 @@ def read_experiment(path, *, check: bool = True) -> Recording:
         plant_overrides=overrides,
         experiment=experiment,
         meta=data.meta,
+        signal=np.asarray(data.signal, dtype=np.float64),
     )
     if not check:
         return rec

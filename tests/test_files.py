@@ -415,3 +415,26 @@ def test_csv_with_cr_only_line_ends_is_one_line(tmp_path):
     path.write_bytes(b"t,y,v\r0,0,1\r0.001,0,1\r")
     with pytest.raises(CSVError, match="CR only"):
         read_numeric_csv(path, "mac.csv")
+
+
+def test_signal_read_without_x64_stays_float64():
+    """A command reads its files before a fit turns x64 on: the recorded reference must not
+    pass through float32 on the way (0.4 m would become 0.40000001 m)."""
+    from pathlib import Path
+
+    from tuning.fit import FitSettings, prepare
+
+    path = Path(jc.__file__).parent / "data" / "p50.toml"
+    with jax.enable_x64(False):
+        rec = read_experiment(path)
+    assert rec.experiment.signal.dtype == np.float32  # the JAX mode it was read in
+    with jax.enable_x64(True):
+        full = read_experiment(path)
+        seg = prepare(rec, ["B_eq"], {}, FitSettings())
+    np.testing.assert_array_equal(rec.signal64(), np.asarray(full.experiment.signal))
+    assert rec.signal64().dtype == np.float64
+    np.testing.assert_array_equal(np.asarray(seg.experiment.signal), rec.signal64())
+    # Cut to another horizon, the signal keeps float64 too.
+    with jax.enable_x64(True):
+        longer = rec.experiment_for(4.0)
+    assert np.asarray(longer.signal)[0] == rec.signal64()[0]

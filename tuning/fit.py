@@ -63,6 +63,7 @@ from hw.control_law import PID
 from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
+from jaxcart.files import signal64
 from jaxcart.parallel import sharded_map
 from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant
 from jaxcart.smooth import simulate
@@ -648,7 +649,7 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
         sigma = 0.0 if encoder_count(raw) > 0 else noise_level(raw)
         width = q + 8 * sigma
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    signal = jnp.asarray(np.asarray(exp.signal, dtype=float)[start:stop])
+    signal = jnp.asarray(signal64(recording)[start:stop])
     experiment = dataclasses.replace(exp, signal=signal, y0=y0, yd0=yd0)
     controller = recording.controller
     if controller is None:
