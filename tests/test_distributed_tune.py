@@ -8,14 +8,11 @@ smooth fits may differ in the last bits (measured: 1e-12 relative); they are com
 """
 
 import json
-import os
-import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cluster import spawn
 
 import jaxcart as jc
 from jaxcart.errors import UserError
@@ -24,36 +21,8 @@ from tuning import tunerun
 TAP = Path(jc.__file__).parent / "data" / "tap.toml"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _spawn(tmp_path, argv):
-    """Two processes of ``jaxcart ARGV``, each in its own folder p0/ p1/ (two CPU devices)."""
-    port = _free_port()
-    env = {
-        **os.environ,
-        "JAX_PLATFORMS": "cpu",
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-    }
-    procs = []
-    for i in range(2):
-        folder = tmp_path / f"p{i}"
-        folder.mkdir()
-        cluster = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2"]
-        procs.append(
-            subprocess.Popen(
-                [sys.executable, "-m", "tuning", "--no-cache", *argv, *cluster],
-                cwd=folder,
-                env={**env, "JAXCART_PROCESS_ID": str(i)},  # the variable, not the option
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-            )
-        )
-    return procs
+    return spawn(tmp_path, argv)
 
 
 def _wait(procs, codes=(0, 0)):

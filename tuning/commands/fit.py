@@ -3,11 +3,15 @@
     jaxcart fit tap.toml --params B_eq,f_c
     jaxcart fit tap.toml p50.toml --params B_eq,f_c --classic --cross --plot fit.png \\
         --json fit.json --out fitted.toml
+    jaxcart fit a.toml b.toml c.toml --cross --coordinator node0:12345 --num-processes 3 \\
+        --process-id 0
 
 Prints each parameter with its standard error (or "not identifiable"), the RMS position error
 before and after (smooth and exact simulators), optionally the lab's classic estimates and the
 cross-prediction of each recording from the others' fit; writes the fitted plant (``--out``,
 readable by ``--plant`` of simulate, tune, grid and lab), a JSON report and an overlay plot.
+Across processes (jax.distributed, :mod:`tuning.fitrun`) each fits its share of the
+recordings for ``--cross``; process 0 runs the joint fit, prints and writes.
 """
 
 from __future__ import annotations
@@ -63,12 +67,19 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    from tuning.commands.tune import add_cluster_options
+
+    # With --cross, each process fits its share of the recordings alone; process 0 alone runs
+    # the joint fit and writes the outputs.
+    add_cluster_options(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from jaxcart import parallel
     from jaxcart.files import read_experiment
     from tuning import fit as F
+    from tuning import fitrun
 
     params = F.parse_params(args.params)
     if not params:
@@ -77,25 +88,59 @@ def run(args) -> int:
         raise UserError("--cross needs at least two recordings")
     if args.out and not str(args.out).lower().endswith(".toml"):
         raise UserError(f"--out {args.out}: a plant file is TOML; give a name ending in .toml")
-    check_outputs(args)
-    recordings = [read_experiment(path) for path in args.experiments]
-    _warn_if_long(recordings)
-    initial = {}
-    if args.plant_file:
-        from jaxcart.plantspec import load_plant, plant_values
+    # jax.distributed joins before any computation starts a backend.
+    settings = parallel.cluster_settings(args.coordinator, args.num_processes, args.process_id)
+    # Process 0's outputs are checked before it joins where its index is known: a bad path
+    # fails at once instead of leaving the other processes waiting for it.
+    checked = settings is None or (settings != "auto" and settings[2] == 0)
+    if checked:
+        check_outputs(args)
+    share = None
+    if parallel.init_distributed(settings):
+        from tuning.tunerun import Exchange
 
-        initial = plant_values(load_plant(args.plant_file))
-    result = F.fit(recordings, params, initial=initial, progress=not args.quiet)
-    print(format_result(result))
+        share = Exchange()
+    me = parallel.process_index()
+    progress = not args.quiet and me == 0
+    recordings, result, failure = [], None, None
+    try:
+        if me == 0 and not checked:
+            check_outputs(args)
+        recordings = [read_experiment(path) for path in args.experiments]
+        if me == 0:
+            _warn_if_long(recordings)
+            initial = _initial(args.plant_file)
+            # The joint fit is one problem: process 0 alone computes it (the others fit their
+            # rows of --cross meanwhile) and reports it.
+            result = F.fit(recordings, params, initial=initial, progress=progress)
+    except UserError as exc:
+        if share is None:
+            raise
+        failure = exc  # raised on every process after the exchange: none waits for this one
 
-    report = result.to_json()
-    if args.classic:
-        classic = classic_estimates(recordings, result)
-        print(format_classic(classic))
-        report["classic"] = [{"recording": n, **c.to_json()} for n, c in classic]
+    report = None
+    if result is not None:
+        print(format_result(result))
+        report = result.to_json()
+        if args.classic:
+            classic = classic_estimates(recordings, result)
+            print(format_classic(classic))
+            report["classic"] = [{"recording": n, **c.to_json()} for n, c in classic]
+    cross = None
     if args.cross:
-        cross = cross_table(recordings, params, progress=not args.quiet)
+        cross = fitrun.cross_table(
+            recordings, params, progress=progress, processes=share, failure=failure
+        )
+    elif share is not None:
+        fitrun.share(share, {}, failure)
+    if share is not None and not share.finish():
+        what = "results sent to process 0" if args.cross else "process 0 fits and reports"
+        print(f"process {me} of {share.count}: done, {what}")
+        return 0
+    if cross is not None:
         print(format_cross(cross))
+        if share is not None:
+            print(f"  (each recording fitted by one of {share.count} processes)")
         report["cross_prediction"] = cross
     if args.json_out and str(args.json_out).lower().endswith(".mat"):
         from jaxcart.matfile import write_mat_report
@@ -114,6 +159,15 @@ def run(args) -> int:
         F.plot_fit(result, args.plot)
         print(f"plot: {args.plot}")
     return 0
+
+
+def _initial(plant_file) -> dict:
+    """Start (and fixed) values of --plant, {name: value} [SI]; {} without it."""
+    if not plant_file:
+        return {}
+    from jaxcart.plantspec import load_plant, plant_values
+
+    return plant_values(load_plant(plant_file))
 
 
 #: Samples beyond which a fit is said to be long before it starts (each of its ~100
@@ -243,29 +297,11 @@ def format_classic(classic) -> str:
 
 
 def cross_table(recordings, params, *, progress=False) -> list:
-    """Fit each recording alone; predict every other one with those values (its start state
-    refitted). [{"fitted_on", "predicting", "rms", "rms_smooth", "values", "held"}] with RMS
-    [m]; "held" names the parameters that recording could not identify (kept at their start)."""
-    from tuning import fit as F
+    """The single-process table of :func:`tuning.fitrun.cross_table` (kept here for callers
+    of this module; the command calls the library directly)."""
+    from tuning.fitrun import cross_table as table
 
-    rows = []
-    for rec in recordings:
-        alone = F.fit([rec], params, progress=progress)
-        values = {n: alone.values[F.canonical(n)] for n in params}
-        held = [n for n, e in alone.params.items() if not e.identifiable]
-        for other in recordings:
-            pred = alone if other is rec else F.cross_predict(values, [other], progress=progress)
-            rows.append(
-                {
-                    "fitted_on": F._name(rec),
-                    "predicting": F._name(other),
-                    "rms": F._finite(pred.rms_after_exact),
-                    "rms_smooth": F._finite(pred.rms_after),
-                    "values": values,
-                    "held": held,
-                }
-            )
-    return rows
+    return table(recordings, params, progress=progress)
 
 
 def format_cross(rows) -> str:

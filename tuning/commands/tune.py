@@ -221,7 +221,7 @@ def register(subparsers) -> None:
 
 
 def add_cluster_options(parser) -> None:
-    """--coordinator, --num-processes, --process-id (tune, diagnose, grid): a jax.distributed
+    """--coordinator, --num-processes, --process-id (tune, diagnose, grid, fit): a jax.distributed
     run. ``parser``: a parser (the options get a group of their own) or an argument group."""
     group = (
         parser.add_argument_group("distributed runs (jax.distributed)")

@@ -1,0 +1,129 @@
+"""jaxcart fit --cross across processes (jax.distributed): two processes on localhost on the
+CPU give the single-process report (tuning/fitrun.py).
+
+Each process fits one of the two built-in recordings alone and predicts the other with it; the
+test process computes the single-process table meanwhile. Each process holds two CPU devices, as
+this test process does (conftest), and a fit of one recording is the same computation in
+both, so the numbers agree bit for bit (measured); they are compared to 1e-12 relative, which
+leaves room for nothing but last-bit noise: a wrong split, order or exchange moves an RMS by
+percent. The commands run without x64 at the start, this process with it: the recordings'
+signals are read in float64 all the same (Recording.signal), or the closed loop's RMS would
+move by 1e-7 relative.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cluster import spawn
+
+import jaxcart as jc
+from jaxcart.errors import UserError
+from tuning import fitrun
+from tuning.tunerun import Exchange
+
+DATA = Path(jc.__file__).parent / "data"
+RECORDINGS = [str(DATA / "tap.toml"), str(DATA / "p50.toml")]
+#: One parameter keeps each of the six fits at about a second.
+ARGV = ["fit", *RECORDINGS, "--cross", "--params", "B_eq", "--quiet", "--json", "r.json"]
+
+
+def _spawn(tmp_path, argv, n=2):
+    return spawn(tmp_path, argv, n)
+
+
+def test_fit_cross_two_processes_equal_one(tmp_path):
+    from jaxcart.files import read_experiment
+
+    procs = _spawn(tmp_path, ARGV)
+    # Meanwhile, in this process, the rows process 1 computed and sent (p50.toml fitted
+    # alone): those of process 0 are the same function on the same data, and the test's
+    # budget has no room for them (the compilation dominates, repeated in every process).
+    recordings = [read_experiment(p) for p in RECORDINGS]
+    want = fitrun.cross_rows(recordings[1], recordings, ("B_eq",))
+    outs = [p.communicate(timeout=240) for p in procs]
+    for p, (_out, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err[-2000:]
+    assert outs[1][0].strip() == "process 1 of 2: done, results sent to process 0"
+    assert not list((tmp_path / "p1").iterdir())  # only process 0 writes outputs
+    assert "each recording fitted by one of 2 processes" in outs[0][0]
+    doc = json.loads((tmp_path / "p0" / "r.json").read_text())
+    assert doc["params"]["B_eq"]["value"] > 0  # process 0 ran the joint fit and wrote it
+    got = doc["cross_prediction"]
+    # Every row, in the single-process order: grouped by the recording fitted.
+    assert [(r["fitted_on"], r["predicting"]) for r in got] == [
+        ("tap.toml", "tap.toml"),
+        ("tap.toml", "p50.toml"),
+        ("p50.toml", "tap.toml"),
+        ("p50.toml", "p50.toml"),
+    ]
+    for g, w in zip(got[2:], want, strict=True):
+        what = f"{g['fitted_on']} -> {g['predicting']}"
+        assert (g["fitted_on"], g["predicting"], g["held"]) == (
+            w["fitted_on"],
+            w["predicting"],
+            w["held"],
+        )
+        np.testing.assert_allclose(g["values"]["B_eq"], w["values"]["B_eq"], rtol=1e-12)
+        np.testing.assert_allclose(g["rms"], w["rms"], rtol=1e-12, err_msg=what)
+        np.testing.assert_allclose(g["rms_smooth"], w["rms_smooth"], rtol=1e-12, err_msg=what)
+    # The two recordings disagree (a tap and a closed loop, f_c left out): each
+    # cross-prediction is worse than the own fit, so the rows are not copies of one another.
+    own = {r["fitted_on"]: r["rms"] for r in got if r["fitted_on"] == r["predicting"]}
+    for r in got:
+        if r["fitted_on"] != r["predicting"]:
+            assert r["rms"] > own[r["predicting"]]
+
+
+class _Peers:
+    """An :class:`Exchange` of several processes simulated in one: each allgather returns
+    the payloads the other 'processes' published for the same call (no runtime needed)."""
+
+    def __init__(self, payloads_by_call, index, count):
+        self.index, self.count = index, count
+        self.payloads = payloads_by_call
+        self.calls = 0
+
+    items = Exchange.items
+
+    def allgather(self, arrays):
+        parts = self.payloads[self.calls]
+        self.calls += 1
+        return [arrays if p == self.index else parts[p] for p in range(self.count)]
+
+
+def _payload(doc, error=None):
+    data = json.dumps({"doc": doc, "error": error}).encode()
+    return {"json": np.frombuffer(data, dtype=np.uint8)}
+
+
+def test_a_failure_anywhere_is_raised_on_every_process():
+    # Process 1 could not fit its recording: process 0 raises its error too instead of
+    # writing a table with a hole.
+    peers = _Peers([[None, _payload({}, [1, "p50.toml: cannot fit"])]], 0, 2)
+    with pytest.raises(UserError, match="p50.toml: cannot fit"):
+        fitrun.share(peers, {"0": []})
+    # Process 0's joint fit failed: it computes no rows (these recordings could not be
+    # fitted), and its error, from before the table, wins over a row's.
+    peers = _Peers([[None, _payload({}, [1, "row 1"])]], 0, 2)
+    with pytest.raises(UserError, match="joint fit failed"):
+        fitrun.cross_table(
+            [None, None], ("B_eq",), processes=peers, failure=UserError("joint fit failed")
+        )
+    peers = _Peers([[None, _payload({"1": [2]})]], 0, 2)
+    assert fitrun.share(peers, {"0": [1]}) == {"0": [1], "1": [2]}
+
+
+def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):
+    from tuning.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    cluster = ["--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "0"]
+    # Process 0's outputs are checked before it joins (nobody listens on port 1: a join
+    # would fail with another message, after the runtime's timeout).
+    (tmp_path / "r.json").write_text("{}")
+    assert main([*ARGV, *cluster]) == 2
+    assert "r.json exists" in capsys.readouterr().err
+    assert main(["fit", RECORDINGS[0], "--cross", *cluster]) == 2
+    assert "--cross needs at least two recordings" in capsys.readouterr().err

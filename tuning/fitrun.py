@@ -1,0 +1,97 @@
+"""How ``jaxcart fit --cross`` runs across processes (jax.distributed): each process fits its
+share of the recordings alone and cross-predicts the others with them; the rows are gathered on
+every process (:class:`tuning.tunerun.Exchange`), which then holds the single-process table.
+
+The unit of work is one recording: fitting it alone and predicting every other recording with
+its values (``len(recordings)`` fits, independent of every other unit). Process ``i`` of ``n``
+computes the units :meth:`~tuning.tunerun.Exchange.items` gives it (every ``n``-th from ``i``);
+the rows (names and a few numbers, under 1 kB each) travel as JSON bytes in one all-gather and
+are put back in the single-process order. JSON writes a float's shortest repr, which reads back
+as the same float, so the gathered numbers are those the other process computed, bit for bit.
+
+The joint fit of all recordings (``jaxcart fit`` without ``--cross``) is one problem; process 0
+alone computes it while the others fit their rows. A :class:`~jaxcart.errors.UserError` one
+process meets (a recording it cannot fit, process 0's joint fit or output check) travels in the
+same all-gather and is raised on every process, so none waits for a partner that has stopped.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from jaxcart.errors import UserError
+
+
+def cross_rows(rec, recordings, params, *, progress=False) -> list:
+    """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
+    state refitted). One row per recording, in their order (see :func:`cross_table`)."""
+    from tuning import fit as F
+
+    alone = F.fit([rec], params, progress=progress)
+    values = {n: float(alone.values[F.canonical(n)]) for n in params}
+    held = [n for n, e in alone.params.items() if not e.identifiable]
+    rows = []
+    for other in recordings:
+        pred = alone if other is rec else F.cross_predict(values, [other], progress=progress)
+        rows.append(
+            {
+                "fitted_on": F._name(rec),
+                "predicting": F._name(other),
+                "rms": F._finite(pred.rms_after_exact),
+                "rms_smooth": F._finite(pred.rms_after),
+                "values": values,
+                "held": held,
+            }
+        )
+    return rows
+
+
+def cross_table(recordings, params, *, progress=False, processes=None, failure=None) -> list:
+    """Fit each recording alone; predict every other one with those values (its start state
+    refitted). [{"fitted_on", "predicting", "rms", "rms_smooth", "values", "held"}] with RMS
+    [m], grouped by the recording fitted, in the recordings' order; "held" names the
+    parameters that recording could not identify (kept at their start).
+
+    processes: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: this process
+    fits its share of the recordings and every process returns the whole table. failure: a
+    :class:`UserError` this process met before (process 0's joint fit): it computes nothing
+    more and the error is raised on every process after the exchange."""
+    recordings = list(recordings)
+
+    def group(i):
+        return cross_rows(recordings[i], recordings, params, progress=progress)
+
+    if processes is None:
+        if failure is not None:
+            raise failure
+        return [row for i in range(len(recordings)) for row in group(i)]
+    mine: dict = {}
+    rank = -1  # a failure before the table: first, as the joint fit runs first in one process
+    if failure is None:
+        try:
+            for rank in processes.items(len(recordings)):
+                mine[str(rank)] = group(rank)
+        except UserError as exc:
+            failure = exc
+    groups = share(processes, mine, failure, rank=rank)
+    return [row for i in range(len(recordings)) for row in groups[str(i)]]
+
+
+def share(processes, doc: dict, failure=None, *, rank: int = -1) -> dict:
+    """Every process's ``doc`` (JSON-able, keys distinct over the processes), merged. Where a
+    process passes a ``failure`` (a :class:`UserError`), every process raises instead the one
+    of least ``rank`` (the work item it came from: the error a single process meets first)."""
+    error = None if failure is None else [rank, str(failure)]
+    data = np.frombuffer(json.dumps({"doc": doc, "error": error}).encode(), dtype=np.uint8)
+    merged: dict = {}
+    errors = []
+    for part in processes.allgather({"json": data}):
+        got = json.loads(part["json"].tobytes().decode())
+        merged.update(got["doc"])
+        if got["error"] is not None:
+            errors.append(tuple(got["error"]))
+    if errors:
+        raise UserError(min(errors)[1])
+    return merged
