@@ -23,14 +23,29 @@ from jaxcart import parallel
 from jaxcart.metrics import StepInfo, step_metrics
 from jaxcart.smooth import EXACT_FORMS
 
-#: Runs per chunk: 4096 lanes x ~10 state values fit in L2; measured best on 2 cores.
+#: Runs per chunk: 4096 lanes x ~10 state values fit in L2; measured best on 2 cores (W1 per
+#: CPU-second: chunks of 1024, 2048 or 8192 ran 0.95-0.99x as fast, the metrics the same).
 DEFAULT_CHUNK = 4096
 #: Chunks per device in one host-side block: bounds the device working set of a large batch.
 CHUNKS_PER_CALL = 64
-#: XLA options of the batch program by backend. On a CPU, 512-bit vectors where the CPU has
-#: them (XLA prefers 256; a CPU without AVX-512 is unaffected): W1 1.2-1.4x per CPU-second
-#: on a 2-core AVX-512 machine (AMD EPYC), the metrics bit for bit the same (measured).
-COMPILER_OPTIONS = {"cpu": {"xla_cpu_prefer_vector_width": 512}}
+#: XLA options of the batch program by backend (given per program: the tuner's own programs
+#: do not get them). On a CPU, 512-bit vectors where the CPU has them (XLA prefers 256; a CPU
+#: without AVX-512 is unaffected): W1 1.2-1.4x per CPU-second. And copy insertion by region
+#: analysis: the loop's carried values are no longer copied every iteration (6 copies per
+#: iteration of W1, 11 of the bench's gradient loop, none left), W1 1.10-1.15x per CPU-second
+#: (paired medians of 5-7 runs; the gradient row 1.15x). Both measured on a shared 2-core
+#: AVX-512 machine (AMD EPYC), metrics bit for bit the same (float32 and float64; W1, a
+#: plant with friction, a plant set). Tried and not kept: xla_cpu_enable_fast_min_max (max
+#: would stop propagating NaN, which marks a diverged run; ~1.1x, unpaired); the
+#: concurrency-optimized or another scheduler, tiling propagation, backend optimization
+#: level (0.9-1.05x). xla_cpu_use_multi_output_fusion is no per-program option in this XLA
+#: (only XLA_FLAGS' xla_backend_extra_options: there 1.12x float32 but 0.85x float64).
+COMPILER_OPTIONS = {
+    "cpu": {
+        "xla_cpu_prefer_vector_width": 512,
+        "xla_cpu_copy_insertion_use_region_analysis": True,
+    }
+}
 
 _FNS: dict = {}
 

@@ -63,6 +63,18 @@ def test_schema(result):
         assert c_row["threads"] == 1 and c_row["scalar_loop"]["sims_per_cpu_s"] > 0
         assert "c-kernel" in bench.format_table(result)
     assert result["grad_sims_per_s"] > 0 and result["grid_sims_per_s"] > 0
+    grad = result["grad"]
+    assert result["grad_ratio"] == {
+        "sims_per_s": pytest.approx(grad["sims_per_s"] / jax32["sims_per_s"]),
+        "sims_per_cpu_s": pytest.approx(grad["sims_per_cpu_s"] / jax32["sims_per_cpu_s"]),
+    }
+    assert len(grad["seconds"]) == len(grad["cpu_seconds"]) == 1  # repeats=1
+    targets = result["targets"]
+    assert targets["grad >= 1/4 of jaxcart sims/s"] == (result["grad_ratio"]["sims_per_s"] >= 0.25)
+    for name, row in (("jaxcart", jax32), ("jaxcart-float64", jax64)):
+        ok = targets[f"{name} >= 50 % of c-kernel per CPU-second"]
+        assert ok is None if "skipped" in c_row else ok == (row["ceiling_ratio"] >= 0.5)
+    assert "of jaxcart's sims/s" in bench.format_table(result)
     assert result["compile_s"] >= 0
     assert result["devices"] == len(parallel.devices())
     assert result["device_kind"] == parallel.devices()[0].device_kind
@@ -167,6 +179,34 @@ def test_gradient_matches_finite_differences():
             step = jnp.zeros(3).at[j].set(h)
             fd = (f(gains[i] + step) - f(gains[i] - step)) / (2 * h)
             assert float(grad[i, j]) == pytest.approx(float(fd), rel=1e-5, abs=1e-9)
+
+
+def test_batch_compiler_options_change_no_metric():
+    """The batch program's XLA options (jaxcart.batch.COMPILER_OPTIONS, which the forward and
+    gradient rows are timed with) leave every metric bit for bit as a plain jit computes it,
+    float32 and float64: W1 (its 6 V limit clipping) and a diverging loop (kp < 0, no limit)."""
+    from jaxcart.batch import COMPILER_OPTIONS, _metrics_fn, step_metrics_batch
+
+    assert jax.default_backend() != "cpu" or COMPILER_OPTIONS["cpu"]
+    unlimited = jaxcart.PID(tau=bench.TAU, sample_time=bench.SAMPLE_TIME)
+    for dtype in (jnp.float32, jnp.float64):
+        with jax.enable_x64(dtype == jnp.float64):
+            plant, w1, experiment = bench.w1_problem(HORIZON)
+            for controller, gains in (
+                (w1, bench.w1_gains(16)),
+                (unlimited, np.array([[-4000.0, 0.0, 0.0], [40.0, 5.0, 0.0]])),
+            ):
+                tuned = step_metrics_batch(plant, controller, experiment, gains, dtype=dtype)
+                fn = _metrics_fn(plant, controller, experiment, jaxcart.EXACT_FORMS, None, False)
+                plain = jax.jit(jax.vmap(fn, in_axes=(0, None, None, None)))(
+                    jnp.asarray(gains, dtype), plant, controller, experiment
+                )
+                for name, a, b in zip(tuned._fields, tuned, plain, strict=True):
+                    np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=name)
+                if controller is w1:
+                    assert (tuned.saturation_time > 0).any()  # the clip is exercised
+                else:
+                    assert tuned.diverged.tolist() == [True, False]
 
 
 def test_command_line(result, monkeypatch, tmp_path, capsys):
