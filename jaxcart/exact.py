@@ -165,9 +165,53 @@ class _GeneralCart:
         self.dry, self.others = dry, others
         statics = [e.static() for e in dry if e.static() is not None]
         self.static = max(statics) if statics else None
+        # Friction that does not vary along the track is one number: computed once.
+        self.varying = any(e.position_dependent for e in dry)
+        self.kinetic_force = None if self.varying else self._kinetic(0.0)
 
     def _kinetic(self, y):
         return sum(float(e.kinetic(y, math)) for e in self.dry) if self.dry else 0.0
+
+    def _stepper(self, v, s):
+        """``rk4(y, yd, h)``: :meth:`_rk4` under the held voltage ``v`` [V] and friction
+        direction ``s``, the same arithmetic in the same order (bit for bit), with what is
+        constant over the phase computed once: this is the simulator's inner loop."""
+        if self.varying:
+            return lambda y, yd, h: self._rk4(y, yd, v, s, h)
+        m, c, drive = self.m, self.c, self.drive
+        gv, sk = self.gamma * v, s * self.kinetic_force
+        forces = tuple(e.exact_force for e in self.others)
+
+        if len(forces) == 1:
+            (force,) = forces
+
+            def accel(y, yd):
+                return (gv - c * yd - sk + force(y, yd, v, drive)) / m
+
+        else:
+
+            def accel(y, yd):
+                f = gv - c * yd - sk
+                for force in forces:
+                    f += force(y, yd, v, drive)
+                return f / m
+
+        def rk4(y, yd, h):
+            half = 0.5 * h
+            a1 = accel(y, yd)
+            v2 = yd + half * a1
+            a2 = accel(y + half * yd, v2)
+            v3 = yd + half * a2
+            a3 = accel(y + half * v2, v3)
+            v4 = yd + h * a3
+            a4 = accel(y + h * v3, v4)
+            sixth = h / 6
+            return (
+                y + sixth * (yd + 2 * v2 + 2 * v3 + v4),
+                yd + sixth * (a1 + 2 * a2 + 2 * a3 + a4),
+            )
+
+        return rk4
 
     def _accel(self, y, yd, v, s):
         f = self.gamma * v - self.c * yd - s * self._kinetic(y)
@@ -208,18 +252,19 @@ class _GeneralCart:
                 s = 1.0 if yd > 0.0 else -1.0
             n = max(1, math.ceil(left / self.h * self.SUBSTEPS - 1e-9))
             hs = left / n
+            rk4 = self._stepper(v, s)
             for i in range(n):
-                y1, yd1 = self._rk4(y, yd, v, s, hs)
+                y1, yd1 = rk4(y, yd, hs)
                 if friction and yd1 * s <= 0.0:
                     # Velocity reached 0 inside this sub-step: find when, stop there.
                     lo, hi = 0.0, hs
                     for _ in range(60):
                         mid = 0.5 * (lo + hi)
-                        if self._rk4(y, yd, v, s, mid)[1] * s > 0.0:
+                        if rk4(y, yd, mid)[1] * s > 0.0:
                             lo = mid
                         else:
                             hi = mid
-                    y = self._rk4(y, yd, v, s, hi)[0]
+                    y = rk4(y, yd, hi)[0]
                     yd = 0.0
                     left -= i * hs + hi
                     break
