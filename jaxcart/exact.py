@@ -180,20 +180,20 @@ class _GeneralCart:
             return lambda y, yd, h: self._rk4(y, yd, v, s, h)
         m, c, drive = self.m, self.c, self.drive
         gv, sk = self.gamma * v, s * self.kinetic_force
-        forces = tuple(e.exact_force for e in self.others)
+        forces = tuple(e.exact_force_for(drive) for e in self.others)
 
         if len(forces) == 1:
             (force,) = forces
 
             def accel(y, yd):
-                return (gv - c * yd - sk + force(y, yd, v, drive)) / m
+                return (gv - c * yd - sk + force(y, yd, v)) / m
 
         else:
 
             def accel(y, yd):
                 f = gv - c * yd - sk
                 for force in forces:
-                    f += force(y, yd, v, drive)
+                    f += force(y, yd, v)
                 return f / m
 
         def rk4(y, yd, h):

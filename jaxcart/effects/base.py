@@ -17,10 +17,12 @@ the sampled loop (docs/design.md, "Effects"):
   the track) is one family: each member gives ``kinetic(y)`` [N] and/or ``static()`` [N], the
   simulators combine them in one Karnopp law (exact) or one smoothed law (smooth). Any other
   force gives ``smooth_force(y, yd, v, smoothing, plant)`` (JAX) and ``exact_force(y, yd, v,
-  plant)`` (floats), continuous in y and yd. A force effect that splits the moving body in two
-  (``transmission = True``: backlash between pinion and rack) has state and owns the motion
-  between samples: the smooth loop carries its state and steps a two-body sub-step, the exact
-  simulator a two-body event integrator (see :mod:`jaxcart.effects.backlash`).
+  plant)`` (floats), continuous in y and yd (and may give ``exact_force_for(drive)``, the same
+  force as a closure with its constants bound, for the exact simulator's inner loop). A
+  force effect that splits the moving body in two (``transmission = True``: backlash between
+  pinion and rack) has state and owns the motion between samples: the smooth loop carries its
+  state and steps a two-body sub-step, the exact simulator a two-body event integrator (see
+  :mod:`jaxcart.effects.backlash`).
 - ``stage = "sensor"``: maps the cart's position to what the controller reads:
   ``smooth_measure(state, y, smoothing) -> (y_meas, state)`` and ``exact_measure(state, y) ->
   (y_meas, state)``.
@@ -143,6 +145,14 @@ class Effect:
     def static(self):
         """Static (breakaway) level [N], or None if the effect has none."""
         return None
+
+    # Other forces (stage "force", with exact_force).
+    def exact_force_for(self, drive):
+        """``f(y, yd, v)`` [N]: :meth:`exact_force` with the drive bound. The exact
+        simulator's RK4 calls it 80 times a sample; an effect may return a closure with its
+        constants computed once, the same arithmetic (bit for bit)."""
+        force = self.exact_force
+        return lambda y, yd, v: force(y, yd, v, drive)
 
 
 #: Registered effect classes by name, in registration order.

@@ -46,3 +46,13 @@ class CurrentLimit(Effect):
         u = v - plant.B_emf / gamma * yd
         limit = self.i_max * plant.Rm
         return gamma * (min(max(u, -limit), limit) - u)
+
+    def exact_force_for(self, drive):
+        gamma = drive.gamma
+        k_b, limit = drive.B_emf / gamma, self.i_max * drive.Rm
+
+        def force(y, yd, v):
+            u = v - k_b * yd
+            return gamma * (min(max(u, -limit), limit) - u)
+
+        return force

@@ -35,3 +35,7 @@ class Spring(Effect):
 
     def exact_force(self, y, yd, v, plant):
         return -self.k_s * (y - self.y_rest)
+
+    def exact_force_for(self, drive):
+        k_s, y_rest = self.k_s, self.y_rest
+        return lambda y, yd, v: -k_s * (y - y_rest)
