@@ -73,6 +73,24 @@ def test_closed_loop_fit_finds_the_truth(cl_fit):
     assert -1e-12 <= y0 <= Q + 1e-12
 
 
+def test_stuck_cart_step_fits_from_the_default_start():
+    """The built-in P 50 step (exact simulator, encoder; the cart ends stuck 0.25 V short):
+    from the default start (B_eq = 5.4 kg/s, f_c = 0.3 N) the wide-width continuation lets
+    the cart creep and B_eq take up the friction (it ended at 1.5 mm RMS, f_c not
+    identifiable); the direct start at the narrowest width finds the truth, to the encoder's
+    own error."""
+    from pathlib import Path
+
+    from jaxcart.files import read_experiment
+    from tuning.lab.data import TRUE
+
+    rec = read_experiment(Path(jc.__file__).parent / "data" / "p50.toml")
+    result = F.fit([rec], ("B_eq", "f_c"), progress=False)
+    assert result.params["B_eq"].value == pytest.approx(TRUE["B_eq"], rel=0.005)
+    assert result.params["f_c"].value == pytest.approx(TRUE["f_c"], rel=0.005)
+    assert result.rms_after_exact < 1.2 * TRUE["quantization"] / math.sqrt(12)
+
+
 def test_joint_fit_of_tap_and_closed_loop(tap_rec):
     truth = jc.handout_plant(**TAP_TRUTH)
     cl = make_recording(truth, P50, jc.step(0.4, horizon=1.5), seed=2)
