@@ -33,6 +33,9 @@ import numpy as np
 
 #: Bump when the file layout changes.
 FORMAT = 1
+#: Programs kept in the folder: the oldest beyond this are removed when one is written (each
+#: edit of the source files a new set; a set is a few programs of 10-100 kB).
+MAX_PROGRAMS = 256
 
 _SOURCE_HASH: str | None = None
 
@@ -221,6 +224,7 @@ class Program:
                 tmp = f.name
                 f.write(data)
             os.replace(tmp, path)
+            prune(folder)
         except Exception:  # not kept: this process still runs the exported program
             if tmp is not None:
                 with contextlib.suppress(OSError):
@@ -228,6 +232,24 @@ class Program:
         # Run the exported program here too, so the compilation cache holds the very program
         # the next process will compile.
         return jax.jit(exported.call), holder["tree"], "export"
+
+
+def prune(folder: Path, keep: int | None = None) -> int:
+    """Remove all but the ``keep`` (default :data:`MAX_PROGRAMS`) most recently written
+    programs of ``folder``; returns how many were removed. A process that was about to read
+    a removed one exports it again."""
+    keep = MAX_PROGRAMS if keep is None else keep
+    files = []
+    for p in folder.glob("*.bin"):
+        with contextlib.suppress(OSError):
+            files.append((p.stat().st_mtime, p))
+    files.sort(reverse=True)
+    removed = 0
+    for _, p in files[keep:]:
+        with contextlib.suppress(OSError):
+            p.unlink()
+            removed += 1
+    return removed
 
 
 def jit(fn: Callable, name: str, static: Hashable = ()) -> Program:

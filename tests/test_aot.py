@@ -138,3 +138,21 @@ def test_inside_a_transformation_it_nests_like_jit(programs):
     out = jax.vmap(prog)(jnp.arange(3.0))
     np.testing.assert_allclose(np.asarray(out), 2.0 * np.sin(np.arange(3.0)), rtol=1e-15)
     assert prog.sources == []
+
+
+def test_the_folder_keeps_the_newest_programs(tmp_path):
+    """Every edit of the source files new programs: the oldest beyond the cap are removed."""
+    for i in range(6):
+        f = tmp_path / f"p{i}.bin"
+        f.write_bytes(b"x")
+        os.utime(f, (1000.0 + i, 1000.0 + i))
+    (tmp_path / "other.txt").write_text("not a program")
+    assert aot.prune(tmp_path, keep=4) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "other.txt",
+        "p2.bin",
+        "p3.bin",
+        "p4.bin",
+        "p5.bin",
+    ]
+    assert aot.prune(tmp_path, keep=4) == 0
