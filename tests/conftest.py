@@ -1,10 +1,19 @@
 """Strict JAX for every test: float64, rank promotion raises, two CPU devices for the sharded
 path; figures are closed after each test."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 # Two CPU devices so the sharded batch path runs in CI (set before jax starts).
 os.environ.setdefault("MPLBACKEND", "Agg")
+# Commands run in-process turn jaxcart's caches on: give each test process a cache folder of
+# its own, so that two test processes (pytest -n 2) never write one file at once and the
+# user's own cache is left alone.
+_CACHE = tempfile.mkdtemp(prefix="jaxcart-test-cache-")
+os.environ["XDG_CACHE_HOME"] = _CACHE
+atexit.register(shutil.rmtree, _CACHE, True)
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -193,3 +193,19 @@ def test_plant_pytree_carries_effect_values_as_leaves():
     leaves = jax.tree_util.tree_leaves(plant)
     assert 0.3 in leaves and 0.002 in leaves
     assert dataclasses.replace(plant).structure == ("delay", "coulomb")
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if hasattr(REGISTRY[n], "exact_force")])
+def test_bound_exact_force_is_exact_force(name):
+    """exact_force_for(drive) (the exact RK4's inner loop) is exact_force, bit for bit, over
+    positions, velocities and voltages that reach every branch (a limit, a sign change)."""
+    from jaxcart.exact import _as_floats, _Drive
+
+    plant = jc.handout_plant(**CASES[name][0])
+    effect = _as_floats(plant.effect(name))
+    drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
+    bound = effect.exact_force_for(drive)
+    for y in (-0.3, 0.0, 0.17):
+        for yd in (-2.0, -1e-3, 0.0, 0.4, 3.0):
+            for v in (-9.0, -0.5, 0.0, 2.5, 12.0):
+                assert bound(y, yd, v) == effect.exact_force(y, yd, v, drive), (y, yd, v)

@@ -89,6 +89,9 @@ def test_stuck_cart_step_fits_from_the_default_start():
     assert result.params["B_eq"].value == pytest.approx(TRUE["B_eq"], rel=0.005)
     assert result.params["f_c"].value == pytest.approx(TRUE["f_c"], rel=0.005)
     assert result.rms_after_exact < 1.2 * TRUE["quantization"] / math.sqrt(12)
+    # The continuation's run, stopped at its cap, was discarded: it judges nothing.
+    assert any(s.get("superseded") for s in result.stages)
+    assert result.converged and not result.warnings, result.warnings
 
 
 def test_joint_fit_of_tap_and_closed_loop(tap_rec):

@@ -270,10 +270,13 @@ class FitResult:
     canonical name (fitted, or held) [SI]; segments: a :class:`SegmentFit` per recording;
     correlation: {(a, b): correlation} of the identified parameters; n_data: samples fitted;
     seconds: wall time [s]; smoothing: the narrowest smoothing used; history: (width [m/s],
-    Levenberg-Marquardt iterations, RMS [m]) per width; exact_polish: True when the last polish
+    Levenberg-Marquardt iterations, RMS [m]) per width (at the narrowest, of the run kept:
+    the continuation's or the direct start's); exact_polish: True when the last polish
     ran on the exact simulator; stages: each optimizer run ({"stage", "iterations", "cap",
-    "converged"}); noise_floor: the RMS error [m] a correct model would leave (encoder count
-    q/sqrt(12) and white noise); n_effective: independent samples the final residual is worth
+    "converged"}, and "superseded": True for the continuation's runs where the direct start
+    at the narrowest width was kept instead: they do not count for ``converged``);
+    noise_floor: the RMS error [m] a correct model would leave (encoder count q/sqrt(12) and
+    white noise); n_effective: independent samples the final residual is worth
     (:func:`effective_samples`); misfit: why the model does not explain the data ("" when it
     does: RMS within :data:`MISFIT_RATIO` of the noise floor), in which case the standard errors
     are widened to what the residual supports.
@@ -296,7 +299,7 @@ class FitResult:
     @property
     def converged(self) -> bool:
         """False when an optimizer stopped at its iteration cap (the fit may be unfinished)."""
-        return all(s["converged"] for s in self.stages)
+        return all(s["converged"] for s in self.stages if not s.get("superseded"))
 
     @property
     def warnings(self) -> list[str]:
@@ -308,7 +311,7 @@ class FitResult:
             at = f" at {e.held_at:.4g} {UNITS.get(n, '')}".rstrip() if e.held_at is not None else ""
             out.append(f"{n} held{at} ({e.note}); the other errors are conditional on that value")
         for s in self.stages:
-            if not s["converged"]:
+            if not s["converged"] and not s.get("superseded"):
                 out.append(
                     f"{s['stage']} stopped at its iteration cap ({s['cap']}) before converging; "
                     "the values may not be the best fit"
@@ -1308,6 +1311,7 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
             {"stage": name, "iterations": iterations, "cap": cap, "converged": bool(converged)}
         )
 
+    first_stage = len(stages)
     for k, width in enumerate(widths):
         # Gradient descent where the model is smoothest, to leave a poor start; from there
         # Levenberg-Marquardt converges in a few iterations at each narrower width.
@@ -1338,9 +1342,13 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         cap = min(settings.lm_iterations, DIRECT_ITERATIONS)
         direct = _lm(problem, problem.theta0.copy(), active, narrow, cap, LM_TOLERANCE)
         # Lower by more than 1 %: where both find the same minimum, the continuation's stays.
-        if math.isfinite(_rms(direct[1])) and _rms(direct[1]) < 0.99 * _rms(r):
+        d, c = _rms(direct[1]), _rms(r)
+        if math.isfinite(d) and (not math.isfinite(c) or d < 0.99 * c):
             theta, r, jac, n_it, ok = direct
-            history.append((narrow, n_it, _rms(r)))
+            # The continuation's result is discarded: its stages no longer judge the fit.
+            for entry in stages[first_stage:]:
+                entry["superseded"] = True
+            history[-1] = (narrow, n_it, _rms(r))
             stage(f"Levenberg-Marquardt at width {narrow:g} m/s from the start", n_it, cap, ok)
             say(
                 f"width {narrow:g} m/s from the start: Levenberg-Marquardt {n_it} iterations"

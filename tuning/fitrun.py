@@ -75,6 +75,8 @@ def cross_table(recordings, params, *, progress=False, processes=None, failure=N
                 mine[str(rank)] = group(rank)
         except UserError as exc:
             failure = exc
+        except Exception as exc:  # any other failure: the others must not wait for this one
+            failure = UserError(f"{type(exc).__name__} while fitting: {exc}")
     groups = share(processes, mine, failure, rank=rank)
     return [row for i in range(len(recordings)) for row in groups[str(i)]]
 

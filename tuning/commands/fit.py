@@ -113,10 +113,15 @@ def run(args) -> int:
             # The joint fit is one problem: process 0 alone computes it (the others fit their
             # rows of --cross meanwhile) and reports it.
             result = F.fit(recordings, params, initial=initial, progress=progress)
-    except UserError as exc:
+    except Exception as exc:
         if share is None:
             raise
-        failure = exc  # raised on every process after the exchange: none waits for this one
+        # Raised on every process after the exchange: none waits for this one.
+        failure = (
+            exc
+            if isinstance(exc, UserError)
+            else UserError(f"{type(exc).__name__} while fitting: {exc}")
+        )
 
     report = None
     if result is not None:
