@@ -301,14 +301,6 @@ def format_classic(classic) -> str:
     return "\n".join(lines)
 
 
-def cross_table(recordings, params, *, progress=False) -> list:
-    """The single-process table of :func:`tuning.fitrun.cross_table` (kept here for callers
-    of this module; the command calls the library directly)."""
-    from tuning.fitrun import cross_table as table
-
-    return table(recordings, params, progress=progress)
-
-
 def format_cross(rows) -> str:
     lines = ["cross-prediction (exact simulator RMS [mm]; the start state of a tap refitted):"]
     for r in rows:
