@@ -121,3 +121,28 @@ def test_every_registered_effect_is_a_candidate_or_says_why_not():
         assert (name in EFFECT_PARAMS) != (name in NOT_CANDIDATES), name
     for name, params in EFFECT_PARAMS.items():
         assert set(params) >= set(REGISTRY[name].param_names()), name
+
+
+def test_exact_memo_reuses_runs_read_only_and_keeps_the_newest():
+    """The diagnosis's memo of exact runs: the same structure and values give the stored run
+    (not a new one), read-only; another value or structure is a new run; the oldest goes."""
+    from types import SimpleNamespace
+
+    from tuning.diagnose.core import ExactMemo
+
+    memo, runs = ExactMemo(size=2), []
+
+    def compute():
+        runs.append(1)
+        return [np.zeros(3)], [None]
+
+    a = SimpleNamespace(parts=("coulomb",), corrections=())
+    b = SimpleNamespace(parts=("spring",), corrections=())
+    first = memo.get(a, {"B_eq": 4.6, "f_c": 0.45}, compute)
+    assert memo.get(a, {"f_c": 0.45, "B_eq": 4.6}, compute) is first and len(runs) == 1
+    assert not first[0][0].flags.writeable
+    memo.get(a, {"B_eq": 4.6, "f_c": 0.4500000001}, compute)
+    memo.get(b, {"B_eq": 4.6, "f_c": 0.45}, compute)
+    assert len(runs) == 3 and memo.hits == 1
+    memo.get(a, {"B_eq": 4.6, "f_c": 0.45}, compute)  # evicted: run again
+    assert len(runs) == 4
