@@ -29,14 +29,10 @@ RECORDINGS = [str(DATA / "tap.toml"), str(DATA / "p50.toml")]
 ARGV = ["fit", *RECORDINGS, "--cross", "--params", "B_eq", "--quiet", "--json", "r.json"]
 
 
-def _spawn(tmp_path, argv, n=2):
-    return spawn(tmp_path, argv, n)
-
-
 def test_fit_cross_two_processes_equal_one(tmp_path):
     from jaxcart.files import read_experiment
 
-    procs = _spawn(tmp_path, ARGV)
+    procs = spawn(tmp_path, ARGV)
     # Meanwhile, in this process, the rows process 1 computed and sent (p50.toml fitted
     # alone): those of process 0 are the same function on the same data, and the test's
     # budget has no room for them (the compilation dominates, repeated in every process).

@@ -21,10 +21,6 @@ from tuning import tunerun
 TAP = Path(jc.__file__).parent / "data" / "tap.toml"
 
 
-def _spawn(tmp_path, argv):
-    return spawn(tmp_path, argv)
-
-
 def _wait(procs, codes=(0, 0)):
     outs = [p.communicate(timeout=240) for p in procs]
     for p, code, (_out, err) in zip(procs, codes, outs, strict=True):
@@ -37,7 +33,7 @@ def test_tune_robust_two_processes_equal_one(tmp_path):
     from tuning.tune import tune
 
     argv = ["tune", "--robust", "--horizon", "1.5", "--iterations", "20", "--starts", "2"]
-    procs = _spawn(tmp_path, [*argv, "--quiet", "--out", "g.json", "--json", "r.json"])
+    procs = spawn(tmp_path, [*argv, "--quiet", "--out", "g.json", "--json", "r.json"])
     # Meanwhile the same problem in this process (the command's controller and spec).
     ref = tune(
         robust=True,
@@ -61,7 +57,7 @@ def test_diagnose_two_processes_equal_one(tmp_path):
     from jaxcart.files import read_experiment
     from tuning.diagnose import diagnose
 
-    procs = _spawn(tmp_path, ["diagnose", str(TAP), "--quiet", "--out", "d", "--json", "d.json"])
+    procs = spawn(tmp_path, ["diagnose", str(TAP), "--quiet", "--out", "d", "--json", "d.json"])
     ref = diagnose([read_experiment(TAP)], progress=False)
     outs = _wait(procs)
     assert "results sent to process 0" in outs[1][0]
