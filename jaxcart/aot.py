@@ -28,7 +28,6 @@ from collections.abc import Callable, Hashable
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 #: Bump when the file layout changes.
@@ -112,7 +111,8 @@ def _stable(part) -> str:
 
 
 def _as_array(x):
-    return x if isinstance(x, jax.Array | np.ndarray | np.generic) else jnp.asarray(x)
+    # device_put, not jnp.asarray: a Python number stays weakly typed and nothing compiles.
+    return x if isinstance(x, jax.Array | np.ndarray | np.generic) else jax.device_put(x)
 
 
 def _spec(x):

@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcart.parallel import put
+
 KINDS = ("tap", "open_loop", "closed_loop")
 
 
@@ -75,13 +77,13 @@ def _times(horizon, sample_time):
 def step(amplitude: float, *, horizon: float = 3.0, sample_time: float = 0.001, y0=0.0):
     """Closed-loop step of the reference to ``amplitude`` [m] at t = 0."""
     t = _times(horizon, sample_time)
-    return Experiment(jnp.full(t.shape, amplitude, dtype=float), y0=y0, sample_time=sample_time)
+    return Experiment(put(np.full(t.shape, amplitude), float), y0=y0, sample_time=sample_time)
 
 
 def ramp(slope: float, *, horizon: float = 3.0, sample_time: float = 0.001, y0=0.0):
     """Closed-loop ramp reference r = y0 + slope * t [m, m/s]."""
     t = _times(horizon, sample_time)
-    return Experiment(jnp.asarray(y0 + slope * t), y0=y0, sample_time=sample_time)
+    return Experiment(put(y0 + slope * t, float), y0=y0, sample_time=sample_time)
 
 
 def setpoints(times, values, *, horizon: float, sample_time: float = 0.001, y0=0.0):
@@ -94,25 +96,25 @@ def setpoints(times, values, *, horizon: float, sample_time: float = 0.001, y0=0
     t = _times(horizon, sample_time)
     index = np.searchsorted(times, t + 1e-9 * sample_time, side="right") - 1
     r = np.where(index >= 0, values[np.maximum(index, 0)], y0)
-    return Experiment(jnp.asarray(r), y0=y0, sample_time=sample_time)
+    return Experiment(put(r, float), y0=y0, sample_time=sample_time)
 
 
 def reference_sequence(r, *, sample_time: float = 0.001, y0=0.0):
     """Closed loop with any sampled reference r_k [m]."""
-    return Experiment(jnp.asarray(r, dtype=float), y0=y0, sample_time=sample_time)
+    return Experiment(put(r, float), y0=y0, sample_time=sample_time)
 
 
 def tap(velocity: float, *, horizon: float = 2.0, sample_time: float = 0.001, y0=0.0):
     """Tap test: the cart starts at ``y0`` [m] with ``velocity`` [m/s], motor unplugged."""
     t = _times(horizon, sample_time)
-    return Experiment(jnp.zeros(t.shape), y0=y0, yd0=velocity, kind="tap", sample_time=sample_time)
+    return Experiment(
+        put(np.zeros(t.shape), float), y0=y0, yd0=velocity, kind="tap", sample_time=sample_time
+    )
 
 
 def voltage_sequence(u, *, sample_time: float = 0.001, y0=0.0, yd0=0.0):
     """Open loop with any sampled voltage command u_k [V]."""
-    return Experiment(
-        jnp.asarray(u, dtype=float), y0=y0, yd0=yd0, kind="open_loop", sample_time=sample_time
-    )
+    return Experiment(put(u, float), y0=y0, yd0=yd0, kind="open_loop", sample_time=sample_time)
 
 
 def voltage_step(amplitude: float, *, horizon: float = 2.0, sample_time: float = 0.001):

@@ -1,6 +1,8 @@
 """The device layer (jaxcart.parallel) against plain jax.vmap on one device: any batch size,
 pytree batches and results, chunking, shared arguments; and the distributed settings."""
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -109,3 +111,57 @@ def test_cluster_settings_from_options_and_environment():
 def test_bad_cluster_settings_say_which(args, env, match):
     with pytest.raises(UserError, match=match):
         parallel.cluster_settings(*args, environ=env)
+
+
+@pytest.mark.parametrize(
+    "value, dtype",
+    [
+        (np.arange(6.0).reshape(2, 3), None),
+        (np.arange(4), float),
+        ([1.5, 2.5], float),
+        (2.0, None),
+        (3, None),
+        (True, None),
+        (np.array([True, False]), None),
+        (np.arange(3), np.int32),
+        (0.25, np.float64),
+    ],
+)
+def test_put_equals_jnp_asarray_in_value_dtype_and_weak_type(value, dtype):
+    """put is jnp.asarray without the compile: same values, dtype (canonical for the float
+    width in force) and weak type; a JAX array passes through."""
+    got, want = parallel.put(value, dtype), jnp.asarray(value, dtype)
+    assert got.dtype == want.dtype
+    assert got.weak_type == want.weak_type
+    assert got.shape == want.shape
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    assert parallel.put(want) is want
+
+
+def _compiles(fn) -> list[str]:
+    """The compilations JAX logs while ``fn`` runs."""
+    seen = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            seen.append(record.getMessage())
+
+    logger, handler = logging.getLogger("jax"), Catch()
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            fn()
+    finally:
+        logger.removeHandler(handler)
+    return [m for m in seen if m.startswith("Compiling")]
+
+
+def test_put_compiles_nothing_and_places_where_asked():
+    # The control: jnp.asarray of a shape not seen before compiles (what put avoids).
+    assert _compiles(lambda: jnp.asarray(np.zeros((13, 3))))
+    assert not _compiles(lambda: parallel.put(np.zeros((7, 5)), float))
+    assert not _compiles(lambda: parallel.put(np.zeros(11, bool), None, parallel.replicated()))
+    assert not _compiles(lambda: parallel.put(0.125))
+    y = parallel.put(np.ones((2, 3)), float, parallel.replicated())
+    assert y.sharding == parallel.replicated()
+    assert parallel.put(np.ones(3)).committed is False

@@ -251,3 +251,23 @@ def test_compare_tuners_runs_all_three_and_rechecks_on_the_exact_simulator():
         assert entry["meets"] == (info.settling_time < 1.0 and info.overshoot < 5.0)
     assert report["grid"]["seconds"] >= report["gradient"]["seconds"]  # equal wall time
     print("\n" + report["table"])
+
+
+def test_initial_adam_state_is_optax_init_placed_like_the_update_output():
+    """tune builds adam's state on the host (no eager compiles): it equals optax's own init,
+    leaf by leaf in value, dtype and shape."""
+    import optax
+
+    from jaxcart.parallel import batch_sharding
+    from tuning.tune import initial_state
+
+    adam = optax.scale_by_adam()
+    theta = jnp.asarray(np.random.default_rng(1).normal(size=(8, 6)))
+    rows = batch_sharding()
+    ours, theirs = initial_state(adam, theta, rows), adam.init(theta)
+    assert jax.tree.structure(ours) == jax.tree.structure(theirs)
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        if a.ndim == 2:
+            assert a.sharding == rows

@@ -64,7 +64,7 @@ from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
 from jaxcart.files import signal64
-from jaxcart.parallel import sharded_map
+from jaxcart.parallel import put, sharded_map
 from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant
 from jaxcart.smooth import simulate
 from jaxcart.smoothing import Smoothing, continuation
@@ -652,7 +652,7 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
         sigma = 0.0 if encoder_count(raw) > 0 else noise_level(raw)
         width = q + 8 * sigma
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    signal = jnp.asarray(signal64(recording)[start:stop])
+    signal = put(signal64(recording)[start:stop], float)
     experiment = dataclasses.replace(exp, signal=signal, y0=y0, yd0=yd0)
     controller = recording.controller
     if controller is None:
@@ -777,16 +777,20 @@ class _Problem:
         self.sizes = [s.measured.size for s in segments]
         self.observed = np.concatenate([s.measured for s in segments])
         padded = [-(-n // PAD) * PAD for n in self.sizes]
-        self.data = tuple(
-            (
-                s.plant,
-                s.controller,
-                _padded_experiment(s.experiment, n),
-                jnp.asarray([v.base for v in s.nuisance], dtype=float),
-            )
-            for s, n in zip(segments, padded, strict=True)
+        # On the device once: host leaves would be transferred again at every evaluation.
+        self.data = jax.tree.map(
+            put,
+            tuple(
+                (
+                    s.plant,
+                    s.controller,
+                    _padded_experiment(s.experiment, n),
+                    put([v.base for v in s.nuisance], float),
+                )
+                for s, n in zip(segments, padded, strict=True)
+            ),
         )
-        self.measured = jnp.asarray(
+        self.measured = put(
             np.concatenate(
                 [
                     np.pad(s.measured, (0, n - s.measured.size))
@@ -794,7 +798,7 @@ class _Problem:
                 ]
             )
         )
-        self.weight = jnp.asarray(
+        self.weight = put(
             np.concatenate(
                 [
                     np.pad(np.ones(s.measured.size), (0, n - s.measured.size))
@@ -827,7 +831,7 @@ class _Problem:
     def evaluate(self, theta, width):
         """(r, J) over the recorded samples, numpy float64; r = inf where the simulation is not
         finite."""
-        th = jnp.asarray(theta)
+        th = put(theta, float)
         if th.size == 0:
             r = _positions_jit(th, self.data, self.smoothing(width), self.layout) - self.measured
             r = np.asarray(r)[self.rows]
@@ -844,7 +848,7 @@ class _Problem:
         padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - k, axis=0)])
         self.evaluations += k
         r, jac = _batched_residuals(self.layout)(
-            jnp.asarray(padded), self.data, self.measured, self.weight, self.smoothing(width)
+            put(padded, float), self.data, self.measured, self.weight, self.smoothing(width)
         )
         r, jac = np.asarray(r)[:k, self.rows], np.asarray(jac)[:k, self.rows]
         bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(jac), axis=(1, 2)))
@@ -923,7 +927,7 @@ def _padded_experiment(experiment: Experiment, n: int) -> Experiment:
     """The experiment continued to n samples (its last signal value held)."""
     signal = np.asarray(experiment.signal, dtype=float)
     signal = np.pad(signal, (0, n - signal.size), mode="edge")
-    return dataclasses.replace(experiment, signal=jnp.asarray(signal))
+    return dataclasses.replace(experiment, signal=put(signal, float))
 
 
 # ---------------------------------------------------------------- optimizers

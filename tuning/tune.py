@@ -42,7 +42,7 @@ from jaxcart import aot
 from jaxcart.errors import UserError
 from jaxcart.experiments import step
 from jaxcart.metrics import StepInfo
-from jaxcart.parallel import batch_sharding, devices, replicated
+from jaxcart.parallel import batch_sharding, devices, put, replicated
 from jaxcart.params import Plant, handout_plant, voltage_limit
 from jaxcart.plantspec import with_values
 from jaxcart.smooth import EXACT_FORMS
@@ -459,7 +459,8 @@ def tune(
         plants_arg = _stack(train)
         friction = any(_has_friction(p) for p in train)
     else:
-        plants_arg = plant
+        # On the device once (a Python number is transferred again at every call).
+        plants_arg = jax.tree.map(put, plant)
         friction = _has_friction(plant)
     is_robust = check_plants is not None
 
@@ -477,10 +478,12 @@ def tune(
     # first start (never new random ones), so the result does not depend on the device count.
     n_dev = len(devices())
     theta = np.concatenate([theta, np.repeat(theta[:1], -n_starts % n_dev, axis=0)])
-    theta = jax.device_put(jnp.asarray(theta), batch_sharding())
-    fixed = jnp.asarray(np.where(np.isfinite(start_params), start_params, 1e30))
-    mask = jnp.asarray(free_mask)
-    free_idx = jnp.asarray(np.flatnonzero(free_mask), dtype=jnp.int32)
+    # One device: the placement the compiled update returns (a second signature otherwise).
+    rows = batch_sharding() if n_dev > 1 else replicated()
+    theta = put(theta, float, rows)
+    fixed = put(np.where(np.isfinite(start_params), start_params, 1e30), float)
+    mask = put(free_mask)
+    free_idx = put(np.flatnonzero(free_mask), np.int32)
 
     if substeps is None and friction:
         substeps = FRICTION_SUBSTEPS
@@ -490,11 +493,8 @@ def tune(
     if processes is not None:  # this process's starts computed, the whole batch returned
         update = processes.wrap(update)
     # The optimizer state lives where the update puts it (else the second step recompiles).
-    opt_state = jax.tree.map(
-        lambda x: jax.device_put(x, batch_sharding() if x.ndim == 2 else replicated()),
-        adam.init(theta),
-    )
-    lo_j, hi_j = jnp.asarray(lo)[None], jnp.asarray(hi)[None]
+    opt_state = initial_state(adam, theta, rows)
+    lo_j, hi_j = put(np.asarray(lo)[None], float), put(np.asarray(hi)[None], float)
 
     report = _progress(progress)
     history: list[dict] = []
@@ -522,7 +522,7 @@ def tune(
     anchor = np.asarray(theta)
     it = 0
     for it in range(max_iterations):  # noqa: B007 (it is used after the loop)
-        scale = jnp.asarray(SCALES[stage], dtype=theta.dtype)
+        scale = put(SCALES[stage], theta.dtype)
         lr = _cosine(learning_rate, it, max_iterations)
         params, theta, opt_state, values_now, info, metrics = update(
             theta, opt_state, lr, free_idx, fixed, mask, plants_arg, scale, lo_j, hi_j
@@ -655,12 +655,23 @@ def _compiled(template, spec, settings, robust, substeps, treedef):
     return _CACHE[key]
 
 
+def initial_state(adam, theta, rows):
+    """``adam.init(theta)`` built on the host and placed where the update puts it (``rows``
+    for the per-start moments, a copy on every device for the step count): ``init``'s eager
+    zeros compile a small program per shape in every new process. optax's adam state is all
+    zeros (a test compares this with ``adam.init``)."""
+    return jax.tree.map(
+        lambda x: put(np.zeros(x.shape, x.dtype), None, rows if x.ndim == 2 else replicated()),
+        jax.eval_shape(adam.init, theta),
+    )
+
+
 def _smooth_report(update, state, gains, plant, plants_arg, robust, theta, free_idx, box):
     """StepInfo of ``gains`` on ``plant``, smooth loop at the finest width of the continuation,
     through the compiled update (every row the fixed ``gains``, same shapes: nothing new to
     compile; for robust tuning every plant of the stack is the nominal one)."""
-    fixed = jnp.asarray(params_of(gains))
-    mask = jnp.zeros(len(PARAM_NAMES), dtype=bool)  # every row: the fixed parameters
+    fixed = put(params_of(gains), float)
+    mask = put(np.zeros(len(PARAM_NAMES), dtype=bool))  # every row: the fixed parameters
     if robust:
         # The nominal plant with the set's effects (friction included even where f_c = 0).
         values = {n: float(plant.get(n)) for n in ("M", "B_eq") if n in plant.param_names()}
@@ -672,8 +683,8 @@ def _smooth_report(update, state, gains, plant, plants_arg, robust, theta, free_
             nominal = plant
         plants_arg = _stack([nominal] * n_plants)
     else:
-        plants_arg = plant
-    scale = jnp.asarray(SCALES[-1], dtype=theta.dtype)
+        plants_arg = jax.tree.map(put, plant)
+    scale = put(SCALES[-1], theta.dtype)
     out = update(theta, state, 0.0, free_idx, fixed, mask, plants_arg, scale, *box)
     info = out[4]
     metrics = info.metrics
