@@ -544,7 +544,7 @@ def run_bench(
     batch: gain triples for jaxcart's float32 ``step_metrics_batch`` (default 131072);
     slow_runs: runs of python-control and of scipy, each timed one at a time (3); numpy_runs:
     batch of the vectorized numpy peer (32768); grad_runs: batch of the gradient measurement
-    (8192); grid_points: the grid is grid_points^3 (64); repeats: timed calls of each batched
+    (32768); grid_points: the grid is grid_points^3 (64); repeats: timed calls of each batched
     stage, the best kept (3); check_runs: runs compared with the float64 reference (16).
     ``quick`` lowers the defaults. ``_horizon`` [s] shortens the runs (tests only: the result
     is then not W1 and says so).
@@ -559,7 +559,9 @@ def run_bench(
         # numpy's per-call overhead amortizes up to ~32k lanes (measured: 4096 runs reach
         # ~40 % of the float32 rate of 32768; larger batches gain nothing).
         "numpy": numpy_runs or (8192 if quick else 32768),
-        "grad": grad_runs or (1024 if quick else 8192),
+        # The gradient's rate saturates from 16384 runs on 2 devices (measured, sims/s: 8192
+        # 62-68k, 16384 85k, 32768 82k, 65536 89k); 8192 understated it by a quarter.
+        "grad": grad_runs or (1024 if quick else 32768),
         "grid": grid_points or (16 if quick else 64),
         "repeats": repeats or (1 if quick else 3),
     }
