@@ -95,9 +95,8 @@ def put(x, dtype=None, sharding=None):
         return x if sharding is None else jax.device_put(x, sharding)
     if dtype is None and isinstance(x, bool | int | float | complex):
         return jax.device_put(x, sharding)  # weakly typed, like jnp.asarray of a scalar
+    # device_put narrows float64 to float32 without x64, as jnp.asarray does.
     host = np.asarray(x) if dtype is None else np.asarray(x, jax.dtypes.canonicalize_dtype(dtype))
-    if dtype is None:
-        host = host.astype(jax.dtypes.canonicalize_dtype(host.dtype), copy=False)
     return jax.device_put(host, sharding)
 
 

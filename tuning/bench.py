@@ -545,7 +545,7 @@ def run_bench(
     slow_runs: runs of python-control and of scipy, each timed one at a time (3); numpy_runs:
     batch of the vectorized numpy peer (32768); grad_runs: batch of the gradient measurement
     (32768); grid_points: the grid is grid_points^3 (64); repeats: timed calls of each batched
-    stage, the best kept (3); check_runs: runs compared with the float64 reference (16).
+    stage, the median kept (3); check_runs: runs compared with the float64 reference (16).
     ``quick`` lowers the defaults. ``_horizon`` [s] shortens the runs (tests only: the result
     is then not W1 and says so).
 

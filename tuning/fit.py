@@ -785,7 +785,7 @@ class _Problem:
                     s.plant,
                     s.controller,
                     _padded_experiment(s.experiment, n),
-                    put([v.base for v in s.nuisance], float),
+                    np.asarray([v.base for v in s.nuisance], dtype=float),
                 )
                 for s, n in zip(segments, padded, strict=True)
             ),
