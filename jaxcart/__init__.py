@@ -8,6 +8,11 @@ from __future__ import annotations
 
 import importlib
 
+from jaxcart import xlaflags
+
+# Before JAX starts its backend: loops compiled whole on a CPU (see jaxcart.xlaflags).
+xlaflags.request()
+
 #: public name -> module that defines it
 _EXPORTS = {
     "PID": "hw.control_law",

@@ -19,33 +19,38 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcart import parallel
+from jaxcart import parallel, xlaflags
 from jaxcart.metrics import StepInfo, step_metrics
 from jaxcart.smooth import EXACT_FORMS
 
-#: Runs per chunk: 4096 lanes x ~10 state values fit in L2; measured best on 2 cores (W1 per
-#: CPU-second: chunks of 1024, 2048 or 8192 ran 0.95-0.99x as fast, the metrics the same).
-DEFAULT_CHUNK = 4096
+#: Runs per chunk where loops compile whole (a CPU backend, jaxcart.xlaflags in effect): the
+#: loop's state in the L1 cache (W1 per CPU-second, 2 cores, float32 / float64 against 256
+#: runs: 128 runs 0.97x / 1.03x, 512 runs 1.0x / 0.96x, 1024 runs 0.9x / 0.79x, measured).
+KERNEL_CHUNK = 256
+#: Runs per chunk otherwise (a GPU, or a CPU backend JAX started before jaxcart was imported,
+#: whose loops run as one task per operation): 4096 lanes x ~10 state values fit in L2;
+#: chunks of 1024, 2048 or 8192 ran 0.95-0.99x as fast (measured, 2 cores).
+WIDE_CHUNK = 4096
 #: Chunks per device in one host-side block: bounds the device working set of a large batch.
 CHUNKS_PER_CALL = 64
 #: XLA options of the batch program by backend (given per program: the tuner's own programs
 #: do not get them). On a CPU, 512-bit vectors where the CPU has them (XLA prefers 256; a CPU
-#: without AVX-512 is unaffected): W1 1.2-1.4x per CPU-second. And copy insertion by region
-#: analysis: the loop's carried values are no longer copied every iteration (6 copies per
-#: iteration of W1, 11 of the bench's gradient loop, none left), W1 1.10-1.15x per CPU-second
-#: (paired medians of 5-7 runs; the gradient row 1.15x). Both measured on a shared 2-core
-#: AVX-512 machine (AMD EPYC), metrics bit for bit the same (float32 and float64; W1, a
-#: plant with friction, a plant set). Tried and not kept: xla_cpu_enable_fast_min_max (max
-#: would stop propagating NaN, which marks a diverged run; ~1.1x, unpaired); the
-#: concurrency-optimized or another scheduler, tiling propagation, backend optimization
-#: level (0.9-1.05x). xla_cpu_use_multi_output_fusion is no per-program option in this XLA
-#: (only XLA_FLAGS' xla_backend_extra_options: there 1.12x float32 but 0.85x float64).
-COMPILER_OPTIONS = {
-    "cpu": {
-        "xla_cpu_prefer_vector_width": 512,
-        "xla_cpu_copy_insertion_use_region_analysis": True,
-    }
-}
+#: without AVX-512 is unaffected): W1 1.6x per CPU-second with loops compiled whole, 1.2-1.4x
+#: without (measured, 2-core AVX-512 AMD EPYC), metrics bit for bit the same. Tried and not
+#: kept: copy insertion by region analysis (1.10-1.15x without whole-loop kernels; with them
+#: 1.0x, and a final position one rounding apart from the plain program's);
+#: xla_cpu_enable_fast_min_max (max would stop propagating NaN, which marks a diverged run);
+#: the concurrency-optimized or another scheduler, tiling propagation, backend optimization
+#: level (0.9-1.05x); multi-output fusion (XLA_FLAGS only: 1.12x float32 but 0.85x float64).
+COMPILER_OPTIONS = {"cpu": {"xla_cpu_prefer_vector_width": 512}}
+
+
+def default_chunk(kernel: int = KERNEL_CHUNK, wide: int = WIDE_CHUNK) -> int:
+    """Runs per chunk on this process's default backend: ``kernel`` where loops compile whole
+    (:func:`jaxcart.xlaflags.loop_kernels` on a CPU), ``wide`` otherwise."""
+    whole = jax.default_backend() == "cpu" and xlaflags.loop_kernels()
+    return kernel if whole else wide
+
 
 _FNS: dict = {}
 
@@ -92,7 +97,7 @@ def step_metrics_batch(
     *,
     smoothing=EXACT_FORMS,
     substeps=None,
-    chunk: int = DEFAULT_CHUNK,
+    chunk: int | None = None,
     dtype=None,
     progress=None,
 ) -> StepInfo:
@@ -102,8 +107,9 @@ def step_metrics_batch(
     over the set (the largest value; diverged if any diverged). The other controller settings
     come from ``controller``. Default ``smoothing`` is the
     exact forms (hard clip): the grid reports what the real loop would do. ``dtype`` casts the
-    computation (``jnp.float32`` for speed). Memory is bounded: gains are processed in
-    blocks of at most 64 chunks per device. ``progress(done, total)`` is called after each.
+    computation (``jnp.float32`` for speed). ``chunk``: runs per device at a time (default
+    :func:`default_chunk`). Memory is bounded: gains are processed in blocks of at most 64
+    chunks per device. ``progress(done, total)`` is called after each.
     """
     gains = np.asarray(gains)
     if gains.ndim != 2 or gains.shape[1] != 3:
@@ -118,7 +124,7 @@ def step_metrics_batch(
         n_dev = len(parallel.devices())
         total = gains.shape[0]
         # One chunk size for every block of this batch (the last block is padded to it).
-        chunk = int(min(chunk, max(8, -(-total // n_dev))))
+        chunk = int(min(chunk or default_chunk(), max(8, -(-total // n_dev))))
         fn = _metrics_fn(plant, controller, experiment, smoothing, substeps, worst)
         out = parallel.map_blocks(
             fn,

@@ -143,6 +143,7 @@ def sharded_map(
     name: str | None = None,
     static=(),
     compiler_options: dict | None = None,
+    whole_chunks: bool = False,
 ) -> Callable:
     """``run(batch, *shared)``: ``vmap(fn)`` over ``batch``'s leading axis, sharded.
 
@@ -154,13 +155,14 @@ def sharded_map(
     ``repr`` names every setting ``fn`` closes over) keeps the traced programs on disk
     (:mod:`jaxcart.aot`), so a new process does not trace them again. ``compiler_options``:
     XLA options of the compiled program (plain jit only), e.g.
-    ``{"xla_cpu_prefer_vector_width": 512}``.
+    ``{"xla_cpu_prefer_vector_width": 512}``. ``whole_chunks``: ``fn(chunk, *shared)`` takes
+    a whole chunk (every leaf with the chunk's leading axis) and maps it itself.
     """
     devs = list(devs or devices())
     options = tuple(sorted((compiler_options or {}).items()))
     if options and name is not None:
         raise ValueError("sharded_map: compiler_options need name=None (plain jit)")
-    key = (fn, chunk, tuple(d.id for d in devs), options, name, static)
+    key = (fn, chunk, tuple(d.id for d in devs), options, name, static, whole_chunks)
     if cache and key in _COMPILED:
         return _COMPILED[key]
     m = mesh(devs)
@@ -172,7 +174,13 @@ def sharded_map(
 
             def local(batch, *shared):
                 blocks = jax.tree.map(lambda a: a.reshape((-1, step) + a.shape[1:]), batch)
-                out = jax.lax.map(lambda blk: jax.vmap(lambda x: fn(x, *shared))(blk), blocks)
+
+                def one_chunk(blk):
+                    if whole_chunks:
+                        return fn(blk, *shared)
+                    return jax.vmap(lambda x: fn(x, *shared))(blk)
+
+                out = jax.lax.map(one_chunk, blocks)
                 return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
 
             mapped = jax.shard_map(

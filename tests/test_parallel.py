@@ -45,6 +45,23 @@ def test_sharded_map_equals_vmap(run, n):
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-13, atol=1e-15)
 
 
+def test_whole_chunks_hand_fn_each_chunk():
+    """``whole_chunks=True``: fn maps a whole chunk itself (its leading axis the chunk's)."""
+    seen = []
+
+    def chunk_fn(block, scale):
+        seen.append(block["x"].shape)
+        return jax.vmap(_fn, in_axes=(0, None))(block, scale)
+
+    run = parallel.sharded_map(chunk_fn, chunk=2, cache=False, whole_chunks=True)
+    batch = _batch(7, seed=5)
+    got, want = run(batch, 0.5), _reference(batch, 0.5)
+    assert seen == [(2, 3)]  # traced once, on one chunk of 2 runs
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        assert g.shape == w.shape
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-13, atol=1e-15)
+
+
 def test_sharded_output_is_split_over_the_mesh_and_cached():
     out = _RUN_CHUNKED(_batch(8), 1.0)
     assert len(out[0].sharding.device_set) == 2

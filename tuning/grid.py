@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcart.batch import DEFAULT_CHUNK, step_metrics_batch
+from jaxcart.batch import default_chunk, step_metrics_batch
 from jaxcart.errors import UserError
 from jaxcart.longrun import duration_text
 from jaxcart.metrics import StepInfo
@@ -175,7 +175,7 @@ def grid_search(
     overshoot: float = 5.0,
     dtype=jnp.float32,
     smoothing=EXACT_FORMS,
-    chunk: int = DEFAULT_CHUNK,
+    chunk: int | None = None,
     progress=None,
     checkpoint=None,
     keep_full: bool | None = None,
@@ -235,7 +235,7 @@ def evaluate_list(
     overshoot: float = 5.0,
     dtype=jnp.float32,
     smoothing=EXACT_FORMS,
-    chunk: int = DEFAULT_CHUNK,
+    chunk: int | None = None,
     progress=None,
     checkpoint=None,
     block: int = gridrun.BLOCK,
@@ -322,6 +322,7 @@ def _evaluate(
     if dtype not in (np.float32, np.float64):
         raise UserError(f"dtype {dtype}: use float32 or float64")
     n = int(np.prod(shape))
+    chunk = int(chunk or default_chunk())  # resolved here: the checkpoint's key names it
     # Same block size on every call (the last one padded) so the evaluator compiles once.
     block = int(min(n, block))
     keep_full = n <= gridrun.FULL_LIMIT if keep_full is None else bool(keep_full)

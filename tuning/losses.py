@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from jaxcart.errors import UserError
 from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo, info_from_accumulated
 from jaxcart.params import voltage_limit
-from jaxcart.running import accumulate, value_and_jacfwd
+from jaxcart.running import accumulate, value_and_jacfwd_rows
 from jaxcart.smooth import DIVERGED_POSITION, loop, simulate
 from jaxcart.smoothing import Smoothing
 from jaxcart.surrogates import (
@@ -241,7 +241,6 @@ def stream_loss(
         update,
         smoothing=smoothing,
         substeps=substeps,
-        pack=True,  # the tuner's batches are small: one vector, one pass (running.accumulate)
     )
     p, lse, _, den, num, excess, y_last = soft
     t10, t90, top, peak_v, n_sat, last_out, bad = (hard[i] for i in range(7))
@@ -327,14 +326,16 @@ def batched_value_and_jacfwd(loss):
     scale) -> (losses (S,), aux, grad (S, P))``; the number F of free entries is static, their
     indices are not (other free sets of the same size reuse the compiled function)."""
 
-    def one(theta, free, fixed, free_mask, plants, scale):
-        def of_free(u):
-            return loss(theta.at[free].set(u), fixed, free_mask, plants, scale)
+    def of_free(u, theta, free, fixed, free_mask, plants, scale):
+        return loss(theta.at[free].set(u), fixed, free_mask, plants, scale)
 
-        (value, aux), g = value_and_jacfwd(of_free, has_aux=True)(theta[free])
-        return value, aux, jnp.zeros_like(theta).at[free].set(g)
+    grads = value_and_jacfwd_rows(of_free, has_aux=True)
 
-    return jax.vmap(one, in_axes=(0, None, None, None, None, None))
+    def run(theta, free, fixed, free_mask, plants, scale):
+        (values, aux), g = grads(theta[:, free], theta, free, fixed, free_mask, plants, scale)
+        return values, aux, jnp.zeros_like(theta).at[:, free].set(g)
+
+    return run
 
 
 __all__ = [

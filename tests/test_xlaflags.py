@@ -1,0 +1,96 @@
+"""jaxcart's one XLA setting (jaxcart.xlaflags): loops compiled whole on a CPU. The flag string
+it builds, that importing jaxcart puts it in place before JAX starts (and leaves a user's own
+value, or a backend that started first, alone), that XLA then compiles a chunk's loop into one
+kernel, and the chunk sizes the batches choose from it."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from jaxcart import xlaflags
+
+OPTION = xlaflags.OPTION
+EXTRA = "--xla_backend_extra_options="
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.mark.parametrize(
+    "flags, want",
+    [
+        ("", f"{EXTRA}{OPTION}=1048576"),
+        ("--xla_dump_to=/tmp/d", f"--xla_dump_to=/tmp/d {EXTRA}{OPTION}=1048576"),
+        # An existing map option is extended, not shadowed by a second one.
+        (f"{EXTRA}a=1 --b", f"{EXTRA}a=1,{OPTION}=1048576 --b"),
+        # The user's own value is kept.
+        (f"{EXTRA}{OPTION}=1024", f"{EXTRA}{OPTION}=1024"),
+        (f"{EXTRA}a=1,{OPTION}=5", f"{EXTRA}a=1,{OPTION}=5"),
+    ],
+)
+def test_with_option_adds_merges_or_keeps(flags, want):
+    assert xlaflags.with_option(flags, 1 << 20) == want
+    assert xlaflags.threshold_in(want) == int(want.rsplit("=", 1)[1].split()[0])
+
+
+def test_threshold_in_reads_the_last_value_and_nothing_else():
+    assert xlaflags.threshold_in("") is None
+    assert xlaflags.threshold_in(f"--x_{OPTION}=3") is None  # another flag's name
+    assert xlaflags.threshold_in(f"--xla_backend_extra_options={OPTION}=2,{OPTION}=7") == 7
+
+
+def _run(code: str, flags: str | None) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    if flags is not None:
+        env["XLA_FLAGS"] = flags
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
+_PROBE = """
+    import os
+    {first}
+    import jax, jax.numpy as jnp
+    from jaxcart import xlaflags
+    from jaxcart.batch import default_chunk
+    f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (c * 1.01 + 1.0, None), x, None, 100)[0])
+    text = f.lower(jnp.ones(256)).compile().as_text()
+    print(xlaflags.loop_kernels(), "xla_cpu_small_call" in text, default_chunk(),
+          os.environ.get("XLA_FLAGS", "").replace(" ", "|") or "-")
+"""
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
+def test_importing_jaxcart_first_compiles_a_chunks_loop_whole():
+    kernels, whole, chunk, flags = _run(_PROBE.format(first="import jaxcart"), None)
+    assert (kernels, whole, int(chunk)) == ("True", "True", 256)
+    assert flags == f"--xla_backend_extra_options={OPTION}=1048576"
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
+def test_a_users_smaller_value_is_kept_and_the_chunks_stay_wide():
+    mine = f"--xla_backend_extra_options={OPTION}=1024"
+    kernels, whole, chunk, flags = _run(_PROBE.format(first="import jaxcart"), mine)
+    assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, mine)
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
+def test_a_backend_started_first_is_left_alone():
+    first = "import jax.numpy; jax.numpy.ones(2).block_until_ready(); import jaxcart"
+    kernels, whole, chunk, flags = _run(_PROBE.format(first=first), None)
+    assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, "-")
+
+
+def test_the_suite_runs_with_loops_compiled_whole():
+    """conftest imports jaxcart before JAX starts: the tests run what the commands run."""
+    if jax.default_backend() == "cpu":
+        assert xlaflags.loop_kernels()
+        f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (c + 1.0, None), x, None, 10)[0])
+        assert "xla_cpu_small_call" in f.lower(jnp.ones(8)).compile().as_text()
