@@ -109,11 +109,14 @@ def step_metrics_batch(
     exact forms (hard clip): the grid reports what the real loop would do. ``dtype`` casts the
     computation (``jnp.float32`` for speed). ``chunk``: runs per device at a time (default
     :func:`default_chunk`). Memory is bounded: gains are processed in blocks of at most 64
-    chunks per device. ``progress(done, total)`` is called after each.
+    chunks per device. ``progress(done, total)`` is called after each. No rows (B = 0): empty
+    arrays of each field's dtype, nothing run.
     """
     gains = np.asarray(gains)
     if gains.ndim != 2 or gains.shape[1] != 3:
         raise ValueError(f"gains must have shape (B, 3) for (kp, kd, ki); got {gains.shape}")
+    if chunk is not None and (isinstance(chunk, bool) or not int(chunk) == chunk >= 1):
+        raise ValueError(f"chunk = {chunk!r}: give a whole number of runs >= 1 (or None)")
     dtype = jnp.dtype(dtype or jnp.result_type(float))
     # float64 needs x64 on; enable it here rather than silently computing in float32.
     with jax.enable_x64(dtype == jnp.float64 or bool(jax.config.jax_enable_x64)):

@@ -68,6 +68,10 @@ class Recording:
     signal: the experiment's signal as read (r_k [m] or u_k [V]), float64 numpy: the
         Experiment's copy follows the JAX mode it was made in (float32 without x64, 0.4 m
         kept as 0.40000001 m), so fits, which run in float64, start from this one
+    mat_layout: {signal: :class:`jaxcart.matfile.SignalLayout`} of the signals read from
+        .mat files, noted while they were read ({} for CSV data; None for a recording that
+        :func:`read_experiment` did not read), so :func:`jaxcart.matfile.source_layout`
+        need not load the files again
     """
 
     path: Path
@@ -83,6 +87,7 @@ class Recording:
     meta: dict
     warnings: tuple[str, ...] = ()
     signal: np.ndarray | None = None
+    mat_layout: dict | None = None
 
     def signal64(self) -> np.ndarray:
         """The experiment's signal in float64 [m or V] (see ``signal``)."""
@@ -167,10 +172,22 @@ def read_experiment(path, *, check: bool = True) -> Recording:
     the track raise a UserError, milder doubts are printed once to stderr and kept in
     ``Recording.warnings``.
     """
+    mats: dict = {}  # {file: its loaded variables}, each file loaded once (reader.cache)
+
+    def mat_reader(reader, name, variable, field):
+        out = _read_mat(reader, name, variable, field)
+        mats[name] = reader.cache[name]
+        return out
+
     try:
-        data = _expfile.read_experiment_data(path, mat_reader=_read_mat)
+        data = _expfile.read_experiment_data(path, mat_reader=mat_reader)
     except ExpFileError as exc:
         raise UserError(str(exc)) from None
+    mat_layout = {}
+    if mats:  # the layout each signal came in, from the variables already loaded
+        from jaxcart.matfile import layouts
+
+        mat_layout = layouts(data.meta.get("data"), mats.get)  # the files are not kept
     overrides = check_plant_overrides(data.plant, f"{data.path} [plant]")
     experiment = Experiment(
         jnp.asarray(data.signal),
@@ -192,6 +209,7 @@ def read_experiment(path, *, check: bool = True) -> Recording:
         experiment=experiment,
         meta=data.meta,
         signal=np.asarray(data.signal, dtype=np.float64),
+        mat_layout=mat_layout,
     )
     if not check:
         return rec

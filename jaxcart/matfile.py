@@ -80,26 +80,48 @@ def classify(obj) -> str | None:
 
 def source_layout(recording) -> dict[str, SignalLayout]:
     """{signal: :class:`SignalLayout`} of each signal of ``recording`` (a
-    :class:`jaxcart.files.Recording`) that was read from a .mat file; {} for CSV data."""
-    import scipy.io
+    :class:`jaxcart.files.Recording`) that was read from a .mat file; {} for CSV data.
 
+    A recording from :func:`jaxcart.files.read_experiment` noted the layouts while it read its
+    files (``Recording.mat_layout``): no file is read again. Any other recording's .mat files
+    are loaded here, once each (a file that no longer loads counts as none)."""
+    known = getattr(recording, "mat_layout", None)
+    if known is not None:
+        return dict(known)
     data = recording.meta.get("data")
     if not isinstance(data, dict):
         return {}
     folder = Path(recording.path).parent
-    out, cache = {}, {}
-    for name, source in data.items():
-        file, _, variable = str(source).rpartition(":")
-        if name == "t" or not file.lower().endswith(".mat"):
-            continue
-        if file not in cache:  # read_experiment has read it: it loads, unless changed since
+    cache: dict = {}
+
+    def load(file):
+        if file not in cache:
+            import scipy.io
+
             try:
                 cache[file] = scipy.io.loadmat(
                     folder / file, squeeze_me=True, struct_as_record=False
                 )
             except (OSError, ValueError, NotImplementedError):
                 cache[file] = {}
-        obj = cache[file].get(variable)
+        return cache[file]
+
+    return layouts(data, load)
+
+
+def layouts(data, load) -> dict[str, SignalLayout]:
+    """{signal: :class:`SignalLayout`} of the signals that an experiment file's [data] table
+    ``data`` maps to .mat files, with ``load(file)`` the file's variables as
+    ``scipy.io.loadmat(..., squeeze_me=True, struct_as_record=False)`` returns them (or None
+    or {} when it does not load); {} when ``data`` is not a table."""
+    if not isinstance(data, dict):
+        return {}
+    out = {}
+    for name, source in data.items():
+        file, _, variable = str(source).rpartition(":")
+        if name == "t" or not file.lower().endswith(".mat"):
+            continue
+        obj = (load(file) or {}).get(variable)
         layout = classify(obj)
         if layout is None:
             continue

@@ -101,7 +101,9 @@ def put(x, dtype=None, sharding=None):
 
 
 def padded_size(n: int, chunk: int, n_dev: int) -> int:
-    """Smallest multiple of ``chunk * n_dev`` that holds ``n`` items."""
+    """Smallest multiple of ``chunk * n_dev`` that holds ``n`` items (at least one unit)."""
+    if chunk < 1 or n_dev < 1:
+        raise ValueError(f"padded_size: chunk and n_dev must be >= 1; got {chunk}, {n_dev}")
     unit = chunk * n_dev
     return max(1, -(-n // unit)) * unit
 
@@ -118,6 +120,8 @@ def pad(batch, size: int):
         extra = size - a.shape[0]
         if extra <= 0:
             return a
+        if a.shape[0] == 0:
+            raise ValueError(f"cannot pad an empty batch to {size} items: no item to repeat")
         return xp.concatenate([a, xp.repeat(a[-1:], extra, axis=0)])
 
     return jax.tree.map(leaf, batch)
@@ -129,6 +133,47 @@ def batch_size(batch) -> int:
     if len(sizes) != 1 or -1 in sizes:
         raise ValueError(f"every leaf of a batch needs the same leading axis; got sizes {sizes}")
     return sizes.pop()
+
+
+def _positive(value, what: str):
+    """``value`` (None, or an int >= 1) or a clear ValueError."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"{what} = {value!r}: give a whole number >= 1 (or None)")
+    return int(value)
+
+
+def empty_result(fn: Callable, batch, *shared, whole_chunks: bool = False, host: bool = False):
+    """What mapping ``fn`` over ``batch`` returns when the batch has no items: every leaf of
+    ``fn``'s result with a leading axis of 0, its shape and dtype found by abstract evaluation
+    (``jax.eval_shape``: ``fn`` is traced on one item's shapes, never run on data). numpy
+    arrays with ``host``, else device arrays. A ValueError says so when ``fn`` cannot be
+    traced on those shapes, so that its result's shapes cannot be known without data."""
+
+    def spec(a):
+        dtype = a.dtype if isinstance(a, jax.Array) else np.asarray(a).dtype
+        one = (1,) if whole_chunks else ()  # a whole-chunk fn gets a chunk of one item
+        return jax.ShapeDtypeStruct(
+            one + tuple(np.shape(a)[1:]), jax.dtypes.canonicalize_dtype(dtype)
+        )
+
+    try:
+        out = jax.eval_shape(fn, jax.tree.map(spec, batch), *shared)
+    except Exception as exc:  # whatever fn raises while traced
+        why = (str(exc).strip().splitlines() or [""])[0][:200]
+        raise ValueError(
+            f"an empty batch (0 items): the shapes of {getattr(fn, '__name__', 'fn')}'s "
+            f"result cannot be known without data ({type(exc).__name__}: {why}); "
+            "give at least one item"
+        ) from exc
+
+    def leaf(s):
+        shape = (0,) + tuple(s.shape[1:] if whole_chunks else s.shape)
+        zeros = np.zeros(shape, s.dtype)
+        return zeros if host else jax.device_put(zeros)
+
+    return jax.tree.map(leaf, out)
 
 
 _COMPILED: dict = {}
@@ -149,7 +194,8 @@ def sharded_map(
 
     ``chunk``: most items one device evaluates at once (default: the whole per-device share,
     i.e. a single vmap); smaller chunks bound memory, e.g. of a backward pass. ``shared``
-    arguments are replicated. The result is a pytree of arrays with the batch's leading size.
+    arguments are replicated. The result is a pytree of arrays with the batch's leading size
+    (an empty batch compiles nothing: :func:`empty_result` gives its shapes and dtypes).
     ``cache=False`` for a one-off ``fn`` (a closure over one problem's data): the caller keeps
     the returned function, and it is freed with it. ``name`` (with ``static``, a value whose
     ``repr`` names every setting ``fn`` closes over) keeps the traced programs on disk
@@ -158,6 +204,7 @@ def sharded_map(
     ``{"xla_cpu_prefer_vector_width": 512}``. ``whole_chunks``: ``fn(chunk, *shared)`` takes
     a whole chunk (every leaf with the chunk's leading axis) and maps it itself.
     """
+    chunk = _positive(chunk, "sharded_map: chunk")
     devs = list(devs or devices())
     options = tuple(sorted((compiler_options or {}).items()))
     if options and name is not None:
@@ -200,6 +247,8 @@ def sharded_map(
 
     def run(batch, *shared):
         n = batch_size(batch)
+        if n == 0:
+            return empty_result(fn, batch, *shared, whole_chunks=whole_chunks)
         per_device = -(-n // n_dev)
         step = min(chunk or per_device, per_device)
         size = padded_size(n, step, n_dev)
@@ -224,9 +273,14 @@ def map_blocks(
     """:func:`sharded_map` over ``batch`` in host-side blocks of at most ``block`` items,
     returned as numpy arrays: memory stays bounded by the block whatever the batch size.
     A short last block is padded to the full block, so every block runs one compiled program.
-    ``progress(done, total)`` is called after each block."""
+    ``progress(done, total)`` is called after each block. An empty batch (0 items) runs no
+    block and returns empty arrays of the shapes and dtypes ``fn`` gives (:func:`empty_result`).
+    """
+    block = _positive(block, "map_blocks: block")
     run = sharded_map(fn, chunk=chunk, compiler_options=compiler_options)
     total = batch_size(batch)
+    if total == 0:
+        return empty_result(fn, batch, *shared, host=True)
     block = min(block or total, total)
     pieces = []
     for start in range(0, total, block):
@@ -397,6 +451,7 @@ __all__ = [
     "batch_sharding",
     "batch_size",
     "devices",
+    "empty_result",
     "map_blocks",
     "mesh",
     "pad",

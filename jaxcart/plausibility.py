@@ -16,10 +16,12 @@ fits (a tap in mm "fits" f_c = 461 N). These checks run whenever a recording is 
 - the recorded command against the command the file's own controller computes from the
   recorded position and reference (:mod:`hw.control_law`, up to a sample of delay);
 - the controller: the eigenvalues of the discrete closed loop of the linear part (nominal
-  plant with zero-order hold, the PID with its derivative filter): unstable when one lies
-  outside the unit circle; implausible when its linear range v_limit / kp is below one encoder
+  plant with zero-order hold, behind the plant's transport ``delay`` when it has one, split
+  sample included; the PID with its derivative filter): unstable when one lies outside the
+  unit circle; implausible when its linear range v_limit / kp is below one encoder
   count (the loop is a relay), when one count of noise swings the derivative term over the
-  whole range, or when a mode rings faster than the 1 kHz loop resolves (above fs / 8).
+  whole range, or when a mode rings faster than the 1 kHz loop resolves (above fs / 8, judged
+  on the loop without the delay, whose delay line has fast poles of its own).
 
 Errors are :class:`UserError` (one line: file, column, value, fix); warnings are strings, which
 :func:`warn` prints once to stderr.
@@ -283,53 +285,105 @@ def plant_matrices(plant, ts):
     return ad, bd
 
 
-def closed_loop_matrix(pid, plant) -> np.ndarray:
-    """The 5 x 5 matrix of the discrete closed loop (r = 0, no limit): state [y, y', I, d_{k-1},
+def plant_delay(plant) -> float:
+    """The transport delay of ``plant``'s ``delay`` effect [s] as the simulators apply it
+    (clipped to [0, max_delay]); 0 without one. NaN stays NaN."""
+    effect = plant.effect("delay") if hasattr(plant, "effect") else None
+    if effect is None:
+        return 0.0
+    d = float(effect.delay)
+    return d if math.isnan(d) else min(max(d, 0.0), float(effect.max_delay))
+
+
+def delay_split(delay: float, ts: float) -> tuple[int, float]:
+    """(n, s) with delay = n Ts + s, 0 <= s < Ts, rounded as :mod:`jaxcart.effects.delay`'s
+    exact form does: over [t_k, t_k + s) the motor sees u_{k-n-1}, then u_{k-n}."""
+    n = int(math.floor(delay / ts))
+    split = delay - n * ts
+    if split >= ts:  # rounding at a whole number of samples
+        n, split = n + 1, 0.0
+    return n, split
+
+
+def closed_loop_matrix(pid, plant, *, with_delay: bool = True) -> np.ndarray:
+    """The matrix of the discrete closed loop (r = 0, no limit): state [y, y', I, d_{k-1},
     s_{k-1}] of the plant and the canonical PID (derivative on error and on measurement have
-    the same loop when r = 0)."""
+    the same loop when r = 0), 5 x 5; with a ``delay`` effect, delay = n Ts + s
+    (:func:`delay_split`), the past commands u_{k-1} ... u_{k-L} follow (L = n, or n + 1 for a
+    split sample), and the cart is the modified-z (split-hold) discretization
+    x_{k+1} = Ad x_k + G_late u_{k-n} + G_early u_{k-n-1}: G_late the hold over the last
+    Ts - s of the sample, G_early = e^{A (Ts - s)} times the hold over the first s.
+    ``with_delay=False``: the 5 x 5 loop without the delay."""
     ts = float(pid.sample_time)
     kp, ki, kd, tau = (float(pid.kp), float(pid.ki), float(pid.kd), float(pid.tau))
     ad, bd = plant_matrices(plant, ts)
-    cy = np.array([1.0, 0.0, 0.0, 0.0, 0.0])  # y_k
+    delay = plant_delay(plant) if with_delay else 0.0
+    n, split, length = 0, 0.0, 0
+    if delay != 0:
+        if not math.isfinite(delay):
+            raise ValueError(f"plant delay = {delay!r} s: give a finite number of seconds")
+        n, split = delay_split(delay, ts)
+        length = n + 1 if split > 0 else n
+    size = 5 + length
+    cy = np.eye(size)[0]  # y_k
     # d_k = (tau d_{k-1} + s_k - s_{k-1}) / (tau + Ts), s_k = e_k = -y_k
-    d_row = np.array([-1.0, 0.0, 0.0, tau, -1.0]) / (tau + ts)
-    u_row = -kp * cy + ki * np.eye(5)[2] + kd * d_row
-    a = np.zeros((5, 5))
+    d_row = np.zeros(size)
+    d_row[:5] = np.array([-1.0, 0.0, 0.0, tau, -1.0]) / (tau + ts)
+    u_row = -kp * cy + ki * np.eye(size)[2] + kd * d_row  # u_k
+    a = np.zeros((size, size))
     a[:2, :2] = ad
-    a[:2, :] += np.outer(bd, u_row)
-    a[2] = np.eye(5)[2] - ts * cy
+    if length == 0:
+        a[:2, :] += np.outer(bd, u_row)
+    else:
+        phi_late, g_late = plant_matrices(plant, ts - split)
+        g_early = phi_late @ plant_matrices(plant, split)[1]
+        for lag, gain in ((n, g_late), (n + 1, g_early)):
+            if lag == 0:
+                a[:2, :] += np.outer(gain, u_row)
+            elif lag <= length:
+                a[:2, 4 + lag] += gain  # u_{k-lag} is state 4 + lag
+        a[5] = u_row  # u_{k-1} <- u_k
+        for j in range(1, length):
+            a[5 + j, 4 + j] = 1.0  # u_{k-j-1} <- u_{k-j}
+    a[2] = np.eye(size)[2] - ts * cy
     a[3] = d_row
     a[4] = -cy
     return a
 
 
-def closed_loop_eigenvalues(pid, plant) -> np.ndarray:
+def closed_loop_eigenvalues(pid, plant, *, with_delay: bool = True) -> np.ndarray:
     """Eigenvalues of :func:`closed_loop_matrix` (discrete time, |z| < 1 stable); all inf
     when gains beyond float range (1e308) make the matrix overflow."""
     with np.errstate(over="ignore", invalid="ignore"):
-        a = closed_loop_matrix(pid, plant)
+        a = closed_loop_matrix(pid, plant, with_delay=with_delay)
     if not np.all(np.isfinite(a)):
-        return np.full(5, np.inf + 0j)
+        return np.full(a.shape[0], np.inf + 0j)
     return np.linalg.eigvals(a)
 
 
 def check_controller(pid, plant, *, where: str = "controller") -> list[str]:
-    """Warnings (strings) for an unstable or implausible PID on ``plant``'s linear part."""
+    """Warnings (strings) for an unstable or implausible PID on ``plant``'s linear part (its
+    m, c, gamma and its transport delay; other effects left out)."""
     from jaxcart.params import voltage_limit
 
     gains = f"kp={float(pid.kp):g} ki={float(pid.ki):g} kd={float(pid.kd):g}"
     if not all(math.isfinite(float(getattr(pid, k))) for k in ("kp", "ki", "kd", "tau")):
         return [f"{where}: {gains}: not finite"]
+    delay = plant_delay(plant)
+    if not math.isfinite(delay):
+        return [f"{where}: the plant's delay = {delay!r} s is not finite"]
     z = closed_loop_eigenvalues(pid, plant)
     if not np.all(np.isfinite(z)):
         return [f"{where}: {gains}: gains beyond any cart (the loop overflows float64)"]
     out = []
     worst = z[np.argmax(np.abs(z))]
     if abs(worst) > 1 + UNIT_CIRCLE_TOL:
+        behind = f" with its {delay * 1e3:.4g} ms delay" if delay else ""
         out.append(
-            f"{where}: {gains} make the loop unstable on the nominal plant (discrete eigenvalue "
-            f"{_complex(worst)}, |z| = {abs(worst):.4g} > 1): the cart runs away, or oscillates "
-            f"where a voltage limit holds it; check the gains' signs and sizes"
+            f"{where}: {gains} make the loop unstable on the nominal plant{behind} (discrete "
+            f"eigenvalue {_complex(worst)}, |z| = {abs(worst):.4g} > 1): the cart runs away, or "
+            f"oscillates where a voltage limit holds it; check the gains' signs and sizes"
+            + (" and the delay" if delay else "")
         )
     volts = float(voltage_limit(plant, pid))
     volts = volts if math.isfinite(volts) else LAB_VOLTAGE
@@ -347,6 +401,12 @@ def check_controller(pid, plant, *, where: str = "controller") -> list[str]:
             f" one encoder count swings the derivative term by "
             f"{kd * q / (float(pid.tau) + ts):.3g} V, beyond the {volts:g} V range"
         )
+    # Fast modes judge the gains, on the loop without the delay: a delay line's own poles
+    # (|z| ~ 0.5-0.8 at every angle for a 10-25 ms delay) are no sign of implausible gains.
+    if delay:
+        z = closed_loop_eigenvalues(pid, plant, with_delay=False)
+        if not np.all(np.isfinite(z)) or np.max(np.abs(z)) > 1 + UNIT_CIRCLE_TOL:
+            return out
     fast = z[(np.abs(z) > 0.5) & (np.abs(np.angle(z)) > 2 * math.pi * MAX_MODE_FRACTION)]
     if fast.size and abs(worst) <= 1 + UNIT_CIRCLE_TOL:
         f_mode = float(np.max(np.abs(np.angle(fast)))) / (2 * math.pi * ts)

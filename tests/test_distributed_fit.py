@@ -15,13 +15,11 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
-from cluster import spawn
+from cluster import in_threads, spawn
 
 import jaxcart as jc
 from jaxcart.errors import UserError
 from tuning import fitrun
-from tuning.tunerun import Exchange
 
 DATA = Path(jc.__file__).parent / "data"
 RECORDINGS = [str(DATA / "tap.toml"), str(DATA / "p50.toml")]
@@ -72,43 +70,31 @@ def test_fit_cross_two_processes_equal_one(tmp_path):
             assert r["rms"] > own[r["predicting"]]
 
 
-class _Peers:
-    """An :class:`Exchange` of several processes simulated in one: each allgather returns
-    the payloads the other 'processes' published for the same call (no runtime needed)."""
+def test_a_failure_anywhere_is_raised_on_every_process(monkeypatch):
+    # Processes as threads (tests/cluster.py); the rows of recording "b" cannot be computed.
+    def rows(rec, recordings, params, progress=False):
+        return [{"fitted_on": rec}] if rec == "a" else [{"fitted_on": rec, "rms": 1 / 0}]
 
-    def __init__(self, payloads_by_call, index, count):
-        self.index, self.count = index, count
-        self.payloads = payloads_by_call
-        self.calls = 0
+    monkeypatch.setattr(fitrun, "cross_rows", rows)
 
-    items = Exchange.items
+    def table(failure=None):
+        def work(ex):
+            return fitrun.cross_table(
+                ["a", "b"], ("B_eq",), processes=ex, failure=failure if ex.index == 0 else None
+            )
 
-    def allgather(self, arrays):
-        parts = self.payloads[self.calls]
-        self.calls += 1
-        return [arrays if p == self.index else parts[p] for p in range(self.count)]
+        return in_threads(monkeypatch, work)
 
-
-def _payload(doc, error=None):
-    data = json.dumps({"doc": doc, "error": error}).encode()
-    return {"json": np.frombuffer(data, dtype=np.uint8)}
-
-
-def test_a_failure_anywhere_is_raised_on_every_process():
     # Process 1 could not fit its recording: process 0 raises its error too instead of
     # writing a table with a hole.
-    peers = _Peers([[None, _payload({}, [1, "p50.toml: cannot fit"])]], 0, 2)
-    with pytest.raises(UserError, match="p50.toml: cannot fit"):
-        fitrun.share(peers, {"0": []})
-    # Process 0's joint fit failed: it computes no rows (these recordings could not be
-    # fitted), and its error, from before the table, wins over a row's.
-    peers = _Peers([[None, _payload({}, [1, "row 1"])]], 0, 2)
-    with pytest.raises(UserError, match="joint fit failed"):
-        fitrun.cross_table(
-            [None, None], ("B_eq",), processes=peers, failure=UserError("joint fit failed")
-        )
-    peers = _Peers([[None, _payload({"1": [2]})]], 0, 2)
-    assert fitrun.share(peers, {"0": [1]}) == {"0": [1], "1": [2]}
+    for exc in table():
+        assert type(exc) is UserError
+        assert str(exc) == "ZeroDivisionError in process 1 of 2: division by zero"
+    # Process 0's joint fit failed: it computes no rows, and its error, from before the
+    # table, wins over a row's.
+    assert {str(e) for e in table(UserError("joint fit failed"))} == {"joint fit failed"}
+    monkeypatch.setattr(fitrun, "cross_rows", lambda rec, *a, **k: [{"fitted_on": rec}])
+    assert table() == [[{"fitted_on": "a"}, {"fitted_on": "b"}]] * 2
 
 
 def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):

@@ -5,9 +5,14 @@ Each process holds two CPU devices, as this test process does (conftest), so eac
 evaluates as many starts in both runs and the tuner's rows agree bit for bit. The diagnosis
 splits 4 candidates 2 + 2 against 4 on one process: the per-device batch differs, so its
 smooth fits may differ in the last bits (measured: 1e-12 relative); they are compared to 1e-8.
+
+An error one process meets (patched in by the test's own code, run before the command line, or
+an input only one process has) stops every process at once with the same one line.
 """
 
 import json
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -21,8 +26,13 @@ from tuning import tunerun
 TAP = Path(jc.__file__).parent / "data" / "tap.toml"
 
 
-def _wait(procs, codes=(0, 0)):
-    outs = [p.communicate(timeout=240) for p in procs]
+def _wait(procs, codes=(0, 0), timeout_s=240):
+    try:
+        outs = [p.communicate(timeout=timeout_s) for p in procs]
+    except subprocess.TimeoutExpired:
+        for p in procs:  # none is left waiting for the hour of the store's timeout
+            p.kill()
+        raise
     for p, code, (_out, err) in zip(procs, codes, outs, strict=True):
         assert p.returncode == code, err[-2000:]
     return outs
@@ -104,3 +114,64 @@ def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):
     (tmp_path / "d" / "report.md").write_text("")
     assert main(["diagnose", str(TAP), "--out", "d", *cluster]) == 2
     assert "report.md exists" in capsys.readouterr().err
+
+
+#: Run first by each process of the tests below: a failure where JAXCART_PROCESS_ID is 1.
+FAIL_ON_1 = """
+import os
+if os.environ["JAXCART_PROCESS_ID"] == "1":
+{}
+"""
+#: The tuner's 4th iteration fails on process 1 (a bug's exception, not a UserError).
+TUNE_FAILS = FAIL_ON_1.format(
+    """    import tuning.tune as T
+    cosine = T._cosine
+    def _cosine(lr, k, n, *rest):
+        if k == 3:
+            raise RuntimeError("injected at iteration 3")
+        return cosine(lr, k, n, *rest)
+    T._cosine = _cosine"""
+)
+#: Process 1's exact polishes fail (after the first batch fit and exact re-checks).
+DIAGNOSE_FAILS = FAIL_ON_1.format(
+    """    import tuning.diagnose.core as D
+    from jaxcart.errors import SimulationDiverged
+    def _polish(*args, **kwargs):
+        raise SimulationDiverged("injected: the exact polish diverged")
+    D._polish = _polish"""
+)
+
+
+def _stopped(procs, command, message):
+    """Every process exited within 60 s with ``message`` as its one error line (a process
+    that waits for its partner would wait up to an hour)."""
+    outs = _wait(procs, codes=(2, 2), timeout_s=60)
+    for _out, err in outs:
+        assert err.strip().splitlines()[-1] == f"jaxcart {command}: error: {message}", err[-2000:]
+
+
+def test_tune_error_on_one_process_stops_every_one(tmp_path):
+    argv = ["tune", "--horizon", "1.5", "--iterations", "20", "--starts", "2", "--quiet"]
+    procs = spawn(tmp_path, [*argv, "--out", "g.json"], inject=TUNE_FAILS)
+    _stopped(procs, "tune", "RuntimeError in process 1 of 2: injected at iteration 3")
+    assert not list((tmp_path / "p0").iterdir())  # process 0 wrote nothing
+
+
+def test_diagnose_error_on_one_process_stops_every_one(tmp_path):
+    argv = ["diagnose", str(TAP), "--quiet", "--out", "d"]
+    procs = spawn(tmp_path, argv, inject=DIAGNOSE_FAILS)
+    _stopped(procs, "diagnose", "injected: the exact polish diverged")
+    assert not list((tmp_path / "p0").iterdir())
+
+
+def test_diagnose_input_only_one_process_has_stops_every_one(tmp_path):
+    # The recording is in process 0's folder only: process 1 fails to read it, and process
+    # 0 stops at the exchange after the inputs, before it compiles anything.
+    (tmp_path / "p0").mkdir()
+    for name in ("tap.toml", "tap.csv"):
+        shutil.copy(TAP.parent / name, tmp_path / "p0" / name)
+    procs = spawn(tmp_path, ["diagnose", "tap.toml", "--quiet", "--out", "d"])
+    outs = _wait(procs, codes=(2, 2), timeout_s=30)
+    errors = {err.strip().splitlines()[-1] for _out, err in outs}
+    assert len(errors) == 1 and "tap.toml" in errors.pop(), errors
+    assert not (tmp_path / "p0" / "d").exists()

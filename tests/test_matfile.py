@@ -2,6 +2,7 @@
 reader exactly, the field layout MATLAB expects (scipy.io.loadmat as MATLAB structs), a
 recording written back in the layout it came in, and ``jaxcart simulate --out run.mat``."""
 
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -107,6 +108,48 @@ def test_simulate_writes_back_the_layout_it_came_in(tmp_path, monkeypatch, capsy
     assert (
         simulate_command.MAT_LAYOUTS == matfile.LAYOUTS
     )  # the parser's copy (it must not import jaxcart)
+
+
+def _count_loads(monkeypatch):
+    """{file name: times scipy.io.loadmat read it}, counting every load from now on."""
+    counts: dict = {}
+    real = scipy.io.loadmat
+
+    def counting(path, *args, **kwargs):
+        counts[Path(path).name] = counts.get(Path(path).name, 0) + 1
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(scipy.io, "loadmat", counting)
+    return counts
+
+
+def test_each_mat_file_is_read_once(tmp_path, monkeypatch, capsys):
+    """Reading a recording loads each .mat file once, and the layout it came in is noted then:
+    source_layout, write_mat_recording and `jaxcart simulate --out x.mat` read none again,
+    and give what loading the files afresh gives."""
+    source = _lab_scope(tmp_path)
+    counts = _count_loads(monkeypatch)
+    rec = read_experiment(source)
+    assert counts == {"pos.mat": 1, "volt.mat": 1}
+    layout = matfile.source_layout(rec)
+    assert layout["y"] == matfile.SignalLayout("structure", "y", "labcartsat/cart position", "")
+    assert layout["v"].block_name == "labcartsat/voltage out"
+    # The same as loading the files afresh (a recording without the noted layouts).
+    afresh = matfile.source_layout(dataclasses.replace(rec, mat_layout=None))
+    assert afresh == layout and counts == {"pos.mat": 2, "volt.mat": 2}
+    counts.clear()
+    matfile.write_mat_recording(tmp_path / "copy.mat", rec)
+    assert counts == {}
+    copied = matfile.source_layout(read_experiment(tmp_path / "copy.toml"))
+    assert {k: copied[k] for k in layout} == layout  # and r, e (written) in the same layout
+    counts.clear()
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", str(source), "--out", "sim.mat"]) == 0
+    assert counts == {"pos.mat": 1, "volt.mat": 1}
+    capsys.readouterr()
+    # CSV data: no layout, nothing loaded.
+    csv = read_experiment(Path(jc.__file__).parent / "data" / "tap.toml")
+    assert csv.mat_layout == {} and matfile.source_layout(csv) == {}
 
 
 def test_real_recording_converts_to_mat(realdata, tmp_path):

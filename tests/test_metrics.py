@@ -8,6 +8,7 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.batch import step_metrics_batch
+from jaxcart.metrics import StepInfo
 
 TS = 0.001
 
@@ -73,6 +74,27 @@ def test_batch_float32_close_to_float64():
 def test_batch_rejects_badly_shaped_gains():
     with pytest.raises(ValueError, match="shape"):
         step_metrics_batch(jc.handout_plant(), jc.PID(), jc.step(0.5), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="chunk"):
+        step_metrics_batch(jc.handout_plant(), jc.PID(), jc.step(0.5), np.zeros((4, 3)), chunk=0)
+
+
+@pytest.mark.parametrize("dtype", [None, jnp.float32])
+def test_batch_of_no_gains_is_empty_step_info_of_the_same_dtypes(dtype):
+    """Zero rows run nothing and give empty fields with the dtypes a one-row batch has (the
+    problem of test_batch_float32_close_to_float64, so the one-row run shares its compile)."""
+    plant, base, exp = jc.handout_plant(), jc.PID(v_limit=6.0), jc.step(0.5)
+    one = step_metrics_batch(plant, base, exp, np.array([[40.0, 5.0, 0.0]]), dtype=dtype)
+    seen = []
+    none = step_metrics_batch(
+        plant, base, exp, np.zeros((0, 3)), dtype=dtype, progress=lambda *a: seen.append(a)
+    )
+    assert isinstance(none, StepInfo) and seen == []
+    for name, got in none._asdict().items():
+        want = getattr(one, name)
+        assert isinstance(got, np.ndarray) and got.shape == (0,), name
+        assert got.dtype == want.dtype, name
+    plants = [plant, plant.replace(B_eq=3.0)]  # a plant set: the worst, still one per row
+    assert step_metrics_batch(plants, base, exp, np.zeros((0, 3))).overshoot.shape == (0,)
 
 
 def test_batch_over_a_plant_set_is_the_worst_of_single_runs():

@@ -82,6 +82,51 @@ def test_map_blocks_equals_one_call_and_reports_progress():
         np.testing.assert_allclose(g, np.asarray(w), rtol=1e-13, atol=1e-15)
 
 
+def test_empty_batch_gives_empty_results_of_the_right_shapes_and_dtypes():
+    """0 items: nothing compiled or run, every leaf of the result with the shape and dtype a
+    batch of items gives (found by tracing fn on one item's shapes), leading axis 0."""
+
+    def fn(item, scale):
+        x, a = item["x"], item["a"]
+        return (scale * jnp.sin(x) * a, {"norm": jnp.sum(x**2) + a, "n": jnp.int32(3)})
+
+    full = jax.vmap(fn, in_axes=(0, None))(_batch(3), 0.5)
+    empty = _batch(0)
+    for got, host in (
+        (parallel.sharded_map(fn, chunk=2, cache=False)(empty, 0.5), False),
+        (parallel.map_blocks(fn, empty, 0.5, chunk=2, block=4), True),
+    ):
+        assert jax.tree.structure(got) == jax.tree.structure(full)
+        for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(full), strict=True):
+            assert isinstance(g, np.ndarray) == host
+            assert g.shape == (0,) + w.shape[1:] and g.dtype == w.dtype
+    # A whole-chunk fn: its result's leading axis is the chunk's.
+    whole = parallel.sharded_map(lambda c, k: k * c["x"], cache=False, whole_chunks=True)
+    assert whole(empty, 2.0).shape == (0, 3)
+    # Progress is reported per block: an empty batch has none.
+    seen = []
+    parallel.map_blocks(_fn, empty, 1.0, progress=lambda d, t: seen.append((d, t)))
+    assert seen == []
+
+
+def test_empty_batch_that_fn_cannot_trace_and_bad_sizes_are_clear_errors():
+    def needs_data(item, scale):
+        if float(item["a"]) > 0:  # concrete values only: no shapes without data
+            return item["x"]
+        return -item["x"]
+
+    with pytest.raises(ValueError, match="empty batch.*without data.*at least one item"):
+        parallel.map_blocks(needs_data, _batch(0), 1.0)
+    with pytest.raises(ValueError, match="chunk = 0"):
+        parallel.sharded_map(_fn, chunk=0)
+    with pytest.raises(ValueError, match="block = -1"):
+        parallel.map_blocks(_fn, _batch(3), 1.0, block=-1)
+    with pytest.raises(ValueError, match="empty batch"):
+        parallel.pad({"x": np.zeros((0, 3))}, 4)
+    with pytest.raises(ValueError, match=">= 1"):
+        parallel.padded_size(0, 0, 2)
+
+
 def test_padding_repeats_the_last_item_on_the_host():
     padded = parallel.pad({"x": np.arange(3.0)}, 5)
     assert isinstance(padded["x"], np.ndarray)

@@ -92,6 +92,103 @@ def test_unstable_and_implausible_controllers_are_flagged_lab_gains_are_not():
     assert any("kd=3000" in m and "implausible" in m for m in fast)
 
 
+#: Gains the delay-free loop holds (|z| < 1) and a transport delay of 5.92 ms destabilizes
+#: (between whole samples: 5 ms holds, 6 ms does not, so only the split sample tells 5.85 ms
+#: from 5.95 ms). Plausible by every other check (kp q = 0.05 V).
+DELAYED_PID = jc.PID(kp=2000.0, kd=10.0, ki=10.0)
+#: The oscillatory mode of an exact simulation (|z| per sample and its angle [rad]) against
+#: the loop's pole pair: a two-term recurrence fitted by least squares to y's second
+#: differences once the other modes have died out (measured agreement 7e-13 or better).
+MODE_TOL = 1e-9
+
+
+def _delayed(delay):
+    return jc.build_plant({"delay": delay})
+
+
+@pytest.mark.parametrize("delay", [0.0005, 0.003, 0.005, 0.00585, 0.00595, 0.0075, 0.02])
+@pytest.mark.parametrize(
+    "gains", [dict(kp=40.0, kd=5.0, ki=5.0), dict(kp=2000.0, kd=10.0, ki=10.0)]
+)
+def test_delayed_loop_eigenvalues_are_the_control_systems_poles(delay, gains):
+    """With a delay effect the loop matrix gains one state per held command; its eigenvalues
+    are the poles of jaxcart.control_systems' python-control loop (cart behind the delay line
+    by scipy's matrix exponential) plus the one at 0 of s_{k-1}, to EIG_TOL."""
+    from jaxcart import control_systems as cs
+
+    pid, plant = jc.PID(**gains), _delayed(delay)
+    rest = list(plausibility.closed_loop_eigenvalues(pid, plant))
+    poles = cs.closed_loop_poles(plant, pid)
+    assert len(rest) == len(poles) + 1
+    for pole in poles:
+        nearest = min(range(len(rest)), key=lambda i: abs(rest[i] - pole))
+        assert abs(rest.pop(nearest) - pole) < EIG_TOL
+    assert abs(rest[0]) < EIG_TOL
+
+
+@pytest.mark.parametrize(
+    "delay, unstable",
+    [
+        (0.0045, False),
+        (0.005, False),
+        (0.00585, False),
+        (0.00595, True),
+        (0.006, True),
+        (0.007, True),
+        (0.0075, True),
+    ],
+)
+def test_a_loop_that_a_delay_destabilizes_is_reported(delay, unstable):
+    """The verdict and the mode against the exact simulator (numpy, the delay effect's exact
+    form) of the linear loop: the oscillation of the simulated run has the loop's oscillatory
+    pole pair, to MODE_TOL, and grows (|z| > 1) exactly when the check reports instability."""
+    from jaxcart.exact import simulate_exact
+
+    plant = _delayed(delay)
+    pid = jc.PID(kp=DELAYED_PID.kp, kd=DELAYED_PID.kd, ki=DELAYED_PID.ki, v_limit=6.0)
+    assert plausibility.check_controller(pid, jc.handout_plant()) == []  # fine without delay
+    messages = plausibility.check_controller(pid, plant)
+    if unstable:
+        (message,) = messages
+        assert "unstable" in message and f"{delay * 1e3:g} ms delay" in message
+    else:
+        assert messages == []
+    z = plausibility.closed_loop_eigenvalues(DELAYED_PID, plant)
+    osc = z[np.abs(z.imag) > 1e-9]
+    pole = osc[np.argmax(np.abs(osc))]
+    res = simulate_exact(plant, DELAYED_PID, jc.step(0.001, horizon=4.0))  # no limit: linear
+    # From sample 2000 on only the slowest modes are left: a real pole near 1, which the
+    # second difference removes, and the oscillatory pair: x_{k+1} = 2 r cos(th) x_k - r^2 x_{k-1}.
+    x = np.diff(np.asarray(res.position), 2)[2000:]
+    (a, b), *_ = np.linalg.lstsq(np.stack([x[1:-1], x[:-2]], 1), x[2:], rcond=None)
+    r = np.sqrt(-b)
+    assert abs(r - abs(pole)) < MODE_TOL
+    assert abs(np.arccos(a / (2 * r)) - abs(np.angle(pole))) < MODE_TOL
+    assert (r > 1) == unstable and (
+        np.max(np.abs(z)) > 1 + plausibility.UNIT_CIRCLE_TOL
+    ) == unstable
+
+
+def test_no_delay_and_a_zero_delay_give_the_delay_free_loop():
+    pid = jc.PID(kp=40.0, kd=5.0, ki=5.0)
+    free = plausibility.closed_loop_matrix(pid, jc.handout_plant())
+    assert free.shape == (5, 5)
+    np.testing.assert_array_equal(plausibility.closed_loop_matrix(pid, _delayed(0.0)), free)
+    np.testing.assert_array_equal(
+        plausibility.closed_loop_matrix(pid, _delayed(0.004), with_delay=False), free
+    )
+    assert plausibility.closed_loop_matrix(pid, _delayed(0.004)).shape == (9, 9)  # u_1..u_4
+    assert plausibility.closed_loop_matrix(pid, _delayed(0.0045)).shape == (10, 10)  # + split
+    assert plausibility.delay_split(0.0045, 0.001) == (4, pytest.approx(0.0005, abs=1e-15))
+
+
+def test_a_long_delay_does_not_make_lab_gains_implausible():
+    """A 20 ms delay line has poles of |z| ~ 0.7 at every angle: the fast-mode check judges the
+    gains on the loop without it, so the lab's gains stay clean (and stable)."""
+    for gains in (dict(kp=40.0, kd=5.0, ki=5.0), dict(kp=250.0, kd=15.0, ki=30.0)):
+        assert plausibility.check_controller(jc.PID(v_limit=6.0, **gains), _delayed(0.02)) == []
+
+
 # ---------------------------------------------------------------- recordings
 
 

@@ -94,3 +94,25 @@ def test_the_suite_runs_with_loops_compiled_whole():
         assert xlaflags.loop_kernels()
         f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (c + 1.0, None), x, None, 10)[0])
         assert "xla_cpu_small_call" in f.lower(jnp.ones(8)).compile().as_text()
+
+
+def test_on_another_backend_the_chunks_are_wide_and_no_cpu_option_is_passed(monkeypatch):
+    """A GPU: the batches keep their wide chunks, and neither the forward batch nor the bench's
+    gradient row asks for a CPU option (what a GPU run would compile, without a GPU here)."""
+    import jaxcart.batch as batch
+    from jaxcart import parallel
+    from tuning import bench
+
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert batch.default_chunk() == batch.WIDE_CHUNK
+    assert batch.COMPILER_OPTIONS.get("gpu") is None
+    seen = {}
+    real = parallel.sharded_map
+
+    def spy(fn, **kwargs):
+        seen.update(kwargs)
+        return real(fn, **kwargs)
+
+    monkeypatch.setattr(parallel, "sharded_map", spy)
+    bench.grad_evaluator(*bench.w1_problem(0.01), chunk=4)
+    assert seen["compiler_options"] == {} and seen["whole_chunks"]

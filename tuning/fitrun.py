@@ -10,9 +10,10 @@ are put back in the single-process order. JSON writes a float's shortest repr, w
 as the same float, so the gathered numbers are those the other process computed, bit for bit.
 
 The joint fit of all recordings (``jaxcart fit`` without ``--cross``) is one problem; process 0
-alone computes it while the others fit their rows. A :class:`~jaxcart.errors.UserError` one
-process meets (a recording it cannot fit, process 0's joint fit or output check) travels in the
-same all-gather and is raised on every process, so none waits for a partner that has stopped.
+alone computes it while the others fit their rows. An error one process meets (a recording it
+cannot fit, process 0's joint fit or output check) travels in the same all-gather in place of
+its rows (:meth:`tuning.tunerun.Exchange.allgather`) and is raised on every process, so none
+waits for a partner that has stopped.
 """
 
 from __future__ import annotations
@@ -20,8 +21,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-
-from jaxcart.errors import UserError
 
 
 def cross_rows(rec, recordings, params, *, progress=False) -> list:
@@ -55,9 +54,9 @@ def cross_table(recordings, params, *, progress=False, processes=None, failure=N
     parameters that recording could not identify (kept at their start).
 
     processes: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: this process
-    fits its share of the recordings and every process returns the whole table. failure: a
-    :class:`UserError` this process met before (process 0's joint fit): it computes nothing
-    more and the error is raised on every process after the exchange."""
+    fits its share of the recordings and every process returns the whole table. failure: an
+    exception this process met before (process 0's joint fit): it computes nothing more and
+    the error is raised on every process after the exchange, as is one met in a fit."""
     recordings = list(recordings)
 
     def group(i):
@@ -73,27 +72,19 @@ def cross_table(recordings, params, *, progress=False, processes=None, failure=N
         try:
             for rank in processes.items(len(recordings)):
                 mine[str(rank)] = group(rank)
-        except UserError as exc:
+        except Exception as exc:  # sent in place of the rows: the others must not wait
             failure = exc
-        except Exception as exc:  # any other failure: the others must not wait for this one
-            failure = UserError(f"{type(exc).__name__} while fitting: {exc}")
     groups = share(processes, mine, failure, rank=rank)
     return [row for i in range(len(recordings)) for row in groups[str(i)]]
 
 
 def share(processes, doc: dict, failure=None, *, rank: int = -1) -> dict:
     """Every process's ``doc`` (JSON-able, keys distinct over the processes), merged. Where a
-    process passes a ``failure`` (a :class:`UserError`), every process raises instead the one
-    of least ``rank`` (the work item it came from: the error a single process meets first)."""
-    error = None if failure is None else [rank, str(failure)]
-    data = np.frombuffer(json.dumps({"doc": doc, "error": error}).encode(), dtype=np.uint8)
+    process passes a ``failure`` (an exception), every process raises instead the
+    :class:`~jaxcart.errors.UserError` of least ``rank`` (the work item it came from: the
+    error a single process meets first; see :meth:`tuning.tunerun.Exchange.allgather`)."""
+    data = np.frombuffer(json.dumps(doc).encode(), dtype=np.uint8)
     merged: dict = {}
-    errors = []
-    for part in processes.allgather({"json": data}):
-        got = json.loads(part["json"].tobytes().decode())
-        merged.update(got["doc"])
-        if got["error"] is not None:
-            errors.append(tuple(got["error"]))
-    if errors:
-        raise UserError(min(errors)[1])
+    for part in processes.allgather({"json": data}, failure=failure, rank=rank):
+        merged.update(json.loads(part["json"].tobytes().decode()))
     return merged

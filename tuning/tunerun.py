@@ -19,11 +19,19 @@ both (e.g. one start per device); other splits can differ in the last bits (XLA 
 another batch size otherwise), which can move a rounded candidate. ``jaxcart diagnose`` uses
 :class:`Exchange` alone: :func:`tuning.diagnose.diagnose` splits its batch fits, exact
 re-checks and exact polishes of the candidates over the processes.
+
+Errors travel in the exchange: a process that meets an exception publishes it in its next
+exchange call in place of its payload (:meth:`Exchange.carry` around ``jaxcart tune`` and
+``jaxcart diagnose``; ``fit --cross`` passes its own, ranked by recording), and every process
+raises the same :class:`UserError` there instead of waiting for a partner that has stopped (up
+to ``timeout_s``). A process that dies outright is left to the runtime's own checks.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
+import json
 
 import jax
 import numpy as np
@@ -33,6 +41,8 @@ from jaxcart.errors import UserError
 
 #: Prefix of the key-value store keys of the exchanged rows.
 PREFIX = "jaxcart-tune"
+#: Name of the one array of a payload that carries an error instead of rows: JSON [rank, message].
+ERROR = "jaxcart-error"
 
 
 class Exchange:
@@ -41,6 +51,7 @@ class Exchange:
     same order (they are numbered, not named).
 
     index, count: this process and the number of processes (default the runtime's).
+    timeout_s: the longest wait for another process's payload [s].
     """
 
     #: Exchanges made in this process: part of the keys, so a second one (a second tune in a
@@ -52,6 +63,10 @@ class Exchange:
         self.count = parallel.process_count() if count is None else count
         self.timeout_s = timeout_s
         self.calls = 0
+        #: An error met now is published in the next call (:meth:`carry`); False during a
+        #: call, after one raised and after :meth:`finish`.
+        self.open = True
+        self.finished = False
         self.run = Exchange.made
         Exchange.made += 1
 
@@ -63,36 +78,69 @@ class Exchange:
         """Every process's items of ``n``, by process."""
         return [parallel.partition(n, p, self.count) for p in range(self.count)]
 
-    def allgather(self, arrays: dict) -> list[dict]:
-        """Every process's ``arrays`` ({name: numpy array}), by process."""
+    def allgather(self, arrays: dict, *, failure=None, rank: int = 0) -> list[dict]:
+        """Every process's ``arrays`` ({name: numpy array}), by process.
+
+        failure: an exception this process met instead of computing ``arrays``, published in
+        their place (a :class:`UserError` as it is, any other as one line naming its type).
+        Where any process published one, every process raises the same :class:`UserError`:
+        the one of least ``rank`` (e.g. the work item it came from), then of least process
+        index."""
+        if failure is None:
+            mine = {k: np.asarray(v) for k, v in arrays.items()}
+        else:
+            mine = _error_payload(failure, rank, self.index, self.count)
+        data = _pack(mine)
         call = self.calls
         self.calls += 1
-        mine = {k: np.asarray(v) for k, v in arrays.items()}
-        buf = io.BytesIO()
-        np.savez(buf, **mine)
-        _exchange(parallel.publish, self._key(call, self.index), buf.getvalue())
+        self.open = False  # a failure inside the call is the exchange's own: never sent again
+        _exchange(parallel.publish, self._key(call, self.index), data)
         parts = []
         for p in range(self.count):
             if p == self.index:
                 parts.append(mine)
                 continue
             data = _exchange(parallel.fetch, self._key(call, p), self.timeout_s, delete=False)
-            with np.load(io.BytesIO(data)) as z:
-                parts.append({k: z[k] for k in z.files})
+            parts.append(_unpack(data))
         # Every other process published this call, so it has fetched the previous one: this
         # process's previous payload can go.
         if call > 0:
             _delete(self._key(call - 1, self.index))
+        errors = [_error_of(part, p) for p, part in enumerate(parts) if ERROR in part]
+        if errors:  # every process stops here, with the same error
+            raise UserError(min(errors)[2]) from failure
+        self.open = True
         return parts
 
+    def sync(self) -> None:
+        """An exchange without rows: every process has come this far, or every process raises
+        the error one of them met before it (see :meth:`carry`)."""
+        self.allgather({})
+
+    @contextlib.contextmanager
+    def carry(self, rank: int = 0):
+        """A block whose exceptions reach every process: one this process meets while the
+        exchange is open is published in its next call in place of its rows
+        (:meth:`allgather`, ``rank``), and raised there on every process as the same
+        :class:`UserError`. Errors of the exchange itself (a lost partner, an error another
+        process sent) and any after :meth:`finish` go up as they are."""
+        try:
+            yield self
+        except Exception as exc:
+            if not self.open:
+                raise
+            self.allgather({}, failure=exc, rank=rank)  # raises on every process
+
     def finish(self) -> bool:
-        """End the exchange (every process waits for the others); True on process 0."""
+        """End the exchange: a last :meth:`sync` (an error met since the last call reaches
+        every process), then every process waits for the others; True on process 0."""
+        self.sync()
+        self.open, self.finished = False, True
         try:
             parallel.barrier(f"{PREFIX}/{self.run}/done", self.timeout_s)
         except Exception as exc:  # the runtime's own types (timeouts, lost peers)
             raise UserError(_lost(exc)) from None
-        if self.calls:
-            _delete(self._key(self.calls - 1, self.index))
+        _delete(self._key(self.calls - 1, self.index))
         return self.index == 0
 
     def _key(self, call: int, index: int) -> str:
@@ -124,12 +172,11 @@ class StartShare(Exchange):
         super().__init__(index, count, timeout_s=timeout_s)
         self.n_starts = max(1, n_starts)
         self.rows = np.asarray(self.items(self.n_starts))
-        if self.rows.size == 0:
+        if self.count > self.n_starts:  # checked alike on every process: all of them raise
             raise UserError(
                 f"--starts {n_starts}: {self.count} processes need at least one start each; "
                 f"give --starts {self.count} or more"
             )
-        self.exchanging = True
 
     def wrap(self, update):
         """``update`` over this process's starts, returning the whole batch (numpy rows;
@@ -151,7 +198,7 @@ class StartShare(Exchange):
                 return jax.device_put(x, replicated())
 
             out = update(take(theta), jax.tree.map(take, opt_state), *rest)
-            if not self.exchanging:
+            if self.finished:
                 return out
             return self._gather(out, local_rows.size, n_full)
 
@@ -168,10 +215,6 @@ class StartShare(Exchange):
             leaves[i] = full
         return jax.tree.unflatten(treedef, leaves)
 
-    def finish(self) -> bool:
-        self.exchanging = False
-        return super().finish()
-
 
 def _delete(key: str) -> None:
     """Remove this process's own ``key`` from the store (read back at once: it is there)."""
@@ -179,6 +222,36 @@ def _delete(key: str) -> None:
         parallel.fetch(key, 60.0)
     except Exception:  # the store is only cleaned: a failure here costs nothing
         pass
+
+
+def _pack(arrays: dict) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _unpack(data: bytes) -> dict:
+    with np.load(io.BytesIO(data)) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _error_payload(exc, rank: int, index: int, count: int) -> dict:
+    """The payload that carries ``exc``: a :class:`UserError`'s message as it is, any other
+    exception as one line naming its type and process (its traceback stays here, as the
+    cause of the error raised)."""
+    if isinstance(exc, UserError):
+        message = str(exc)
+    else:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else "(no message)"
+        message = f"{type(exc).__name__} in process {index} of {count}: {first}"
+    text = json.dumps([int(rank), message])
+    return {ERROR: np.frombuffer(text.encode(), dtype=np.uint8)}
+
+
+def _error_of(part: dict, index: int) -> tuple:
+    """(rank, process index, message) of a payload that carries an error: its order."""
+    rank, message = json.loads(part[ERROR].tobytes())
+    return rank, index, message
 
 
 def _lost(exc) -> str:

@@ -74,25 +74,36 @@ def run(args) -> int:
     # Process 0's outputs are checked before it joins where its index is known: a bad path
     # fails at once instead of leaving the other processes waiting for it.
     checked = settings is None or (settings != "auto" and settings[2] == 0)
-    if checked:
-        out = _check_outputs(args)
-    share = None
-    if parallel.init_distributed(settings):
-        from tuning.tunerun import Exchange
+    out = _check_outputs(args) if checked else None
+    if not parallel.init_distributed(settings):
+        return _run(args, None, out)
+    from tuning.tunerun import Exchange
 
-        share = Exchange()
-    me = parallel.process_index()
-    if me == 0 and not checked:
-        out = _check_outputs(args)
+    share = Exchange()
+    # An error one process meets from here on (a recording only some hosts have, a failure
+    # mid-run) is raised on every process, none waiting for a partner that has stopped.
+    with share.carry():
+        return _run(args, share, out)
+
+
+def _run(args, share, out) -> int:
+    """Diagnose and write the outputs. share: the :class:`tuning.tunerun.Exchange` of a
+    distributed run (else None); out: the report folder, where checked before joining."""
+    from jaxcart import parallel
     from jaxcart.files import read_experiment
     from tuning.diagnose import diagnose, write_outputs
 
+    me = parallel.process_index()
+    if me == 0 and out is None:
+        out = _check_outputs(args)
     recordings = [read_experiment(path) for path in args.experiments]
     start = None
     if args.plant_file:
         from jaxcart.plantspec import load_plant
 
         start = load_plant(args.plant_file)
+    if share is not None:
+        share.sync()  # every process has its inputs: an error reading them stops all now
     d = diagnose(recordings, start=start, progress=not args.quiet and me == 0, processes=share)
     if share is not None and not share.finish():
         print(f"process {me} of {share.count}: done, results sent to process 0")

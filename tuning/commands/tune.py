@@ -259,8 +259,23 @@ def run(args) -> int:
         # Process 0's output paths are checked before it joins: a bad one fails at once
         # instead of leaving the other processes waiting for it.
         outputs = (*_outputs(args), _json_path(args))
-    distributed = parallel.init_distributed(settings)
+    if not parallel.init_distributed(settings):
+        return _run(args, None, outputs)
+    from tuning.tunerun import StartShare
+
+    share = StartShare(args.starts)
+    # An error one process meets from here on (an input only some hosts have, a failure
+    # mid-run) is raised on every process, none waiting for a partner that has stopped.
+    with share.carry():
+        return _run(args, share, outputs)
+
+
+def _run(args, share, outputs) -> int:
+    """Tune and write the outputs. share: this process's :class:`tuning.tunerun.StartShare`
+    in a distributed run (else None); outputs: process 0's paths checked before it joined."""
     import jax
+
+    from jaxcart import parallel
 
     jax.config.update("jax_enable_x64", True)
     from jaxcart.experiments import step
@@ -302,14 +317,11 @@ def run(args) -> int:
             _write_json(json_path, docs if len(docs) > 1 else docs[problems[0]])
         return 0
 
-    share = None
-    if distributed:
-        from tuning.tunerun import StartShare
-
-        share = StartShare(args.starts)
     me = parallel.process_index()
     if me == 0:
         gains_path, png_path, json_path = outputs or (*_outputs(args), _json_path(args))
+    if share is not None:
+        share.sync()  # every process has its inputs: an error reading them stops all now
     result = tune(
         plant,
         spec=spec,

@@ -504,6 +504,8 @@ def diagnose(
     processes: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: the candidates'
     batch fits, exact re-checks and exact polishes are split over the processes and every
     result gathered on every one, which then all hold the same diagnosis (process 0 reports).
+    Inside ``processes.carry()`` (as ``jaxcart diagnose`` calls it), an exception one process
+    meets is raised on every process at its next exchange, none waiting for another.
     """
     import jax
 
