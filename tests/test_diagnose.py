@@ -43,6 +43,19 @@ def test_fast_suite_names_the_truth(fast_results, name):
         assert row["ratio"] > 10
 
 
+def test_fast_suite_says_what_one_recording_cannot_tell(fast_results):
+    """A heavier cart on one closed loop: M and gamma_scale tie (only gamma/m and c/m are
+    identifiable), said in the verdict, B_eq not settled. Every fast case is explained and
+    none needs the forward selection past pairs (docs/diagnose.md)."""
+    _, d = fast_results["heavier cart (M)"]
+    assert not d.left_out and d.corrected_parameters in (["M"], ["gamma_scale"])
+    assert d.unidentifiable and "cannot be told apart" in d.verdict
+    assert d.parameters["B_eq"]["settled"] is False
+    for name, (_case, d) in fast_results.items():
+        assert d.explained and not d.implausible, name
+        assert max(c.round for c in d.candidates) <= 2, name
+
+
 def test_json_and_outputs(fast_results, tmp_path):
     _, d = fast_results["coulomb plain"]
     assert abs(d.parameters["f_c"]["value"] - 0.4) < 0.01

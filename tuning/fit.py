@@ -1414,12 +1414,8 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
     n_eff = effective_samples(problem.split(r))
     se_hac = np.sqrt(np.diag(hac))
     misfit = ""
-    if _rms(r) > MISFIT_RATIO * floor:
-        # The residual is model error (or uninformative data), not noise: its n_eff
-        # independent samples support sigma^2 (J^T J)^-1 N / n_eff, which the sandwich can
-        # miss when the error is one slow wave; report the larger.
-        tau = r.size / n_eff
-        se_hac = np.maximum(se_hac, np.sqrt(np.diag(naive) * tau))
+    if misfits(_rms(r), floor):
+        se_hac = widened_for_model_error(se_hac, np.diag(naive), r.size, n_eff)
         misfit = (
             f"the model does not explain the data: RMS {_rms(r) * 1e3:.3g} mm is "
             f"{_rms(r) / floor:.0f} times the encoder/noise level {floor * 1e3:.2g} mm; the "
@@ -1515,6 +1511,24 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
             f"{result.rms_after_exact * 1e3:.4g} mm (exact); {result.seconds:.1f} s"
         )
     return result
+
+
+def misfits(rms: float, floor: float) -> bool:
+    """True when an RMS error is model error rather than noise: above :data:`MISFIT_RATIO`
+    times the noise floor (``jaxcart fit`` and ``jaxcart diagnose`` both judge by it)."""
+    return rms > MISFIT_RATIO * floor
+
+
+def widened_for_model_error(stderr, naive_variance, n: int, n_eff: float) -> np.ndarray:
+    """Standard errors of a model that does not explain the data (:func:`misfits`).
+
+    The residual is model error (or uninformative data), not noise: its ``n_eff`` independent
+    samples (:func:`effective_samples`) support the naive sigma^2 (J^T J)^-1 times N / n_eff,
+    which the sandwich can miss when the error is one slow wave; the larger of the two.
+    stderr: the robust standard errors; naive_variance: the diagonal of sigma^2 (J^T J)^-1
+    (sigma^2 = RSS / (N - p)), in the same units squared; n: residuals N."""
+    tau = n / n_eff
+    return np.maximum(stderr, np.sqrt(naive_variance * tau))
 
 
 def noise_floor(segments) -> float:

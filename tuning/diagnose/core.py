@@ -9,9 +9,17 @@ recordings -> segments (a tap: its coasting part; every position the middle of i
   -> locate: windows of the baseline's exact residual beyond the encoder floor, regimes,
      residual tests
   -> round 2, one batch: pairs of the effects round 1 found (and each with Coulomb)
+  -> round 3 (and on), one batch each, while the best structure is still above the misfit
+     level and the score improves: forward selection, the best structures of the last round
+     each with one more of the effects that helped (as many free slots as a pair)
   -> choice by an information criterion on the exact residual, floored at the encoder's
-     own error, with a penalty per parameter and per added effect; near-ties named
-  -> exact polish of the choice, robust standard errors
+     own error, with a penalty per parameter and per added effect, among the structures whose
+     every effect is significant (its strength beyond SIGNIFICANCE standard errors of the
+     value where it does nothing, none at a bound); near-ties named
+  -> exact polish of the choice, robust standard errors (widened for model error above the
+     misfit level, as jaxcart fit does); the verdict says when no candidate explains the
+     recording, when M and gamma_scale cannot be told apart, and which fitted values are
+     physically implausible
 """
 
 from __future__ import annotations
@@ -65,7 +73,34 @@ MIN_SAMPLES = 200
 K_MAX = 5
 #: Structures polished on the exact simulator (the best by score after the smooth fits).
 POLISH = 4
+#: Structures re-fitted from the best-scoring one's values after the search, besides those
+#: nested in it (the best by score).
+NESTED = 8
 MIN_COUNTS = 20
+#: An effect (or a parameter correction) is named only when its strength lies more than this
+#: many standard errors from the values where it does nothing (a Wald test, one-sided for an
+#: effect: z > 3 leaves a chance of about 1e-3 that noise alone put it there); see
+#: :func:`significance` for each effect's strength and neutral value.
+SIGNIFICANCE = 3.0
+#: A parameter correction is named only when it exceeds this share of the start plant's value
+#: by SIGNIFICANCE standard errors (an equivalence margin: the appendix gives M to two digits,
+#: 0.94 kg; a controller that reads whole encoder counts, which the simulation does not model,
+#: moves a fitted M by 0.02-0.15 % on recordings with no mass error, a true error is 10 % and
+#: more).
+CORRECTION_MARGIN = 0.01
+#: A fitted value within this relative distance of a bound of :data:`~batch.BOUNDS` (a share
+#: of the range for a parameter not fitted as a logarithm) sits at that bound.
+AT_BOUND = 1e-2
+#: Ranges of the plant's own parameters a real cart of this lab has; a fitted value outside is
+#: flagged as physically implausible (the handout's B_eq is 5.4 kg/s and fits of real IP02
+#: taps give 1.9-2.7 kg/s, so a factor 5 either side; the cart is 0.57 kg, 0.94 kg with its
+#: weight; a motor or amplifier gain off by more than a factor 2 is a wrong motor, not a
+#: correction).
+PLAUSIBLE = {"B_eq": (5.4 / 5, 5.4 * 5), "M": (0.4, 3.0), "gamma_scale": (0.5, 2.0)}
+#: Forward selection (round 3 on): the best structures of the last round extended, and at
+#: most this many new structures per round (the batch keeps round 1's shape: no new compile).
+SEEDS = 3
+PER_ROUND = 6
 
 
 @dataclass
@@ -81,6 +116,16 @@ class Candidate:
     residuals: list = field(default_factory=list)
     jac: object = None
     scale: float = 1.0
+    round: int = 1
+    #: Significance of each named effect or correction (z, :func:`significance`) and why the
+    #: structure is not eligible ("" when every part is significant), at ``assessed`` values.
+    z: dict = field(default_factory=dict)
+    why: dict = field(default_factory=dict)
+    assessed: object = None
+
+    @property
+    def why_not(self) -> str:
+        return "; ".join(f"{k}: {v}" for k, v in self.why.items() if v)
 
     @property
     def effects(self) -> tuple:
@@ -103,6 +148,10 @@ class Candidate:
             "rms_smooth": self.rms_smooth,
             "rms": self.rms_exact,
             "score": self.score,
+            "round": self.round,
+            "significance": dict(self.z),
+            "eligible": self.assessed is not None and not self.why_not,
+            "why_not": self.why_not,
             "window_evidence": self.window_evidence,
             "values": {k: v for k, v in self.values.items() if "@" not in k},
         }
@@ -110,7 +159,12 @@ class Candidate:
 
 @dataclass
 class Diagnosis:
-    """What :func:`diagnose` found (see :meth:`to_json` for the fields)."""
+    """What :func:`diagnose` found (see :meth:`to_json` for the fields).
+
+    left_out / corrected_parameters: the effects and parameter corrections of the chosen
+    structure (the corrected plant holds them). When ``explained`` is False no candidate
+    reaches :data:`tuning.fit.MISFIT_RATIO` times the encoder floor: the chosen structure is
+    only the best approximation, and the verdict says so first."""
 
     recordings: list
     status: str  # "diagnosed" | "not diagnosed"
@@ -132,23 +186,95 @@ class Diagnosis:
     plant_file: str | None = None
     seconds: float = math.nan
     traces: list = field(default_factory=list)  # per segment: time, measured, baseline, after
+    #: False when the best structure still ends above MISFIT_RATIO times the encoder floor.
+    explained: bool = True
+    #: Why the best structure does not explain the recording ("" when it does).
+    misfit: str = ""
+    #: What may be missing when nothing explains the recording (one phrase each).
+    suggestions: list = field(default_factory=list)
+    #: Fitted values of the chosen structure that a real cart does not have (one line each).
+    implausible: list = field(default_factory=list)
+    #: Effects a better-scoring structure had but which are not significant:
+    #: [{"structure", "effect", "z", "why"}].
+    not_significant: list = field(default_factory=list)
+    #: Significance z of each named effect and correction (:func:`significance`).
+    significance: dict = field(default_factory=dict)
+    #: M and gamma_scale told apart or not: {} when they are (or neither is corrected), else
+    #: {"parameters", "ratios", "alternatives", "B_eq", "note"}.
+    unidentifiable: dict = field(default_factory=dict)
+    #: The start plant's values of the corrected parameters (the corrections are from these).
+    start_values: dict = field(default_factory=dict)
+
+    @property
+    def floor_ratio(self) -> float:
+        return self.rms_after / self.floor if self.floor > 0 else math.nan
+
+    def _found(self) -> list:
+        found = []
+        if self.left_out:
+            found.append("left out: " + ", ".join(self.left_out))
+        if self.corrected_parameters:
+            parts = []
+            for n in self.corrected_parameters:
+                value = self.parameters.get(n, {}).get("value")
+                unit = self.parameters.get(n, {}).get("unit", "")
+                was = self.start_values.get(n)
+                if value is None:
+                    parts.append(n)
+                elif was is None:
+                    parts.append(f"{n} = {value:.4g} {unit}".rstrip())
+                else:
+                    parts.append(f"{n} {was:.4g} -> {value:.4g} {unit}".rstrip())
+            found.append("corrected parameters: " + ", ".join(parts))
+        return found
 
     @property
     def verdict(self) -> str:
         if self.status != "diagnosed":
             return "not diagnosed: " + "; ".join(self.messages)
-        if self.left_out:
-            text = "left out: " + ", ".join(self.left_out)
-        elif self.corrected_parameters:
+        found = self._found()
+        if not self.explained:
+            best = "; ".join(found) if found else "the baseline, nothing added"
             text = (
-                "corrected parameters ("
-                + ", ".join(self.corrected_parameters)
-                + "), nothing left out"
+                f"no candidate explains the recording: the best approximation ({best}) ends "
+                f"at {_times(self.floor_ratio)} times the encoder floor (RMS "
+                f"{self.rms_after * 1e3:.4g} mm, floor {self.floor * 1e3:.2g} mm)"
             )
+            if self.suggestions:
+                text += "; what may be missing: " + "; ".join(self.suggestions)
+        elif found:
+            text = "; ".join(found)
+            if not self.left_out:
+                text += "; nothing left out"
         else:
             text = "nothing left out: the baseline explains the recording to the encoder floor"
         if self.equivalent:
             text += "; fits equally well: " + "; ".join(" + ".join(e) for e in self.equivalent)
+        if self.unidentifiable:
+            text += "; " + self.unidentifiable["note"]
+        if self.implausible:
+            text += "; implausible: " + "; ".join(self.implausible)
+        return text
+
+    @property
+    def headline(self) -> str:
+        """A short form of the verdict (the figure's title)."""
+        if self.status != "diagnosed":
+            return self.verdict
+        found = self._found()
+        if not self.explained:
+            text = (
+                f"NOT EXPLAINED: best approximation ({'; '.join(found) or 'baseline'}) at "
+                f"{_times(self.floor_ratio)}x the encoder floor"
+            )
+        else:
+            text = "; ".join(found) or "nothing left out"
+        if self.unidentifiable:
+            text += "; M and gamma_scale not told apart (B_eq not settled)"
+        if self.implausible:
+            text += "; implausible: " + ", ".join(
+                line.split(" is ")[0].split(" sits ")[0] for line in self.implausible
+            )
         return text
 
     def to_json(self) -> dict:
@@ -162,9 +288,18 @@ class Diagnosis:
             "corrected_parameters": self.corrected_parameters,
             "equivalent": self.equivalent,
             "chosen": self.chosen,
+            "explained": self.explained,
+            "misfit": self.misfit,
+            "suggestions": self.suggestions,
+            "implausible": self.implausible,
+            "not_significant": self.not_significant,
+            "significance": self.significance,
+            "unidentifiable": self.unidentifiable,
+            "start_values": self.start_values,
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
             "encoder_floor": self.floor,
+            "floor_ratio": self.floor_ratio,
             "parameters": self.parameters,
             "baseline": self.baseline,
             "windows": self.windows,
@@ -173,6 +308,11 @@ class Diagnosis:
             "plant_file": self.plant_file,
             "seconds": self.seconds,
         }
+
+
+def _times(ratio: float) -> str:
+    """A multiple of the floor: one decimal below 10 (3.2, not 3, next to the 3 x rule)."""
+    return f"{ratio:.1f}" if ratio < 10 else f"{ratio:.0f}"
 
 
 # ---------------------------------------------------------------- preparing
@@ -444,9 +584,49 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
     return values
 
 
-def standard_errors(segments, names, values, jac, residuals):
-    """Robust (run-clustered sandwich, encoder floor) standard errors in natural units."""
+@dataclass
+class Covariance:
+    """Parameter covariances of one fit, natural units: ``robust`` (run-clustered sandwich
+    with the encoder floor), ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); ``n``
+    residuals worth ``n_eff`` independent ones (:func:`tuning.fit.effective_samples`);
+    ``widened``: the residual is model error, and every standard error is widened as
+    ``jaxcart fit`` widens its own (:func:`tuning.fit.widened_for_model_error`)."""
+
+    names: list
+    robust: np.ndarray
+    naive: np.ndarray
+    n: int
+    n_eff: float
+    widened: bool
+
+    def stderr(self, weights: dict) -> float:
+        """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
+        difference ({"f_s": 1, "f_c": -1})."""
+        from tuning.fit import widened_for_model_error
+
+        a = np.zeros(len(self.names))
+        for n, w in weights.items():
+            if n not in self.names:
+                return math.nan
+            a[self.names.index(n)] = w
+        var = float(a @ self.robust @ a)
+        if not math.isfinite(var):
+            return math.nan
+        se = math.sqrt(max(var, 0.0))
+        if self.widened:
+            naive = max(float(a @ self.naive @ a), 0.0)
+            se = float(widened_for_model_error(se, naive, self.n, self.n_eff))
+        return se
+
+
+def covariance(segments, names, values, jac, residuals, widen_above=None) -> Covariance:
+    """Robust (run-clustered sandwich, encoder floor) and naive covariances in natural units;
+    with an RMS residual above ``widen_above`` [m] the standard errors are widened for model
+    error (:func:`tuning.fit.widened_for_model_error`; :func:`diagnose` passes the criterion's
+    floor, FLOOR_FACTOR times q / sqrt(12): what the criterion counts as structure to explain
+    is not the encoder's own error)."""
     from tuning.diagnose.batch import LOG
+    from tuning.fit import effective_samples
 
     jac = np.asarray(jac, dtype=float)
     r = np.concatenate(residuals)
@@ -454,11 +634,17 @@ def standard_errors(segments, names, values, jac, residuals):
     jac = jac[:, :p]
     # d value / d theta (log parameters).
     dv = np.array([values[n] if Layout.kind(n) in LOG else 1.0 for n in names])
-    b = jac.T @ jac
+    nan = np.full((p, p), np.nan)
+    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
+        return Covariance(list(names), nan, nan, r.size, 1.0, False)
+    with np.errstate(over="ignore", invalid="ignore"):
+        b = jac.T @ jac
+    if not np.all(np.isfinite(b)):  # a smooth fit that ran away: no standard errors
+        return Covariance(list(names), nan, nan, r.size, 1.0, False)
     try:
         b_inv = np.linalg.pinv(b, rcond=1e-12)
     except np.linalg.LinAlgError:
-        return {n: math.nan for n in names}
+        return Covariance(list(names), nan, nan, r.size, 1.0, False)
     s = np.zeros((p, p))
     offset = 0
     for seg in segments:
@@ -476,9 +662,243 @@ def standard_errors(segments, names, values, jac, residuals):
         s_data = g.T @ g
         s_enc = (q * q / 12.0) * (cs.T @ cs)
         s += s_data if np.trace(s_data) >= np.trace(s_enc) else s_enc
-    cov = b_inv @ s @ b_inv
-    se = np.sqrt(np.maximum(np.diag(cov), 0.0)) * np.abs(dv)
-    return {n: float(x) for n, x in zip(names, se, strict=True)}
+    d = np.outer(dv, dv)
+    robust = (b_inv @ s @ b_inv) * d
+    naive = b_inv * float(r @ r) / max(r.size - p, 1) * d
+    rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+    widened = widen_above is not None and rms > widen_above
+    n_eff = effective_samples(residuals) if widened else float(r.size)
+    return Covariance(list(names), robust, naive, int(r.size), n_eff, bool(widened))
+
+
+def standard_errors(segments, names, values, jac, residuals, widen_above=None):
+    """Robust (run-clustered sandwich, encoder floor) standard errors in natural units, widened
+    for model error where the RMS residual is above ``widen_above`` (see :func:`covariance`)."""
+    cov = covariance(segments, names, values, jac, residuals, widen_above)
+    return {n: cov.stderr({n: 1.0}) for n in names}
+
+
+# ---------------------------------------------------------------- significance, plausibility
+
+
+def at_bound(name: str, value: float) -> str:
+    """Which bound ("lower", "upper") ``value`` sits at, of :data:`~batch.BOUNDS` (within
+    :data:`AT_BOUND`: relative for a parameter fitted as a logarithm, else a tenth of it as a
+    share of the range); "" for none."""
+    from tuning.diagnose.batch import BOUNDS, LOG
+
+    kind = Layout.kind(name)
+    if kind not in BOUNDS:
+        return ""
+    lo, hi = BOUNDS[kind]
+    if kind in LOG:
+        if value <= lo * math.exp(AT_BOUND):
+            return "lower"
+        if value >= hi * math.exp(-AT_BOUND):
+            return "upper"
+        return ""
+    tol = 0.1 * AT_BOUND * (hi - lo)
+    if value <= lo + tol:
+        return "lower"
+    if value >= hi - tol:
+        return "upper"
+    return ""
+
+
+def _strengths(part, values, peaks, start):
+    """Each item a part names: (item, its strength, the strength's weights for its standard
+    error, what the strength measures, where the item does nothing). The strength is the
+    distance from the values where the item does nothing, positive when it acts."""
+    v = values.get
+    if part in ("coulomb", "stiction"):
+        yield "coulomb", v("f_c"), {"f_c": 1.0}, f"f_c = {v('f_c'):.3g} N", "0 N"
+    if part == "stiction":
+        excess = v("f_s") - v("f_c")
+        yield "stiction", excess, {"f_s": 1.0, "f_c": -1.0}, f"f_s - f_c = {excess:.3g} N", "0 N"
+    if part == "delay":
+        yield "delay", v("delay"), {"delay": 1.0}, f"delay = {v('delay'):.3g} s", "0 s"
+    if part == "deadzone":
+        yield (
+            "deadzone",
+            v("deadzone"),
+            {"deadzone": 1.0},
+            f"deadzone = {v('deadzone'):.3g} V",
+            ("0 V"),
+        )
+    if part == "spring":
+        yield "spring", v("k_s"), {"k_s": 1.0}, f"k_s = {v('k_s'):.3g} N/m", "0 N/m"
+    if part == "saturation":
+        # v_sat above every command sent: the limit never acts.
+        top = peaks.get("command", math.inf)
+        yield (
+            "saturation",
+            top - v("v_sat"),
+            {"v_sat": -1.0},
+            f"v_sat = {v('v_sat'):.3g} V",
+            f"the largest command, {top:.3g} V",
+        )
+    if part == "current_limit":
+        top = peaks.get("current", math.inf)
+        yield (
+            "current_limit",
+            top - v("i_max"),
+            {"i_max": -1.0},
+            f"i_max = {v('i_max'):.3g} A",
+            f"the largest armature current, {top:.3g} A",
+        )
+    for name in PARAM_ERRORS.get(part, ()):
+        was = start[name]
+        yield (
+            name,
+            abs(v(name) - was) - CORRECTION_MARGIN * abs(was),
+            {name: math.copysign(1.0, v(name) - was)},
+            f"{name} = {v(name):.4g}",
+            f"{CORRECTION_MARGIN:.0%} of the start plant's {was:.4g}",
+        )
+
+
+def significance(parts, values, stderr, peaks=None, start=None) -> dict:
+    """Is each effect (and parameter correction) of a structure there? A Wald test.
+
+    parts: the structure's parts (:attr:`Candidate.parts`); values: its fitted values;
+    stderr: ``f(weights) -> standard error`` of a linear combination of parameters
+    (:meth:`Covariance.stderr`); peaks: {"command": largest |command| sent [V], "current":
+    largest |armature current| [A]} of the structure's own run (saturation, current limit);
+    start: the start plant's M and gamma_scale.
+
+    Each item's strength is its distance from the values where it does nothing: f_c from 0
+    (Coulomb), f_s - f_c from 0 (stiction: static above kinetic), delay, deadzone and k_s from
+    0, v_sat and i_max below the largest command and current of the run (a limit above them
+    never acts), M and gamma_scale beyond :data:`CORRECTION_MARGIN` of the start plant's.
+    z = strength / standard error; an item is significant when z > :data:`SIGNIFICANCE` and
+    none of its part's parameters sits at a bound (:func:`at_bound`: the fit wanted a value
+    beyond the range, its standard error means nothing). Returns {item: {"z", "why"}} ("why"
+    empty when significant)."""
+    peaks = peaks or {}
+    start = start or {"M": 0.94, "gamma_scale": 1.0}
+    out = {}
+    for part in parts:
+        params = EFFECT_PARAMS.get(part) or PARAM_ERRORS.get(part, ())
+        bound = ""
+        for n in params:
+            side = at_bound(n, values[n])
+            if side:
+                bound = f"{n} = {values[n]:.4g} sits at its {side} bound"
+                break
+        for item, strength, weights, what, neutral in _strengths(part, values, peaks, start):
+            se = stderr(weights)
+            z = strength / se if se > 0 and math.isfinite(se) else math.nan
+            if not math.isfinite(strength):
+                z = math.inf if strength > 0 else math.nan
+            why = ""
+            if bound:
+                why = bound
+            elif not math.isfinite(z):
+                why = f"{what}: its standard error is not defined"
+            elif strength <= 0:
+                idle = "is within" if item in ("M", "gamma_scale") else "does not act: not past"
+                why = f"{what} {idle} {neutral}"
+            elif z <= SIGNIFICANCE:
+                why = f"{what} is {z:.1f} standard errors from {neutral} ({SIGNIFICANCE:g} needed)"
+            out[item] = {"z": float(z), "why": why}
+    return out
+
+
+def implausible(values: dict, free, track: float | None = None) -> list:
+    """Lines for fitted values a real cart of this lab does not have: B_eq, M, gamma_scale
+    outside :data:`PLAUSIBLE`, any free parameter at a bound (:func:`at_bound`), a spring's
+    rest point off the track."""
+    from jaxcart import plantspec
+
+    if track is None:
+        from jaxcart.params import TRACK_LENGTH
+
+        track = TRACK_LENGTH
+    out = []
+    for n in free:
+        if "@" in n or n not in values:
+            continue
+        v = values[n]
+        unit = plantspec.unit(n)
+        unit = f" {unit}" if unit and unit != "1" else ""
+        side = at_bound(n, v)
+        if side:
+            out.append(
+                f"{n} = {v:.4g}{unit} sits at its {side} bound (the fit wanted a value "
+                "beyond its range)"
+            )
+        elif n in PLAUSIBLE and not PLAUSIBLE[n][0] <= v <= PLAUSIBLE[n][1]:
+            lo, hi = PLAUSIBLE[n]
+            out.append(
+                f"{n} = {v:.4g}{unit} is outside what a cart of this lab has "
+                f"({lo:.3g}-{hi:.3g}{unit})"
+            )
+        elif n == "y_rest" and abs(v) > track / 2:
+            out.append(
+                f"y_rest = {v:.4g} m is off the {track:g} m track: the spring acts as a "
+                "nearly constant force"
+            )
+    return out
+
+
+def swapped_correction(parts, values, plant):
+    """The structure with the other of M and gamma_scale, and the values that give the same
+    motion: the cart obeys y'' + (c/m) y' = (gamma/m) v + F/m, so with B_eq free a closed loop
+    fixes only gamma/m, c/m and every force over m (c = B_eq + B_emf, m = M + M_J, B_emf and
+    M_J from the motor's constants). Returns (parts, values) or None (one correction needed;
+    None also when the equivalent B_eq or M is not positive: then the two differ)."""
+    corr = [p for p in parts if p in PARAM_ERRORS]
+    if len(corr) != 1 or not plant.motor_connected:
+        return None
+    m_j, b_emf = float(plant.M_J), float(plant.B_emf)
+    m0, g0 = float(plant.M), float(plant.gamma_scale)
+    new = {k: v for k, v in values.items() if k not in ("M", "gamma_scale")}
+    if corr[0] == "mass":
+        k = (m0 + m_j) / (values["M"] + m_j)  # m_new / m_old
+        new["gamma_scale"] = g0 * k
+        swap = "gain"
+    else:
+        k = g0 / values["gamma_scale"]
+        new["M"] = (m0 + m_j) * k - m_j
+        swap = "mass"
+        if new["M"] <= 0:
+            return None
+    new["B_eq"] = (values["B_eq"] + b_emf) * k - b_emf
+    if new["B_eq"] <= 0:
+        return None
+    for n in ("f_c", "f_s", "k_s"):
+        if n in new:
+            new[n] = values[n] * k
+    return tuple(swap if p == corr[0] else p for p in parts), new
+
+
+def extend(seeds, additions, seen, kmax=K_MAX, limit=PER_ROUND) -> list:
+    """Forward selection: each seed structure with one more addition (a single structure),
+    at most ``kmax`` free parameters (the batch's slots) and one parameter correction, not in
+    ``seen`` (sets of parts; updated), Coulomb and stiction not both (stiction holds Coulomb),
+    at most ``limit`` of them, by the sum of the seed's and the addition's ranks (the best
+    seed first among equals). Returns [(candidate, seed, addition)]."""
+    ranked = sorted(
+        ((i + j, i, a, b) for i, a in enumerate(seeds) for j, b in enumerate(additions)),
+        key=lambda t: t[:2],
+    )
+    out = []
+    for _, _, a, b in ranked:
+        c = pair(a, b)
+        parts = frozenset(c.parts)
+        if (
+            parts in seen
+            or len(c.parts) == len(a.parts)
+            or len(c.free) > kmax
+            or {"coulomb", "stiction"} <= parts
+            or len([p for p in c.parts if p in PARAM_ERRORS]) > 1
+        ):
+            continue
+        seen.add(parts)
+        out.append((c, a, b))
+        if len(out) >= limit:
+            break
+    return out
 
 
 # ---------------------------------------------------------------- the diagnosis
@@ -562,6 +982,7 @@ def diagnose(
     q = float(np.mean(qs)) if qs else 0.0
     floor = max(q / math.sqrt(12), 1e-7)
     floor2 = (FLOOR_FACTOR * floor) ** 2
+    widen_above = FLOOR_FACTOR * floor  # above it the residual is model error
     n_eff = _n_eff(segments)
 
     say(f"diagnose {', '.join(names)}: {sum(s.target.size for s in segments)} samples fitted")
@@ -575,8 +996,12 @@ def diagnose(
     nuis = [n for n in layout.names if "@" in n]
     round1 = candidate_list(motor)
     starts_all = _start_values(segments, recordings, base_plants, SHARED)
+    motor_plants = [p for p, s in zip(base_plants, segments, strict=True) if s.motor]
+    ref_plant = motor_plants[0] if motor_plants else base_plants[0]
+    # A parameter correction is measured from the start plant's value.
+    neutral = {"M": float(ref_plant.M), "gamma_scale": float(ref_plant.gamma_scale)}
 
-    def run_round(cands, starts):
+    def run_round(cands, starts, number):
         say(
             f"fitting {len(cands)} candidate structures in one batch: "
             + ", ".join(c.name for c in cands)
@@ -600,6 +1025,7 @@ def diagnose(
             c.values = vals
             c.rms_smooth = math.sqrt(cost)
             c.jac = jac
+            c.round = number
         rechecked = _spread(
             processes,
             cands,
@@ -614,8 +1040,62 @@ def diagnose(
                 f"{c.rms_exact * 1e3:8.4f} mm   score {c.score:10.1f}"
             )
 
+    def peaks(c) -> dict:
+        """The largest command and armature current of ``c``'s own run (motor segments)."""
+        out = {}
+        if "saturation" in c.parts:
+            _, cmds = exact_residuals(c, segments, base_plants, c.values, layout, memo)
+            out["command"] = max(
+                (float(np.nanmax(np.abs(u))) for u in cmds if u is not None), default=0.0
+            )
+        if "current_limit" in c.parts:
+            out["current"] = _current_peak(c, segments, base_plants, c.values, layout)
+        return out
+
+    def eligible(c) -> bool:
+        """Every effect and correction of ``c`` significant (:func:`significance`), at its
+        current values (assessed once per set of values), and needed: a baseline within the
+        misfit level already explains the recording, and nothing is named."""
+        base = round1[0]
+        key = (tuple(sorted(c.values.items())), base.rms_exact)
+        if c.assessed != key:
+            c.z, c.why = {}, {}
+            if c.parts and not _misfits(base.rms_exact, floor):
+                c.why = {
+                    p: f"not needed: the baseline explains the recording (RMS "
+                    f"{base.rms_exact / floor:.1f} times the encoder floor)"
+                    for p in c.parts
+                }
+            elif c.parts:
+                cov = covariance(
+                    segments,
+                    list(c.free) + nuis,
+                    c.values,
+                    c.jac / fitter_scale(segments),
+                    c.residuals,
+                    widen_above,
+                )
+                sig = significance(c.parts, c.values, cov.stderr, peaks(c), neutral)
+                c.z = {k: v["z"] for k, v in sig.items()}
+                c.why = {k: v["why"] for k, v in sig.items()}
+            c.assessed = key
+        return not c.why_not
+
+    def choose(cs):
+        """The best-scoring eligible structure (the baseline always is)."""
+        return next((c for c in sorted(cs, key=lambda c: c.score) if eligible(c)), None)
+
+    def promising(cs, than):
+        """The structures of ``cs`` that score better than ``than``, best first: the search
+        goes on from these. Significance decides what is named, not where to search: a
+        structure that is not named can lead the fits to the right basin (on the built-in
+        P 50 step Coulomb + a spring with its rest point at the bound of its range does, and
+        Coulomb alone reaches the floor from there), and standard errors widened for model
+        error would stop the search on the recordings it matters most for."""
+        return sorted((c for c in cs if c.score < than - 1.0), key=lambda c: c.score)
+
     starts1 = [{k: starts_all[k] for k in c.free} for c in round1]
-    run_round(round1, starts1)
+    run_round(round1, starts1, 1)
     say(f"round 1 (compile + fit + exact checks): {_time.perf_counter() - t0:.1f} s")
     base = round1[0]
 
@@ -635,64 +1115,6 @@ def diagnose(
         values = _polish(c, segments, base_plants, start, layout, memo=memo)
         return values, exact_residuals(c, segments, base_plants, values, layout, memo)[0]
 
-    # A single structure that already explains the data to the encoder's own error leaves
-    # nothing for a pair to explain: round 2 is skipped (it costs a second batch).
-    first = sorted(round1[1:], key=lambda c: c.score)[:2]  # a smooth fit may have stalled
-    for c, (values, res) in zip(
-        first, _spread(processes, first, lambda c: polished(c, dict(c.values))), strict=True
-    ):
-        if _rms(res) < c.rms_exact:
-            c.values, c.residuals, c.rms_exact = values, res, _rms(res)
-            c.score = score(c, c.rms_exact**2, floor2, n_eff)
-    explained = min(c.rms_exact for c in round1) <= FLOOR_FACTOR * floor
-    if explained:
-        say("round 2 skipped: a single structure reaches the encoder floor")
-    if pairs and not explained:
-        good = [
-            c
-            for c in round1[1:]
-            if c.parts and c.parts[0] in EFFECT_PARAMS and c.score < base.score - 1.0
-        ]
-        good.sort(key=lambda c: c.score)
-        top = good[:3]
-        by_name = {c.name: c for c in round1}
-        new = []
-        for i, a in enumerate(top):
-            for b in top[i + 1 :]:
-                new.append((a, b))
-            if "coulomb" in by_name and a.name not in ("coulomb", "stiction"):
-                new.append((a, by_name["coulomb"]))
-            for pe in ("mass",):
-                if pe in by_name and by_name[pe].score < base.score - 1.0:
-                    new.append((a, by_name[pe]))
-        seen, round2 = set(), []
-        for a, b in new:
-            c = pair(a, b)
-            if set(c.parts) in seen or set(c.parts) == {"coulomb", "stiction"}:
-                continue
-            seen.add(frozenset(c.parts))
-            round2.append((c, a, b))
-        round2 = round2[: len(round1)]
-        if round2:
-            starts2 = []
-            for c, a, b in round2:
-                s = {k: starts_all[k] for k in c.free}
-                s.update({k: v for k, v in b.values.items() if k in c.free})
-                s.update({k: v for k, v in a.values.items() if k in c.free})
-                starts2.append(s)
-            t1 = _time.perf_counter()
-            run_round([c for c, _, _ in round2], starts2)
-            say(f"round 2 (pairs): {_time.perf_counter() - t1:.1f} s")
-            cands += [c for c, _, _ in round2]
-
-    # Window evidence: how much of the windows' residual energy each candidate removes.
-    masks = _window_masks(segments, wins)
-    _window_evidence(cands, base, masks)
-
-    # Exact polish (Gauss-Newton on the exact simulator) of the most promising structures.
-    t2 = _time.perf_counter()
-    ranked = sorted(cands, key=lambda c: c.score)
-
     def polish_all(todo):
         # Keep the exact re-fit only where it lowers the exact residual. Each (candidate,
         # start) independent: split over the processes of a distributed run.
@@ -709,33 +1131,187 @@ def diagnose(
                 f"   score {c.score:10.1f}"
             )
 
+    # A single structure that already explains the data to the encoder's own error leaves
+    # nothing for a pair to explain: round 2 is skipped (it costs a second batch).
+    first = sorted(round1[1:], key=lambda c: c.score)[:2]  # a smooth fit may have stalled
+    for c, (values, res) in zip(
+        first, _spread(processes, first, lambda c: polished(c, dict(c.values))), strict=True
+    ):
+        if _rms(res) < c.rms_exact:
+            c.values, c.residuals, c.rms_exact = values, res, _rms(res)
+            c.score = score(c, c.rms_exact**2, floor2, n_eff)
+    explained = min(c.rms_exact for c in round1) <= FLOOR_FACTOR * floor
+    if explained:
+        say("round 2 skipped: a single structure reaches the encoder floor")
+    elif not _misfits(base.rms_exact, floor):
+        explained = True
+        say("round 2 skipped: the baseline explains the recording")
+    if pairs and not explained:
+        # Singles that helped: better than the baseline.
+        good = promising([c for c in round1[1:] if c.parts[0] in EFFECT_PARAMS], base.score)
+        top = good[:3]
+        by_name = {c.name: c for c in round1}
+        mass = by_name.get("mass")
+        mass_helped = mass is not None and bool(promising([mass], base.score))
+        new = []
+        for i, a in enumerate(top):
+            for b in top[i + 1 :]:
+                new.append((a, b))
+            if "coulomb" in by_name and a.name not in ("coulomb", "stiction"):
+                new.append((a, by_name["coulomb"]))
+            if mass_helped:
+                new.append((a, mass))
+        # The batch is padded to round 1's size anyway: the other effects fill it, each with
+        # Coulomb friction where it helped (Coulomb conceals them: a delay, a current limit
+        # under Coulomb friction help little or nothing alone), those that helped first.
+        coulomb = by_name.get("coulomb")
+        if coulomb is not None and promising([coulomb], base.score):
+            helped = {id(c) for c in good}
+            rest = good[3:] + [
+                c for c in round1[1:] if c.parts[0] in EFFECT_PARAMS and id(c) not in helped
+            ]
+            for a in rest:
+                if a.name not in ("coulomb", "stiction"):
+                    new.append((a, coulomb))
+        seen, round2 = set(), []
+        for a, b in new:
+            c = pair(a, b)
+            if set(c.parts) in seen or set(c.parts) == {"coulomb", "stiction"}:
+                continue
+            seen.add(frozenset(c.parts))
+            round2.append((c, a, b))
+        round2 = round2[: len(round1)]
+        if round2:
+            t1 = _time.perf_counter()
+            run_round([c for c, _, _ in round2], _pair_starts(round2, starts_all), 2)
+            say(f"round 2 (pairs): {_time.perf_counter() - t1:.1f} s")
+            cands += [c for c, _, _ in round2]
+        # Forward selection: while the best structure of the last round is still above the
+        # misfit level and better than every structure before it, extend the best of that
+        # round by one more of the singles that helped (Coulomb always among them, as in the
+        # pairs: other effects conceal it), as many free slots as one batch has.
+        additions = good + ([mass] if mass_helped else [])
+        if "coulomb" in by_name and all(a.name != "coulomb" for a in additions):
+            additions.append(by_name["coulomb"])
+        additions.sort(key=lambda c: c.score)
+        seen = {frozenset(c.parts) for c in cands}
+        level, number = [c for c, _, _ in round2], 3
+        while level:
+            this = {id(c) for c in level}
+            before = min(c.score for c in cands if id(c) not in this)
+            seeds = promising(level, before)[:SEEDS]
+            if not seeds:
+                say(f"round {number} skipped: round {number - 1} did not improve the score")
+                break
+            if not extend(seeds, additions, set(seen)):
+                say(f"round {number} skipped: no structure left to try within {K_MAX} slots")
+                break
+            # The lead polished on the exact simulator and the structures nested in it re-fitted
+            # from its values (as after the search): a smooth fit stalled where the exact cart
+            # sticks can hide that a simpler structure already explains the recording.
+            lead = seeds[0]
+            polish_all(
+                [(lead, dict(lead.values))]
+                + [
+                    (c, {k: lead.values.get(k, c.values[k]) for k in c.values})
+                    for c in cands
+                    if c.parts and set(c.parts) < set(lead.parts)
+                ]
+            )
+            if not _misfits(min(c.rms_exact for c in cands), floor):
+                say(f"round {number} skipped: a structure explains the recording")
+                break
+            seeds = promising(level, before)[:SEEDS]
+            if not seeds:
+                say(f"round {number} skipped: round {number - 1} did not improve the score")
+                break
+            grown = extend(seeds, additions, seen)
+            if not grown:
+                break
+            t1 = _time.perf_counter()
+            run_round([c for c, _, _ in grown], _pair_starts(grown, starts_all), number)
+            say(f"round {number} (forward selection): {_time.perf_counter() - t1:.1f} s")
+            level = [c for c, _, _ in grown]
+            cands += level
+            number += 1
+        # Backward step: the forward selection's best structure with a part that is not
+        # significant (a delay gone to 0 while M took over) is tried without that part, from
+        # its values, in one more batch: the structure the search passed by.
+        lead = min(cands, key=lambda c: c.score)
+        if len(lead.parts) >= 3 and not eligible(lead):
+            pruned = []
+            for part in lead.parts:
+                if any(lead.why.get(item) for item in _items(part)):
+                    c = _structure(tuple(x for x in lead.parts if x != part))
+                    if frozenset(c.parts) not in seen:
+                        seen.add(frozenset(c.parts))
+                        pruned.append((c, lead, lead))
+            if pruned:
+                t1 = _time.perf_counter()
+                run_round([c for c, _, _ in pruned], _pair_starts(pruned, starts_all), number)
+                say(
+                    f"round {number} (without what is not significant): "
+                    f"{_time.perf_counter() - t1:.1f} s"
+                )
+                cands += [c for c, _, _ in pruned]
+
+    # Window evidence: how much of the windows' residual energy each candidate removes.
+    masks = _window_masks(segments, wins)
+    _window_evidence(cands, base, masks)
+
+    # Exact polish (Gauss-Newton on the exact simulator) of the most promising structures.
+    t2 = _time.perf_counter()
+    ranked = sorted(cands, key=lambda c: c.score)
+
     polish_all(
         [(c, dict(c.values)) for c in [x for x in ranked if x is not base][:POLISH] + [base]]
     )
     say(f"exact polish: {_time.perf_counter() - t2:.1f} s")
-    best = min(cands, key=lambda c: c.score)
-    # Every structure no richer than the choice, re-fitted from the choice's shared values
+    # Every structure no richer than the best-scoring one, re-fitted from its shared values
     # (B_eq, the start states): a smooth fit that stalled in another basin (Coulomb friction
     # creeps where the exact cart sticks) gets a fair exact re-fit, so that a simpler structure
     # does not lose to a richer one and near-ties are found (Coulomb and deadzone on a P step).
-    done = {id(base)}
+    # The best-scoring structure, significant or not, knows the basin (on the built-in P 50
+    # step Coulomb + spring does, its spring not significant, and Coulomb alone then reaches
+    # the floor from there). Of the forward selection's structures (three parts and more),
+    # only those nested in it: the others are richer than any near-tie worth naming. Those
+    # nested in it always, of the others the NESTED best-scoring (each re-fit is a few dozen
+    # exact runs: on recordings nothing explains they were most of the time).
+    done, previous = {id(base)}, None
     for _ in range(2):
-        nested = [
-            c
-            for c in cands
-            if id(c) not in done and c is not best and c.parts and len(c.free) <= len(best.free)
-        ]
+        lead = min(cands, key=lambda c: c.score)
+        if lead is previous:  # a second pass only from a new best-scoring structure
+            break
+        previous = lead
+        nested = sorted(
+            (
+                c
+                for c in cands
+                if id(c) not in done
+                and c is not lead
+                and c.parts
+                and len(c.free) <= len(lead.free)
+                and (len(c.parts) <= 2 or set(c.parts) < set(lead.parts))
+            ),
+            key=lambda c: c.score,
+        )
+        inside = [c for c in nested if set(c.parts) < set(lead.parts)]
+        others = [c for c in nested if not set(c.parts) < set(lead.parts)][:NESTED]
+        nested = inside + others
         if not nested:
             break
         for c in nested:
             done.add(id(c))
-        polish_all([(c, {k: best.values.get(k, c.values[k]) for k in c.values}) for c in nested])
-        best = min(cands, key=lambda c: c.score)
+        polish_all([(c, {k: lead.values.get(k, c.values[k]) for k in c.values}) for c in nested])
+    best = choose(cands)
     _window_evidence(cands, base, masks)
+    for c in cands:
+        eligible(c)  # every candidate's significance at its final values, for the report
     ties = [
         c
         for c in cands
         if c is not best
+        and eligible(c)
         and c.score <= best.score + TIE
         and best.parts
         and c.parts
@@ -744,9 +1320,32 @@ def diagnose(
         and (set(c.effects) != set(best.effects) or not best.effects)
         and not (set(best.parts) < set(c.parts))
     ]
+    # Effects of better-scoring structures that were not named: not significant.
+    dropped = [
+        {"structure": c.name, "effect": k, "z": c.z.get(k, math.nan), "why": why}
+        for c in sorted(cands, key=lambda c: c.score)
+        if c.score < best.score
+        for k, why in c.why.items()
+        if why
+    ]
+    for item in dropped:
+        say(f"  not named: {item['effect']} of {item['structure']} ({item['why']})")
+
+    # M or gamma_scale corrected: the other may fit as well (only ratios are identifiable).
+    unident, swapped = _swap_tie(
+        best, cands, ref_plant, segments, base_plants, layout, memo, floor2, n_eff
+    )
+    if swapped is not None:
+        ties = [c for c in ties if set(c.parts) != set(swapped.parts)]
+
     free_names = list(best.free) + nuis
-    se = standard_errors(
-        segments, free_names, best.values, best.jac / fitter_scale(segments), best.residuals
+    cov = covariance(
+        segments,
+        free_names,
+        best.values,
+        best.jac / fitter_scale(segments),
+        best.residuals,
+        widen_above,
     )
     from jaxcart import plantspec
 
@@ -756,27 +1355,33 @@ def diagnose(
             continue
         params[n] = {
             "value": best.values[n],
-            "stderr": se.get(n, math.nan),
+            "stderr": cov.stderr({n: 1.0}),
             "unit": plantspec.unit(n),
+            "stderr_widened": cov.widened,
         }
-    base_se = standard_errors(
+    if unident:
+        params["B_eq"]["settled"] = False
+        params["B_eq"]["range"] = unident["B_eq"]
+    base_cov = covariance(
         segments,
         list(base.free) + nuis,
         base.values,
         base.jac / fitter_scale(segments),
         base.residuals,
+        widen_above,
     )
     baseline = {
         "B_eq": {
             "value": base.values["B_eq"],
-            "stderr": base_se.get("B_eq", math.nan),
+            "stderr": base_cov.stderr({"B_eq": 1.0}),
             "unit": "kg/s",
+            "stderr_widened": base_cov.widened,
         },
         "rms": base.rms_exact,
     }
     plants = exact_plants(best, base_plants, best.values)
-    motor_plants = [p for p, s in zip(plants, segments, strict=True) if s.motor]
-    plant = motor_plants[0] if motor_plants else plants[0]
+    best_motor = [p for p, s in zip(plants, segments, strict=True) if s.motor]
+    plant = best_motor[0] if best_motor else plants[0]
     traces = []
     base_res = base.residuals
     for seg, rb, ra in zip(segments, base_res, best.residuals, strict=True):
@@ -789,6 +1394,20 @@ def diagnose(
                 "after": seg.target + ra,
             }
         )
+    from tuning.fit import MISFIT_RATIO
+
+    explained_final = not _misfits(best.rms_exact, floor)
+    suggestions, misfit = [], ""
+    if not explained_final:
+        left = locate.residual_tests(segments, best.residuals, commands, n_eff)
+        suggestions = _suggestions(left, best)
+        misfit = (
+            f"the best structure ({best.name}) ends at RMS {best.rms_exact * 1e3:.4g} mm, "
+            f"{_times(best.rms_exact / floor)} times the encoder floor {floor * 1e3:.2g} mm (above "
+            f"{MISFIT_RATIO:g} times it the residual is model error): no candidate explains "
+            "the recording, and the standard errors are widened for model error"
+        )
+        say(misfit)
     d = Diagnosis(
         names,
         "diagnosed",
@@ -809,12 +1428,164 @@ def diagnose(
         plant=plant,
         seconds=_elapsed(t_start),
         traces=traces,
+        explained=explained_final,
+        misfit=misfit,
+        suggestions=suggestions,
+        implausible=implausible(best.values, best.free),
+        not_significant=dropped,
+        significance=dict(best.z),
+        unidentifiable=unident,
+        start_values={PARAM_ERRORS[p][0]: neutral[PARAM_ERRORS[p][0]] for p in best.corrections},
     )
     say(
         f"{d.verdict}; RMS {d.rms_before * 1e3:.4f} mm -> {d.rms_after * 1e3:.4f} mm "
         f"(encoder floor {floor * 1e3:.4f} mm), {d.seconds:.1f} s"
     )
     return d
+
+
+def _misfits(rms, floor) -> bool:
+    from tuning.fit import misfits
+
+    return misfits(rms, floor)
+
+
+def _pair_starts(grown, starts_all) -> list:
+    """Start values of combined structures: the seed's fitted values over the addition's over
+    the defaults."""
+    starts = []
+    for c, a, b in grown:
+        s = {k: starts_all[k] for k in c.free}
+        s.update({k: v for k, v in b.values.items() if k in c.free})
+        s.update({k: v for k, v in a.values.items() if k in c.free})
+        starts.append(s)
+    return starts
+
+
+def _current_peak(cand, segments, base_plants, values, layout) -> float:
+    """Largest |armature current| [A] of ``cand``'s exact run, i = (v - (B_emf/gamma) y')/Rm
+    at the samples (motor segments)."""
+    from jaxcart.exact import simulate_exact
+
+    peak = 0.0
+    plants = exact_plants(cand, base_plants, values)
+    for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
+        if not seg.motor:
+            continue
+        exp = seg.experiment
+        if i in layout.nuisance:
+            exp = dataclasses.replace(
+                exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
+            )
+        res = simulate_exact(plant, seg.controller, exp)
+        k_b = float(plant.B_emf) / float(plant.gamma)
+        i_arm = (np.asarray(res.voltage) - k_b * np.asarray(res.velocity)) / float(plant.Rm)
+        if np.any(np.isfinite(i_arm)):
+            peak = max(peak, float(np.nanmax(np.abs(i_arm))))
+    return peak
+
+
+def _items(part) -> tuple:
+    """The items a part names (:func:`significance`'s keys)."""
+    return PARAM_ERRORS.get(part) or EFFECT_NAMES.get(part, (part,))
+
+
+def _structure(parts) -> Candidate:
+    free = ["B_eq"]
+    for p in parts:
+        free += list(EFFECT_PARAMS.get(p) or PARAM_ERRORS.get(p, ()))
+    return Candidate("+".join(parts), tuple(parts), tuple(dict.fromkeys(free)))
+
+
+def _swap_tie(best, cands, plant, segments, base_plants, layout, memo, floor2, n_eff):
+    """({}, None), or when ``best`` corrects M or gamma_scale and the structure with the other
+    (values from :func:`swapped_correction`, or its own fit where that scores better) is
+    within :data:`TIE`: the facts for the verdict and that structure."""
+    swap = swapped_correction(best.parts, best.values, plant)
+    if swap is None:
+        return {}, None
+    parts, values = swap
+    other = _structure(parts)
+    keys = list(other.free) + [k for k in best.values if "@" in k]
+    other.values = {k: values[k] for k in keys}
+    other.residuals = exact_residuals(other, segments, base_plants, other.values, layout, memo)[0]
+    other.rms_exact = _rms(other.residuals)
+    other.score = score(other, other.rms_exact**2, floor2, n_eff)
+    fitted = next((c for c in cands if set(c.parts) == set(parts)), None)
+    if fitted is not None and fitted.score < other.score:
+        other = fitted
+    if not other.score <= best.score + TIE:
+        return {}, None
+    pm = plant_of(best, base_plants, segments)
+    ratios = {"gamma/m": float(pm.gamma / pm.m), "c/m": float(pm.c / pm.m)}
+    corr = {c.corrections[0]: c for c in (best, other)}
+    mass, gain = corr["mass"], corr["gain"]
+    b_eq = sorted([best.values["B_eq"], other.values["B_eq"]])
+    note = (
+        "M and gamma_scale cannot be told apart from "
+        + ("this recording" if len(segments) == 1 else "these recordings")
+        + f": with B_eq free only gamma/m = {ratios['gamma/m']:.4g} N/(V kg) and c/m = "
+        f"{ratios['c/m']:.4g} 1/s are identifiable (M = {mass.values['M']:.4g} kg with "
+        f"B_eq = {mass.values['B_eq']:.4g} kg/s, or gamma_scale = "
+        f"{gain.values['gamma_scale']:.4g} with B_eq = {gain.values['B_eq']:.4g} kg/s, fit "
+        "equally well), so B_eq is not settled; diagnose a tap of the same cart with it "
+        "(jaxcart diagnose RUN.toml TAP.toml) to separate them"
+    )
+    facts = {
+        "parameters": ["M", "gamma_scale"],
+        "ratios": ratios,
+        "alternatives": [
+            {
+                "structure": c.name,
+                "values": {k: v for k, v in c.values.items() if "@" not in k},
+                "rms": c.rms_exact,
+                "score": c.score,
+                "implausible": implausible(c.values, c.free),
+            }
+            for c in (best, other)
+        ],
+        "B_eq": b_eq,
+        "note": note,
+    }
+    return facts, other
+
+
+def plant_of(cand, base_plants, segments):
+    """The plant of ``cand`` at its values (the first motor segment's)."""
+    plants = exact_plants(cand, base_plants, cand.values)
+    motor = [p for p, s in zip(plants, segments, strict=True) if s.motor]
+    return motor[0] if motor else plants[0]
+
+
+#: What a residual that still correlates with each signal after the best structure may point
+#: to beyond the candidates (the suggestions of a diagnosis that explains nothing).
+BEYOND = {
+    "position": "a force that varies along the track (track_friction, not a candidate: "
+    "jaxcart fit --params B_eq,f_track)",
+    "sign_velocity": "friction beyond Coulomb and stiction (speed-dependent, Stribeck) or "
+    "backlash (jaxcart fit --params B_eq,backlash)",
+    "command": "a drive nonlinearity beyond saturation, deadzone and current limit",
+    "acceleration": "inertia or lag beyond M and delay (the motor's electrical lag)",
+}
+
+
+def _suggestions(tests, best) -> list:
+    """What may be missing when nothing explains the recording: the signals the best
+    structure's residual still correlates with (:data:`BEYOND`), more effects at once,
+    physics outside the library."""
+    out = [
+        BEYOND[k] + f" (its residual correlates with {k.replace('_', ' ')}, z = {t['z']:+.0f})"
+        for k, t in tests.items()
+        if k in BEYOND and t.get("significant")
+    ]
+    n = len(best.free) - 1
+    out.append(
+        f"more effects at once than the search combines ({n} parameters here, at most {K_MAX - 1})"
+        if n >= K_MAX - 2
+        else "more effects at once"
+    )
+    out.append("physics outside the effects library")
+    return out
 
 
 def _spread(processes, items, compute):

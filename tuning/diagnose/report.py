@@ -27,6 +27,26 @@ def render_markdown(d, figure: str | None = None) -> str:
     if d.status != "diagnosed":
         return "\n".join(lines + [f"- {m}" for m in d.messages]) + "\n"
     ratio = d.rms_before / d.rms_after if d.rms_after > 0 else math.inf
+    if not d.explained:
+        lines += ["## Not explained", "", d.misfit[:1].upper() + d.misfit[1:] + ".", ""]
+        if d.suggestions:
+            lines += ["What may be missing:", ""] + [f"- {s}" for s in d.suggestions] + [""]
+    if d.unidentifiable:
+        u = d.unidentifiable
+        lines += [
+            "## M and gamma_scale",
+            "",
+            u["note"][:1].upper() + u["note"][1:] + ".",
+            "",
+            "| structure | values | exact RMS |",
+            "|---|---|---|",
+        ]
+        for alt in u["alternatives"]:
+            values = ", ".join(f"{k} = {_num(v)}" for k, v in alt["values"].items())
+            lines.append(f"| {alt['structure']} | {values} | {_mm(alt['rms'])} |")
+        lines.append("")
+    if d.implausible:
+        lines += ["## Implausible values", ""] + [f"- {x}" for x in d.implausible] + [""]
     lines += [
         "## Fit on the exact simulator",
         "",
@@ -41,11 +61,30 @@ def render_markdown(d, figure: str | None = None) -> str:
         "",
         "## Fitted parameters",
         "",
-        "| parameter | value | standard error | unit |",
-        "|---|---|---|---|",
+        "| parameter | value | standard error | unit | note |",
+        "|---|---|---|---|---|",
     ]
     for n, p in d.parameters.items():
-        lines.append(f"| {n} | {_num(p['value'])} | {_num(p['stderr'])} | {p['unit']} |")
+        note = []
+        if p.get("settled") is False:
+            lo, hi = p["range"]
+            note.append(f"not settled: {_num(lo)} to {_num(hi)} (M or gamma_scale)")
+        if p.get("stderr_widened"):
+            note.append("widened for model error")
+        z = d.significance.get(n) or d.significance.get(_ITEM.get(n, ""))
+        if z is not None:
+            note.append(f"z = {z:.3g}")
+        lines.append(
+            f"| {n} | {_num(p['value'])} | {_num(p['stderr'])} | {p['unit']} | {'; '.join(note)} |"
+        )
+    if d.not_significant:
+        lines += [
+            "",
+            "Not named, though in a structure that scored better (significance needs "
+            f"z > {_significance()} and no parameter at a bound):",
+            "",
+        ]
+        lines += [f"- {x['effect']} of {x['structure']}: {x['why']}" for x in d.not_significant]
     lines += ["", "## Where the recording and the baseline part", ""]
     if d.windows:
         lines += [
@@ -78,18 +117,47 @@ def render_markdown(d, figure: str | None = None) -> str:
         "",
         "## Candidates (fitted through the smoothed simulator, scored on the exact one)",
         "",
-        "| structure | exact RMS | score | window evidence |",
-        "|---|---|---|---|",
+        "| structure | round | exact RMS | score | window evidence | significant |",
+        "|---|---|---|---|---|---|",
     ]
     for c in d.candidates:
+        sig = "yes" if not c.why_not else "no: " + c.why_not
+        if not c.parts:
+            sig = "-"
         lines.append(
-            f"| {c.name} | {_mm(c.rms_exact)} | {c.score:.1f} | {c.window_evidence * 100:.1f} % |"
+            f"| {c.name} | {c.round} | {_mm(c.rms_exact)} | {c.score:.1f} | "
+            f"{c.window_evidence * 100:.1f} % | {sig} |"
         )
     if figure:
         lines += ["", f"![recording, baseline and corrected model]({figure})"]
     if d.plant_file:
         lines += ["", f"Corrected plant: `{d.plant_file}` (for simulate, fit, tune, lab --plant)."]
     return "\n".join(lines) + "\n"
+
+
+#: The significance item of a strength parameter (the Markdown's z column).
+_ITEM = {
+    "f_c": "coulomb",
+    "f_s": "stiction",
+    "delay": "delay",
+    "deadzone": "deadzone",
+    "k_s": "spring",
+    "v_sat": "saturation",
+    "i_max": "current_limit",
+}
+
+
+def _significance() -> str:
+    from tuning.diagnose.core import SIGNIFICANCE
+
+    return f"{SIGNIFICANCE:g}"
+
+
+def figure_title(d, width: int = 95) -> str:
+    """The figure's title: :attr:`~tuning.diagnose.core.Diagnosis.headline`, wrapped."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(d.headline, width)[:3])
 
 
 def plot_diagnosis(d, path) -> Path:
@@ -119,7 +187,7 @@ def plot_diagnosis(d, path) -> Path:
         bottom.set_xlabel("time [s]")
         top.legend(fontsize=8)
         bottom.legend(fontsize=8)
-    fig.suptitle(d.verdict[:120], fontsize=9)
+    fig.suptitle(figure_title(d), fontsize=9, color="black" if d.explained else "darkred")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

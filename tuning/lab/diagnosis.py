@@ -34,9 +34,12 @@ def section(lab: Lab) -> None:
         "B_eq fitted, the controller as its file describes it) on the exact simulator. Where "
         "they part by more than the encoder's quantization, candidate structures from the "
         "effects library (saturation, Coulomb friction, stiction, delay, deadzone, spring, "
-        "current limit, and pairs of them) and the parameter corrections (mass, motor gain) are "
-        "fitted in one batch and re-checked on the exact simulator; an information criterion "
-        "with a penalty per added effect chooses. Part (ii) is the handout's own example of "
+        "current limit, pairs of them, and larger sets while a pair is not enough) and the "
+        "parameter corrections (mass, motor gain) are fitted in batches and re-checked on the "
+        "exact simulator; an information criterion with a penalty per added effect chooses "
+        "among the structures whose every effect is significant, and a recording that no "
+        "structure brings within 3 times the encoder floor is marked not explained. Part (ii) "
+        "is the handout's own example of "
         "left-out physics: the ±6 V saturation, which the linear model (0.1) has not."
     )
     rows, results = [], {}
@@ -86,6 +89,17 @@ def _row(part, name, d) -> list:
         left = "nothing"
     if d.equivalent:
         left += " (or " + "; ".join(" + ".join(e) for e in d.equivalent) + ")"
+    if d.left_out and d.corrected_parameters:
+        left += "; corrected " + ", ".join(d.corrected_parameters)
+    if not d.explained:
+        left = (
+            f"not explained: {d.floor_ratio:.3g}x the encoder floor with the best "
+            f"approximation ({left})"
+        )
+    if d.unidentifiable:
+        left += "; M and gamma_scale not told apart (B_eq not settled)"
+    if d.implausible:
+        left += "; implausible: " + "; ".join(d.implausible)
     fitted = ", ".join(
         f"{n} = {p['value']:.4g}" for n, p in d.parameters.items() if p.get("value") is not None
     )

@@ -1,0 +1,352 @@
+"""jaxcart diagnose says what it does not know: a recording no candidate explains, an effect
+that is not significant, a parameter correction beside an effect, M and gamma_scale that one
+closed loop cannot tell apart, and the forward selection past pairs (docs/diagnose.md).
+
+The recordings are made as tuning/diagnose/suite.py makes its cases (the exact simulator
+through the encoder, written as an experiment file and read back), 1 s long to keep each
+diagnosis a few seconds. A truth with the ``quantization`` sensor effect has a controller that
+reads whole encoder counts, as the hardware does (the diagnosis's simulation reads the exact
+position): a model error just above the encoder floor, which a structure that is not there
+could absorb.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from jaxcart.files import read_experiment
+from jaxcart.plantspec import build_plant
+from tuning.diagnose import diagnose, render_markdown
+from tuning.diagnose.core import (
+    CORRECTION_MARGIN,
+    K_MAX,
+    PLAUSIBLE,
+    SIGNIFICANCE,
+    Candidate,
+    Diagnosis,
+    covariance,
+    extend,
+    fitter_scale,
+    implausible,
+    prepare,
+    significance,
+    swapped_correction,
+)
+from tuning.diagnose.report import figure_title
+from tuning.fit import MISFIT_RATIO, effective_samples, misfits, widened_for_model_error
+from tuning.synthetic import make_recording, make_tap_recording, write_recording
+
+Q = 2.275e-5
+FLOOR = Q / math.sqrt(12)
+B = {"B_eq": 4.6}
+
+
+def _recording(folder, name, truth, *, amplitude=0.3, kp=40.0, kd=3.0, horizon=1.0, seed=1):
+    """A P(D) step on ``truth`` as suite.make_case makes one, ``horizon`` seconds long."""
+    pid = jc.PID(kp=kp, kd=kd, v_limit=6.0)
+    rec = make_recording(build_plant(truth), pid, jc.step(amplitude, horizon=horizon), seed=seed)
+    return read_experiment(write_recording(rec, folder / f"{name}.toml", force=True))
+
+
+def _tap(folder, truth):
+    rec = make_tap_recording(
+        build_plant(truth, motor_connected=False), speed=0.6, rest=0.3, horizon=1.0, seed=2
+    )
+    path = write_recording(rec, folder / "tap.toml", force=True)
+    text = path.read_text()
+    if "[tap]" not in text:
+        path.write_text(text + "\n[tap]\nmotor_connected = false\n")
+    return read_experiment(path)
+
+
+# ---------------------------------------------------------------- the rules, without a fit
+
+
+def test_the_misfit_rule_and_widening_are_the_fits_own():
+    assert MISFIT_RATIO == 3.0
+    assert misfits(3.01 * FLOOR, FLOOR) and not misfits(3.0 * FLOOR, FLOOR)
+    assert not misfits(math.nan, FLOOR)  # as fit has it: no number, no claim
+    # max(robust, naive * sqrt(N / n_eff)), element by element.
+    got = widened_for_model_error(np.array([1.0, 5.0]), np.array([4.0, 4.0]), 100, 25.0)
+    np.testing.assert_allclose(got, [4.0, 5.0])
+
+
+def test_an_effect_at_its_bound_or_near_its_neutral_value_is_not_significant():
+    """The evaluation's two cases: a spring with k_s at its lower bound (y_rest off the
+    track), and f_c = 0.0005 +/- 0.0005 N beside a saturation; a real effect passes."""
+    spring = significance(
+        ("spring",), {"B_eq": 5.4, "k_s": 0.001, "y_rest": 1.13}, lambda w: 0.00037
+    )
+    assert "lower bound" in spring["spring"]["why"]
+    values = {"B_eq": 4.0, "v_sat": 4.0, "f_c": 0.000573}
+    se = {"v_sat": 4.1e-5, "f_c": 0.00055}
+    sig = significance(
+        ("saturation", "coulomb"),
+        values,
+        lambda w: math.sqrt(sum((c * se[n]) ** 2 for n, c in w.items())),
+        peaks={"command": 6.0},
+    )
+    assert sig["coulomb"]["z"] == pytest.approx(0.000573 / 0.00055)
+    assert sig["coulomb"]["why"] and "standard errors from 0 N" in sig["coulomb"]["why"]
+    assert sig["saturation"]["z"] == pytest.approx((6.0 - 4.0) / 4.1e-5)
+    assert not sig["saturation"]["why"]
+    # A limit above every command sent never acts.
+    idle = significance(("saturation",), {"v_sat": 7.0}, lambda w: 0.01, peaks={"command": 6.0})
+    assert idle["saturation"]["z"] < 0 and "does not act" in idle["saturation"]["why"]
+    # Stiction is static friction above the kinetic level: the test is on f_s - f_c, with the
+    # covariance of the two.
+    cov = np.array([[1e-4, 0.9e-4], [0.9e-4, 1e-4]])
+
+    def stderr(w):
+        a = np.array([w.get("f_c", 0.0), w.get("f_s", 0.0)])
+        return float(np.sqrt(a @ cov @ a))
+
+    sig = significance(("stiction",), {"f_c": 0.3, "f_s": 0.32}, stderr)
+    assert sig["stiction"]["z"] == pytest.approx(0.02 / math.sqrt(2e-4 - 1.8e-4))
+    assert sig["coulomb"]["z"] > SIGNIFICANCE and not sig["coulomb"]["why"]
+    # A correction must exceed CORRECTION_MARGIN of the start value by SIGNIFICANCE errors.
+    start = {"M": 0.94, "gamma_scale": 1.0}
+    tiny = significance(("mass",), {"M": 0.9402}, lambda w: 1e-5, start=start)
+    assert "within 1%" in tiny["M"]["why"]
+    real = significance(("mass",), {"M": 1.25}, lambda w: 1e-3, start=start)
+    assert real["M"]["z"] == pytest.approx((0.31 - CORRECTION_MARGIN * 0.94) / 1e-3)
+
+
+def test_implausible_values_are_flagged():
+    lines = implausible(
+        {"B_eq": 0.3814, "v_sat": 4.48, "f_c": 0.37, "k_s": 0.001, "y_rest": 1.13, "M": 1.2},
+        ["B_eq", "v_sat", "f_c", "k_s", "y_rest", "M", "y0@0"],
+    )
+    text = "\n".join(lines)
+    assert "B_eq = 0.3814 kg/s is outside" in text and f"{PLAUSIBLE['B_eq'][0]:.3g}" in text
+    assert "k_s = 0.001 N/m sits at its lower bound" in text
+    assert "y_rest = 1.13 m is off the" in text
+    assert not any(x.startswith(("v_sat", "f_c", "M ")) for x in lines)
+    assert implausible({"B_eq": 4.0, "gamma_scale": 0.3}, ["B_eq", "gamma_scale"]) == [
+        "gamma_scale = 0.3 is outside what a cart of this lab has (0.5-2)"
+    ]
+    assert implausible({"B_eq": 5.0, "M": 1.2, "gamma_scale": 0.9}, ["B_eq", "M"]) == []
+
+
+def test_m_and_gamma_scale_give_the_same_closed_loop():
+    """The claim behind the tie: with B_eq free one closed loop fixes only gamma/m, c/m and
+    every force over m. The mapped plant moves exactly as the corrected one."""
+    from jaxcart.exact import simulate_exact
+    from jaxcart.plantspec import with_values
+
+    base = jc.handout_plant()
+    values = {"B_eq": 4.6, "M": 1.25, "v_sat": 4.0, "f_c": 0.3}
+    parts, mapped = swapped_correction(("saturation", "coulomb", "mass"), values, base)
+    assert parts == ("saturation", "coulomb", "gain") and "M" not in mapped
+    pid = jc.PID(kp=40.0, kd=3.0, v_limit=6.0)
+    exp = jc.step(0.4, horizon=1.0)
+    a = simulate_exact(with_values(base, values), pid, exp)
+    b = simulate_exact(with_values(base, mapped), pid, exp)
+    np.testing.assert_allclose(a.position, b.position, atol=1e-9)
+    back = swapped_correction(parts, mapped, base)[1]
+    for k, v in values.items():
+        assert back[k] == pytest.approx(v, rel=1e-12), k
+    # No equivalent with a positive B_eq: the two differ (a cart has B_eq > 0).
+    assert swapped_correction(("mass",), {"B_eq": 0.5, "M": 1.5}, base) is None
+
+
+def test_forward_selection_extends_the_best_within_the_batch_slots():
+    def single(name, free):
+        return Candidate(name, (name,), ("B_eq", *free))
+
+    sat, coul, dz, spring, stiction, mass = (
+        single("saturation", ("v_sat",)),
+        single("coulomb", ("f_c",)),
+        single("deadzone", ("deadzone",)),
+        single("spring", ("k_s", "y_rest")),
+        single("stiction", ("f_c", "f_s")),
+        Candidate("mass", ("mass",), ("B_eq", "M")),
+    )
+    pairs = [
+        Candidate("saturation+coulomb", ("saturation", "coulomb"), ("B_eq", "v_sat", "f_c")),
+        Candidate(
+            "saturation+spring", ("saturation", "spring"), ("B_eq", "v_sat", "k_s", "y_rest")
+        ),
+    ]
+    seen = {frozenset(c.parts) for c in pairs}
+    additions = [coul, mass, stiction, spring, dz, sat]
+    grown = extend(pairs, additions, seen, limit=4)
+    names = [c.name for c, _, _ in grown]
+    # The best seed with the best addition first; a seed's own part adds nothing.
+    assert names[:2] == ["saturation+coulomb+mass", "saturation+spring+coulomb"]
+    assert len(grown) == 4 and all(len(c.parts) == 3 for c, _, _ in grown)
+    assert all(len(c.free) <= K_MAX for c, _, _ in grown)
+    # Stiction holds Coulomb; saturation + spring + stiction has 6 free slots.
+    assert not any({"coulomb", "stiction"} <= set(c.parts) for c, _, _ in grown)
+    every = extend(pairs, additions, {frozenset(c.parts) for c in pairs}, limit=100)
+    assert "saturation+spring+stiction" not in [c.name for c, _, _ in every]
+    assert len({frozenset(c.parts) for c, _, _ in every}) == len(every)
+    again = extend(pairs, additions, seen, limit=4)
+    assert not {c.name for c, _, _ in again} & set(names)  # seen ones are not fitted again
+
+
+def _diagnosis(**kw):
+    base = dict(
+        recordings=["run.toml"],
+        status="diagnosed",
+        messages=[],
+        controller_checks=[],
+        rms_before=1e-3,
+        rms_after=2e-5,
+        floor=FLOOR,
+        chosen="saturation+mass",
+        left_out=["saturation"],
+        corrected_parameters=["M"],
+        parameters={
+            "B_eq": {"value": 4.6, "stderr": 1e-3, "unit": "kg/s"},
+            "v_sat": {"value": 4.0, "stderr": 1e-4, "unit": "V"},
+            "M": {"value": 1.25, "stderr": 1e-4, "unit": "kg"},
+        },
+        baseline={"B_eq": {"value": 7.0, "stderr": 0.1, "unit": "kg/s"}, "rms": 1e-3},
+        start_values={"M": 0.94},
+    )
+    base.update(kw)
+    return Diagnosis(**base)
+
+
+def test_the_verdict_says_effects_and_corrections_and_what_it_does_not_know():
+    d = _diagnosis()
+    assert d.verdict == "left out: saturation; corrected parameters: M 0.94 -> 1.25 kg"
+    d = _diagnosis(left_out=[], chosen="mass")
+    assert d.verdict.startswith("corrected parameters: M 0.94 -> 1.25 kg; nothing left out")
+    d = _diagnosis(
+        rms_after=0.5e-3,
+        explained=False,
+        misfit="the best structure ... no candidate explains the recording",
+        suggestions=["physics outside the effects library"],
+        implausible=["B_eq = 0.38 kg/s is outside what a cart of this lab has (1.08-27 kg/s)"],
+    )
+    v = d.verdict
+    assert v.startswith("no candidate explains the recording: the best approximation (left out:")
+    assert f"ends at {0.5e-3 / FLOOR:.0f} times the encoder floor" in v  # 76 times
+    assert "at 3.2 times" in _diagnosis(explained=False, rms_after=3.2 * FLOOR).verdict
+    assert "corrected parameters: M 0.94 -> 1.25 kg" in v
+    assert "what may be missing: physics outside the effects library" in v
+    assert "implausible: B_eq = 0.38 kg/s" in v
+    doc = d.to_json()
+    assert doc["explained"] is False and doc["floor_ratio"] == pytest.approx(0.5e-3 / FLOOR)
+    assert doc["suggestions"] and doc["implausible"] and doc["misfit"]
+    title = figure_title(d)
+    assert title.startswith("NOT EXPLAINED") and "implausible: B_eq = 0.38 kg/s" in title
+    md = render_markdown(d)
+    assert "## Not explained" in md and "## Implausible values" in md
+    from tuning.lab.diagnosis import _row
+
+    row = _row("(ii) P 50 step", "p50.toml", d)
+    assert row[2].startswith("not explained") and "implausible" in row[2] and "M" in row[2]
+
+
+# ---------------------------------------------------------------- diagnoses
+
+
+def test_a_controller_reading_counts_leaves_nothing_named(tmp_path):
+    """The hardware's controller reads whole counts, the diagnosis's simulation the exact
+    position: a model error of 1.5-2 times the encoder floor that a structure which is not
+    there absorbs (the old diagnosis named a spring at its bound, or corrected M by 0.02 %).
+    The baseline explains such a recording (within 3 times the floor): nothing is named."""
+    rec = _recording(tmp_path, "null", {**B, "quantization": Q})
+    d = diagnose([rec], progress=False)
+    assert 1.0 < d.rms_before / d.floor < MISFIT_RATIO
+    assert d.left_out == [] and d.corrected_parameters == [] and d.explained
+    assert d.verdict.startswith("nothing left out")
+    better = [
+        c for c in d.candidates if c.score < next(x for x in d.candidates if not x.parts).score
+    ]
+    for c in better:  # whatever scored better is listed with why it is not named
+        assert any(x["structure"] == c.name for x in d.not_significant), c.name
+
+
+def test_an_insignificant_second_effect_or_correction_is_not_named(tmp_path):
+    """A 3 ms delay, the controller reading counts: the old diagnosis named the delay with a
+    Coulomb friction of 0.8 mN (+/- 1.5 mN) on a 2 s recording, or (unsaid) a 0.04 % heavier
+    cart on this 1 s one."""
+    rec = _recording(tmp_path, "delay", {**B, "delay": 0.003, "quantization": Q}, kp=60.0, kd=4.0)
+    d = diagnose([rec], progress=False)
+    assert d.left_out == ["delay"] and d.corrected_parameters == [], d.verdict
+    assert d.parameters["delay"]["value"] == pytest.approx(0.003, rel=0.01)
+    assert d.significance["delay"] > SIGNIFICANCE
+    for c in d.candidates:  # every structure with an effect or correction was tested
+        if c.parts:
+            assert c.assessed is not None and set(c.z) >= set(c.effects)
+
+
+def test_a_recording_no_candidate_explains_says_so(tmp_path):
+    """Friction that varies along the track (track_friction is no candidate): the best
+    structure ends far above the floor. The verdict says no candidate explains it, names the
+    best approximation and how far it is, suggests what may be missing, and the standard errors
+    are widened for model error as jaxcart fit widens its own."""
+    rec = _recording(
+        tmp_path, "track", {**B, "f_track": [0.05, 0.6, 0.05, 0.6, 0.05]}, amplitude=0.4
+    )
+    d = diagnose([rec], progress=False)
+    assert not d.explained and d.floor_ratio > MISFIT_RATIO
+    assert d.verdict.startswith("no candidate explains the recording: the best approximation")
+    assert " times the encoder floor" in d.verdict
+    assert any("along the track" in s for s in d.suggestions)  # its residual follows position
+    assert "physics outside the effects library" in d.suggestions
+    # The standard errors: the fit's widening of the robust ones.
+    best = next(c for c in d.candidates if c.name == d.chosen)
+    segs = [prepare(rec)]
+    names = list(best.free)
+    jac = best.jac / fitter_scale(segs)
+    plain = covariance(segs, names, best.values, jac, best.residuals)
+    n = sum(r.size for r in best.residuals)
+    n_eff = effective_samples(best.residuals)
+    for k in names:
+        p = d.parameters[k]
+        assert p["stderr_widened"]
+        i = names.index(k)
+        want = widened_for_model_error(plain.stderr({k: 1.0}), plain.naive[i, i], n, n_eff)
+        assert p["stderr"] == pytest.approx(float(want), rel=1e-9)
+    assert d.parameters["B_eq"]["stderr"] > 5 * plain.stderr({"B_eq": 1.0})
+    doc = d.to_json()
+    assert doc["explained"] is False and doc["misfit"] and doc["suggestions"]
+    assert "## Not explained" in render_markdown(d) and figure_title(d).startswith("NOT EXPLAINED")
+
+
+def test_forward_selection_finds_three_parts_and_says_effects_and_correction(tmp_path):
+    """Saturation, Coulomb friction and a heavier cart: no pair reaches the floor (the old
+    diagnosis ended at 45 times it, naming saturation alone), round 3 extends the best pairs by
+    one, the chosen structure reaches the floor and the verdict says the effects, the
+    correction, and that M and gamma_scale cannot be told apart (B_eq not settled)."""
+    truth = {**B, "v_sat": 4.0, "f_c": 0.3, "M": 1.25}
+    rec = _recording(tmp_path, "sat_coul_m", truth, amplitude=0.4)
+    d = diagnose([rec], progress=False)
+    assert set(d.left_out) == {"saturation", "coulomb"}, d.verdict
+    assert d.rms_after < 2.5 * d.floor
+    assert any(c.round >= 3 and len(c.parts) == 3 for c in d.candidates)
+    assert max(c.round for c in d.candidates) <= 4  # it stops
+    assert "left out: saturation, coulomb; corrected parameters: " in d.verdict
+    corrected = d.corrected_parameters[0]
+    assert corrected in ("M", "gamma_scale")
+    u = d.unidentifiable
+    assert u and "cannot be told apart" in d.verdict and "diagnose a tap" in d.verdict
+    assert d.parameters["B_eq"]["settled"] is False
+    assert u["B_eq"][0] < truth["B_eq"] * 1.01 and u["B_eq"][1] > truth["B_eq"] * 0.99
+    m = build_plant(truth)
+    assert u["ratios"]["gamma/m"] == pytest.approx(float(m.gamma / m.m), rel=1e-3)
+    assert u["ratios"]["c/m"] == pytest.approx(float(m.c / m.m), rel=1e-3)
+    mass = next(a for a in u["alternatives"] if "M" in a["values"])
+    assert mass["values"]["M"] == pytest.approx(1.25, rel=0.01)
+
+
+def test_a_tap_of_the_same_cart_separates_m_and_gamma_scale(tmp_path):
+    """The suggestion holds: jointly with a tap (motor unplugged: B_eq / m alone), the closed
+    loop's gamma/m and c/m fix M and B_eq; no tie is left. (The closed loop alone ties.)"""
+    truth = {**B, "M": 1.25}
+    recs = [_recording(tmp_path, "heavy", truth), _tap(tmp_path, truth)]
+    d = diagnose(recs, progress=False)
+    assert d.left_out == [] and d.corrected_parameters == ["M"], d.verdict
+    assert not d.unidentifiable and "cannot be told apart" not in d.verdict
+    assert d.parameters["M"]["value"] == pytest.approx(1.25, rel=0.01)
+    assert d.parameters["B_eq"]["value"] == pytest.approx(4.6, rel=0.01)
+    assert "settled" not in d.parameters["B_eq"]
