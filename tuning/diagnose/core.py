@@ -705,6 +705,13 @@ def at_bound(name: str, value: float) -> str:
     return ""
 
 
+#: The limits among the effects: part -> (its run's peak, parameter, unit, what the peak is).
+_LIMITS = {
+    "saturation": ("command", "v_sat", "V", "the largest command"),
+    "current_limit": ("current", "i_max", "A", "the largest armature current"),
+}
+
+
 def _strengths(part, values, peaks, start):
     """Each item a part names: (item, its strength, the strength's weights for its standard
     error, what the strength measures, where the item does nothing). The strength is the
@@ -727,24 +734,16 @@ def _strengths(part, values, peaks, start):
         )
     if part == "spring":
         yield "spring", v("k_s"), {"k_s": 1.0}, f"k_s = {v('k_s'):.3g} N/m", "0 N/m"
-    if part == "saturation":
-        # v_sat above every command sent: the limit never acts.
-        top = peaks.get("command", math.inf)
+    if part in _LIMITS:
+        # A limit above the largest command (current) of the run never acts.
+        peak, name, unit, what = _LIMITS[part]
+        top = peaks.get(peak, math.inf)
         yield (
-            "saturation",
-            top - v("v_sat"),
-            {"v_sat": -1.0},
-            f"v_sat = {v('v_sat'):.3g} V",
-            f"the largest command, {top:.3g} V",
-        )
-    if part == "current_limit":
-        top = peaks.get("current", math.inf)
-        yield (
-            "current_limit",
-            top - v("i_max"),
-            {"i_max": -1.0},
-            f"i_max = {v('i_max'):.3g} A",
-            f"the largest armature current, {top:.3g} A",
+            part,
+            top - v(name),
+            {name: -1.0},
+            f"{name} = {v(name):.3g} {unit}",
+            f"{what}, {top:.3g} {unit}",
         )
     for name in PARAM_ERRORS.get(part, ()):
         was = start[name]
@@ -1052,6 +1051,11 @@ def diagnose(
             out["current"] = _current_peak(c, segments, base_plants, c.values, layout)
         return out
 
+    def cov_of(c) -> Covariance:
+        """``c``'s parameter covariances at its values (free slots and nuisances)."""
+        jac = c.jac / fitter_scale(segments)
+        return covariance(segments, list(c.free) + nuis, c.values, jac, c.residuals, widen_above)
+
     def eligible(c) -> bool:
         """Every effect and correction of ``c`` significant (:func:`significance`), at its
         current values (assessed once per set of values), and needed: a baseline within the
@@ -1067,15 +1071,7 @@ def diagnose(
                     for p in c.parts
                 }
             elif c.parts:
-                cov = covariance(
-                    segments,
-                    list(c.free) + nuis,
-                    c.values,
-                    c.jac / fitter_scale(segments),
-                    c.residuals,
-                    widen_above,
-                )
-                sig = significance(c.parts, c.values, cov.stderr, peaks(c), neutral)
+                sig = significance(c.parts, c.values, cov_of(c).stderr, peaks(c), neutral)
                 c.z = {k: v["z"] for k, v in sig.items()}
                 c.why = {k: v["why"] for k, v in sig.items()}
             c.assessed = key
@@ -1339,14 +1335,7 @@ def diagnose(
         ties = [c for c in ties if set(c.parts) != set(swapped.parts)]
 
     free_names = list(best.free) + nuis
-    cov = covariance(
-        segments,
-        free_names,
-        best.values,
-        best.jac / fitter_scale(segments),
-        best.residuals,
-        widen_above,
-    )
+    cov = cov_of(best)
     from jaxcart import plantspec
 
     params = {}
@@ -1362,14 +1351,7 @@ def diagnose(
     if unident:
         params["B_eq"]["settled"] = False
         params["B_eq"]["range"] = unident["B_eq"]
-    base_cov = covariance(
-        segments,
-        list(base.free) + nuis,
-        base.values,
-        base.jac / fitter_scale(segments),
-        base.residuals,
-        widen_above,
-    )
+    base_cov = cov_of(base)
     baseline = {
         "B_eq": {
             "value": base.values["B_eq"],
