@@ -45,11 +45,16 @@ CHUNKS_PER_CALL = 64
 COMPILER_OPTIONS = {"cpu": {"xla_cpu_prefer_vector_width": 512}}
 
 
+def loops_whole() -> bool:
+    """True when this process's default backend compiles jaxcart's chunked loops into one
+    kernel each (:func:`jaxcart.xlaflags.loop_kernels` on a CPU)."""
+    return jax.default_backend() == "cpu" and xlaflags.loop_kernels()
+
+
 def default_chunk(kernel: int = KERNEL_CHUNK, wide: int = WIDE_CHUNK) -> int:
     """Runs per chunk on this process's default backend: ``kernel`` where loops compile whole
-    (:func:`jaxcart.xlaflags.loop_kernels` on a CPU), ``wide`` otherwise."""
-    whole = jax.default_backend() == "cpu" and xlaflags.loop_kernels()
-    return kernel if whole else wide
+    (:func:`loops_whole`), ``wide`` otherwise."""
+    return kernel if loops_whole() else wide
 
 
 _FNS: dict = {}
@@ -115,8 +120,7 @@ def step_metrics_batch(
     gains = np.asarray(gains)
     if gains.ndim != 2 or gains.shape[1] != 3:
         raise ValueError(f"gains must have shape (B, 3) for (kp, kd, ki); got {gains.shape}")
-    if chunk is not None and (isinstance(chunk, bool) or not int(chunk) == chunk >= 1):
-        raise ValueError(f"chunk = {chunk!r}: give a whole number of runs >= 1 (or None)")
+    chunk = parallel.positive(chunk, "step_metrics_batch: chunk")
     dtype = jnp.dtype(dtype or jnp.result_type(float))
     # float64 needs x64 on; enable it here rather than silently computing in float32.
     with jax.enable_x64(dtype == jnp.float64 or bool(jax.config.jax_enable_x64)):

@@ -6,12 +6,14 @@ else ~/.cache/jaxcart/xla): safe to delete at any time (it is rebuilt as needed)
 ``jaxcart --no-cache ...`` or the environment variable JAXCART_NO_CACHE=1. Importing this module
 imports no jax.
 
-The folder is capped at :data:`MAX_BYTES` (1 GiB): each time the cache is turned on,
-:func:`prune` removes the least recently used programs beyond it (JAX's own cap,
+The folder is capped at :data:`MAX_BYTES` (1 GiB; JAXCART_CACHE_MAX_BYTES sets another cap):
+each time jaxcart's own folder is turned on, :func:`prune` removes the least recently used
+programs beyond it. Only JAX's entries directly in jaxcart's own folder are ever removed (a
+folder given to :func:`enable_persistent_cache` is never pruned). JAX's own cap,
 ``jax_compilation_cache_max_size``, is not used: it needs the ``filelock`` package, takes a
 file lock on every cache read and write, and fails every write in a folder of entries written
 without it, as every existing jaxcart cache is, since it reads an access-time file each entry
-lacks). Only JAX's entries directly in jaxcart's own folder are ever removed.
+lacks.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ MIN_COMPILE_SECONDS = 0.2
 #: Most bytes the compiled programs may take in the folder (1 GiB; a program is 0.1-0.4 MB on
 #: a CPU, so a few thousand programs, many full lab runs' worth).
 MAX_BYTES = 1 << 30
+#: The environment variable that sets another cap [bytes].
+MAX_BYTES_VARIABLE = "JAXCART_CACHE_MAX_BYTES"
 #: Name endings of JAX's cache entries (the program; the access time JAX's own LRU cap keeps).
 ENTRY_SUFFIX = "-cache"
 ATIME_SUFFIX = "-atime"
@@ -54,7 +58,8 @@ def enable_persistent_cache(folder: Path | None = None) -> Path | None:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None  # an unwritable home: run without the cache rather than fail
-    prune(folder)
+    if folder.resolve() == cache_dir().resolve():  # only jaxcart's own folder is pruned
+        prune(folder, max_bytes())
     if "jax" in sys.modules:
         import jax
 
@@ -66,6 +71,22 @@ def enable_persistent_cache(folder: Path | None = None) -> Path | None:
             "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(MIN_COMPILE_SECONDS)
         )
     return folder
+
+
+def max_bytes() -> int:
+    """The cap [bytes]: JAXCART_CACHE_MAX_BYTES when it is a whole number >= 0 (a warning and
+    :data:`MAX_BYTES` otherwise), else :data:`MAX_BYTES`."""
+    text = os.environ.get(MAX_BYTES_VARIABLE, "").strip()
+    if not text:
+        return MAX_BYTES
+    if text.isdigit():
+        return int(text)
+    print(
+        f"jaxcart: {MAX_BYTES_VARIABLE}={text!r} is not a whole number of bytes; the cache "
+        f"keeps its default cap of {MAX_BYTES} bytes",
+        file=sys.stderr,
+    )
+    return MAX_BYTES
 
 
 def prune(folder: Path, max_bytes: int | None = None) -> int:

@@ -104,7 +104,7 @@ def plant_ss(plant, sample_time: float | None = None) -> control.StateSpace:
     if delay == 0:
         cont = control.ss(a, b, [[1.0, 0.0]], [[0.0]], states=["y", "y_dot"], **names)
         return control.sample_system(cont, ts, "zoh", name=PLANT_NAME)
-    return _delayed_zoh(a, b, ts, delay)
+    return _delayed_zoh(plant, ts, delay)
 
 
 #: Order of the Pade approximant of a delay in continuous time.
@@ -112,45 +112,24 @@ PADE_ORDER = 6
 
 
 def _delay(plant) -> float:
-    """The plant's delay effect [s] (0 without one); other effects are not linear."""
-    effect = plant.effect("delay") if hasattr(plant, "effect") else None
-    return 0.0 if effect is None else float(effect.delay)
+    """The plant's delay effect [s] as the simulators apply it (0 without one); other effects
+    are not linear."""
+    from jaxcart.plausibility import plant_delay
+
+    return plant_delay(plant)
 
 
-def _delayed_zoh(a, b, ts, delay):
-    """The ZOH cart behind a delay line, exactly: x_{k+1} = Phi x_k + G_early u_{k-n-1} +
-    G_late u_{k-n} with delay = n Ts + s."""
-    from scipy.linalg import expm
+def _delayed_zoh(plant, ts, delay):
+    """The ZOH cart behind a delay line, exactly (:func:`jaxcart.plausibility.delayed_plant`:
+    states y, y_dot, u_1 ... u_L, the last L commands)."""
+    from jaxcart.plausibility import delayed_plant
 
-    def hold(t):  # (e^{A t}, integral of e^{A r} b over [0, t])
-        aug = np.zeros((3, 3))
-        aug[:2, :2], aug[:2, 2:] = a * t, b * t
-        e = expm(aug)
-        return e[:2, :2], e[:2, 2:]
-
-    n = int(math.floor(delay / ts))
-    split = delay - n * ts
-    if split >= ts:  # rounding at a whole number of samples, as the effect does
-        n, split = n + 1, 0.0
-    phi, _ = hold(ts)
-    phi_late, g_late = hold(ts - split)
-    g_early = phi_late @ hold(split)[1]
-    length = n + 1 if split > 0 else n  # commands u_{k-1} ... u_{k-length} held as states
-    size = 2 + length
-    big_a, big_b = np.zeros((size, size)), np.zeros((size, 1))
-    big_a[:2, :2] = phi
-    for lag, gain in ((n, g_late), (n + 1, g_early)):
-        if lag == 0:
-            big_b[:2] += gain
-        elif lag <= length:
-            big_a[:2, 1 + lag : 2 + lag] += gain
-    big_b[2] = 1.0  # u_1 <- u_k
-    for j in range(1, length):
-        big_a[2 + j, 1 + j] = 1.0  # u_{j+1} <- u_j
-    states = ["y", "y_dot"] + [f"u_{j + 1}" for j in range(length)]
+    big_a, big_b = delayed_plant(plant, ts, delay)
+    size = big_a.shape[0]
+    states = ["y", "y_dot"] + [f"u_{j + 1}" for j in range(size - 2)]
     return control.ss(
         big_a,
-        big_b,
+        big_b[:, None],
         np.eye(1, size),
         [[0.0]],
         ts,

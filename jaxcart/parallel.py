@@ -135,7 +135,7 @@ def batch_size(batch) -> int:
     return sizes.pop()
 
 
-def _positive(value, what: str):
+def positive(value, what: str):
     """``value`` (None, or an int >= 1) or a clear ValueError."""
     if value is None:
         return None
@@ -204,7 +204,7 @@ def sharded_map(
     ``{"xla_cpu_prefer_vector_width": 512}``. ``whole_chunks``: ``fn(chunk, *shared)`` takes
     a whole chunk (every leaf with the chunk's leading axis) and maps it itself.
     """
-    chunk = _positive(chunk, "sharded_map: chunk")
+    chunk = positive(chunk, "sharded_map: chunk")
     devs = list(devs or devices())
     options = tuple(sorted((compiler_options or {}).items()))
     if options and name is not None:
@@ -276,7 +276,7 @@ def map_blocks(
     ``progress(done, total)`` is called after each block. An empty batch (0 items) runs no
     block and returns empty arrays of the shapes and dtypes ``fn`` gives (:func:`empty_result`).
     """
-    block = _positive(block, "map_blocks: block")
+    block = positive(block, "map_blocks: block")
     run = sharded_map(fn, chunk=chunk, compiler_options=compiler_options)
     total = batch_size(batch)
     if total == 0:
@@ -447,6 +447,7 @@ __all__ = [
     "process_count",
     "process_index",
     "publish",
+    "positive",
     "put",
     "batch_sharding",
     "batch_size",

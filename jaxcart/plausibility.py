@@ -305,6 +305,36 @@ def delay_split(delay: float, ts: float) -> tuple[int, float]:
     return n, split
 
 
+def delayed_plant(plant, ts: float, delay: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) of the zero-order-hold cart behind a transport ``delay`` [s], exactly:
+    x_{k+1} = A x_k + B u_k with x = [y, y', u_{k-1}, ..., u_{k-L}] [m, m/s, V...]. With
+    delay = n Ts + s (:func:`delay_split`) the motor sees u_{k-n-1} over the first s of the
+    sample and u_{k-n} over the rest (the split-hold, modified-z discretization:
+    y_{k+1} = Ad x_k + G_late u_{k-n} + G_early u_{k-n-1}, G_late the hold over Ts - s, G_early
+    = e^{A (Ts - s)} times the hold over s); L = n, or n + 1 for a split sample. Shared by
+    :func:`closed_loop_matrix` and :func:`jaxcart.control_systems.plant_ss`."""
+    ad, bd = plant_matrices(plant, ts)
+    n, split = delay_split(delay, ts) if delay else (0, 0.0)
+    length = n + 1 if split > 0 else n
+    size = 2 + length
+    a, b = np.zeros((size, size)), np.zeros(size)
+    a[:2, :2] = ad
+    if length == 0:
+        b[:2] = bd
+        return a, b
+    phi_late, g_late = plant_matrices(plant, ts - split)
+    g_early = phi_late @ plant_matrices(plant, split)[1]
+    for lag, gain in ((n, g_late), (n + 1, g_early)):
+        if lag == 0:
+            b[:2] += gain
+        elif lag <= length:
+            a[:2, 1 + lag] += gain  # u_{k-lag} is state 1 + lag
+    b[2] = 1.0  # u_{k-1} <- u_k
+    for j in range(1, length):
+        a[2 + j, 1 + j] = 1.0  # u_{k-j-1} <- u_{k-j}
+    return a, b
+
+
 def closed_loop_matrix(pid, plant, *, with_delay: bool = True) -> np.ndarray:
     """The matrix of the discrete closed loop (r = 0, no limit): state [y, y', I, d_{k-1},
     s_{k-1}] of the plant and the canonical PID (derivative on error and on measurement have
@@ -316,35 +346,21 @@ def closed_loop_matrix(pid, plant, *, with_delay: bool = True) -> np.ndarray:
     ``with_delay=False``: the 5 x 5 loop without the delay."""
     ts = float(pid.sample_time)
     kp, ki, kd, tau = (float(pid.kp), float(pid.ki), float(pid.kd), float(pid.tau))
-    ad, bd = plant_matrices(plant, ts)
     delay = plant_delay(plant) if with_delay else 0.0
-    n, split, length = 0, 0.0, 0
-    if delay != 0:
-        if not math.isfinite(delay):
-            raise ValueError(f"plant delay = {delay!r} s: give a finite number of seconds")
-        n, split = delay_split(delay, ts)
-        length = n + 1 if split > 0 else n
-    size = 5 + length
+    if not math.isfinite(delay):
+        raise ValueError(f"plant delay = {delay!r} s: give a finite number of seconds")
+    pa, pb = delayed_plant(plant, ts, delay)
+    size = 3 + pa.shape[0]
+    # The plant's states [y, y', delay line] in the loop's order [y, y', I, d, s, delay line].
+    at = np.r_[0, 1, 5:size]
     cy = np.eye(size)[0]  # y_k
     # d_k = (tau d_{k-1} + s_k - s_{k-1}) / (tau + Ts), s_k = e_k = -y_k
     d_row = np.zeros(size)
     d_row[:5] = np.array([-1.0, 0.0, 0.0, tau, -1.0]) / (tau + ts)
     u_row = -kp * cy + ki * np.eye(size)[2] + kd * d_row  # u_k
     a = np.zeros((size, size))
-    a[:2, :2] = ad
-    if length == 0:
-        a[:2, :] += np.outer(bd, u_row)
-    else:
-        phi_late, g_late = plant_matrices(plant, ts - split)
-        g_early = phi_late @ plant_matrices(plant, split)[1]
-        for lag, gain in ((n, g_late), (n + 1, g_early)):
-            if lag == 0:
-                a[:2, :] += np.outer(gain, u_row)
-            elif lag <= length:
-                a[:2, 4 + lag] += gain  # u_{k-lag} is state 4 + lag
-        a[5] = u_row  # u_{k-1} <- u_k
-        for j in range(1, length):
-            a[5 + j, 4 + j] = 1.0  # u_{k-j-1} <- u_{k-j}
+    a[np.ix_(at, at)] = pa
+    a[at] += np.outer(pb, u_row)
     a[2] = np.eye(size)[2] - ts * cy
     a[3] = d_row
     a[4] = -cy

@@ -265,6 +265,20 @@ def test_a_controller_reading_counts_leaves_nothing_named(tmp_path):
         assert any(x["structure"] == c.name for x in d.not_significant), c.name
 
 
+def test_noisy_data_that_are_not_counts_are_judged_against_their_noise(tmp_path):
+    """No encoder grid, 20 um of white noise: the floor is the noise (fit's floor_of), and the
+    right model explains the recording (with a 1e-7 m floor it was "not explained", 201x)."""
+    pid = jc.PID(kp=40.0, kd=3.0, v_limit=6.0)
+    rec = make_recording(
+        build_plant(B), pid, jc.step(0.3, horizon=1.0), quantization=0.0, noise=2e-5, seed=3
+    )
+    rec = read_experiment(write_recording(rec, tmp_path / "noisy.toml", force=True))
+    d = diagnose([rec], progress=False)
+    assert d.floor == pytest.approx(2e-5, rel=0.1)  # the noise, measured from the data
+    assert d.explained and d.left_out == [] and d.corrected_parameters == [], d.verdict
+    assert d.parameters["B_eq"]["value"] == pytest.approx(4.6, rel=0.02)
+
+
 def test_an_insignificant_second_effect_or_correction_is_not_named(tmp_path):
     """A 3 ms delay, the controller reading counts: the old diagnosis named the delay with a
     Coulomb friction of 0.8 mN (+/- 1.5 mN) on a 2 s recording, or (unsaid) a 0.04 % heavier
@@ -337,6 +351,18 @@ def test_forward_selection_finds_three_parts_and_says_effects_and_correction(tmp
     assert u["ratios"]["c/m"] == pytest.approx(float(m.c / m.m), rel=1e-3)
     mass = next(a for a in u["alternatives"] if "M" in a["values"])
     assert mass["values"]["M"] == pytest.approx(1.25, rel=0.01)
+
+
+def test_of_m_and_gamma_scale_the_plausible_one_is_named(tmp_path):
+    """A heavier cart (M = 1.31 kg, B_eq = 4 kg/s) on one closed loop: the weaker motor fits
+    it as well but needs B_eq = 0.99 kg/s, which no cart of this lab has; the heavier cart is
+    named, the tie said."""
+    rec = _recording(tmp_path, "heavy", {"B_eq": 4.0, "M": 1.31})
+    d = diagnose([rec], progress=False)
+    assert d.corrected_parameters == ["M"] and d.left_out == [], d.verdict
+    assert d.parameters["M"]["value"] == pytest.approx(1.31, rel=0.01)
+    assert d.parameters["B_eq"]["value"] == pytest.approx(4.0, rel=0.02)
+    assert d.unidentifiable and not d.implausible
 
 
 def test_a_tap_of_the_same_cart_separates_m_and_gamma_scale(tmp_path):

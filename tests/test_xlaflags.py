@@ -29,6 +29,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         # The user's own value is kept.
         (f"{EXTRA}{OPTION}=1024", f"{EXTRA}{OPTION}=1024"),
         (f"{EXTRA}a=1,{OPTION}=5", f"{EXTRA}a=1,{OPTION}=5"),
+        # An empty map option takes it; of two, the last does (XLA merges them).
+        (f"--a {EXTRA} --b", f"--a {EXTRA}{OPTION}=1048576 --b"),
+        (f"{EXTRA}a=1 {EXTRA}b=2", f"{EXTRA}a=1 {EXTRA}b=2,{OPTION}=1048576"),
     ],
 )
 def test_with_option_adds_merges_or_keeps(flags, want):
@@ -38,14 +41,17 @@ def test_with_option_adds_merges_or_keeps(flags, want):
 
 def test_threshold_in_reads_the_last_value_and_nothing_else():
     assert xlaflags.threshold_in("") is None
+    assert xlaflags.threshold_in(EXTRA) is None
     assert xlaflags.threshold_in(f"--x_{OPTION}=3") is None  # another flag's name
-    assert xlaflags.threshold_in(f"--xla_backend_extra_options={OPTION}=2,{OPTION}=7") == 7
+    assert xlaflags.threshold_in(f"{EXTRA}{OPTION}=2,{OPTION}=7") == 7
+    assert xlaflags.threshold_in(f"{EXTRA}{OPTION}=2 {EXTRA}a=1") == 2  # merged maps
 
 
-def _run(code: str, flags: str | None) -> str:
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+def _run(code: str, flags: str | None, **extra) -> str:
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", xlaflags.OFF)}
     if flags is not None:
         env["XLA_FLAGS"] = flags
+    env.update(extra)
     done = subprocess.run(
         [sys.executable, "-c", textwrap.dedent(code)],
         capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
@@ -79,6 +85,14 @@ def test_a_users_smaller_value_is_kept_and_the_chunks_stay_wide():
     mine = f"--xla_backend_extra_options={OPTION}=1024"
     kernels, whole, chunk, flags = _run(_PROBE.format(first="import jaxcart"), mine)
     assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, mine)
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
+def test_turned_off_it_leaves_xla_flags_alone():
+    kernels, whole, chunk, flags = _run(
+        _PROBE.format(first="import jaxcart"), None, **{xlaflags.OFF: "0"}
+    )
+    assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, "-")
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")

@@ -1532,15 +1532,22 @@ def widened_for_model_error(stderr, naive_variance, n: int, n_eff: float) -> np.
 
 
 def noise_floor(segments) -> float:
-    """RMS position error [m] a correct model leaves on these segments: the encoder's
-    q / sqrt(12), or for data that are not whole counts their white noise (:func:`noise_level`);
-    at least :data:`FLOOR_MIN`."""
+    """RMS position error [m] a correct model leaves on these segments (:func:`floor_of`)."""
+    return floor_of((seg.measured, seg.quantization) for seg in segments)
+
+
+def floor_of(data) -> float:
+    """RMS position error [m] a correct model leaves on recorded positions: for each
+    (positions [m], encoder count q [m] or 0) of ``data``, the encoder's q / sqrt(12), or for
+    data that are not whole counts their white noise (:func:`noise_level`); weighted by
+    samples, at least :data:`FLOOR_MIN`. Shared by ``jaxcart fit`` and ``jaxcart diagnose``."""
     total = n = 0
-    for seg in segments:
+    for positions, q in data:
+        positions = np.asarray(positions, dtype=float)
         # Encoder data are whole counts (their noise is in the counts); other data: white noise.
-        var = seg.quantization**2 / 12 if seg.quantization > 0 else noise_level(seg.measured) ** 2
-        total += seg.measured.size * var
-        n += seg.measured.size
+        var = q**2 / 12 if q > 0 else noise_level(positions) ** 2
+        total += positions.size * var
+        n += positions.size
     return max(math.sqrt(total / max(n, 1)), FLOOR_MIN)
 
 

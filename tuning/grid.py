@@ -322,18 +322,19 @@ def _evaluate(
     if dtype not in (np.float32, np.float64):
         raise UserError(f"dtype {dtype}: use float32 or float64")
     n = int(np.prod(shape))
-    chunk = int(chunk or default_chunk())  # resolved here: the checkpoint's key names it
+    chunk = int(chunk or default_chunk())
     # Same block size on every call (the last one padded) so the evaluator compiles once.
     block = int(min(n, block))
     keep_full = n <= gridrun.FULL_LIMIT if keep_full is None else bool(keep_full)
     where = plants if len(plants) > 1 else plants[0]
+    # The chunk is not part of the problem: it moves a metric by rounding at most, and the
+    # processes of one distributed run (a GPU host beside CPU hosts) may choose different ones.
     key = gridrun.problem_key(
         where,
         controller,
         experiment,
         smoothing,
         dtype.name,
-        chunk,
         block,
         axes if axes is not None else gains,
     )

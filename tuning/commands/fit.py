@@ -102,7 +102,7 @@ def run(args) -> int:
         share = Exchange()
     me = parallel.process_index()
     progress = not args.quiet and me == 0
-    recordings, result, failure = [], None, None
+    recordings, result, failure, report = [], None, None, None
     try:
         if me == 0 and not checked:
             check_outputs(args)
@@ -113,24 +113,19 @@ def run(args) -> int:
             # The joint fit is one problem: process 0 alone computes it (the others fit their
             # rows of --cross meanwhile) and reports it.
             result = F.fit(recordings, params, initial=initial, progress=progress)
+        if result is not None:
+            print(format_result(result))
+            report = result.to_json()
+            if args.classic:
+                classic = classic_estimates(recordings, result)
+                print(format_classic(classic))
+                report["classic"] = [{"recording": n, **c.to_json()} for n, c in classic]
     except Exception as exc:
         if share is None:
             raise
-        # Raised on every process after the exchange: none waits for this one.
-        failure = (
-            exc
-            if isinstance(exc, UserError)
-            else UserError(f"{type(exc).__name__} while fitting: {exc}")
-        )
-
-    report = None
-    if result is not None:
-        print(format_result(result))
-        report = result.to_json()
-        if args.classic:
-            classic = classic_estimates(recordings, result)
-            print(format_classic(classic))
-            report["classic"] = [{"recording": n, **c.to_json()} for n, c in classic]
+        # Sent in the exchange (tuning.tunerun.Exchange.allgather: a UserError as it is, any
+        # other as one line naming its type and process) and raised on every process.
+        failure = exc
     cross = None
     if args.cross:
         cross = fitrun.cross_table(

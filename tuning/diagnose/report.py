@@ -71,7 +71,9 @@ def render_markdown(d, figure: str | None = None) -> str:
             note.append(f"not settled: {_num(lo)} to {_num(hi)} (M or gamma_scale)")
         if p.get("stderr_widened"):
             note.append("widened for model error")
-        z = d.significance.get(n) or d.significance.get(_ITEM.get(n, ""))
+        z = d.significance.get(n)
+        if z is None:  # a parameter of an effect: the effect's z (0.0 is a value)
+            z = d.significance.get(_ITEM.get(n, ""))
         if z is not None:
             note.append(f"z = {z:.3g}")
         lines.append(
