@@ -4,6 +4,7 @@ bad input, and the command line. The whole suite: ``python -m tuning.diagnose.su
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -13,6 +14,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment
+from jaxcart.plantspec import build_plant
 from tuning.diagnose import diagnose, render_markdown, write_outputs
 from tuning.diagnose.suite import CASES, FAST, judge, make_case
 from tuning.synthetic import make_recording, write_recording
@@ -107,6 +109,45 @@ def test_controller_mismatch_is_reported_and_inferred(tmp_path):
     assert abs(inf.kp - 30.0) < 1.0 and abs(inf.kd - 2.0) < 0.25
     assert chk["inferred_rms"] < 0.1 * chk["mismatch_rms"]
     assert inf.derivative_on == "error" and inf.v_limit == pytest.approx(6.0)
+
+
+def test_the_replay_tells_whether_the_controller_read_the_counts(tmp_path):
+    """A controller reading the encoder (the ``quantization`` sensor in the truth) computed its
+    command from exactly the recorded counts: the replay gives it to 0 V. One fed the exact
+    position misses by about kp q / sqrt(12) or more: 40 V/m x 6.6 um = 0.26 mV in the P term,
+    the derivative of the counts adding more. The threshold is a tenth of the P term's."""
+    from tuning.diagnose.controller import check, reads_counts
+
+    q = 2.275e-5
+    pid = jc.PID(kp=40.0, kd=3.0, ki=20.0, v_limit=6.0)
+    exp = jc.step(0.3, horizon=1.0)
+    truth = {"B_eq": 4.6, "f_c": 0.15}
+    in_loop = make_recording(build_plant({**truth, "quantization": q}), pid, exp, seed=1)
+    exact_fed = make_recording(build_plant(truth), pid, exp, seed=1)
+    a = check(read_experiment(write_recording(in_loop, tmp_path / "counts.toml")))
+    b = check(read_experiment(write_recording(exact_fed, tmp_path / "exact.toml")))
+    assert a["consistent"] and a["mismatch_rms"] == 0.0 and a["reads_counts"]
+    assert "it read the recorded encoder counts" in a["message"]
+    assert b["consistent"] and not b["reads_counts"]
+    assert b["mismatch_rms"] > 40.0 * q / math.sqrt(12)  # at least the P term's
+    assert "encoder counts" not in b["message"]
+    # The rule itself: data that are not counts never read counts.
+    assert reads_counts(40.0, 0.0, q) and not reads_counts(40.0, 0.0, 0.0)
+    assert not reads_counts(40.0, 0.2 * 40.0 * q / math.sqrt(12), q)
+
+
+def test_a_truth_reading_its_encoder_records_what_it_read():
+    """The synthetic encoder keeps a position that is already a whole count as that count
+    (y / q may round to just below it): every recorded value is what the controller read."""
+    from tuning.synthetic import Encoder
+
+    q = 2.275e-5
+    counts = np.arange(-20000, 20000)
+    y = counts * q  # what a controller reading the encoder saw, in floats
+    assert np.array_equal(np.round(Encoder(q, seed=0).read(y) / q), counts)
+    # Positions within a count still floor: the encoder's quantization is unchanged.
+    inside = (counts + 0.5) * q
+    assert np.array_equal(np.round(Encoder(q, seed=0).read(inside) / q), counts)
 
 
 def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):

@@ -5,9 +5,8 @@ closed loop cannot tell apart, and the forward selection past pairs (docs/diagno
 The recordings are made as tuning/diagnose/suite.py makes its cases (the exact simulator
 through the encoder, written as an experiment file and read back), 1 s long to keep each
 diagnosis a few seconds. A truth with the ``quantization`` sensor effect has a controller that
-reads whole encoder counts, as the hardware does (the diagnosis's simulation reads the exact
-position): a model error just above the encoder floor, which a structure that is not there
-could absorb.
+reads whole encoder counts, as the hardware does; its recorded command shows it, and the
+diagnosis's simulation then reads them too (docs/diagnose.md, "The encoder in the loop").
 """
 
 from __future__ import annotations
@@ -248,21 +247,35 @@ def test_the_verdict_says_effects_and_corrections_and_what_it_does_not_know():
 # ---------------------------------------------------------------- diagnoses
 
 
-def test_a_controller_reading_counts_leaves_nothing_named(tmp_path):
-    """The hardware's controller reads whole counts, the diagnosis's simulation the exact
-    position: a model error of 1.5-2 times the encoder floor that a structure which is not
-    there absorbs (the old diagnosis named a spring at its bound, or corrected M by 0.02 %).
-    The baseline explains such a recording (within 3 times the floor): nothing is named."""
+def test_a_controller_reading_counts_is_simulated_reading_them(tmp_path):
+    """The hardware's controller reads whole counts. Its recorded command shows it (the replay
+    on the counts gives it to 0 V), and the diagnosis's simulation reads them too: the
+    baseline reproduces the counts, well under the floor. Fed the exact position it sat at
+    1.7-2.1 x the floor, a model error that a structure which is not there absorbed (a spring
+    at its bound, a 0.02 % heavier cart). Nothing is named."""
     rec = _recording(tmp_path, "null", {**B, "quantization": Q})
     d = diagnose([rec], progress=False)
-    assert 1.0 < d.rms_before / d.floor < MISFIT_RATIO
+    assert d.controller_checks[0]["reads_counts"]
+    assert d.rms_before / d.floor < 0.5, d.rms_before / d.floor
     assert d.left_out == [] and d.corrected_parameters == [] and d.explained
     assert d.verdict.startswith("nothing left out")
-    better = [
-        c for c in d.candidates if c.score < next(x for x in d.candidates if not x.parts).score
-    ]
-    for c in better:  # whatever scored better is listed with why it is not named
-        assert any(x["structure"] == c.name for x in d.not_significant), c.name
+    assert d.parameters["B_eq"]["value"] == pytest.approx(4.6, rel=0.01)
+
+
+def test_friction_under_integral_action_with_the_counts_in_the_loop(tmp_path):
+    """A PID reading whole counts holds the cart against 0.15 N of Coulomb friction, hunting
+    between counts. With the exact position fed back the diagnosis named 0.07 N of friction
+    and a 0.05 V deadzone (2 s recording); reading the counts as the controller did, it finds
+    the friction alone, to 2 %, and ends under the floor."""
+    pid = jc.PID(kp=40.0, kd=3.0, ki=20.0, v_limit=6.0)
+    truth = build_plant({**B, "f_c": 0.15, "quantization": Q})
+    rec = make_recording(truth, pid, jc.step(0.3, horizon=1.0), seed=1)
+    rec = read_experiment(write_recording(rec, tmp_path / "pi.toml", force=True))
+    d = diagnose([rec], progress=False)
+    assert d.left_out == ["coulomb"] and d.corrected_parameters == [], d.verdict
+    assert d.parameters["f_c"]["value"] == pytest.approx(0.15, rel=0.02)
+    assert d.parameters["B_eq"]["value"] == pytest.approx(4.6, rel=0.01)
+    assert d.explained and d.floor_ratio < 1.0
 
 
 def test_noisy_data_that_are_not_counts_are_judged_against_their_noise(tmp_path):

@@ -101,7 +101,11 @@ class Encoder:
         y = np.asarray(position, dtype=np.float64)
         q = self.quantization
         if q > 0:
-            y = q * np.floor(y / q)
+            # A position that is already a whole count (a truth whose controller reads this
+            # encoder records what it read) stays that count: y / q may round to just below it.
+            counts = y / q
+            nearest = np.round(counts)
+            y = q * np.where(np.abs(counts - nearest) < 1e-9, nearest, np.floor(counts))
         if self.noise > 0:
             y = y + self._rng.normal(0.0, self.noise, size=y.shape)
         return y

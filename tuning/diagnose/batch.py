@@ -76,11 +76,21 @@ class Segment:
     kind: str
     experiment: object  # jaxcart Experiment of the fitted part (y0, yd0 the start guesses)
     controller: object
-    target: np.ndarray  # measured position, middle of the count [m]
+    target: np.ndarray  # measured position [m], middle of the count (whole counts in the loop)
     time: np.ndarray
     start: int
     quantization: float
     motor: bool
+    #: The controller reads the recorded counts: the plant's quantization sensor is in the
+    #: loop and the target is the counts themselves (core._counts_in_loop).
+    counts_in_loop: bool = False
+
+    def count_index(self) -> np.ndarray:
+        """The whole encoder count of every target sample (needs quantization > 0). A target in
+        the middle of its count is n + 1/2 counts: rounded, half of them would tie and go to
+        the even neighbour, merging two counts into one."""
+        shift = 0.0 if self.counts_in_loop else 0.5
+        return np.round(self.target / self.quantization - shift)
 
 
 class Layout:

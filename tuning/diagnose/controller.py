@@ -6,6 +6,12 @@ of the command's range is reported before any plant physics is blamed, and the c
 ran is inferred: for each derivative form (on error, on measurement) and filter tau on a grid,
 a least-squares fit of v = kp e + ki I + kd d over the samples inside the limit; the software
 limit is the largest |v| where the command sits at it.
+
+The replay also says whether the controller read the recorded encoder counts (as the hardware's
+does) or a finer position (as a simulator that quantizes only what it records): reading the
+exact position would have moved its command by about kp q / sqrt(12) RMS, the P term alone.
+A replay within a tenth of that says the counts were in the loop, and the diagnosis then
+simulates the controller reading them (:func:`reads_counts`).
 """
 
 from __future__ import annotations
@@ -46,9 +52,20 @@ def _regressors(r, y, ts, tau, on):
     return np.column_stack([e, integral, d])
 
 
+def reads_counts(kp: float, mismatch: float, q: float) -> bool:
+    """Whether a controller of gain ``kp`` [V/m] whose replay on the recorded counts misses the
+    recorded command by ``mismatch`` [V] RMS read those counts (count size ``q`` [m], 0 for
+    data that are not counts): the exact position would have changed its P term alone by
+    about kp q / sqrt(12) RMS, ten times the tolerance."""
+    return q > 0 and mismatch <= 0.1 * abs(kp) * q / math.sqrt(12)
+
+
 def check(recording):
-    """{consistent, mismatch_rms, message, inferred (PID or None)} for a closed loop with a
-    recorded command; None when there is nothing to check."""
+    """{consistent, mismatch_rms, message, inferred (PID or None), reads_counts} for a closed
+    loop with a recorded command; None when there is nothing to check. reads_counts: the
+    controller read the recorded encoder counts (:func:`reads_counts`)."""
+    from tuning.fit import encoder_count
+
     pid = recording.controller
     v = recording.command
     if recording.kind != "closed_loop" or v is None or pid is None:
@@ -60,17 +77,20 @@ def check(recording):
     mine = replay(pid, r, y)
     mismatch = float(np.sqrt(np.mean((mine - v) ** 2)))
     ok = mismatch <= 0.02 * span + 1e-3
+    q = encoder_count(y)
     out = {"consistent": bool(ok), "mismatch_rms": mismatch, "inferred": None}
     name = getattr(recording.path, "name", str(recording.path))
     if ok:
+        out["reads_counts"] = reads_counts(float(pid.kp), mismatch, q)
         out["message"] = (
             f"{name}: the file's controller reproduces its recorded command "
-            f"(RMS difference {mismatch:.3g} V)"
+            f"(RMS difference {mismatch:.3g} V)" + _counts_note(out["reads_counts"], q)
         )
         return out
     inferred, fit_rms = infer(recording)
     out["inferred"] = inferred
     out["inferred_rms"] = fit_rms
+    out["reads_counts"] = reads_counts(inferred.kp, fit_rms, q)
     out["message"] = (
         f"{name}: the file's controller does NOT reproduce its recorded command (RMS "
         f"difference {mismatch:.3g} V of a {span:.3g} V range); inferred from the recorded "
@@ -78,8 +98,17 @@ def check(recording):
         f"kd = {inferred.kd:.4g}, tau = {inferred.tau:.4g} s, derivative on "
         f"{inferred.derivative_on}, v_limit = {inferred.v_limit:.4g} V (replays it to "
         f"{fit_rms:.3g} V); the diagnosis uses the inferred controller"
-    )
+    ) + _counts_note(out["reads_counts"], q)
     return out
+
+
+def _counts_note(counts: bool, q: float) -> str:
+    if not counts:
+        return ""
+    return (
+        f"; it read the recorded encoder counts ({q * 1e6:.4g} um each), and the simulation "
+        "reads them too"
+    )
 
 
 def infer(recording):

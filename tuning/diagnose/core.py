@@ -521,7 +521,7 @@ def _n_eff(segments) -> float:
     for seg in segments:
         q = seg.quantization
         if q > 0:
-            counts = np.round(seg.target / q)
+            counts = seg.count_index()
             runs = 1 + int(np.count_nonzero(np.diff(counts)))
         else:
             runs = seg.target.size
@@ -656,7 +656,7 @@ def covariance(segments, names, values, jac, residuals, widen_above=None) -> Cov
         offset += n
         q = seg.quantization
         if q > 0:
-            counts = np.round(seg.target / q)
+            counts = seg.count_index()
             starts = np.concatenate([[0], 1 + np.flatnonzero(np.diff(counts))])
         else:
             starts = np.arange(n)
@@ -948,9 +948,10 @@ def diagnose(
         problem = _excitation(rec, encoder_count(np.asarray(rec.position, dtype=float)))
         if problem:
             messages.append(problem)
-    checks, controllers = [], []
+    checks, controllers, read_counts = [], [], []
     for rec in recordings:
         chk = ctl.check(rec)
+        read_counts.append(bool(chk and chk["reads_counts"]))
         if chk is not None:
             checks.append({k: v for k, v in chk.items() if k != "inferred"})
             say(chk["message"])
@@ -979,6 +980,7 @@ def diagnose(
         if rec.kind == "tap" and not rec.meta.get("tap", {}).get("motor_connected", False):
             p = dataclasses.replace(p, motor_connected=False)
         base_plants.append(rec.plant(p) if rec.plant_overrides else p)
+    base_plants, segments = _counts_in_loop(base_plants, segments, read_counts)
     motor = any(s.motor for s in segments)
     # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data that
     # are not whole counts (jaxcart fit's floor).
@@ -1474,6 +1476,32 @@ def _pair_starts(grown, starts_all) -> list:
         s.update({k: v for k, v in a.values.items() if k in c.free})
         starts.append(s)
     return starts
+
+
+def _counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
+    """(base plants, segments), with the encoder's quantization in the loop where the recorded
+    command shows that the controller read the recorded counts (``read_counts``, one per
+    recording: controller.reads_counts), unless the plant models its sensor already.
+
+    Feeding the controller the exact position instead biases its input by half a count (the
+    mean of the floor) and loses the hunting between counts that integral action and friction
+    make, which the search otherwise explains with effects that are not there. Such a
+    simulation records what its controller read, whole counts, so its target is the recorded
+    counts themselves rather than the middle of each count (docs/diagnose.md, "The encoder in
+    the loop")."""
+    from jaxcart.plantspec import with_values
+
+    plants, segs = [], []
+    for plant, seg, counts in zip(base_plants, segments, read_counts, strict=True):
+        q = seg.quantization
+        modelled = "quantization" in plant.structure  # a plant file's own sensor
+        if counts and q > 0 and not modelled:
+            plant = with_values(plant, {"quantization": q})
+        if q > 0 and (modelled or counts):
+            seg = dataclasses.replace(seg, target=seg.target - q / 2, counts_in_loop=True)
+        plants.append(plant)
+        segs.append(seg)
+    return plants, segs
 
 
 def _current_peak(cand, segments, base_plants, values, layout) -> float:
