@@ -76,21 +76,20 @@ class Segment:
     kind: str
     experiment: object  # jaxcart Experiment of the fitted part (y0, yd0 the start guesses)
     controller: object
-    target: np.ndarray  # measured position [m], middle of the count (whole counts in the loop)
+    target: np.ndarray  # measured position, middle of the count [m]
     time: np.ndarray
     start: int
     quantization: float
     motor: bool
     #: The controller reads the recorded counts: the plant's quantization sensor is in the
-    #: loop and the target is the counts themselves (core._counts_in_loop).
+    #: loop, and the simulated position is compared, not the reading (core._counts_in_loop).
     counts_in_loop: bool = False
 
     def count_index(self) -> np.ndarray:
-        """The whole encoder count of every target sample (needs quantization > 0). A target in
-        the middle of its count is n + 1/2 counts: rounded, half of them would tie and go to
+        """The whole encoder count of every target sample (needs quantization > 0). The target
+        is the middle of its count, n + 1/2 counts: rounded, half of them would tie and go to
         the even neighbour, merging two counts into one."""
-        shift = 0.0 if self.counts_in_loop else 0.5
-        return np.round(self.target / self.quantization - shift)
+        return np.floor(self.target / self.quantization)
 
 
 class Layout:
@@ -176,8 +175,16 @@ class BatchFitter:
                 if i in layout.nuisance:
                     a, b = layout.nuisance[i]
                     exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
-                res = simulate(plant, seg.controller, exp, smoothing=smoothing, substeps=substeps)
-                pos = jnp.where(jnp.isfinite(res.position), res.position, 1.0)
+                sm, shift = smoothing, 0.0
+                if seg.counts_in_loop:
+                    # The encoder in the loop as its mean, y - q/2 (a position width of one
+                    # count leaves 0.2 % of the staircase; a staircase gives LM a Jacobian
+                    # only at the count edges), and the position as that reading + q/2. The
+                    # exact re-check reads whole counts.
+                    sm = dataclasses.replace(smoothing, position=seg.quantization)
+                    shift = seg.quantization / 2
+                res = simulate(plant, seg.controller, exp, smoothing=sm, substeps=substeps)
+                pos = jnp.where(jnp.isfinite(res.position), res.position + shift, 1.0)
                 out.append(pos - tgt)
             return jnp.concatenate(out) * scale
 

@@ -504,11 +504,33 @@ def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo
             )
         res = simulate_exact(plant, seg.controller, exp)
         pos = np.asarray(res.position, dtype=float)
+        if seg.counts_in_loop and not res.diverged:
+            pos = _cart_position(plant, exp, res.command)
         if not np.all(np.isfinite(pos)):
             pos = np.where(np.isfinite(pos), pos, 1.0)
         out.append(pos - seg.target)
         commands.append(np.asarray(res.command, dtype=float) if seg.motor else None)
     return out, commands
+
+
+def _cart_position(plant, experiment, command) -> np.ndarray:
+    """The cart's position [m] under the commands [V] a closed loop sent: the same run replayed
+    open loop on the plant without its sensor (the sensor only shapes what the controller
+    reads, so the trajectory is the same, float for float). A run whose controller reads
+    counts records the counts; their forward differences in a parameter are a staircase."""
+    from jaxcart.exact import simulate_exact
+    from jaxcart.experiments import voltage_sequence
+
+    bare = dataclasses.replace(
+        plant, effects=tuple(e for e in plant.effects if e.stage != "sensor")
+    )
+    replay = voltage_sequence(
+        np.asarray(command, dtype=float),
+        sample_time=float(experiment.sample_time),
+        y0=float(experiment.y0),
+        yd0=float(experiment.yd0),
+    )
+    return np.asarray(simulate_exact(bare, None, replay).position, dtype=float)
 
 
 def _rms(parts) -> float:
@@ -1486,9 +1508,9 @@ def _counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
     Feeding the controller the exact position instead biases its input by half a count (the
     mean of the floor) and loses the hunting between counts that integral action and friction
     make, which the search otherwise explains with effects that are not there. Such a
-    simulation records what its controller read, whole counts, so its target is the recorded
-    counts themselves rather than the middle of each count (docs/diagnose.md, "The encoder in
-    the loop")."""
+    simulation records what its controller read, whole counts; the diagnosis compares the
+    cart's position instead (:func:`exact_residuals`), whose forward differences the exact
+    polish needs (docs/diagnose.md, "The encoder in the loop")."""
     from jaxcart.plantspec import with_values
 
     plants, segs = [], []
@@ -1498,7 +1520,7 @@ def _counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
         if counts and q > 0 and not modelled:
             plant = with_values(plant, {"quantization": q})
         if q > 0 and (modelled or counts):
-            seg = dataclasses.replace(seg, target=seg.target - q / 2, counts_in_loop=True)
+            seg = dataclasses.replace(seg, counts_in_loop=True)
         plants.append(plant)
         segs.append(seg)
     return plants, segs
