@@ -176,7 +176,7 @@ def info_from_accumulated(
     [s], the last sample index outside the band (-1: none) of n at sample time ts [s], the
     peak as a fraction of the step, the final reference and position [m], the peak voltage
     [V], the saturated samples and whether the run is bad (every metric inf then). Shared by
-    the streamed step metrics here and the tuner's loss (tuning.losses)."""
+    the streamed step metrics here and the tuner's loss (tuning.design.losses)."""
     inf = jnp.inf
     settling = jnp.where(last_out < 0, 0.0, jnp.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
     return StepInfo(

@@ -10,10 +10,10 @@ import sys
 import threading
 
 from jaxcart import parallel
-from tuning.tunerun import Exchange
+from tuning.design.tunerun import Exchange
 
 #: The command line of ``python -m tuning``, run after a test's own code (``spawn(inject=)``).
-MAIN = "import sys\nfrom tuning.cli import main\nsys.exit(main())\n"
+MAIN = "import sys\nfrom tuning.commands.main import main\nsys.exit(main())\n"
 
 
 def free_port() -> int:

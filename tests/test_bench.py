@@ -13,8 +13,9 @@ import pytest
 
 import jaxcart
 from jaxcart import parallel
-from tuning import bench, ckernel
-from tuning.cli import main
+from tuning.benchmark import ckernel
+from tuning.benchmark import workload as bench
+from tuning.commands.main import main
 
 HORIZON = 0.3  # s: short runs keep the file fast; the loop and its checks are unchanged
 

@@ -34,7 +34,7 @@ def _simulate(home: Path, *flags: str, **extra: str) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX", "XDG_CACHE"))}
     env["HOME"] = str(home)
     env.update(extra)
-    code = "import sys; from tuning.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from tuning.commands.main import main; sys.exit(main(sys.argv[1:]))"
     args = [*flags, "simulate", "--horizon", "0.2", "--out", str(home / "run.csv")]
     done = subprocess.run(
         [sys.executable, "-c", code, *args], cwd=ROOT, env=env, capture_output=True, text=True

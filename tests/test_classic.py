@@ -1,4 +1,5 @@
-"""The lab's classic analyses (tuning/classic.py) against the truth of synthetic recordings made
+"""The lab's classic analyses (tuning/estimation/classic.py) against the truth of synthetic
+recordings made
 by the exact simulator, and on the real recordings."""
 
 import math
@@ -10,8 +11,8 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.classic import loglinear_beq, pcontrol_fc_bounds, ramp_breakaway_fc
-from tuning.synthetic import make_recording, make_tap_recording
+from jaxcart.synthetic import make_recording, make_tap_recording
+from tuning.estimation.classic import loglinear_beq, pcontrol_fc_bounds, ramp_breakaway_fc
 
 P50 = jc.PID(kp=50.0, v_limit=6.0)
 

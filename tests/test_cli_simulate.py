@@ -11,7 +11,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.files import read_experiment
 from jaxcart.plots import Run, plot_runs, reference_run
-from tuning.cli import main
+from tuning.commands.main import main
 
 # One jitted simulator for the file, shared with the command's (same function, same cache).
 simulate = jax.jit(jc.simulate)

@@ -1,5 +1,6 @@
-"""jaxcart diagnose: the fast subset of the concealed-effect suite (tuning/diagnose/suite.py),
-bad input, and the command line. The whole suite: ``python -m tuning.diagnose.suite``."""
+"""jaxcart diagnose: the fast subset of the concealed-effect suite
+(tuning/estimation/diagnose/suite.py),
+bad input, and the command line. The whole suite: ``python -m tuning.estimation.diagnose.suite``."""
 
 from __future__ import annotations
 
@@ -15,9 +16,9 @@ import jaxcart as jc
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment
 from jaxcart.plantspec import build_plant
-from tuning.diagnose import diagnose, render_markdown, write_outputs
-from tuning.diagnose.suite import CASES, FAST, judge, make_case
-from tuning.synthetic import make_recording, write_recording
+from jaxcart.synthetic import make_recording, write_recording
+from tuning.estimation.diagnose import diagnose, render_markdown, write_outputs
+from tuning.estimation.diagnose.suite import CASES, FAST, judge, make_case
 
 BY_NAME = {c.name: c for c in CASES}
 
@@ -94,7 +95,7 @@ def test_no_excitation_is_not_diagnosed():
 
 
 def test_controller_mismatch_is_reported_and_inferred(tmp_path):
-    from tuning.diagnose.controller import check
+    from tuning.estimation.diagnose.controller import check
 
     ran = jc.PID(kp=30.0, kd=2.0, tau=0.005, v_limit=6.0)
     rec = make_recording(jc.handout_plant(B_eq=4.6), ran, jc.step(0.3, horizon=1.0))
@@ -116,7 +117,7 @@ def test_the_replay_tells_whether_the_controller_read_the_counts(tmp_path):
     command from exactly the recorded counts: the replay gives it to 0 V. One fed the exact
     position misses by about kp q / sqrt(12) or more: 40 V/m x 6.6 um = 0.26 mV in the P term,
     the derivative of the counts adding more. The threshold is a tenth of the P term's."""
-    from tuning.diagnose.controller import check, reads_counts
+    from tuning.estimation.diagnose.controller import check, reads_counts
 
     q = 2.275e-5
     pid = jc.PID(kp=40.0, kd=3.0, ki=20.0, v_limit=6.0)
@@ -139,7 +140,7 @@ def test_the_replay_tells_whether_the_controller_read_the_counts(tmp_path):
 def test_a_truth_reading_its_encoder_records_what_it_read():
     """The synthetic encoder keeps a position that is already a whole count as that count
     (y / q may round to just below it): every recorded value is what the controller read."""
-    from tuning.synthetic import Encoder
+    from jaxcart.synthetic import Encoder
 
     q = 2.275e-5
     counts = np.arange(-20000, 20000)
@@ -152,13 +153,13 @@ def test_a_truth_reading_its_encoder_records_what_it_read():
 
 def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):
     code = (
-        "import sys; from tuning.cli import build_parser; build_parser(); "
+        "import sys; from tuning.commands.main import build_parser; build_parser(); "
         "print('jax' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.stdout.strip() == "False"
     (tmp_path / "report.md").write_text("x")
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     rec = make_recording(jc.handout_plant(), jc.PID(kp=40.0), jc.step(0.3, horizon=0.5))
     path = write_recording(rec, tmp_path / "r.toml")
@@ -169,7 +170,7 @@ def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):
 
 def test_every_registered_effect_is_a_candidate_or_says_why_not():
     from jaxcart.effects import REGISTRY
-    from tuning.diagnose.core import EFFECT_PARAMS, NOT_CANDIDATES
+    from tuning.estimation.diagnose.core import EFFECT_PARAMS, NOT_CANDIDATES
 
     for name in REGISTRY:
         assert (name in EFFECT_PARAMS) != (name in NOT_CANDIDATES), name
@@ -182,7 +183,7 @@ def test_exact_memo_reuses_runs_read_only_and_keeps_the_newest():
     (not a new one), read-only; another value or structure is a new run; the oldest goes."""
     from types import SimpleNamespace
 
-    from tuning.diagnose.core import ExactMemo
+    from tuning.estimation.diagnose.core import ExactMemo
 
     memo, runs = ExactMemo(size=2), []
 

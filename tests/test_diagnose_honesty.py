@@ -2,7 +2,7 @@
 that is not significant, a parameter correction beside an effect, M and gamma_scale that one
 closed loop cannot tell apart, and the forward selection past pairs (docs/diagnose.md).
 
-The recordings are made as tuning/diagnose/suite.py makes its cases (the exact simulator
+The recordings are made as tuning/estimation/diagnose/suite.py makes its cases (the exact simulator
 through the encoder, written as an experiment file and read back), 1 s long to keep each
 diagnosis a few seconds. A truth with the ``quantization`` sensor effect has a controller that
 reads whole encoder counts, as the hardware does; its recorded command shows it, and the
@@ -19,8 +19,9 @@ import pytest
 import jaxcart as jc
 from jaxcart.files import read_experiment
 from jaxcart.plantspec import build_plant
-from tuning.diagnose import diagnose, render_markdown
-from tuning.diagnose.core import (
+from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
+from tuning.estimation.diagnose import diagnose, render_markdown
+from tuning.estimation.diagnose.core import (
     CORRECTION_MARGIN,
     K_MAX,
     PLAUSIBLE,
@@ -35,9 +36,8 @@ from tuning.diagnose.core import (
     significance,
     swapped_correction,
 )
-from tuning.diagnose.report import figure_title
-from tuning.fit import MISFIT_RATIO, effective_samples, misfits, widened_for_model_error
-from tuning.synthetic import make_recording, make_tap_recording, write_recording
+from tuning.estimation.diagnose.report import figure_title
+from tuning.estimation.fit import MISFIT_RATIO, effective_samples, misfits, widened_for_model_error
 
 Q = 2.275e-5
 FLOOR = Q / math.sqrt(12)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxcart as jc
-from tuning import grid
+from tuning.design import grid
 
 RANGES = {"kp": (40.0, 120.0, 5), "kd": (3.0, 9.0, 4), "ki": (0.0, 2.0, 3)}  # 60 points
 BLOCK = 16  # 4 blocks: process 0 computes blocks 0 and 2, process 1 blocks 1 and 3 (short)

@@ -1,5 +1,5 @@
 """jaxcart fit --cross across processes (jax.distributed): two processes on localhost on the
-CPU give the single-process report (tuning/fitrun.py).
+CPU give the single-process report (tuning/estimation/fitrun.py).
 
 Each process fits one of the two built-in recordings alone and predicts the other with it; the
 test process computes the single-process table meanwhile. Each process holds two CPU devices, as
@@ -19,7 +19,7 @@ from cluster import in_threads, spawn
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning import fitrun
+from tuning.estimation import fitrun
 
 DATA = Path(jc.__file__).parent / "data"
 RECORDINGS = [str(DATA / "tap.toml"), str(DATA / "p50.toml")]
@@ -98,7 +98,7 @@ def test_a_failure_anywhere_is_raised_on_every_process(monkeypatch):
 
 
 def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     monkeypatch.chdir(tmp_path)
     cluster = ["--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "0"]

@@ -21,7 +21,7 @@ from cluster import spawn
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning import tunerun
+from tuning.design import tunerun
 
 TAP = Path(jc.__file__).parent / "data" / "tap.toml"
 
@@ -39,8 +39,8 @@ def _wait(procs, codes=(0, 0), timeout_s=240):
 
 
 def test_tune_robust_two_processes_equal_one(tmp_path):
-    from tuning.losses import Spec
-    from tuning.tune import tune
+    from tuning.design.losses import Spec
+    from tuning.design.tune import tune
 
     argv = ["tune", "--robust", "--horizon", "1.5", "--iterations", "20", "--starts", "2"]
     procs = spawn(tmp_path, [*argv, "--quiet", "--out", "g.json", "--json", "r.json"])
@@ -65,7 +65,7 @@ def test_tune_robust_two_processes_equal_one(tmp_path):
 
 def test_diagnose_two_processes_equal_one(tmp_path):
     from jaxcart.files import read_experiment
-    from tuning.diagnose import diagnose
+    from tuning.estimation.diagnose import diagnose
 
     procs = spawn(tmp_path, ["diagnose", str(TAP), "--quiet", "--out", "d", "--json", "d.json"])
     ref = diagnose([read_experiment(TAP)], progress=False)
@@ -99,7 +99,7 @@ def test_every_start_and_row_has_one_owner():
 
 
 def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     monkeypatch.chdir(tmp_path)
     cluster = ["--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "0"]
@@ -124,7 +124,7 @@ if os.environ["JAXCART_PROCESS_ID"] == "1":
 """
 #: The tuner's 4th iteration fails on process 1 (a bug's exception, not a UserError).
 TUNE_FAILS = FAIL_ON_1.format(
-    """    import tuning.tune as T
+    """    import tuning.design.tune as T
     cosine = T._cosine
     def _cosine(lr, k, n, *rest):
         if k == 3:
@@ -134,7 +134,7 @@ TUNE_FAILS = FAIL_ON_1.format(
 )
 #: Process 1's exact polishes fail (after the first batch fit and exact re-checks).
 DIAGNOSE_FAILS = FAIL_ON_1.format(
-    """    import tuning.diagnose.core as D
+    """    import tuning.estimation.diagnose.core as D
     from jaxcart.errors import SimulationDiverged
     def _polish(*args, **kwargs):
         raise SimulationDiverged("injected: the exact polish diverged")

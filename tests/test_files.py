@@ -422,7 +422,7 @@ def test_signal_read_without_x64_stays_float64():
     pass through float32 on the way (0.4 m would become 0.40000001 m)."""
     from pathlib import Path
 
-    from tuning.fit import FitSettings, prepare
+    from tuning.estimation.fit import FitSettings, prepare
 
     path = Path(jc.__file__).parent / "data" / "p50.toml"
     with jax.enable_x64(False):

@@ -1,5 +1,6 @@
-"""Fitting plant parameters (tuning/fit.py): accuracy and standard errors on recordings made by the
-exact simulator through the encoder (tuning/synthetic.py), identifiability, the fitted-plant file,
+"""Fitting plant parameters (tuning/estimation/fit.py): accuracy and standard errors on recordings
+made by the
+exact simulator through the encoder (jaxcart/synthetic.py), identifiability, the fitted-plant file,
 the command line, and the real recordings."""
 
 import json
@@ -11,8 +12,8 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning import fit as F
-from tuning.synthetic import make_recording, make_tap_recording, write_recording
+from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
+from tuning.estimation import fit as F
 
 Q = jc.ENCODER_RESOLUTION
 P50 = jc.PID(kp=50.0, v_limit=6.0)
@@ -213,7 +214,7 @@ def test_fitted_plant_file_round_trip(tmp_path, cl_fit):
 
 
 def test_command_line(tmp_path, tap_rec, capsys):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     toml = write_recording(tap_rec, tmp_path / "tap.toml")
     args = [
@@ -271,7 +272,7 @@ def test_real_tap(realdata):
 @pytest.mark.slow
 def test_real_cross_prediction(realdata):
     from jaxcart.files import read_experiment
-    from tuning.fitrun import cross_table
+    from tuning.estimation.fitrun import cross_table
 
     recs = [read_experiment(os.path.join(realdata, f)) for f in ("tap.toml", "p50.toml")]
     rows = cross_table(recs, ("B_eq", "f_c"))
@@ -287,7 +288,7 @@ def test_numpy_adam_is_optax_adam():
     import jax.numpy as jnp
     import optax
 
-    from tuning.fit import _adam
+    from tuning.estimation.fit import _adam
 
     a = np.array([[1.0, 0.5], [0.0, 3.0], [2.0, -1.0]])
     b = np.array([0.3, -1.0, 2.0])

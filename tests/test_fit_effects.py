@@ -1,5 +1,5 @@
 """`fit` recovers every effect's parameters from recordings of the exact simulator through the
-IP02 encoder (tuning/synthetic.py, q = 2.275e-5 m, a random phase per seed): within 2 % where
+IP02 encoder (jaxcart/synthetic.py, q = 2.275e-5 m, a random phase per seed): within 2 % where
 identifiable, with the standard error covering the truth within 3 sigma; the parameters that are
 not identifiable are reported as such (Estimate.identifiable False, with a note).
 
@@ -21,8 +21,8 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning import fit as F
-from tuning.synthetic import make_recording
+from jaxcart.synthetic import make_recording
+from tuning.estimation import fit as F
 
 Q = 2.275e-5  # [m] the IP02 encoder count
 B_EQ = 2.5  # [kg/s] truth of every case

@@ -1,4 +1,5 @@
-"""What a fit says about itself (tuning/fit.py): a model that does not explain the data is
+"""What a fit says about itself (tuning/estimation/fit.py): a model that does not explain the data
+is
 flagged and its standard errors widened to what the residual supports; an optimizer stopped at
 its cap says so; outputs are checked before any fitting; the batched Levenberg-Marquardt
 evaluates K trial points as K single runs would, without recompiling. References: the encoder's
@@ -11,8 +12,8 @@ import numpy as np
 import pytest
 
 import jaxcart as jc
-from tuning import fit as F
-from tuning.synthetic import make_recording, write_recording
+from jaxcart.synthetic import make_recording, write_recording
+from tuning.estimation import fit as F
 
 Q = jc.ENCODER_RESOLUTION
 TRUTH = {"B_eq": 3.0, "f_c": 0.5}
@@ -114,7 +115,7 @@ def test_effective_samples_of_an_ar1_series(rho):
 
 
 def test_outputs_are_checked_before_fitting(tmp_path, tap, capsys):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     toml = write_recording(tap, tmp_path / "tap.toml")
     (tmp_path / "file.txt").write_text("a regular file")

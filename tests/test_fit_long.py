@@ -4,9 +4,9 @@ from pathlib import Path
 
 import pytest
 
-import tuning.fit
-from tuning.cli import main
+import tuning.estimation.fit
 from tuning.commands import fit as fit_command
+from tuning.commands.main import main
 
 TAP = str(Path(__file__).parent.parent / "jaxcart" / "data" / "tap.toml")
 
@@ -18,7 +18,7 @@ def test_long_fit_warns_before_fitting(monkeypatch, capsys):
     def started(*args, **kwargs):
         raise Started
 
-    monkeypatch.setattr(tuning.fit, "fit", started)
+    monkeypatch.setattr(tuning.estimation.fit, "fit", started)
     monkeypatch.setattr(fit_command, "LONG_FIT_SAMPLES", 1000)  # the tap has 2,500 samples
     with pytest.raises(Started):
         main(["fit", TAP, "--quiet"])

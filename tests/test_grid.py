@@ -1,4 +1,4 @@
-"""Gain grids (tuning.grid, ``jaxcart grid``) against the stored-response reference:
+"""Gain grids (tuning.design.grid, ``jaxcart grid``) against the stored-response reference:
 jaxcart.step_info on jaxcart.simulate in float64 with the exact (hard clip) forms."""
 
 import argparse
@@ -12,8 +12,8 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning import grid
 from tuning.commands import grid as grid_cmd
+from tuning.design import grid
 
 TS = 1e-3  # sample time [s]: the tolerance of every time metric is one sample
 OVERSHOOT_TOL = 0.05  # [percentage points], float32 against float64
@@ -285,7 +285,7 @@ def test_bad_gains_files_say_where(tmp_path, content, match):
 
 
 def test_cli_reports_bad_option_in_one_line(capsys):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     assert main(["grid", "--kp", "150:10:64"]) == 2
     err = capsys.readouterr().err.strip()
@@ -400,7 +400,7 @@ def test_figure_says_which_ki_slices_it_shows(blocked):
     ],
 )
 def test_cli_bad_distributed_options_in_one_line(capsys, argv, start):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     assert main(["grid", *argv]) == 2
     err = capsys.readouterr().err.strip()

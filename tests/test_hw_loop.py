@@ -129,7 +129,7 @@ def hw_recording(tmp_path_factory):
 
 @pytest.mark.slow
 def test_diagnose_of_a_hardware_recording_names_the_carts_friction(hw_recording):
-    from tuning.diagnose import diagnose
+    from tuning.estimation.diagnose import diagnose
 
     d = diagnose([hw_recording], progress=False)
     assert d.left_out == ["coulomb"], d.left_out
@@ -140,7 +140,7 @@ def test_diagnose_of_a_hardware_recording_names_the_carts_friction(hw_recording)
 
 @pytest.mark.slow
 def test_fit_of_a_hardware_recording_gives_back_the_cart(hw_recording):
-    from tuning import fit as F
+    from tuning.estimation import fit as F
 
     truth = HW_TRUTH
     rec = hw_recording

@@ -178,7 +178,7 @@ def test_bad_data_folder_is_a_user_error(tmp_path, capsys):
     with pytest.raises(UserError, match="no experiment files"):
         run_lab(tmp_path / "empty", tmp_path / "out")
     assert not (tmp_path / "out").exists()  # nothing is written before the data are read
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     assert main(["lab", "--data", str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -347,7 +347,7 @@ def test_builtin_report_reads_as_a_grader_expects(builtin_report):
     assert ("Gains of the experiment, the pre-lab's tuned PID" in md) == same
     assert ("**not** the pre-lab's tuned gains" in md) == (not same)
     # A tuned gain on the tuner's box is flagged.
-    from tuning.tune import DEFAULT_BOUNDS
+    from tuning.design.tune import DEFAULT_BOUNDS
 
     box = {n: DEFAULT_BOUNDS[n] for n in ("kp", "kd", "ki")}  # the gains the lab tunes
     hit = {n for n, (lo, hi) in box.items() if not lo * 1.01 < tuned[n] < hi * 0.99}

@@ -12,8 +12,8 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.exact import simulate_exact
+from jaxcart.synthetic import make_recording
 from tuning.lab import data, deadband
-from tuning.synthetic import make_recording
 
 Q = data.TRUE["quantization"]
 

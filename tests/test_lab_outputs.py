@@ -32,7 +32,7 @@ def _stub_sections(lab, folder, builtin, plant, diagnosis):
 
 
 def _one_error_line(capsys, argv):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     assert main(argv) == 2
     captured = capsys.readouterr()

@@ -55,11 +55,19 @@ def test_the_scan_sees_every_kind_of_import(tmp_path):
     (tmp_path / "pkg").mkdir()
     probe = tmp_path / "pkg" / "probe.py"
     probe.write_text(
-        "import tuning.cli\nfrom tuning import fit\nimport importlib\nfrom . import sibling\n"
-        "importlib.import_module('tuning.grid')\n__import__('tuning')\n"
+        "import tuning.commands.main\nfrom tuning import fit\nimport importlib\n"
+        "from . import sibling\n"
+        "importlib.import_module('tuning.design.grid')\n__import__('tuning')\n"
     )
     names = [name for _, name in _imports(probe, tmp_path)]
-    assert names == ["tuning.cli", "tuning", "importlib", "pkg", "tuning.grid", "tuning"]
+    assert names == [
+        "tuning.commands.main",
+        "tuning",
+        "importlib",
+        "pkg",
+        "tuning.design.grid",
+        "tuning",
+    ]
 
 
 @pytest.mark.parametrize("path", _modules("jaxcart"), ids=lambda p: str(p.relative_to(ROOT)))
@@ -108,7 +116,7 @@ def _fresh(code: str, **env) -> str:
 
 
 def _commands():
-    import tuning.cli
+    import tuning.commands.main
 
     return [
         pytest.param(
@@ -117,7 +125,7 @@ def _commands():
                 name in WAITING, strict=True, reason="imports jaxcart at the top"
             ),
         )
-        for name in tuning.cli.COMMANDS
+        for name in tuning.commands.main.COMMANDS
     ]
 
 
@@ -141,7 +149,7 @@ def test_help_imports_no_jax():
     """``jaxcart --help`` (and so every argument error) answers without starting jax."""
     code = (
         "import sys\n"
-        "from tuning.cli import main\n"
+        "from tuning.commands.main import main\n"
         "try:\n"
         "    main(['--help'])\n"
         "except SystemExit as exc:\n"
@@ -169,7 +177,7 @@ def test_a_command_gets_one_xla_device_per_core():
     """``main`` asks for the devices after parsing, before the command starts jax's backend."""
     code = (
         "import sys, types\n"
-        "import tuning.cli as cli\n"
+        "import tuning.commands.main as cli\n"
         "probe = types.ModuleType('probe')\n"
         "def count(args):\n"
         "    import jax\n"

@@ -1,4 +1,4 @@
-"""The tuning loss summed inside the loop (tuning/losses.py, jaxcart/running.py).
+"""The tuning loss summed inside the loop (tuning/design/losses.py, jaxcart/running.py).
 
 References: the same loss computed from a stored response by the surrogates of
 jaxcart.surrogates (plant_loss), the exact step metrics of jaxcart.metrics.step_metrics on the
@@ -14,7 +14,7 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.metrics import step_metrics
-from tuning.losses import (
+from tuning.design.losses import (
     PARAM_NAMES,
     LossSettings,
     Spec,

@@ -14,8 +14,8 @@ import jaxcart as jc
 from jaxcart import matfile
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment
-from tuning.cli import build_parser, main
 from tuning.commands import simulate as simulate_command
+from tuning.commands.main import build_parser, main
 
 PID = jc.PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0)
 

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from tuning.cli import main
+from tuning.commands.main import main
 
 TAP = str(Path(__file__).parent.parent / "jaxcart" / "data" / "tap.toml")
 
@@ -19,15 +19,18 @@ TAP = str(Path(__file__).parent.parent / "jaxcart" / "data" / "tap.toml")
     ],
 )
 def test_output_under_a_file_fails_before_computing(tmp_path, capsys, monkeypatch, argv):
-    import tuning.diagnose
-    import tuning.grid
+    import tuning.design.grid
+    import tuning.estimation.diagnose
 
     def refuse(*args, **kwargs):
         raise AssertionError("computed before checking the outputs")
 
-    for module, name in ((tuning.grid, "grid_search"), (tuning.grid, "evaluate_list")):
+    for module, name in (
+        (tuning.design.grid, "grid_search"),
+        (tuning.design.grid, "evaluate_list"),
+    ):
         monkeypatch.setattr(module, name, refuse)
-    monkeypatch.setattr(tuning.diagnose, "diagnose", refuse)
+    monkeypatch.setattr(tuning.estimation.diagnose, "diagnose", refuse)
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     argv = [a.format(f=blocker, d=tmp_path) for a in argv]

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from hw.csvio import CSVError, read_numeric_csv
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment
-from tuning.cli import main
+from tuning.commands.main import main
 
 SETTINGS = dict(
     derandomize=True,

@@ -1,6 +1,7 @@
-"""The fixed-cost benchmark (python -m tuning.startup): its machinery, on the cheap case."""
+"""The fixed-cost benchmark (python -m tuning.benchmark.startup): its machinery, on the cheap
+case."""
 
-from tuning import startup
+from tuning.benchmark import startup
 
 
 def test_import_case_measures_both_imports():

@@ -1,4 +1,4 @@
-"""Gradient PID tuning (tuning/tune.py, tuning/losses.py, tuning/commands/tune.py).
+"""Gradient PID tuning (tuning/design/tune.py, tuning/design/losses.py, tuning/commands/tune.py).
 
 Every claim about a tuned controller is re-checked here on the exact simulator
 (jaxcart.exact.simulate_exact + jaxcart.metrics.step_info), independently of the tuner's own
@@ -18,11 +18,11 @@ from hw.gains import read_gains
 from jaxcart.errors import UserError
 from jaxcart.exact import simulate_exact
 from jaxcart.metrics import step_info
-from tuning.losses import LossSettings, Spec, make_loss
-from tuning.tune import DEFAULT_BOUNDS, compare_tuners, tune
+from tuning.design.losses import LossSettings, Spec, make_loss
+from tuning.design.tune import DEFAULT_BOUNDS, compare_tuners, tune
 
 STEP = jc.step(0.5, horizon=3.0)
-tune_module = importlib.import_module("tuning.tune")
+tune_module = importlib.import_module("tuning.design.tune")
 
 
 def exact_metrics(plant, pid, experiment=STEP):
@@ -163,7 +163,7 @@ def test_bad_input_is_a_user_error():
 
 
 def test_command_line_writes_gains_and_refuses_to_overwrite(tmp_path, capsys):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     out = tmp_path / "g.json"
     summary = tmp_path / "summary.json"
@@ -215,7 +215,7 @@ def test_command_line_writes_gains_and_refuses_to_overwrite(tmp_path, capsys):
     ],
 )
 def test_command_line_bad_input(tmp_path, capsys, argv, words):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     assert main(["tune", "--out", str(tmp_path / "g.json"), *argv]) == 2
     err = capsys.readouterr().err
@@ -259,7 +259,7 @@ def test_initial_adam_state_is_optax_init_placed_like_the_update_output():
     import optax
 
     from jaxcart.parallel import batch_sharding
-    from tuning.tune import initial_state
+    from tuning.design.tune import initial_state
 
     adam = optax.scale_by_adam()
     theta = jnp.asarray(np.random.default_rng(1).normal(size=(8, 6)))

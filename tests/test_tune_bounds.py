@@ -1,5 +1,5 @@
 """`tune` says when a result sits on a bound of its search box, and checks its outputs before
-computing anything (tuning/tune.py, tuning/commands/tune.py).
+computing anything (tuning/design/tune.py, tuning/commands/tune.py).
 
 The bound flags are checked against the gains and the box directly (1 % of the bound); the
 output checks run with tune() replaced by a function that fails the test if it is called.
@@ -11,7 +11,7 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.tune import DEFAULT_BOUNDS, on_bounds, tune
+from tuning.design.tune import DEFAULT_BOUNDS, on_bounds, tune
 
 
 def test_on_bounds_flags_within_one_percent_of_either_bound():
@@ -53,7 +53,7 @@ def test_result_names_every_gain_on_a_bound(short_run):
 
 
 def test_command_line_prints_the_bound_and_how_to_widen_it(tmp_path, capsys, short_run):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     summary = tmp_path / "s.json"
     args = ["tune", "--out", str(tmp_path / "g.json"), "--json", str(summary), "--quiet"]
@@ -78,18 +78,18 @@ def test_command_line_prints_the_bound_and_how_to_widen_it(tmp_path, capsys, sho
 
 @pytest.fixture
 def no_tuning(monkeypatch):
-    import tuning.tune
+    import tuning.design.tune
 
     def refuse(*args, **kwargs):
         raise AssertionError("tune() ran although an output cannot be written")
 
-    monkeypatch.setattr(tuning.tune, "tune", refuse)
-    monkeypatch.setattr(tuning.tune, "compare_tuners", refuse)
+    monkeypatch.setattr(tuning.design.tune, "tune", refuse)
+    monkeypatch.setattr(tuning.design.tune, "compare_tuners", refuse)
 
 
 @pytest.mark.parametrize("option", ["--out", "--json", "--plot"])
 def test_unwritable_outputs_fail_before_tuning(tmp_path, capsys, no_tuning, option):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
@@ -102,7 +102,7 @@ def test_unwritable_outputs_fail_before_tuning(tmp_path, capsys, no_tuning, opti
 
 
 def test_compare_json_is_checked_before_the_benchmark(tmp_path, capsys, no_tuning):
-    from tuning.cli import main
+    from tuning.commands.main import main
 
     (tmp_path / "x").write_text("")
     assert main(["tune", "--compare", "--json", str(tmp_path / "x" / "c.json")]) == 2
@@ -117,7 +117,7 @@ def test_new_parameters_are_checked():
     with pytest.raises(UserError, match="start value tau"):
         tune(start={"kp": 40.0, "tau": -1.0})
     # A PID start keeps its own tau, kb and v_limit (the template's numbers).
-    from tuning.tune import _start_and_template
+    from tuning.design.tune import _start_and_template
 
     pid = jc.PID(kp=50.0, kd=4.0, ki=1.0, tau=0.02, kb=3.0, v_limit=5.0)
     params, template = _start_and_template(pid, None, ("kp",))

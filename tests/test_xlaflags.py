@@ -115,7 +115,7 @@ def test_on_another_backend_the_chunks_are_wide_and_no_cpu_option_is_passed(monk
     gradient row asks for a CPU option (what a GPU run would compile, without a GPU here)."""
     import jaxcart.batch as batch
     from jaxcart import parallel
-    from tuning import bench
+    from tuning.benchmark import workload as bench
 
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert batch.default_chunk() == batch.WIDE_CHUNK

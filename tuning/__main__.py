@@ -2,6 +2,6 @@
 
 import sys
 
-from tuning.cli import main
+from tuning.commands.main import main
 
 sys.exit(main())

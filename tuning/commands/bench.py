@@ -56,7 +56,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     # Imported here, not at the top: building the parser must not start jax.
     from jaxcart.errors import UserError
-    from tuning import bench
+    from tuning.benchmark import workload as bench
 
     if args.batch is not None and args.batch < 1:
         raise UserError(

@@ -62,7 +62,7 @@ def _check_outputs(args) -> Path:
 
 def run(args) -> int:
     if args.suite:
-        from tuning.diagnose.suite import main as suite_main
+        from tuning.estimation.diagnose.suite import main as suite_main
 
         return suite_main(["--fast"] if args.fast else [])
     if not args.experiments:
@@ -77,7 +77,7 @@ def run(args) -> int:
     out = _check_outputs(args) if checked else None
     if not parallel.init_distributed(settings):
         return _run(args, None, out)
-    from tuning.tunerun import Exchange
+    from tuning.design.tunerun import Exchange
 
     share = Exchange()
     # An error one process meets from here on (a recording only some hosts have, a failure
@@ -87,11 +87,11 @@ def run(args) -> int:
 
 
 def _run(args, share, out) -> int:
-    """Diagnose and write the outputs. share: the :class:`tuning.tunerun.Exchange` of a
+    """Diagnose and write the outputs. share: the :class:`tuning.design.tunerun.Exchange` of a
     distributed run (else None); out: the report folder, where checked before joining."""
     from jaxcart import parallel
     from jaxcart.files import read_experiment
-    from tuning.diagnose import diagnose, write_outputs
+    from tuning.estimation.diagnose import diagnose, write_outputs
 
     me = parallel.process_index()
     if me == 0 and out is None:

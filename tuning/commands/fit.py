@@ -10,7 +10,7 @@ Prints each parameter with its standard error (or "not identifiable"), the RMS p
 before and after (smooth and exact simulators), optionally the lab's classic estimates and the
 cross-prediction of each recording from the others' fit; writes the fitted plant (``--out``,
 readable by ``--plant`` of simulate, tune, grid and lab), a JSON report and an overlay plot.
-Across processes (jax.distributed, :mod:`tuning.fitrun`) each fits its share of the
+Across processes (jax.distributed, :mod:`tuning.estimation.fitrun`) each fits its share of the
 recordings for ``--cross``; process 0 runs the joint fit, prints and writes.
 """
 
@@ -78,8 +78,8 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from jaxcart import parallel
     from jaxcart.files import read_experiment
-    from tuning import fit as F
-    from tuning import fitrun
+    from tuning.estimation import fit as F
+    from tuning.estimation import fitrun
 
     params = F.parse_params(args.params)
     if not params:
@@ -97,7 +97,7 @@ def run(args) -> int:
         check_outputs(args)
     share = None
     if parallel.init_distributed(settings):
-        from tuning.tunerun import Exchange
+        from tuning.design.tunerun import Exchange
 
         share = Exchange()
     me = parallel.process_index()
@@ -123,7 +123,7 @@ def run(args) -> int:
     except Exception as exc:
         if share is None:
             raise
-        # Sent in the exchange (tuning.tunerun.Exchange.allgather: a UserError as it is, any
+        # Sent in the exchange (tuning.design.tunerun.Exchange.allgather: a UserError as it is, any
         # other as one line naming its type and process) and raised on every process.
         failure = exc
     cross = None
@@ -219,7 +219,7 @@ def _mm(x) -> str:
 def format_result(result) -> str:
     """The parameter table and the RMS errors, as printed by the command."""
     from jaxcart.plantspec import describe_plant
-    from tuning.fit import UNITS
+    from tuning.estimation.fit import UNITS
 
     lines = ["recordings:"]
     for s in result.segments:
@@ -263,7 +263,7 @@ def format_result(result) -> str:
 
 def classic_estimates(recordings, result=None) -> list:
     """[(recording name, ClassicEstimate)] of the methods that apply to each recording."""
-    from tuning import classic
+    from tuning.estimation import classic
 
     out = []
     for rec in recordings:
@@ -281,7 +281,7 @@ def classic_estimates(recordings, result=None) -> list:
 
 
 def format_classic(classic) -> str:
-    from tuning.fit import UNITS
+    from tuning.estimation.fit import UNITS
 
     lines = ["classic estimates:"]
     for name, c in classic:

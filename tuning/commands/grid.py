@@ -114,7 +114,7 @@ def register(subparsers) -> None:
 
 def parse_range(option: str, text: str):
     """'lo:hi:n' -> n evenly spaced gains from lo to hi; a single number is one gain."""
-    from tuning.grid import gain_axis
+    from tuning.design.grid import gain_axis
 
     parts = text.split(":")
     example = DEFAULT_RANGES.get(option.lstrip("-"), "10:150:64")
@@ -277,7 +277,7 @@ def _check_memory(n_points: int) -> None:
 def _plants(args, plant):
     """The plant, or the robust plant set of --robust / --range (as tune builds it)."""
     from tuning.commands.tune import _robust
-    from tuning.tune import robust_plants
+    from tuning.design.tune import robust_plants
 
     robust = _robust(args)
     if robust is False:
@@ -306,7 +306,7 @@ def run(args) -> int:
     import numpy as np
 
     import jaxcart as jc
-    from tuning import grid, gridrun
+    from tuning.design import grid, gridrun
 
     if args.gains_file is not None:
         given = [f"--{n}" for n in DEFAULT_RANGES if getattr(args, n) is not None]

@@ -19,7 +19,7 @@ from jaxcart.errors import UserError
 from jaxcart.outputs import OUT_DIR, check_writable, free_names
 
 GAINS = ("kp", "kd", "ki")
-#: What --free may name (tuning.losses.PARAM_NAMES, without importing jax for --help).
+#: What --free may name (tuning.design.losses.PARAM_NAMES, without importing jax for --help).
 PARAMS = GAINS + ("tau", "kb", "v_limit")
 UNITS = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)", "tau": "s", "kb": "1/s", "v_limit": "V"}
 
@@ -261,7 +261,7 @@ def run(args) -> int:
         outputs = (*_outputs(args), _json_path(args))
     if not parallel.init_distributed(settings):
         return _run(args, None, outputs)
-    from tuning.tunerun import StartShare
+    from tuning.design.tunerun import StartShare
 
     share = StartShare(args.starts)
     # An error one process meets from here on (an input only some hosts have, a failure
@@ -271,7 +271,7 @@ def run(args) -> int:
 
 
 def _run(args, share, outputs) -> int:
-    """Tune and write the outputs. share: this process's :class:`tuning.tunerun.StartShare`
+    """Tune and write the outputs. share: this process's :class:`tuning.design.tunerun.StartShare`
     in a distributed run (else None); outputs: process 0's paths checked before it joined."""
     import jax
 
@@ -279,7 +279,7 @@ def _run(args, share, outputs) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from jaxcart.experiments import step
-    from tuning.tune import compare_tuners, tune
+    from tuning.design.tune import compare_tuners, tune
 
     spec = _spec(args)
     free = _free(args.free)
@@ -391,7 +391,7 @@ def _finite(value, flag, *, positive=False, nonnegative=False):
 
 
 def _spec(args):
-    from tuning.losses import Spec
+    from tuning.design.losses import Spec
 
     _finite(args.step, "--step")
     if args.step == 0:
@@ -632,7 +632,7 @@ def _plot(path, result, experiment):
             range(len(result.plant_set)), key=lambda i: _sort_key(result.plant_set[i]["exact"])
         )
         values = result.plant_set[worst]["params"]
-        from tuning.tune import _with_params
+        from tuning.design.tune import _with_params
 
         worst_plant = _with_params(result.plant, values)
         run = simulate_exact(worst_plant, g, experiment)

@@ -81,7 +81,7 @@ class Lab:
     B_eq_stderr: float | None = None  # [kg/s], when B_eq was fitted
     f_c: float = 0.0
     f_c_source: str = "none yet (the handout's model)"
-    tuned: object = None  # tuning.tune.TuneResult of the pre-lab
+    tuned: object = None  # tuning.design.tune.TuneResult of the pre-lab
     base: Plant | None = None  # the --plant model (its effects carry through), or None
     started: float = field(default_factory=time.perf_counter)
     figures: list = field(default_factory=list)

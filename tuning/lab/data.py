@@ -2,7 +2,7 @@
 
 They are synthetic: made once by :func:`generate` with the exact simulator
 (:func:`jaxcart.exact.simulate_exact`, event-exact stick-slip and hard clip) through the cart's
-encoder (:mod:`tuning.synthetic`), from a "true" cart that differs from the handout's model:
+encoder (:mod:`jaxcart.synthetic`), from a "true" cart that differs from the handout's model:
 
     M = 0.94 kg (the appendix's; the cart is weighed in the lab)
     B_eq = 4.6 kg/s (the handout estimates 5.4)
@@ -138,9 +138,9 @@ def true_plant(*, tap: bool = False):
 
 
 def make(spec: Spec, *, seed: int = SEED):
-    """The synthetic recording of one spec (a :class:`tuning.synthetic.SyntheticRecording`)."""
+    """The synthetic recording of one spec (a :class:`jaxcart.synthetic.SyntheticRecording`)."""
     import jaxcart as jc
-    from tuning.synthetic import make_recording, make_tap_recording
+    from jaxcart.synthetic import make_recording, make_tap_recording
 
     q = TRUE["quantization"]
     if spec.kind == "tap":

@@ -21,7 +21,7 @@ PARTS = {
 
 def section(lab: Lab) -> None:
     """Diagnose every recording of the lab and write the section (results under "diagnosis")."""
-    from tuning.diagnose import diagnose
+    from tuning.estimation.diagnose import diagnose
 
     doc = lab.doc
     doc.heading("Diagnosis: what the model leaves out")

@@ -5,7 +5,7 @@ The model of the cart improves as the parts go: Part (i) fits B_eq (and f_c) to 
 Part (iii) measures f_c; later parts simulate with the best-known values (``Lab.plant``).
 Every simulation here is the exact one (:func:`jaxcart.exact.simulate_exact`: hard clip,
 event-exact stick-slip, the 1 ms digital loop); fits run through the smooth simulator
-(:mod:`tuning.fit`) and report the exact simulator's error.
+(:mod:`tuning.estimation.fit`) and report the exact simulator's error.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ BOUND_SLACK = 0.02
 
 
 def _fit(recordings, params, *, initial=None, quick=False):
-    from tuning.fit import FitSettings, fit
+    from tuning.estimation.fit import FitSettings, fit
 
     settings = FitSettings(**QUICK_FIT) if quick else FitSettings()
     return fit(recordings, params, initial=initial, settings=settings, progress=False)
@@ -301,9 +301,10 @@ def part_i(lab: Lab) -> None:
 
 
 def _handout_b_eq(rec) -> dict:
-    """B_eq by the handout's log-linear method (:func:`tuning.classic.loglinear_beq`), the
+    """B_eq by the handout's log-linear method (:func:`tuning.estimation.classic.loglinear_beq`),
+    the
     ln|v| points and line it rests on, and the pure-viscous coast it implies."""
-    from tuning.classic import loglinear_beq
+    from tuning.estimation.classic import loglinear_beq
 
     est = loglinear_beq(rec)
     d = est.details
@@ -832,10 +833,11 @@ def _ramp(lab: Lab) -> dict:
 
 
 def _p_bounds(lab: Lab) -> dict:
-    """Bounds on f_c from the P-control recordings (:func:`tuning.classic.pcontrol_fc_bounds`):
+    """Bounds on f_c from the P-control recordings
+    (:func:`tuning.estimation.classic.pcontrol_fc_bounds`):
     stuck at the end, γ k (|e(inf)| − q) <= f_c (one encoder count q off, see
     :mod:`tuning.lab.deadband`); wherever it started or reversed, f_c < γ |u|."""
-    from tuning.classic import pcontrol_fc_bounds
+    from tuning.estimation.classic import pcontrol_fc_bounds
 
     rows, out = [], {}
     for slot in ("p_error", "p_step"):
@@ -897,8 +899,9 @@ def _p_bounds(lab: Lab) -> dict:
 
 
 def _handout_f_c(rec) -> dict:
-    """f_c by the handout's ramp-breakaway method (:func:`tuning.classic.ramp_breakaway_fc`)."""
-    from tuning.classic import ramp_breakaway_fc
+    """f_c by the handout's ramp-breakaway method
+    (:func:`tuning.estimation.classic.ramp_breakaway_fc`)."""
+    from tuning.estimation.classic import ramp_breakaway_fc
 
     est = ramp_breakaway_fc(rec)
     d = est.details

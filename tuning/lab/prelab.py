@@ -169,7 +169,7 @@ def _pole(p) -> str:
 
 def gains_on_bounds(result) -> dict:
     """{name: (side, bound)} for each tuned parameter on, or within 1 % of, the tuner's box
-    (side "upper" or "lower"), as :func:`tuning.tune.tune` flags it."""
+    (side "upper" or "lower"), as :func:`tuning.design.tune.tune` flags it."""
     return {n: (str(v[0]), float(v[1])) for n, v in (result.on_bound or {}).items()}
 
 
@@ -178,7 +178,7 @@ def section(lab) -> None:
     import jaxcart as jc
     from jaxcart.exact import simulate_exact, step_info_exact
     from jaxcart.plots import Run, plot_runs, reference_run
-    from tuning.tune import tune
+    from tuning.design.tune import tune
 
     doc = lab.doc
     lab.say("pre-lab: appendix constants, Routh bound and root locus")

@@ -2,7 +2,8 @@
 effect plain and concealed (brief, masked by integral action, without a column v, combined
 with a second effect), clean recordings and parameter errors; and its score table.
 
-    python -m tuning.diagnose.suite [--fast] [--only NAME,...]   (or: jaxcart diagnose --suite)
+    python -m tuning.estimation.diagnose.suite [--fast] [--only NAME,...]   (or: jaxcart diagnose
+    --suite)
 
 Every case is written as an experiment file (TOML + CSV) in a temporary folder and read back,
 so the diagnosis sees exactly what a user's file gives it (a case "without v" has its column v
@@ -152,7 +153,7 @@ def make_case(case: Case, folder) -> Path:
     """Simulate ``case`` exactly, through the encoder, and write it as an experiment file."""
     import jaxcart as jc
     from jaxcart.plantspec import build_plant
-    from tuning.synthetic import make_recording, make_tap_recording, write_recording
+    from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 
     slug = "".join(ch if ch.isalnum() else "_" for ch in case.name).strip("_")
     path = Path(folder) / f"{slug}.toml"
@@ -222,7 +223,7 @@ def judge(case: Case, d) -> dict:
 
 def run_suite(names=None, progress=False, out=sys.stdout) -> list[dict]:
     from jaxcart.files import read_experiment
-    from tuning.diagnose import diagnose
+    from tuning.estimation.diagnose import diagnose
 
     chosen = [c for c in CASES if names is None or c.name in names]
     rows = []
@@ -269,7 +270,7 @@ def summary(rows) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m tuning.diagnose.suite")
+    p = argparse.ArgumentParser(prog="python -m tuning.estimation.diagnose.suite")
     p.add_argument("--fast", action="store_true", help="the CI subset")
     p.add_argument("--only", help="comma-separated case names")
     p.add_argument("--progress", action="store_true")

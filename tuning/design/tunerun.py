@@ -17,7 +17,7 @@ key-value store round trip, ms), small beside an iteration of the tuner (tens of
 Rows agree bit for bit with a single-process run when each device holds as many starts in
 both (e.g. one start per device); other splits can differ in the last bits (XLA may vectorize
 another batch size otherwise), which can move a rounded candidate. ``jaxcart diagnose`` uses
-:class:`Exchange` alone: :func:`tuning.diagnose.diagnose` splits its batch fits, exact
+:class:`Exchange` alone: :func:`tuning.estimation.diagnose.diagnose` splits its batch fits, exact
 re-checks and exact polishes of the candidates over the processes.
 
 Errors travel in the exchange: a process that meets an exception publishes it in its next

@@ -1,4 +1,5 @@
-"""The lab's classic analyses (the handout's hand methods), for comparison with :mod:`tuning.fit`.
+"""The lab's classic analyses (the handout's hand methods), for comparison with
+:mod:`tuning.estimation.fit`.
 
 - :func:`loglinear_beq`, Part (i): while the tapped cart coasts with viscous friction only,
   v(t) = v0 e^{-(B_eq/m) t}; a least-squares line through ln|v| against t has slope -B_eq/m.
@@ -14,7 +15,7 @@
 Each returns a :class:`ClassicEstimate` with the value (or bounds) and a note of the method.
 
 >>> import jaxcart as jc
->>> from tuning.synthetic import make_recording
+>>> from jaxcart.synthetic import make_recording
 >>> rec = make_recording(jc.tap_plant(B_eq=3.0), None, jc.tap(1.0, horizon=1.0), seed=0)
 >>> round(loglinear_beq(rec).value, 2)
 3.0
@@ -81,7 +82,7 @@ def _count(position, quantization) -> float:
     """The encoder count [m]: as given, else found in the data, else the IP02's."""
     if quantization is not None:
         return float(quantization)
-    from tuning.fit import encoder_count
+    from tuning.estimation.fit import encoder_count
 
     return encoder_count(position) or ENCODER_RESOLUTION
 
@@ -108,7 +109,8 @@ def loglinear_beq(
 
     The velocity (central differences of position, ``window`` [s] moving average) is taken over
     the coasting part (``segment`` = sample indices (start, stop); default: found as
-    :func:`tuning.fit.coasting_segment` does) until it falls below ``min_fraction`` of its
+    :func:`tuning.estimation.fit.coasting_segment` does) until it falls below ``min_fraction`` of
+    its
     starting value (below that the encoder's counts dominate ln|v|). A least-squares line
     ln|v| = a + b t gives B_eq = -b m, with m = M + M_J of the recording's plant unless
     ``mass`` [kg] is given. ``stderr`` is the regression's (independent-error assumption).
@@ -118,7 +120,7 @@ def loglinear_beq(
     ts = float(recording.sample_time)
     t = np.asarray(recording.time, dtype=float)
     if segment is None:
-        from tuning.fit import coasting_segment
+        from tuning.estimation.fit import coasting_segment
 
         try:
             segment = coasting_segment(y, ts)

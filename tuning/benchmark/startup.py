@@ -1,6 +1,7 @@
 """Fixed costs, measured the way a user meets them: each command in a new process.
 
-``python -m tuning.startup`` runs each case several times in fresh interpreters and prints the
+``python -m tuning.benchmark.startup`` runs each case several times in fresh interpreters and
+prints the
 median wall time, plus the time the command reports itself (the tuner's "first gains meeting
 it after", the fit's "fitted in"):
 
@@ -126,7 +127,7 @@ def table(result: dict) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m tuning.startup",
+        prog="python -m tuning.benchmark.startup",
         description="Fixed costs of jaxcart commands, each in a new process (median of runs).",
     )
     parser.add_argument("--cases", default=",".join(CASES), help=f"of {', '.join(CASES)}")

@@ -185,7 +185,7 @@ def blocks(store: BlockStore, n: int, block: int, names=None):
 
 
 class Reducer:
-    """Streaming summaries of blocks given in flat order (see :func:`tuning.grid.best_of`).
+    """Streaming summaries of blocks given in flat order (see :func:`tuning.design.grid.best_of`).
 
     keep_full: also keep every metric array (n points); nki: the k_i axis length of a grid
     (feasible points counted per k_i slice), None for a list.
@@ -205,7 +205,7 @@ class Reducer:
             self.full["feasible"] = np.empty(n, bool)
 
     def add(self, start: int, flat: dict) -> None:
-        from tuning.grid import best_of, feasible_mask
+        from tuning.design.grid import best_of, feasible_mask
 
         ok = feasible_mask(flat, *self.spec)
         index, is_feasible = best_of(flat, ok, *self.spec)
@@ -231,7 +231,7 @@ class Reducer:
 
     def best(self) -> tuple[int, bool, dict]:
         """(flat index, feasible, {name: value}) of the best point of every block added."""
-        from tuning.grid import best_of
+        from tuning.design.grid import best_of
 
         feasible = np.array([w[1] for w in self.winners])
         pool = [w for w in self.winners if w[1]] if feasible.any() else self.winners

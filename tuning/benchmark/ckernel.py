@@ -1,7 +1,7 @@
 """The ceiling of workload W1: a minimal C kernel of exactly W1, built with the system's C
 compiler and called through ctypes (the "c-kernel" row of ``jaxcart bench``).
 
-The source is ``tuning/ckernel/w1.c`` (shipped with the package). It is compiled once per
+The source is ``tuning/benchmark/w1.c`` (shipped with the package). It is compiled once per
 source, compiler and flags into the user's cache folder next to the JAX cache
 (``~/.cache/jaxcart/ckernel``, safe to delete), with ``-O3 -march=native`` where the compiler
 accepts it. The kernel runs LANES runs at a time so the compiler vectorizes across runs (the
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-SOURCE = Path(__file__).with_name("ckernel") / "w1.c"
+SOURCE = Path(__file__).with_name("w1.c")
 #: Flags tried in order: the first the compiler accepts builds the kernel. No -ffast-math:
 #: the metrics rely on IEEE comparisons (a NaN position marks a diverged run).
 FLAG_SETS = (("-O3", "-march=native"), ("-O3",))
@@ -135,7 +135,7 @@ def coefficients(plant, controller, experiment) -> np.ndarray:
     from jaxcart.metrics import SETTLING_BAND
     from jaxcart.params import voltage_limit
     from jaxcart.smooth import DIVERGED_POSITION
-    from tuning.bench import zoh_matrices
+    from tuning.benchmark.workload import zoh_matrices
 
     other = [type(e).name for e in plant.effects if type(e).name != "saturation"]
     if other:

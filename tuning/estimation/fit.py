@@ -36,7 +36,7 @@ sqrt(N / n_eff), n_eff the independent samples the residual's autocorrelation le
 are reported (``FitResult.warnings``: the printout, the JSON and the plant file's [fit] table).
 
 >>> import jaxcart as jc
->>> from tuning.synthetic import make_recording
+>>> from jaxcart.synthetic import make_recording
 >>> truth = jc.tap_plant(B_eq=3.0, effects=(jc.Coulomb(f_c=0.5),))
 >>> rec = make_recording(truth, None, jc.tap(1.0, horizon=0.6), seed=0)
 >>> result = fit([rec], ("B_eq", "f_c"), progress=False)

@@ -5,14 +5,14 @@ the model with it, and the fit improving (``jaxcart diagnose``; docs/diagnose.md
     print(render_markdown(d)); plot_diagnosis(d, "diagnosis.png"); d.to_json()
 """
 
-from tuning.diagnose.core import Diagnosis, diagnose
+from tuning.estimation.diagnose.core import Diagnosis, diagnose
 
 __all__ = ["Diagnosis", "diagnose", "plot_diagnosis", "render_markdown", "write_outputs"]
 
 
 def __getattr__(name):
     if name in ("render_markdown", "plot_diagnosis", "write_outputs"):
-        from tuning.diagnose import report
+        from tuning.estimation.diagnose import report
 
         return getattr(report, name)
     raise AttributeError(name)

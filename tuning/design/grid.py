@@ -9,8 +9,9 @@ overshoot < ``overshoot``, not diverged: :meth:`jaxcart.StepInfo.meets`).
 Memory stays bounded for any grid: the gains of a block of points are generated from the axes
 when the block is evaluated (the (B, 3) gain array of the whole grid is never built), each block
 goes through :func:`jaxcart.batch.step_metrics_batch` (chunked, sharded over every local
-device) and is kept by :mod:`tuning.gridrun` (checkpoint files, the share of each process of a
-distributed run, the streaming reduction). A grid of up to :data:`tuning.gridrun.FULL_LIMIT`
+device) and is kept by :mod:`tuning.design.gridrun` (checkpoint files, the share of each process of
+a
+distributed run, the streaming reduction). A grid of up to :data:`tuning.design.gridrun.FULL_LIMIT`
 points also keeps its metric arrays (about 30 bytes per point); a larger one keeps summaries.
 With a plant set (a list of plants) every metric is the worst over the set.
 
@@ -37,7 +38,7 @@ from jaxcart.errors import UserError
 from jaxcart.longrun import duration_text
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth import EXACT_FORMS
-from tuning import gridrun
+from tuning.design import gridrun
 
 #: Metric names with their units, in the order they are reported.
 METRICS = {
@@ -58,7 +59,7 @@ class GridResult:
     info: :class:`jaxcart.StepInfo` of arrays, each of ``shape`` ((nkp, nkd, nki) for a grid,
         (B,) for a list): rise/settling/saturation time [s], overshoot [%], steady-state
         error [m], peak voltage [V], diverged (bool); None for a grid too large to hold
-        (:data:`tuning.gridrun.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
+        (:data:`tuning.design.gridrun.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
         blocks back from ``store``
     feasible: bool array of ``shape``, True where the point meets the specification (None
         with ``info``)
@@ -75,7 +76,7 @@ class GridResult:
     ki_feasible: feasible points in each k_i slice (grids)
     settling_range: (min, max) finite settling time of any point [s] (nan, nan if none)
     n_plants: plants of the set the metrics are the worst over (1: one plant)
-    store: the :class:`tuning.gridrun.BlockStore` of the blocks; block: points per block
+    store: the :class:`tuning.design.gridrun.BlockStore` of the blocks; block: points per block
     n_computed: points this process computed in this call (fewer when it resumed from a
         checkpoint or shared the work with other processes)
     """
@@ -193,7 +194,7 @@ def grid_search(
     checkpoint: a folder for the block files (a rerun of the same problem resumes from them;
     ``say(text)`` is told so);
     keep_full: hold every metric array (default: when the grid has at most
-    :data:`tuning.gridrun.FULL_LIMIT` points). Metric arrays are shaped (len(kp), len(kd),
+    :data:`tuning.design.gridrun.FULL_LIMIT` points). Metric arrays are shaped (len(kp), len(kd),
     len(ki)). In a distributed run (:func:`jaxcart.parallel.init_distributed`) every process
     computes its share of the blocks; process 0 returns the result, the others None.
     """

@@ -1,7 +1,8 @@
 """Gradient PID tuning through the smoothed simulator, every result re-checked on the exact one.
 
     start parameters --> [multi-start batch, log space] --> adam steps on the smooth loss
-                            ^                                  |  (tuning/losses.py: summed in
+                            ^                                  |  (tuning/design/losses.py: summed
+                            in
                             |                                  v   the loop, forward mode)
                             '--- project into bounds <--- exact-threshold metrics of the same
                                                           smooth runs -> best so far; widths
@@ -11,7 +12,7 @@
 
 One compiled function does a whole iteration (loss, forward-mode gradient with one tangent per
 free parameter, adam step, projection, metrics), so a cold run compiles one program. The free
-parameters are any of the PID's numbers (:data:`tuning.losses.PARAM_NAMES`: kp, kd, ki, tau,
+parameters are any of the PID's numbers (:data:`tuning.design.losses.PARAM_NAMES`: kp, kd, ki, tau,
 kb, v_limit). The default problem is the lab's: move 0.5 m, settling (2 % band) under 1 s,
 overshoot under 5 %, 6 V saturation, handout plant, from the handout's gains kp = 40, kd = 5,
 ki = 5. Among gains that meet it, the loss keeps driving the settling time down toward the
@@ -47,7 +48,7 @@ from jaxcart.params import Plant, handout_plant, voltage_limit
 from jaxcart.plantspec import with_values
 from jaxcart.smooth import EXACT_FORMS
 from jaxcart.smoothing import continuation
-from tuning.losses import (
+from tuning.design.losses import (
     GAIN_NAMES,
     PARAM_NAMES,
     LossSettings,
@@ -380,7 +381,7 @@ def tune(
     plant: design model (default :func:`jaxcart.handout_plant`: the nominal model, B_eq = 5.4
         kg/s, no effects; the 6 V of the lab is the controller's ``v_limit``; a plant with
         force effects such as Coulomb friction is simulated with sub-steps, slower).
-    spec: :class:`tuning.losses.Spec` (step 0.5 m, settling < 1 s, overshoot < 5 %).
+    spec: :class:`tuning.design.losses.Spec` (step 0.5 m, settling < 1 s, overshoot < 5 %).
     start: (kp, kd, ki) [V/m, V s/m, V/(m s)], all six of :data:`PARAM_NAMES`, a {name:
         value} dict or a PID; default the handout's (40, 5, 5) with the gains that are not
         free set to 0, and tau, kb, v_limit from ``controller``. What is not free stays at its
@@ -403,11 +404,11 @@ def tune(
         stopping), check_every (iterations between looks at the exact-threshold metrics of the
         smooth runs, which pick the candidates).
     bounds: {name: (lo, hi)} limits (default :data:`DEFAULT_BOUNDS`).
-    settings: :class:`tuning.losses.LossSettings` (weights, margins, widths).
+    settings: :class:`tuning.design.losses.LossSettings` (weights, margins, widths).
     substeps: sub-steps per sample of the smooth simulator (default 1 without friction,
         :data:`FRICTION_SUBSTEPS` with it).
     progress: True for a status line on stderr, or a callable receiving each history dict.
-    processes: a :class:`tuning.tunerun.StartShare` for a jax.distributed run: this process
+    processes: a :class:`tuning.design.tunerun.StartShare` for a jax.distributed run: this process
         iterates its share of the starts and every process sees the whole batch, so the result
         is the single-process one; it is returned on process 0 only (None on the others).
         Inside ``processes.carry()`` (as ``jaxcart tune`` calls it), an exception one process

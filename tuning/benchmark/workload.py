@@ -9,7 +9,8 @@ W1 is the lab's design problem as a batch job: the discrete PID (derivative on e
 Five implementations of that same loop are timed, and checked against each other first:
 
     jaxcart            step_metrics_batch, float32 (and float64), sharded over every device
-    c-kernel           the ceiling: a minimal C kernel of exactly W1 (tuning/ckernel.py), built
+    c-kernel           the ceiling: a minimal C kernel of exactly W1 (tuning/benchmark/ckernel.py),
+    built
                        with the system's C compiler, vectorized across runs, one thread
     python-control     a discrete-time nlsys (dt = Ts) + input_output_response, one run at a time
     scipy              solve_ivp over each hold interval, the PID updated at each sample
@@ -860,12 +861,13 @@ def _jaxcart64(problem64, gains, repeats, say) -> dict:
 
 
 def _c_kernel(problem64, gains, ref, jax32, n, checks, say) -> dict:
-    """The ceiling row: the C kernel of W1 (tuning/ckernel.py), checked in float64 against the
+    """The ceiling row: the C kernel of W1 (tuning/benchmark/ckernel.py), checked in float64
+    against the
     reference like every peer (positions within TOLERANCE, metrics to a sample) and in float32
     against jaxcart float32, then timed in both precisions (vectorized across runs, one
     thread, per CPU-second of the calling thread) and once as the plain scalar loop.
     Without a C compiler the row says why it was skipped."""
-    from tuning import ckernel
+    from tuning.benchmark import ckernel
 
     try:
         _, build = ckernel.load()

@@ -34,7 +34,7 @@ import numpy as np
 
 from jaxcart.errors import UserError
 from jaxcart.files import signal64
-from tuning.diagnose.batch import SHARED, BatchFitter, Layout, Segment
+from tuning.estimation.diagnose.batch import SHARED, BatchFitter, Layout, Segment
 
 #: Effects a candidate adds, and the parameters it frees (B_eq is always free).
 EFFECT_PARAMS = {
@@ -163,7 +163,8 @@ class Diagnosis:
 
     left_out / corrected_parameters: the effects and parameter corrections of the chosen
     structure (the corrected plant holds them). When ``explained`` is False no candidate
-    reaches :data:`tuning.fit.MISFIT_RATIO` times the encoder floor: the chosen structure is
+    reaches :data:`tuning.estimation.fit.MISFIT_RATIO` times the encoder floor: the chosen
+    structure is
     only the best approximation, and the verdict says so first."""
 
     recordings: list
@@ -343,7 +344,7 @@ def _excitation(rec, q) -> str | None:
 
 
 def prepare(rec, controller=None) -> Segment:
-    from tuning.fit import _initial_state, coasting_segment, encoder_count
+    from tuning.estimation.fit import _initial_state, coasting_segment, encoder_count
 
     raw = np.asarray(rec.position, dtype=float)
     q = encoder_count(raw)
@@ -613,9 +614,9 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
 class Covariance:
     """Parameter covariances of one fit, natural units: ``robust`` (run-clustered sandwich
     with the encoder floor), ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); ``n``
-    residuals worth ``n_eff`` independent ones (:func:`tuning.fit.effective_samples`);
+    residuals worth ``n_eff`` independent ones (:func:`tuning.estimation.fit.effective_samples`);
     ``widened``: the residual is model error, and every standard error is widened as
-    ``jaxcart fit`` widens its own (:func:`tuning.fit.widened_for_model_error`)."""
+    ``jaxcart fit`` widens its own (:func:`tuning.estimation.fit.widened_for_model_error`)."""
 
     names: list
     robust: np.ndarray
@@ -627,7 +628,7 @@ class Covariance:
     def stderr(self, weights: dict) -> float:
         """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
         difference ({"f_s": 1, "f_c": -1})."""
-        from tuning.fit import widened_for_model_error
+        from tuning.estimation.fit import widened_for_model_error
 
         a = np.zeros(len(self.names))
         for n, w in weights.items():
@@ -647,11 +648,12 @@ class Covariance:
 def covariance(segments, names, values, jac, residuals, widen_above=None) -> Covariance:
     """Robust (run-clustered sandwich, encoder floor) and naive covariances in natural units;
     with an RMS residual above ``widen_above`` [m] the standard errors are widened for model
-    error (:func:`tuning.fit.widened_for_model_error`; :func:`diagnose` passes the criterion's
+    error (:func:`tuning.estimation.fit.widened_for_model_error`; :func:`diagnose` passes the
+    criterion's
     floor, FLOOR_FACTOR times q / sqrt(12): what the criterion counts as structure to explain
     is not the encoder's own error)."""
-    from tuning.diagnose.batch import LOG
-    from tuning.fit import effective_samples
+    from tuning.estimation.diagnose.batch import LOG
+    from tuning.estimation.fit import effective_samples
 
     jac = np.asarray(jac, dtype=float)
     r = np.concatenate(residuals)
@@ -710,7 +712,7 @@ def at_bound(name: str, value: float) -> str:
     """Which bound ("lower", "upper") ``value`` sits at, of :data:`~batch.BOUNDS` (within
     :data:`AT_BOUND`: relative for a parameter fitted as a logarithm, else a tenth of it as a
     share of the range); "" for none."""
-    from tuning.diagnose.batch import BOUNDS, LOG
+    from tuning.estimation.diagnose.batch import BOUNDS, LOG
 
     kind = Layout.kind(name)
     if kind not in BOUNDS:
@@ -945,7 +947,7 @@ def diagnose(
     file's :class:`jaxcart.Plant`; default the handout's); progress: True (print to stderr),
     False or a callable taking one line. Returns a :class:`Diagnosis`.
 
-    processes: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: the candidates'
+    processes: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: the candidates'
     batch fits, exact re-checks and exact polishes are split over the processes and every
     result gathered on every one, which then all hold the same diagnosis (process 0 reports).
     Inside ``processes.carry()`` (as ``jaxcart diagnose`` calls it), an exception one process
@@ -955,15 +957,15 @@ def diagnose(
 
     jax.config.update("jax_enable_x64", True)
     from jaxcart.params import handout_plant
-    from tuning.diagnose import controller as ctl
-    from tuning.diagnose import locate
+    from tuning.estimation.diagnose import controller as ctl
+    from tuning.estimation.diagnose import locate
 
     say = _progress_printer(progress)
     t_start = _time.perf_counter()
     if not isinstance(recordings, list | tuple):
         recordings = [recordings]
     names = [_name(r) for r in recordings]
-    from tuning.fit import encoder_count, floor_of
+    from tuning.estimation.fit import encoder_count, floor_of
 
     messages = []
     for rec in recordings:
@@ -1418,7 +1420,7 @@ def diagnose(
                 "after": seg.target + ra,
             }
         )
-    from tuning.fit import MISFIT_RATIO
+    from tuning.estimation.fit import MISFIT_RATIO
 
     explained_final = not _misfits(best.rms_exact, floor)
     suggestions, misfit = [], ""
@@ -1473,7 +1475,7 @@ def _theta_jacobian(cand, jac, order, values, nuis, segments) -> np.ndarray:
     value) in the form of the batch fit's: columns the candidate's free slots and the
     nuisances, per unit of the fitted parameter (its logarithm for a log-fitted one), times
     :func:`fitter_scale`. An empty array where the re-fit made none or lacks a column."""
-    from tuning.diagnose.batch import LOG
+    from tuning.estimation.diagnose.batch import LOG
 
     names = list(cand.free) + list(nuis)
     if jac is None or any(n not in order for n in names):
@@ -1483,7 +1485,7 @@ def _theta_jacobian(cand, jac, order, values, nuis, segments) -> np.ndarray:
 
 
 def _misfits(rms, floor) -> bool:
-    from tuning.fit import misfits
+    from tuning.estimation.fit import misfits
 
     return misfits(rms, floor)
 
@@ -1654,7 +1656,7 @@ def _suggestions(tests, best) -> list:
 
 def _spread(processes, items, compute):
     """``[compute(item) for item in items]``, each a ({name: float}, [arrays]) pair; with
-    ``processes`` (a :class:`tuning.tunerun.Exchange`) each item computed by one process and
+    ``processes`` (a :class:`tuning.design.tunerun.Exchange`) each item computed by one process and
     every result gathered on every process."""
     if processes is None:
         return [compute(item) for item in items]

@@ -164,7 +164,8 @@ class BatchFitter:
         def residuals(theta, idx, base, width):
             full = full_values(theta, idx, base)
             # Velocity and position widths follow the continuation; the voltage corners stay
-            # narrow (as in tuning.fit): a rounded software limit misplaces a saturated run.
+            # narrow (as in tuning.estimation.fit): a rounded software limit misplaces a saturated
+            # run.
             smoothing = base_smoothing.scaled(width)
             smoothing = dataclasses.replace(smoothing, voltage=VOLTAGE_WIDTH * width / 4.0)
             out = []
@@ -237,8 +238,8 @@ class BatchFitter:
         """LM on every problem at once. problems: list of (free names, start values dict,
         base values dict). Returns list of (values dict, smooth cost, jac, r).
 
-        share: a :class:`tuning.tunerun.Exchange` of a jax.distributed run: this process fits
-        its :meth:`~tuning.tunerun.Exchange.items` of the problems and every process gets
+        share: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: this process fits
+        its :meth:`~tuning.design.tunerun.Exchange.items` of the problems and every process gets
         every result (each problem's LM is independent of the others)."""
         jnp = self._jnp
         lay = self.layout
@@ -287,7 +288,7 @@ class BatchFitter:
 
     def _gathered(self, share, problems, arrays, progress, widths):
         """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
-        from tuning.tunerun import assemble
+        from tuning.design.tunerun import assemble
 
         n = len(problems)
         parts = share.allgather({k: np.asarray(v) for k, v in arrays.items()})

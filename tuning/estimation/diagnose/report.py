@@ -1,4 +1,5 @@
-"""Drawing and writing a :class:`~tuning.diagnose.core.Diagnosis`: Markdown, figure, JSON,
+"""Drawing and writing a :class:`~tuning.estimation.diagnose.core.Diagnosis`: Markdown, figure,
+JSON,
 corrected plant file (nothing is written over an existing file without ``force``)."""
 
 from __future__ import annotations
@@ -150,13 +151,13 @@ _ITEM = {
 
 
 def _significance() -> str:
-    from tuning.diagnose.core import SIGNIFICANCE
+    from tuning.estimation.diagnose.core import SIGNIFICANCE
 
     return f"{SIGNIFICANCE:g}"
 
 
 def figure_title(d, width: int = 95) -> str:
-    """The figure's title: :attr:`~tuning.diagnose.core.Diagnosis.headline`, wrapped."""
+    """The figure's title: :attr:`~tuning.estimation.diagnose.core.Diagnosis.headline`, wrapped."""
     import textwrap
 
     return "\n".join(textwrap.wrap(d.headline, width)[:3])

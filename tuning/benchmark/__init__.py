@@ -1,0 +1,1 @@
+"""The benchmarks: workload W1 against its peers, the C ceiling kernel, fixed costs."""

@@ -1,0 +1,1 @@
+"""Design: gradient PID tuning, batched gain grids and the losses they share."""
