@@ -1,6 +1,6 @@
 """The exact (verification) simulator: hard clip and event-exact Karnopp stick-slip, no smoothing.
 
-Written independently of :mod:`jaxcart.smooth` (no shared integration code) so that it can check
+Written independently of :mod:`jaxcart.smooth_sim` (no shared integration code) so that it can check
 it: the smooth simulator converges to this one as its widths go to 0 (tests/test_exact.py). Only
 the control law (:mod:`hw.control_law`, written once by design) and the plant's parameters are
 shared.
@@ -51,7 +51,7 @@ from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
 from jaxcart.metrics import StepInfo, step_info
 from jaxcart.params import Plant, voltage_limit
-from jaxcart.smooth import DIVERGED_POSITION, Response
+from jaxcart.smooth_sim import DIVERGED_POSITION, Response
 
 #: Safety cap on stick-slip events per sample (the physics allows at most 2).
 _MAX_EVENTS = 8

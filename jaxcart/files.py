@@ -103,7 +103,7 @@ class Recording:
         """The recording as a :class:`jaxcart.Response` (numpy arrays), for step_info and plots:
         velocity by central differences [m/s]; reference r (or y0 when there is none); command
         and voltage both the recorded v (zeros without a column v)."""
-        from jaxcart.smooth import Response
+        from jaxcart.smooth_sim import Response
 
         y = self.position
         r = self.reference if self.reference is not None else np.full(y.shape, y[0])

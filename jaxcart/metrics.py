@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcart.params import voltage_limit
-from jaxcart.smooth import DIVERGED_POSITION, Response, loop
+from jaxcart.smooth_sim import DIVERGED_POSITION, Response, loop
 
 SETTLING_BAND = 0.02
 # Two samples per loop iteration lets XLA fuse across them: ~1.4x faster on a CPU where loops

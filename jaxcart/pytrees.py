@@ -1,6 +1,6 @@
 """Pytree registrations of types defined in hw/ (numpy only, so it cannot register them).
 
-Imported by every module that traces a controller (:mod:`jaxcart.smooth` and through it
+Imported by every module that traces a controller (:mod:`jaxcart.smooth_sim` and through it
 everything that simulates), so the registration happens before any JAX transformation sees a PID.
 A module runs once per process, so the registration does too.
 """

@@ -39,7 +39,7 @@ from hw.control_law import PID
 from jaxcart.experiments import Experiment
 from jaxcart.files import Recording
 from jaxcart.params import ENCODER_RESOLUTION, Plant
-from jaxcart.smooth import Response
+from jaxcart.smooth_sim import Response
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)  # kw_only: Recording's last fields have defaults

@@ -183,13 +183,13 @@ def test_gradient_matches_finite_differences():
 
 
 def test_batch_compiler_options_change_no_metric(monkeypatch):
-    """The batch program's XLA options (jaxcart.batch.COMPILER_OPTIONS, which the forward and
+    """The batch XLA options (jaxcart.batch_metrics.COMPILER_OPTIONS, which the forward and
     gradient rows are timed with) leave every metric bit for bit as the same chunked program
     computes it without them, float32 and float64: W1 (its 6 V limit clipping) and a
     diverging loop (kp < 0, no limit). (Against a program of another shape, such as a plain
     vmap of the 16 runs, loops compiled whole round differently: jaxcart.xlaflags.)"""
-    import jaxcart.batch
-    from jaxcart.batch import COMPILER_OPTIONS, step_metrics_batch
+    import jaxcart.batch_metrics
+    from jaxcart.batch_metrics import COMPILER_OPTIONS, step_metrics_batch
 
     assert jax.default_backend() != "cpu" or COMPILER_OPTIONS["cpu"]
     unlimited = jaxcart.PID(tau=bench.TAU, sample_time=bench.SAMPLE_TIME)
@@ -202,7 +202,7 @@ def test_batch_compiler_options_change_no_metric(monkeypatch):
             ):
                 tuned = step_metrics_batch(plant, controller, experiment, gains, dtype=dtype)
                 with monkeypatch.context() as m:
-                    m.setattr(jaxcart.batch, "COMPILER_OPTIONS", {})
+                    m.setattr(jaxcart.batch_metrics, "COMPILER_OPTIONS", {})
                     plain = step_metrics_batch(plant, controller, experiment, gains, dtype=dtype)
                 for name, a, b in zip(tuned._fields, tuned, plain, strict=True):
                     np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=name)

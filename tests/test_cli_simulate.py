@@ -97,12 +97,12 @@ def test_outputs_checked_before_computing(tmp_path, monkeypatch, capsys):
 
 
 def test_long_runs_show_cost_and_progress_or_are_refused(tmp_path, monkeypatch, capsys):
-    from jaxcart import longrun
+    from jaxcart import chunked_sim
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(longrun, "LONG_SAMPLES", 1000)  # the 3 s default run goes in chunks
-    monkeypatch.setattr(longrun, "CHUNK", 1024)
-    monkeypatch.setattr(longrun, "WRITE_VALUES_PER_S", 100.0)  # so its cost is "long"
+    monkeypatch.setattr(chunked_sim, "LONG_SAMPLES", 1000)  # the 3 s default run goes in chunks
+    monkeypatch.setattr(chunked_sim, "CHUNK", 1024)
+    monkeypatch.setattr(chunked_sim, "WRITE_VALUES_PER_S", 100.0)  # so its cost is "long"
     assert main(["simulate", "--out", "long.csv"]) == 0
     err = capsys.readouterr().err
     assert "simulate: about" in err and "--horizon to shorten" in err
@@ -110,7 +110,7 @@ def test_long_runs_show_cost_and_progress_or_are_refused(tmp_path, monkeypatch, 
     _, res = _default_response()
     rec = read_experiment("long.toml")
     np.testing.assert_allclose(rec.position, np.asarray(res.position), rtol=0, atol=SAME_RUN_TOL)
-    monkeypatch.setattr(longrun, "memory_budget", lambda: 1e7)
+    monkeypatch.setattr(chunked_sim, "memory_budget", lambda: 1e7)
     assert main(["simulate", "--horizon", "1e5", "--out", "huge.csv"]) == 2
     err = capsys.readouterr().err
     assert "--horizon 100000: 1e+08 samples need about" in err and err.count("\n") == 1

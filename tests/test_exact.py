@@ -27,7 +27,7 @@ from jaxcart import (
     voltage_step,
 )
 from jaxcart.exact import simulate_exact, step_info_exact, voltage_limit
-from jaxcart.smooth import DIVERGED_POSITION
+from jaxcart.smooth_sim import DIVERGED_POSITION
 
 #: Closed-form solutions vs the simulator: both exact, so only rounding separates them [m].
 CLOSED_FORM_TOL = 1e-10

@@ -1,4 +1,4 @@
-"""The tuning loss summed inside the loop (tuning/design/losses.py, jaxcart/running.py).
+"""The tuning loss summed inside the loop (tuning/design/losses.py, jaxcart/accumulators.py).
 
 References: the same loss computed from a stored response by the surrogates of
 jaxcart.surrogates (plant_loss), the exact step metrics of jaxcart.metrics.step_metrics on the
@@ -56,7 +56,7 @@ def test_loss_summed_in_the_loop_equals_the_loss_of_the_stored_trace(losses, par
     assert float(info.settling_time) == pytest.approx(float(ref_info.settling_time), rel=1e-9)
     assert float(info.overshoot) == pytest.approx(float(ref_info.overshoot), rel=1e-9, abs=1e-9)
     # Its exact-threshold metrics are step_metrics' of the same smooth run: the loop packs its
-    # carry (jaxcart.running), which may round the trajectory differently by an ulp.
+    # carry (jaxcart.accumulators), which may round the trajectory differently by an ulp.
     for name, got, want in zip(expected._fields, info.metrics, expected, strict=True):
         assert float(got) == pytest.approx(float(want), rel=1e-12, abs=1e-15), name
 
@@ -111,11 +111,11 @@ def test_forward_mode_gradient_matches_central_differences():
 
 
 def test_rows_of_forward_mode_equal_per_run_jacobians():
-    """jaxcart.running.value_and_jacfwd_rows (tangents laid out across the runs) against
+    """jaxcart.accumulators.value_and_jacfwd_rows (tangents laid out across the runs) against
     jax.jacfwd of each run alone, with a per-row argument, shared arguments and aux: values
     and aux to 1e-14, gradients to 1e-12 (the same operations, batched otherwise: vectorized
     sin rounds otherwise than the scalar one)."""
-    from jaxcart.running import value_and_jacfwd_rows
+    from jaxcart.accumulators import value_and_jacfwd_rows
 
     def fn(u, row, c):
         value = jnp.sin(u[0] * row) + c * u[1] ** 3 + u[0] * u[1]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxcart as jc
-from jaxcart.batch import step_metrics_batch
+from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.metrics import StepInfo
 
 TS = 0.001

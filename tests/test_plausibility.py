@@ -1,5 +1,5 @@
 """Physical sense of recordings and controllers (jaxcart.plausibility), outputs checked before a
-run (jaxcart.outputs.check_writable) and long runs (jaxcart.longrun)."""
+run (jaxcart.outputs.check_writable) and long runs (jaxcart.chunked_sim)."""
 
 import io
 import shutil
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxcart as jc
-from jaxcart import longrun, plausibility
+from jaxcart import chunked_sim, plausibility
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment
 from jaxcart.outputs import check_writable
@@ -297,7 +297,7 @@ def test_chunked_run_is_the_same_run_and_reports_progress():
     plant, pid = jc.handout_plant(), jc.PID(kp=40.0, kd=5.0, ki=5.0, v_limit=6.0)
     exp = jc.step(0.5, horizon=3.0)  # the compile of the other tests' runs
     out = io.StringIO()
-    chunked = longrun.simulate_chunked(plant, pid, exp, chunk=1024, out=out)
+    chunked = chunked_sim.simulate_chunked(plant, pid, exp, chunk=1024, out=out)
     whole = simulate(plant, pid, exp)
     for field in ("position", "velocity", "command", "voltage", "error"):
         np.testing.assert_allclose(
@@ -305,22 +305,23 @@ def test_chunked_run_is_the_same_run_and_reports_progress():
         )
     assert "simulate: 100% (3001 of 3001 samples" in out.getvalue()
     assert (
-        longrun.announce(100.0, 10**8, 5, 0.001, out) and "--horizon to shorten" in out.getvalue()
+        chunked_sim.announce(100.0, 10**8, 5, 0.001, out)
+        and "--horizon to shorten" in out.getvalue()
     )
-    assert not longrun.announce(1.0, 100, 5, 0.001, out)
+    assert not chunked_sim.announce(1.0, 100, 5, 0.001, out)
 
 
 def test_long_runs_refused_before_they_start(monkeypatch):
-    monkeypatch.setattr(longrun, "memory_budget", lambda: 1e6)
+    monkeypatch.setattr(chunked_sim, "memory_budget", lambda: 1e6)
     with pytest.raises(UserError, match=r"--horizon 100: 1e\+05 samples need about 12.8 MB"):
-        longrun.check_size(100_001, 0.001, "--horizon 100")
+        chunked_sim.check_size(100_001, 0.001, "--horizon 100")
 
 
 def test_thinned_curves_keep_their_envelope():
     rng = np.random.default_rng(1)
     y = np.cumsum(rng.normal(size=100_000))
     v = rng.normal(size=y.size)
-    keep = longrun.thin_indices(y.size, y, v, points=2000)
+    keep = chunked_sim.thin_indices(y.size, y, v, points=2000)
     assert keep.size <= 2100 and keep[0] == 0 and keep[-1] == y.size - 1
     assert y[keep].max() == y.max() and y[keep].min() == y.min() and v[keep].max() == v.max()
 

@@ -65,7 +65,7 @@ _PROBE = """
     {first}
     import jax, jax.numpy as jnp
     from jaxcart import xlaflags
-    from jaxcart.batch import default_chunk
+    from jaxcart.batch_metrics import default_chunk
     f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (c * 1.01 + 1.0, None), x, None, 100)[0])
     text = f.lower(jnp.ones(256)).compile().as_text()
     print(xlaflags.loop_kernels(), "xla_cpu_small_call" in text, default_chunk(),
@@ -113,7 +113,7 @@ def test_the_suite_runs_with_loops_compiled_whole():
 def test_on_another_backend_the_chunks_are_wide_and_no_cpu_option_is_passed(monkeypatch):
     """A GPU: the batches keep their wide chunks, and neither the forward batch nor the bench's
     gradient row asks for a CPU option (what a GPU run would compile, without a GPU here)."""
-    import jaxcart.batch as batch
+    import jaxcart.batch_metrics as batch
     from jaxcart import parallel
     from tuning.benchmark import workload as bench
 

@@ -29,7 +29,7 @@ Exact form (:mod:`jaxcart.exact`): no smoothing; the three modes with their even
 |d| = b/2; separation: N = 0; stick-slip of the cart's dry friction) located by bisection inside
 RK4 sub-steps (Ts/20), the mode switches applied exactly.
 
-Smooth form (:mod:`jaxcart.smooth`): the same hybrid model stepped on sub-steps of Ts/substeps:
+Smooth form (:mod:`jaxcart.smooth_sim`): the same hybrid model stepped on sub-steps of Ts/substeps:
 each sub-step first advances both bodies free (the motor in closed form, the cart with the
 simulator's friction step); if that would close the gap (penetration p = s d - b/2 > 0) the
 impact time t_c in the sub-step is located by interpolating p (secant, then one regula-falsi

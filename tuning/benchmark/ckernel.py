@@ -134,7 +134,7 @@ def coefficients(plant, controller, experiment) -> np.ndarray:
     error, no anti-windup; anything else raises ValueError naming what is not modelled."""
     from jaxcart.metrics import SETTLING_BAND
     from jaxcart.params import voltage_limit
-    from jaxcart.smooth import DIVERGED_POSITION
+    from jaxcart.smooth_sim import DIVERGED_POSITION
     from tuning.benchmark.workload import zoh_matrices
 
     other = [type(e).name for e in plant.effects if type(e).name != "saturation"]

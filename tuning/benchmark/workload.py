@@ -408,7 +408,7 @@ def reference_positions(plant, controller, experiment, gains) -> np.ndarray:
 
 def jaxcart_metrics(plant, controller, experiment, gains, dtype) -> dict:
     """``step_metrics_batch`` (EXACT_FORMS) in ``dtype``, as a dict of numpy arrays."""
-    from jaxcart.batch import step_metrics_batch
+    from jaxcart.batch_metrics import step_metrics_batch
 
     x64 = jnp.dtype(dtype) == jnp.float64
     with jax.enable_x64(x64):
@@ -433,9 +433,9 @@ def smooth_loss(plant, controller, experiment, gains, smoothing=None):
     """A smooth tuning loss of one run [-]: the integral of the squared error (normalized by
     the step) plus a penalty on overshoot beyond 5 %, with the default
     :class:`jaxcart.Smoothing`. Summed inside the simulation loop
-    (:func:`jaxcart.running.accumulate`): no trace is stored, so forward-mode tangents ride
+    (:func:`jaxcart.accumulators.accumulate`): no trace is stored, so forward-mode tangents ride
     along in the loop's carry."""
-    from jaxcart.running import accumulate
+    from jaxcart.accumulators import accumulate
     from jaxcart.smoothing import smooth_relu
 
     pid = dataclasses.replace(controller, kp=gains[0], kd=gains[1], ki=gains[2])
@@ -449,7 +449,7 @@ def smooth_loss(plant, controller, experiment, gains, smoothing=None):
         z = (s.position - experiment.y0) * inv_amplitude
         return ise + e * e, over + jnp.square(smooth_relu(z - 1.05, 1e-3))
 
-    from jaxcart.batch import loops_whole
+    from jaxcart.batch_metrics import loops_whole
 
     zero = jnp.zeros((), jnp.result_type(experiment.signal))
     unroll = UNROLL_GRAD["whole" if loops_whole() else "tasks"]
@@ -463,9 +463,9 @@ def grad_evaluator(plant, controller, experiment, *, chunk: int):
     """f(gains (B, 3)) -> (loss (B,), d loss / d gains (B, 3)) by forward mode (three tangents
     per run, the loss summed inside the loop: nothing stored for a backward pass), in chunks
     of ``chunk`` runs per device through :func:`jaxcart.parallel.sharded_map`."""
-    from jaxcart.batch import COMPILER_OPTIONS
+    from jaxcart.batch_metrics import COMPILER_OPTIONS
     from jaxcart.parallel import sharded_map
-    from jaxcart.running import value_and_jacfwd_rows
+    from jaxcart.accumulators import value_and_jacfwd_rows
 
     grads = value_and_jacfwd_rows(lambda g, _, p, c, e: smooth_loss(p, c, e, g))
 
@@ -812,7 +812,7 @@ def _jaxcart_row(name, problem, gains, dtype, repeats, say) -> tuple[dict, objec
     """One step_metrics_batch row: sims/s (median wall), sims per CPU-second (median process
     CPU time, every thread), first call; returns (row, metrics, first call [s])."""
     from jaxcart import parallel
-    from jaxcart.batch import step_metrics_batch
+    from jaxcart.batch_metrics import step_metrics_batch
 
     devs = parallel.devices()
     kind = devs[0].device_kind
@@ -947,7 +947,7 @@ def _ceiling_ratios(jax_rows, c_row) -> None:
 
 def _grid(problem32, points, repeats, say) -> dict:
     """Throughput of a points^3 grid through step_metrics_batch (what `jaxcart grid` runs)."""
-    from jaxcart.batch import step_metrics_batch
+    from jaxcart.batch_metrics import step_metrics_batch
 
     grid = w1_grid(points)
     say(f"grid: {points}^3 = {grid.shape[0]} runs, float32")
@@ -973,7 +973,7 @@ def _grad(problem32, runs, repeats, say) -> dict:
     forward mode, sharded over the devices in chunks of :data:`GRAD_CHUNK` runs where loops
     compile whole (else of the wide chunks, forward mode stores nothing per step). Timed like
     the jaxcart rows: median wall and process CPU seconds of ``repeats`` calls."""
-    from jaxcart.batch import WIDE_CHUNK, default_chunk
+    from jaxcart.batch_metrics import WIDE_CHUNK, default_chunk
 
     n_dev = len(jax.devices())
     chunk = max(1, min(default_chunk(GRAD_CHUNK, WIDE_CHUNK), runs // n_dev))

@@ -253,13 +253,13 @@ def _outputs(args, recording):
 
 def _check_horizon(horizon, sample_time, n_recorded):
     """Refuse, before any array is built, a run that would not fit in memory."""
-    from jaxcart import longrun
+    from jaxcart import chunked_sim
 
     if horizon is not None and not (math.isfinite(horizon) and horizon > 0):
         return  # the experiment's own check names the bad value
     n = n_recorded if horizon is None else int(round(horizon / sample_time)) + 1
     what = f"--horizon {horizon:g}" if horizon is not None else "the recording"
-    longrun.check_size(n, sample_time, what)
+    chunked_sim.check_size(n, sample_time, what)
 
 
 def _mat_data(recording) -> bool:
@@ -274,14 +274,14 @@ def _simulate(exact, plant, controller, experiment):
     import jax
 
     import jaxcart as jc
-    from jaxcart import longrun
+    from jaxcart import chunked_sim
     from jaxcart.errors import UserError
 
     pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
     columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
     if not exact:
-        if experiment.n_samples > longrun.LONG_SAMPLES:
-            return longrun.simulate_chunked(plant, pid, experiment, n_columns=columns)
+        if experiment.n_samples > chunked_sim.LONG_SAMPLES:
+            return chunked_sim.simulate_chunked(plant, pid, experiment, n_columns=columns)
         return jax.jit(jc.simulate)(plant, pid, experiment)
     try:
         from jaxcart.exact import simulate_exact
@@ -291,9 +291,9 @@ def _simulate(exact, plant, controller, experiment):
         raise UserError(
             "--exact: the exact simulator (jaxcart/exact.py) is not installed; run without --exact"
         ) from None
-    if experiment.n_samples > longrun.EXACT_PROBE:
-        seconds = longrun.estimate_exact(plant, pid, experiment)
-        longrun.announce(seconds, experiment.n_samples, columns, experiment.sample_time)
+    if experiment.n_samples > chunked_sim.EXACT_PROBE:
+        seconds = chunked_sim.estimate_exact(plant, pid, experiment)
+        chunked_sim.announce(seconds, experiment.n_samples, columns, experiment.sample_time)
     return simulate_exact(plant, pid, experiment)
 
 
@@ -331,10 +331,10 @@ def _plot(path, response, recording, controller, plant, source, method):
 
 
 def _thinned(run):
-    """The run with at most about longrun.PLOT_POINTS samples, each block's extremes kept."""
+    """The run with at most about chunked_sim.PLOT_POINTS samples, each block's extremes kept."""
     import numpy as np
 
-    from jaxcart.longrun import thin_indices
+    from jaxcart.chunked_sim import thin_indices
 
     keep = thin_indices(len(run.time), run.position, run.voltage)
     if keep.size == len(run.time):

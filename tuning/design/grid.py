@@ -8,7 +8,7 @@ overshoot < ``overshoot``, not diverged: :meth:`jaxcart.StepInfo.meets`).
 
 Memory stays bounded for any grid: the gains of a block of points are generated from the axes
 when the block is evaluated (the (B, 3) gain array of the whole grid is never built), each block
-goes through :func:`jaxcart.batch.step_metrics_batch` (chunked, sharded over every local
+goes through :func:`jaxcart.batch_metrics.step_metrics_batch` (chunked, sharded over every local
 device) and is kept by :mod:`tuning.design.gridrun` (checkpoint files, the share of each process of
 a
 distributed run, the streaming reduction). A grid of up to :data:`tuning.design.gridrun.FULL_LIMIT`
@@ -33,11 +33,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcart.batch import default_chunk, step_metrics_batch
+from jaxcart.batch_metrics import default_chunk, step_metrics_batch
 from jaxcart.errors import UserError
-from jaxcart.longrun import duration_text
+from jaxcart.chunked_sim import duration_text
 from jaxcart.metrics import StepInfo
-from jaxcart.smooth import EXACT_FORMS
+from jaxcart.smooth_sim import EXACT_FORMS
 from tuning.design import gridrun
 
 #: Metric names with their units, in the order they are reported.

@@ -30,8 +30,8 @@ import jax.numpy as jnp
 from jaxcart.errors import UserError
 from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo, info_from_accumulated
 from jaxcart.params import voltage_limit
-from jaxcart.running import accumulate, value_and_jacfwd_rows
-from jaxcart.smooth import DIVERGED_POSITION, loop, simulate
+from jaxcart.accumulators import accumulate, value_and_jacfwd_rows
+from jaxcart.smooth_sim import DIVERGED_POSITION, loop, simulate
 from jaxcart.smoothing import Smoothing
 from jaxcart.surrogates import (
     SmoothStepInfo,
@@ -43,7 +43,7 @@ from jaxcart.surrogates import (
     soft_max,
 )
 
-#: Gain order of every array of gains in tuning (as in jaxcart.batch): kp, kd, ki.
+#: Gain order of every array of gains in tuning (as in jaxcart.batch_metrics): kp, kd, ki.
 GAIN_NAMES = ("kp", "kd", "ki")
 #: Every number of the PID the tuner can free, in the order of its parameter vector: the
 #: gains, then the derivative filter tau [s], the back-calculation gain kb [1/s] and the

@@ -46,7 +46,7 @@ from jaxcart.metrics import StepInfo
 from jaxcart.parallel import batch_sharding, devices, put, replicated
 from jaxcart.params import Plant, handout_plant, voltage_limit
 from jaxcart.plantspec import with_values
-from jaxcart.smooth import EXACT_FORMS
+from jaxcart.smooth_sim import EXACT_FORMS
 from jaxcart.smoothing import continuation
 from tuning.design.losses import (
     GAIN_NAMES,
@@ -1065,7 +1065,7 @@ def _grid_baseline(
     ``budget`` seconds: (params, exact StepInfo, seconds, seconds to spec, points)."""
     from scipy.stats import qmc
 
-    from jaxcart.batch import step_metrics_batch
+    from jaxcart.batch_metrics import step_metrics_batch
 
     friction = _has_friction(plant)
     smoothing = EXACT_FORMS if not friction else LossSettings().smoothing.scaled(SCALES[-1] / 4)

@@ -66,7 +66,7 @@ from jaxcart.experiments import Experiment
 from jaxcart.files import signal64
 from jaxcart.parallel import put, sharded_map
 from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant
-from jaxcart.smooth import simulate
+from jaxcart.smooth_sim import simulate
 from jaxcart.smoothing import Smoothing, continuation
 
 #: Parameters a fit offers: the plant's corrections and every registered effect's parameters

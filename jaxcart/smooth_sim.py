@@ -224,7 +224,7 @@ def _backlash_sub(plant: Plant, effect, force, gamma):
     return sub
 
 
-#: Most sub-steps per sample that the force loop unrolls (jaxcart.smooth._plant_step).
+#: Most sub-steps per sample that the force loop unrolls (jaxcart.smooth_sim._plant_step).
 UNROLL_SUBSTEPS = 2
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxcart import parallel, xlaflags
 from jaxcart.metrics import StepInfo, step_metrics
-from jaxcart.smooth import EXACT_FORMS
+from jaxcart.smooth_sim import EXACT_FORMS
 
 #: Runs per chunk where loops compile whole (a CPU backend, jaxcart.xlaflags in effect): the
 #: loop's state in the L1 cache (W1 per CPU-second, 2 cores, float32 / float64 against 256

@@ -1,7 +1,7 @@
 """Long simulations: what they will cost, said before they start, and progress while they run.
 
 A 10-million-sample recording or ``--horizon 1e5`` ran for minutes without a word. Here the
-smooth simulator runs the same loop (:func:`jaxcart.smooth.loop`) in chunks of ``CHUNK``
+smooth simulator runs the same loop (:func:`jaxcart.smooth_sim.loop`) in chunks of ``CHUNK``
 samples, one compiled scan carried from chunk to chunk (the same steps as one scan over the
 whole signal), so that after the first chunks the rate is known and the cost is printed; the
 exact simulator is timed on a prefix. Runs that would not fit in memory are refused before
@@ -91,7 +91,7 @@ def simulate_chunked(plant, controller, experiment, *, chunk=None, n_columns=5, 
     import jax
     import jax.numpy as jnp
 
-    from jaxcart.smooth import DIVERGED_POSITION, Response, loop
+    from jaxcart.smooth_sim import DIVERGED_POSITION, Response, loop
 
     out = sys.stderr if out is None else out
     chunk = CHUNK if chunk is None else int(chunk)

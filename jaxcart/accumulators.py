@@ -3,7 +3,7 @@
 A loss built from a stored response keeps every sample (3001 per run) and, under reverse-mode
 differentiation, the whole carry of every step as well: tens of MB per batch, out of cache.
 :func:`accumulate` folds each sample into a small accumulator inside the ``lax.scan`` of
-:func:`jaxcart.smooth.loop`, so nothing per-sample is stored; with forward-mode derivatives
+:func:`jaxcart.smooth_sim.loop`, so nothing per-sample is stored; with forward-mode derivatives
 (:func:`value_and_jacfwd_rows`) the tangents ride along in the same carry.
 
 >>> import jax.numpy as jnp
@@ -23,7 +23,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxcart.smooth import loop
+from jaxcart.smooth_sim import loop
 
 #: Samples per scan iteration: 1. Two run ~1.3x faster but double the compile time (measured:
 #: seconds, where the tuner waits on compilation more than on the loop).
@@ -44,7 +44,7 @@ def accumulate(
     """Run the smooth loop and fold every sample into ``init``; returns the final accumulator.
 
     ``update(acc, k, t_k, sample) -> acc`` for sample index k (int32), time t_k - t_0 [s] and
-    the :class:`jaxcart.smooth.Sample` of that period (position [m] as the controller reads
+    the :class:`jaxcart.smooth_sim.Sample` of that period (position [m] as the controller reads
     it, velocity [m/s], reference [m], command [V], voltage [V], unlimited [V]).
     """
     start, step = loop(plant, controller, experiment, smoothing=smoothing, substeps=substeps)
