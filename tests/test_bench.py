@@ -13,7 +13,7 @@ import pytest
 
 import jaxcart
 from jaxcart import parallel
-from tuning.benchmark import ckernel
+from tuning.benchmark import ckernel, peers
 from tuning.benchmark import workload as bench
 from tuning.commands.main import main
 
@@ -127,10 +127,10 @@ def test_a_wrong_peer_is_caught():
     reference = bench.reference_positions(plant, controller, experiment, gains)
     ref_metrics = bench.jaxcart_metrics(plant, controller, experiment, gains, jnp.float64)
     wrong = plant.replace(B_eq=5.5)
-    info, trace = bench.numpy_batch(wrong, controller, experiment, gains, record=2)
+    info, trace = peers.numpy_batch(wrong, controller, experiment, gains, record=2)
     with pytest.raises(bench.PeerDisagreement, match="numpy-vectorized"):
         bench._check("numpy-vectorized", trace, reference, info, ref_metrics, bench.TOLERANCE)
-    info, trace = bench.numpy_batch(plant, controller, experiment, gains, record=2)
+    info, trace = peers.numpy_batch(plant, controller, experiment, gains, record=2)
     bench._check("numpy-vectorized", trace, reference, info, ref_metrics, bench.TOLERANCE)
 
 
@@ -144,8 +144,8 @@ def test_rise_time_of_a_run_that_never_reaches_90_percent(horizon, lo, hi):
     ref = bench.jaxcart_metrics(*problem, gains, jnp.float64)
     y = bench.reference_positions(*problem, gains)[0]
     assert lo * bench.STEP <= y.max() < hi * bench.STEP  # the case this parameter covers
-    numpy_info, _ = bench.numpy_batch(*problem, gains)
-    _, scipy_info = bench.scipy_run(*problem, gains[0])
+    numpy_info, _ = peers.numpy_batch(*problem, gains)
+    _, scipy_info = peers.scipy_run(*problem, gains[0])
     for info in (ref, numpy_info, scipy_info):
         assert np.isinf(info["rise_time"]).all() and np.isinf(info["settling_time"]).all()
     assert max(bench._max_diff(numpy_info, ref).values()) < 1e-12
@@ -160,7 +160,7 @@ def test_zoh_against_python_control():
     sys_d = control.ss([[0, 1], [0, -c / m]], [[0], [gamma / m]], [[1, 0]], [[0]]).sample(
         1e-3, method="zoh"
     )
-    ad, bd = bench.zoh_matrices(plant, 1e-3)
+    ad, bd = peers.zoh_matrices(plant, 1e-3)
     np.testing.assert_allclose(ad, sys_d.A, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(bd, sys_d.B[:, 0], rtol=1e-12, atol=1e-18)
 
@@ -270,10 +270,10 @@ def test_peers_model_an_amplifier_saturation_as_the_simulators_do():
         experiment = jaxcart.step(0.5, horizon=0.3)
         gains = np.array([80.0, 5.0, 0.0])
         exact = simulate_exact(plant, controller, experiment).position
-        y_ivp, _ = bench.scipy_run(plant, controller, experiment, gains)
+        y_ivp, _ = peers.scipy_run(plant, controller, experiment, gains)
         assert np.max(np.abs(np.asarray(y_ivp)[: exact.size] - exact)) < 1e-6
         with pytest.raises(ValueError, match="coulomb"):
-            bench.scipy_run(jaxcart.handout_plant(f_c=0.3), controller, experiment, gains)
+            peers.scipy_run(jaxcart.handout_plant(f_c=0.3), controller, experiment, gains)
 
 
 # ---------------------------------------------------------------- the C kernel (ceiling row)

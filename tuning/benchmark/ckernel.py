@@ -23,6 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcart.effects import Saturation
+from jaxcart.metrics import SETTLING_BAND
+from jaxcart.params import voltage_limit
+from jaxcart.smooth_sim import DIVERGED_POSITION
+from tuning.benchmark.peers import zoh_matrices
+
 SOURCE = Path(__file__).with_name("w1.c")
 #: Flags tried in order: the first the compiler accepts builds the kernel. No -ffast-math:
 #: the metrics rely on IEEE comparisons (a NaN position marks a diverged run).
@@ -132,12 +138,7 @@ def coefficients(plant, controller, experiment) -> np.ndarray:
 
     Only W1's loop: a linear plant with at most an amplifier saturation, derivative on
     error, no anti-windup; anything else raises ValueError naming what is not modelled."""
-    from jaxcart.metrics import SETTLING_BAND
-    from jaxcart.params import voltage_limit
-    from jaxcart.smooth_sim import DIVERGED_POSITION
-    from tuning.benchmark.workload import zoh_matrices
-
-    other = [type(e).name for e in plant.effects if type(e).name != "saturation"]
+    other = [type(e).name for e in plant.effects if not isinstance(e, Saturation)]
     if other:
         raise ValueError(f"the C kernel models W1's linear plant; not {', '.join(other)}")
     if controller.derivative_on != "error" or controller.anti_windup != "none":

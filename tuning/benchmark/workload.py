@@ -9,17 +9,16 @@ W1 is the lab's design problem as a batch job: the discrete PID (derivative on e
 Five implementations of that same loop are timed, and checked against each other first:
 
     jaxcart            step_metrics_batch, float32 (and float64), sharded over every device
-    c-kernel           the ceiling: a minimal C kernel of exactly W1 (tuning/benchmark/ckernel.py),
-    built
+    c-kernel           the ceiling: a minimal C kernel of exactly W1 (ckernel.py), built
                        with the system's C compiler, vectorized across runs, one thread
     python-control     a discrete-time nlsys (dt = Ts) + input_output_response, one run at a time
     scipy              solve_ivp over each hold interval, the PID updated at each sample
     numpy-vectorized   the recursion over a batch in numpy, time loop in Python, metrics streamed
 
-The peers share nothing with jaxcart's simulator but the control law (hw.control_law, the
-code the hardware runs): the plant step is the exact zero-order hold computed here with
-scipy.linalg.expm (python-control, numpy) or integrated by solve_ivp, and the metrics are
-computed here in numpy. The reference is float64 ``jaxcart.simulate`` with EXACT_FORMS (hard
+The peers (tuning/benchmark/peers.py) share nothing with jaxcart's simulator but the control
+law (hw.control_law, the code the hardware runs): the plant step is the exact zero-order hold
+computed with scipy.linalg.expm (python-control, numpy) or integrated by solve_ivp, and the
+metrics are computed in numpy. The reference is float64 ``jaxcart.simulate`` with EXACT_FORMS (hard
 clips); a float64 peer further than ``TOLERANCE`` [m] from it in position (or a sample off in
 a metric) raises :class:`PeerDisagreement` and no figure is reported.
 
@@ -44,9 +43,10 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
 
-from hw.control_law import PID, PIDState, pid_init, pid_update
+from hw.control_law import PID
+from jaxcart.params import voltage_limit
+from tuning.benchmark.peers import numpy_batch, python_control_run, scipy_run, trace_metrics
 
 #: Workload W1 (docs/design.md, "Benchmark workload W1"): the step [m], horizon [s], sample
 #: time [s], limits [V], filter [s].
@@ -63,10 +63,6 @@ SEED = 364
 GRID_RANGES = {"kp": (10.0, 150.0), "kd": (0.0, 15.0), "ki": (0.0, 30.0)}
 #: Largest position difference [m] a float64 peer may show against float64 jaxcart.
 TOLERANCE = 1e-6
-#: solve_ivp tolerances: scipy's defaults. A 1 ms interval is 1/80 of the plant's time constant
-#: m/c: the traces stay within ~4e-13 m of the exact-hold reference over 3 s at these
-#: tolerances as at rtol 1e-9 (measured), which only costs time (~2x) and would flatter jaxcart.
-IVP_RTOL, IVP_ATOL = 1e-3, 1e-6
 METRICS = (
     "rise_time",
     "settling_time",
@@ -113,277 +109,6 @@ def w1_problem(horizon: float = HORIZON):
     controller = PID(tau=TAU, v_limit=V_LIMIT, sample_time=SAMPLE_TIME)
     experiment = jaxcart.step(STEP, horizon=horizon, sample_time=SAMPLE_TIME)
     return plant, controller, experiment
-
-
-def zoh_matrices(plant, ts: float):
-    """Exact zero-order-hold step of m y'' + c y' = gamma u over ts [s]: x+ = Ad x + Bd u with
-    x = (y [m], y' [m/s]), from the matrix exponential of the augmented system (not jaxcart's
-    closed forms)."""
-    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
-    aug = np.zeros((3, 3))
-    aug[0, 1] = 1.0
-    aug[1, 1] = -c / m
-    aug[1, 2] = gamma / m
-    e = scipy.linalg.expm(aug * ts)
-    return e[:2, :2], e[:2, 2]
-
-
-def _voltage_stages(plant):
-    """The plant's exact voltage effects (an amplifier saturation, a deadzone) as one numpy
-    function; the W1 peers model a linear plant with memoryless voltage effects only."""
-    from jaxcart.effects import Held
-
-    other = [e for e in plant.effects if e.stage != "voltage" or e.splits_sample]
-    if other:
-        names = ", ".join(type(e).name for e in other)
-        raise ValueError(
-            f"the W1 peers model a linear plant with memoryless voltage effects; not {names}"
-        )
-    stages = plant.stage("voltage")
-
-    def apply(u):
-        for effect in stages:
-            u = effect.exact((), Held(u, u, 0.0), 0.0)[0].late
-        return u
-
-    return apply
-
-
-def _limit(plant, controller) -> float:
-    from jaxcart.params import voltage_limit
-
-    return float(voltage_limit(plant, controller))
-
-
-def trace_metrics(
-    y, unlimited, applied, *, r_final: float, y0: float, ts: float, limit: float
-) -> dict:
-    """Step metrics of one trace (numpy), the definitions of ``jaxcart.step_metrics``.
-
-    y: positions y_k [m]; unlimited: PID output v_k [V]; applied: voltage at the motor [V];
-    r_final [m], y0 [m], ts [s]; limit: the voltage limit [V] for saturation_time.
-    """
-    y = np.asarray(y, dtype=float)
-    n = y.size
-    amplitude = r_final - y0
-    bad = not np.all(np.abs(y) <= 1e3)
-    z = (y - y0) / amplitude
-    inf = math.inf
-
-    def first(mask):
-        return float(np.argmax(mask)) * ts if mask.any() else inf
-
-    out = np.nonzero(np.abs(y - r_final) > 0.02 * abs(amplitude))[0]
-    settling = 0.0 if out.size == 0 else (inf if out[-1] + 1 >= n else (out[-1] + 1) * ts)
-    info = {
-        # inf when the run never reaches 90 % (the peak is monotone: 90 % implies 10 %)
-        "rise_time": first(z >= 0.9) - first(z >= 0.1) if (z >= 0.9).any() else inf,
-        "settling_time": settling,
-        "overshoot": max(0.0, (z.max() - 1.0) * 100.0),
-        "steady_state_error": abs(r_final - y[-1]),
-        "peak_voltage": float(np.abs(applied).max()),
-        "saturation_time": float(np.count_nonzero(np.abs(unlimited) > limit)) * ts,
-        "diverged": bad,
-    }
-    if bad:
-        info.update(rise_time=inf, settling_time=inf, overshoot=inf, steady_state_error=inf)
-    return info
-
-
-# ---------------------------------------------------------------- peer: python-control
-
-
-def python_control_run(plant, controller, experiment, gains):
-    """One W1 run as a discrete-time ``control.nlsys`` (dt = Ts) whose update is the PID, the
-    clips and the exact ZOH plant step; returns (positions [m], metrics dict).
-
-    States: y [m], y' [m/s], the PID memory (I, d, s_prev) and the last v_k, u_k [V] (kept as
-    states so the response carries them). One extra sample gives v and u at the last sample.
-    """
-    import control
-
-    ts = experiment.sample_time
-    pid = dataclasses.replace(
-        controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
-    )
-    ad, bd = zoh_matrices(plant, ts)
-    voltage = _voltage_stages(plant)
-
-    def update(t, x, u, params):
-        state = PIDState(x[2], x[3], x[4])
-        command, unlimited, state = pid_update(pid, state, u[0], x[0], xp=np)
-        applied = voltage(command)
-        plant_next = ad @ x[:2] + bd * applied
-        return [
-            plant_next[0],
-            plant_next[1],
-            state.integral,
-            state.derivative,
-            state.previous,
-            unlimited,
-            applied,
-        ]
-
-    r = np.asarray(experiment.signal, dtype=float)
-    n = r.size
-    sys_ = control.nlsys(update, None, inputs=["r"], states=7, dt=ts, name="w1")
-    t = np.arange(n + 1) * ts
-    y0, yd0 = float(experiment.y0), float(experiment.yd0)
-    init = pid_init(pid, r[0], y0, xp=np)
-    x0 = [y0, yd0, init.integral, init.derivative, init.previous, 0.0, 0.0]
-    resp = control.input_output_response(sys_, t, np.append(r, r[-1]), x0, t_eval=t)
-    x = resp.states
-    y = x[0, :n]
-    info = trace_metrics(
-        y, x[5, 1:], x[6, 1:], r_final=float(r[-1]), y0=y0, ts=ts, limit=_limit(plant, pid)
-    )
-    return y, info
-
-
-# ---------------------------------------------------------------- peer: scipy
-
-
-def scipy_run(plant, controller, experiment, gains, *, rtol=IVP_RTOL, atol=IVP_ATOL):
-    """One W1 run: at each sample the PID (hw.control_law) computes u_k, then ``solve_ivp``
-    integrates the continuous plant over the hold interval; returns (positions, metrics)."""
-    from scipy.integrate import solve_ivp
-
-    ts = experiment.sample_time
-    pid = dataclasses.replace(
-        controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
-    )
-    m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
-    voltage = _voltage_stages(plant)
-
-    def rhs(t, x, u):
-        return [x[1], (gamma * u - c * x[1]) / m]
-
-    r = np.asarray(experiment.signal, dtype=float)
-    n = r.size
-    y0 = float(experiment.y0)
-    x = np.array([y0, float(experiment.yd0)])
-    state = pid_init(pid, r[0], y0, xp=np)
-    y, unlimited, applied = np.empty(n), np.empty(n), np.empty(n)
-    for k in range(n):
-        y[k] = x[0]
-        command, unlimited[k], state = pid_update(pid, state, r[k], x[0], xp=np)
-        applied[k] = voltage(command)
-        if k + 1 < n:
-            sol = solve_ivp(
-                rhs, (k * ts, (k + 1) * ts), x, args=(applied[k],), rtol=rtol, atol=atol
-            )
-            x = sol.y[:, -1]
-    info = trace_metrics(
-        y, unlimited, applied, r_final=float(r[-1]), y0=y0, ts=ts, limit=_limit(plant, pid)
-    )
-    return y, info
-
-
-# ---------------------------------------------------------------- peer: vectorized numpy
-
-
-def numpy_batch(plant, controller, experiment, gains, *, dtype=np.float64, record: int = 0):
-    """W1 for a batch of gains (rows kp, kd, ki) in numpy: the same recursion on arrays, time
-    loop in Python, in-place updates, metrics streamed (nothing per sample is stored).
-
-    Returns (metrics dict of arrays, positions of the first ``record`` runs, shape (record, n)).
-    The exact ZOH step uses the structure of this plant (Ad[0, 0] = 1, Ad[1, 0] = 0).
-    """
-    if controller.derivative_on != "error" or controller.anti_windup != "none":
-        raise ValueError("the numpy peer implements W1's PID: derivative on error, no anti-windup")
-    ts = experiment.sample_time
-    ad, bd = zoh_matrices(plant, ts)
-    if ad[0, 0] != 1.0 or ad[1, 0] != 0.0:
-        raise ValueError("the numpy peer assumes a plant without a position-dependent force")
-    f = np.dtype(dtype).type
-    a01, a11, b0, b1 = f(ad[0, 1]), f(ad[1, 1]), f(bd[0]), f(bd[1])
-    sat = [float(e.v_sat) for e in plant.effects if type(e).name == "saturation"]
-    v_lim, v_sat = f(controller.v_limit), f(min(sat, default=math.inf))
-    limit = f(_limit(plant, controller))
-    tau, inv = float(controller.tau), 1.0 / (float(controller.tau) + ts)
-    keep, gain = f(tau * inv), f(inv)
-    r = np.asarray(experiment.signal, dtype=float).astype(dtype)
-    n = r.size
-    r_final, y0 = f(r[-1]), f(experiment.y0)
-    inv_amp = f(1.0 / (float(r[-1]) - float(experiment.y0)))
-    band = f(0.02 * abs(float(r[-1]) - float(experiment.y0)))
-
-    b = gains.shape[0]
-    kp, kd, ki = (np.ascontiguousarray(gains[:, i], dtype=dtype) for i in range(3))
-    y = np.full(b, y0, dtype)
-    yd = np.full(b, f(experiment.yd0), dtype)
-    integral = np.zeros(b, dtype)
-    deriv = np.zeros(b, dtype)
-    prev = np.full(b, r[0] - y0, dtype)
-    e, v, u, tmp = (np.empty(b, dtype) for _ in range(4))
-    peak = np.full(b, -np.inf, dtype)
-    peak_v = np.zeros(b, dtype)
-    max_abs = np.zeros(b, dtype)
-    n10, n90, n_sat = (np.zeros(b, np.int32) for _ in range(3))
-    last_out = np.full(b, -1, np.int32)
-    mask = np.empty(b, bool)
-    trace = np.empty((record, n), dtype)
-    for k in range(n):
-        if record:
-            trace[:, k] = y[:record]
-        # The PID (hw.control_law.pid_update, derivative on error) and the two clips.
-        np.subtract(r[k], y, out=e)
-        np.subtract(e, prev, out=tmp)
-        tmp *= gain
-        deriv *= keep
-        deriv += tmp
-        np.multiply(kp, e, out=v)
-        np.multiply(ki, integral, out=tmp)
-        v += tmp
-        np.multiply(kd, deriv, out=tmp)
-        v += tmp
-        np.clip(v, -v_lim, v_lim, out=u)
-        np.clip(u, -v_sat, v_sat, out=u)
-        np.multiply(e, ts, out=tmp)
-        integral += tmp
-        prev, e = e, prev
-        # Streamed metrics of y_k. The running peak makes "first k with z_k >= 0.1" a count.
-        np.subtract(y, y0, out=tmp)
-        tmp *= inv_amp
-        np.maximum(peak, tmp, out=peak)
-        np.less(peak, 0.1, out=mask)
-        n10 += mask
-        np.less(peak, 0.9, out=mask)
-        n90 += mask
-        np.subtract(y, r_final, out=tmp)
-        np.abs(tmp, out=tmp)
-        np.greater(tmp, band, out=mask)
-        np.copyto(last_out, k, where=mask)
-        np.abs(v, out=tmp)
-        np.greater(tmp, limit, out=mask)
-        n_sat += mask
-        np.abs(u, out=tmp)
-        np.maximum(peak_v, tmp, out=peak_v)
-        np.abs(y, out=tmp)
-        np.maximum(max_abs, tmp, out=max_abs)  # NaN propagates: marks the run diverged
-        # Exact ZOH step of the plant (skipped after the last sample).
-        if k + 1 < n:
-            np.multiply(yd, a01, out=tmp)
-            y += tmp
-            np.multiply(u, b0, out=tmp)
-            y += tmp
-            yd *= a11
-            np.multiply(u, b1, out=tmp)
-            yd += tmp
-    bad = ~(max_abs <= 1e3)
-    inf = np.inf
-    settling = np.where(last_out < 0, 0.0, np.where(last_out + 1 >= n, inf, (last_out + 1) * ts))
-    info = {
-        # inf when 90 % is never reached (n90 < n implies n10 <= n90: the peak is monotone)
-        "rise_time": np.where(bad | (n90 >= n), inf, (n90 - n10) * ts),
-        "settling_time": np.where(bad, inf, settling),
-        "overshoot": np.where(bad, inf, np.maximum(0.0, (peak.astype(float) - 1.0) * 100.0)),
-        "steady_state_error": np.where(bad, inf, np.abs(float(r_final) - y.astype(float))),
-        "peak_voltage": peak_v.astype(float),
-        "saturation_time": n_sat * ts,
-        "diverged": bad,
-    }
-    return info, trace
 
 
 # ---------------------------------------------------------------- jaxcart
@@ -463,9 +188,9 @@ def grad_evaluator(plant, controller, experiment, *, chunk: int):
     """f(gains (B, 3)) -> (loss (B,), d loss / d gains (B, 3)) by forward mode (three tangents
     per run, the loss summed inside the loop: nothing stored for a backward pass), in chunks
     of ``chunk`` runs per device through :func:`jaxcart.parallel.sharded_map`."""
+    from jaxcart.accumulators import value_and_jacfwd_rows
     from jaxcart.batch_metrics import COMPILER_OPTIONS
     from jaxcart.parallel import sharded_map
-    from jaxcart.accumulators import value_and_jacfwd_rows
 
     grads = value_and_jacfwd_rows(lambda g, _, p, c, e: smooth_loss(p, c, e, g))
 
@@ -570,23 +295,16 @@ def run_bench(
     jaxcart by more than ``TOLERANCE`` or its metrics by more than one sample.
     """
     say = progress or (lambda message: None)
-    n = {
-        "batch": batch or (16384 if quick else 131072),
-        "slow": slow_runs or (1 if quick else 3),
-        # numpy's per-call overhead amortizes up to ~32k lanes (measured: 4096 runs reach
-        # ~40 % of the float32 rate of 32768; larger batches gain nothing).
-        "numpy": numpy_runs or (8192 if quick else 32768),
-        # The gradient's rate saturates from 16384 runs on 2 devices (measured, sims/s: 8192
-        # 62-68k, 16384 85k, 32768 82k, 65536 89k); 8192 understated it by a quarter.
-        "grad": grad_runs or (1024 if quick else 32768),
-        "grid": grid_points or (16 if quick else 64),
-        "repeats": repeats or (1 if quick else 3),
-    }
-    # float64 runs at about half the float32 rate: a smaller batch keeps its row short.
-    n["batch64"] = max(1, min(n["batch"], 32768))
-    n["check"] = max(check_runs, n["slow"])  # the timed slow runs are checked too
-    if min(n.values()) < 1:
-        raise ValueError(f"bench sizes must be positive: {n}")
+    n = _sizes(
+        quick,
+        batch=batch,
+        slow=slow_runs,
+        numpy=numpy_runs,
+        grad=grad_runs,
+        grid=grid_points,
+        repeats=repeats,
+        check=check_runs,
+    )
     gains = w1_gains(max(n["batch"], n["numpy"], n["check"]))
     result = _header(_horizon)
     load_before = _load()
@@ -604,29 +322,79 @@ def run_bench(
     numpy_row, numpy32 = _numpy_peer(problem, gains, ref, n, checks, say, quick)
     rows.append(numpy_row)
 
+    jax_rows, jax32 = _jaxcart_rows(problem, gains, n, result, _horizon, say)
+    c_row = _c_kernel(problem, gains[: n["batch"]], ref, jax32, n, checks, say)
+    _ceiling_ratios(jax_rows, c_row)
+    rows[:0] = [*jax_rows, c_row]
+    checks.update(_precision_checks(jax32, numpy32, ref, n))
+    result.update(_summary(rows, result, n["batch"], checks))
+    result["load_average"] = {
+        "before": load_before,
+        "after": _load(),
+        "note": "1-minute load of this machine; processes running beside the benchmark "
+        "lower every rate, jaxcart's (all cores) more than the single-threaded peers'",
+    }
+    return result
+
+
+def _sizes(quick: bool, *, batch, slow, numpy, grad, grid, repeats, check) -> dict:
+    """The run's sizes: the given ones, else the defaults (smaller with ``quick``)."""
+    n = {
+        "batch": batch or (16384 if quick else 131072),
+        "slow": slow or (1 if quick else 3),
+        # numpy's per-call overhead amortizes up to ~32k lanes (measured: 4096 runs reach
+        # ~40 % of the float32 rate of 32768; larger batches gain nothing).
+        "numpy": numpy or (8192 if quick else 32768),
+        # The gradient's rate saturates from 16384 runs on 2 devices (measured, sims/s: 8192
+        # 62-68k, 16384 85k, 32768 82k, 65536 89k); 8192 understated it by a quarter.
+        "grad": grad or (1024 if quick else 32768),
+        "grid": grid or (16 if quick else 64),
+        "repeats": repeats or (1 if quick else 3),
+    }
+    # float64 runs at about half the float32 rate: a smaller batch keeps its row short.
+    n["batch64"] = max(1, min(n["batch"], 32768))
+    n["check"] = max(check, n["slow"])  # the timed slow runs are checked too
+    if min(n.values()) < 1:
+        raise ValueError(f"bench sizes must be positive: {n}")
+    return n
+
+
+def _jaxcart_rows(problem, gains, n, result, horizon, say) -> tuple[list, dict]:
+    """jaxcart's float32 and float64 rows; the float32 compile time, grid and gradient go into
+    ``result``. Returns ([float32 row, float64 row], float32 metrics)."""
     with jax.enable_x64(False):  # exactly float32, whatever jax_enable_x64 says
-        problem32 = w1_problem(_horizon)
+        problem32 = w1_problem(horizon)
         jax_row, jax32, compile_s = _jaxcart(problem32, gains[: n["batch"]], n["repeats"], say)
         result["compile_s"] = compile_s
         result["grid"] = _grid(problem32, n["grid"], n["repeats"], say)
         result["grad"] = _grad(problem32, n["grad"], n["repeats"], say)
     jax64_row = _jaxcart64(problem, gains[: n["batch64"]], n["repeats"], say)
-    c_row = _c_kernel(problem, gains[: n["batch"]], ref, jax32, n, checks, say)
-    _ceiling_ratios((jax_row, jax64_row), c_row)
-    rows[:0] = [jax_row, jax64_row, c_row]
+    return [jax_row, jax64_row], jax32
+
+
+def _precision_checks(jax32, numpy32, ref, n) -> dict:
+    """The float32 rows against the float64 reference and against each other (reported, not
+    enforced: float32 rounding may move a crossing by a sample)."""
     check = n["check"]
-    checks["jaxcart-float32-vs-float64"] = {
-        "runs": check,
-        "max_metric_diff": _max_diff(_head(jax32, check), ref["metrics"]),
-    }
     m = min(n["numpy"], n["batch"])
-    checks["numpy-float32-vs-jaxcart-float32"] = {
-        "runs": m,
-        "max_metric_diff": _max_diff(_head(numpy32, m), _head(jax32, m)),
-        "note": "float32 rounding; times are counts of samples, so a crossing near a "
-        "threshold may move by a sample or more",
+    return {
+        "jaxcart-float32-vs-float64": {
+            "runs": check,
+            "max_metric_diff": _max_diff(_head(jax32, check), ref["metrics"]),
+        },
+        "numpy-float32-vs-jaxcart-float32": {
+            "runs": m,
+            "max_metric_diff": _max_diff(_head(numpy32, m), _head(jax32, m)),
+            "note": "float32 rounding; times are counts of samples, so a crossing near a "
+            "threshold may move by a sample or more",
+        },
     }
 
+
+def _summary(rows, result, batch, checks) -> dict:
+    """rows (each with its ``jaxcart_ratio``), the ratios, the gradient's rate over the
+    forward rate, the checks and the targets met."""
+    jax_row, jax64_row, c_row = rows[:3]
     jax_rate = jax_row["sims_per_s"]
     for row in rows:
         if "sims_per_s" in row:
@@ -639,35 +407,29 @@ def run_bench(
         "sims_per_s": grad["sims_per_s"] / jax_rate,
         "sims_per_cpu_s": grad["sims_per_cpu_s"] / jax_row["sims_per_cpu_s"],
     }
-    result.update(
-        rows=rows,
-        ratios=ratios,
-        batch=n["batch"],
-        grad_sims_per_s=grad["sims_per_s"],
-        grad_ratio=grad_ratio,
-        grid_sims_per_s=result["grid"]["sims_per_s"],
-        checks=checks,
-        max_peer_position_diff_m=max(checks[p]["max_position_diff_m"] for p in PEERS),
-        targets={
+    no_c = "skipped" in c_row
+    return {
+        "rows": rows,
+        "ratios": ratios,
+        "batch": batch,
+        "grad_sims_per_s": grad["sims_per_s"],
+        "grad_ratio": grad_ratio,
+        "grid_sims_per_s": result["grid"]["sims_per_s"],
+        "checks": checks,
+        "max_peer_position_diff_m": max(checks[p]["max_position_diff_m"] for p in PEERS),
+        "targets": {
             "jaxcart_sims_per_s >= 100000": jax_rate >= 1e5,
             "ratio numpy-vectorized >= 30": ratios["numpy-vectorized"] >= 30,
             "ratio python-control >= 30000": ratios["python-control"] >= 3e4,
             "jaxcart >= 50 % of c-kernel per CPU-second": (
-                None if "skipped" in c_row else jax_row["ceiling_ratio"] >= 0.5
+                None if no_c else jax_row["ceiling_ratio"] >= 0.5
             ),
             "jaxcart-float64 >= 50 % of c-kernel per CPU-second": (
-                None if "skipped" in c_row else jax64_row["ceiling_ratio"] >= 0.5
+                None if no_c else jax64_row["ceiling_ratio"] >= 0.5
             ),
             "grad >= 1/4 of jaxcart sims/s": grad_ratio["sims_per_s"] >= 0.25,
         },
-        load_average={
-            "before": load_before,
-            "after": _load(),
-            "note": "1-minute load of this machine; processes running beside the benchmark "
-            "lower every rate, jaxcart's (all cores) more than the single-threaded peers'",
-        },
-    )
-    return result
+    }
 
 
 def _header(horizon: float) -> dict:
@@ -720,7 +482,7 @@ def _reference(problem, gains) -> dict:
                 r_final=STEP,
                 y0=0.0,
                 ts=SAMPLE_TIME,
-                limit=_limit(plant, controller),
+                limit=float(voltage_limit(plant, controller)),
             )
             for y in positions
         ]

@@ -39,6 +39,7 @@ from jaxcart.chunked_sim import duration_text
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth_sim import EXACT_FORMS
 from tuning.design import gridrun
+from tuning.design.gridrun import feasible_mask
 
 #: Metric names with their units, in the order they are reported.
 METRICS = {
@@ -309,21 +310,8 @@ def _evaluate(
     say,
 ):
     """Metrics of the points whose gains ``rows(start, stop)`` gives, block by block."""
-    if experiment.kind != "closed_loop":
-        raise UserError(f"a gain grid needs a closed-loop step experiment, not {experiment.kind}")
-    plants = list(plant) if isinstance(plant, list | tuple) else [plant]
-    if not plants:
-        raise UserError("the plant set is empty; give at least one plant")
-    if any(e.stage == "force" for e in plants[0].effects) and smoothing == EXACT_FORMS:
-        raise UserError(
-            "the exact (hard) forms are for saturation only; with friction in the plant pass a "
-            "smoothing (jaxcart.Smoothing) to the grid"
-        )
-    dtype = np.dtype(dtype)
-    if dtype not in (np.float32, np.float64):
-        raise UserError(f"dtype {dtype}: use float32 or float64")
+    plants, dtype = _checked_problem(plant, experiment, smoothing, dtype)
     n = int(np.prod(shape))
-    chunk = int(chunk or default_chunk())
     # Same block size on every call (the last one padded) so the evaluator compiles once.
     block = int(min(n, block))
     keep_full = n <= gridrun.FULL_LIMIT if keep_full is None else bool(keep_full)
@@ -339,12 +327,79 @@ def _evaluate(
         block,
         axes if axes is not None else gains,
     )
+    store = _store(checkpoint, keep_full, key)
+    compute = _block_metrics(
+        where,
+        controller,
+        experiment,
+        rows,
+        n,
+        block,
+        smoothing,
+        int(chunk or default_chunk()),
+        dtype,
+    )
+    start_time = time.perf_counter()
+    # Exactly the requested precision whatever jax_enable_x64 says globally: float64 needs it
+    # on (the command line runs with it off); float32 must not pick up the default float64.
+    with jax.enable_x64(dtype == np.float64):
+        first, computed = gridrun.fill(store, n, block, compute, progress=progress, say=say)
+        if not first:
+            return None  # another process of a distributed run: process 0 reports
+    elapsed = time.perf_counter() - start_time
+    reducer = gridrun.Reducer(
+        n, dtype, *spec, keep_full=keep_full, nki=shape[2] if axes is not None else None
+    )
+    for start, flat in gridrun.blocks(store, n, block):
+        reducer.add(start, flat)
+    if reducer.full is not None and store.dir is None:
+        store.remove()  # the full arrays hold it all: no second copy in memory
+    return _result(
+        reducer,
+        shape,
+        axes=axes,
+        gains=gains,
+        spec=spec,
+        dtype=dtype,
+        elapsed=elapsed,
+        n_plants=len(plants),
+        store=store,
+        block=block,
+        computed=computed,
+    )
+
+
+def _checked_problem(plant, experiment, smoothing, dtype) -> tuple[list, np.dtype]:
+    """(the plants as a list, dtype as a numpy dtype), or a UserError saying what to change."""
+    if experiment.kind != "closed_loop":
+        raise UserError(f"a gain grid needs a closed-loop step experiment, not {experiment.kind}")
+    plants = list(plant) if isinstance(plant, list | tuple) else [plant]
+    if not plants:
+        raise UserError("the plant set is empty; give at least one plant")
+    if any(e.stage == "force" for e in plants[0].effects) and smoothing == EXACT_FORMS:
+        raise UserError(
+            "the exact (hard) forms are for saturation only; with friction in the plant pass a "
+            "smoothing (jaxcart.Smoothing) to the grid"
+        )
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float32, np.float64):
+        raise UserError(f"dtype {dtype}: use float32 or float64")
+    return plants, dtype
+
+
+def _store(checkpoint, keep_full: bool, key: str) -> gridrun.BlockStore:
+    """Block files in ``checkpoint``, else memory when the full arrays are kept anyway, else a
+    temporary folder."""
     if checkpoint is not None:
-        store = gridrun.BlockStore(checkpoint, key)
-    elif keep_full:
-        store = gridrun.BlockStore(None, key)
-    else:
-        store = gridrun.temporary_store(key)
+        return gridrun.BlockStore(checkpoint, key)
+    if keep_full:
+        return gridrun.BlockStore(None, key)
+    return gridrun.temporary_store(key)
+
+
+def _block_metrics(where, controller, experiment, rows, n, block, smoothing, chunk, dtype):
+    """compute(i) -> {name: array} of block i's points (the last block padded to ``block``
+    points for the evaluation, then cut back)."""
 
     def compute(i):
         start, stop = i * block, min(n, (i + 1) * block)
@@ -359,25 +414,15 @@ def _evaluate(
         flat["rise_time"][np.isnan(flat["rise_time"])] = np.inf
         return flat
 
-    start_time = time.perf_counter()
-    # Exactly the requested precision whatever jax_enable_x64 says globally: float64 needs it
-    # on (the command line runs with it off); float32 must not pick up the default float64.
-    with jax.enable_x64(dtype == np.float64):
-        first, computed = gridrun.fill(store, n, block, compute, progress=progress, say=say)
-        if not first:
-            return None  # another process of a distributed run: process 0 reports
-    elapsed = time.perf_counter() - start_time
-    reducer = gridrun.Reducer(
-        n, dtype, *spec, keep_full=keep_full, nki=shape[2] if axes is not None else None
-    )
-    for start, flat in gridrun.blocks(store, n, block):
-        reducer.add(start, flat)
+    return compute
+
+
+def _result(reducer, shape, *, axes, gains, spec, dtype, elapsed, n_plants, store, block, computed):
+    """The :class:`GridResult` of the reduced blocks."""
     best, best_feasible, best_values = reducer.best()
     full = reducer.full
-    if full is not None and store.dir is None:
-        store.remove()  # the full arrays hold it all: no second copy in memory
     lo, hi = reducer.finite
-    result = GridResult(
+    return GridResult(
         info=None
         if full is None
         else StepInfo(*(full[k].reshape(shape) for k in StepInfo._fields)),
@@ -395,43 +440,11 @@ def _evaluate(
         best=StepInfo(**{k: best_values[k] for k in StepInfo._fields}),
         ki_feasible=reducer.ki_feasible if axes is not None else None,
         settling_range=(lo, hi) if lo <= hi else (float("nan"), float("nan")),
-        n_plants=len(plants),
+        n_plants=n_plants,
         store=store,
         block=block,
         n_computed=computed,
     )
-    return result
-
-
-def feasible_mask(flat, settling_spec, overshoot_spec) -> np.ndarray:
-    """True where a point meets the specification (settles in time, small overshoot, not
-    diverged): :meth:`jaxcart.StepInfo.meets` on arrays."""
-    ts, os_, bad = flat["settling_time"], flat["overshoot"], flat["diverged"]
-    return ~bad & (ts < settling_spec) & (os_ < overshoot_spec)
-
-
-def best_of(flat, feasible, settling_spec, overshoot_spec) -> tuple[int, bool]:
-    """Flat index of the best point and whether it is feasible.
-
-    Feasible: smallest settling time, ties (times are whole samples) broken by overshoot.
-    None feasible: smallest relative violation max(0, ts/spec - 1) + max(0, os/spec - 1), ties
-    (e.g. all never settle) broken by steady-state error, then overshoot; diverged runs last.
-    Remaining ties go to the lowest index, so the best of blocks' bests is the best of all.
-    """
-    ts, os_ = flat["settling_time"], flat["overshoot"]
-    if feasible.any():
-        candidates = np.flatnonzero(feasible & (ts == ts[feasible].min()))
-        return int(candidates[np.argmin(os_[candidates])]), True
-    with np.errstate(invalid="ignore"):
-        violation = np.maximum(0, ts / settling_spec - 1) + np.maximum(0, os_ / overshoot_spec - 1)
-    violation = np.where(np.isnan(violation), np.inf, violation)
-    pool = ~flat["diverged"] if not flat["diverged"].all() else np.ones_like(feasible)
-    candidates = np.flatnonzero(pool & (violation == violation[pool].min()))
-    order = np.lexsort((os_[candidates], flat["steady_state_error"][candidates]))
-    return int(candidates[order[0]]), False
-
-
-_best = best_of  # the earlier name
 
 
 # ---------------------------------------------------------------- exact re-check
@@ -650,111 +663,135 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
     gains (no axes) is drawn as a kp-kd scatter instead. Saved as PNG to ``path`` when given
     (refuses to overwrite unless ``force``).
     """
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch, Rectangle
-
-    if result.axes is None:
-        fig = _plot_list(result)
-    else:
-        kp, kd, ki = result.axes
-        per_slice = result.ki_feasible
-        # Spread the slices over the ki range that has feasible points (all of it if none).
-        span = int(np.flatnonzero(per_slice).max()) + 1 if per_slice.any() else ki.size
-        slices = _slices(span, result.best_index[2], n_slices)
-        ncols = min(len(slices), 2 if len(slices) == 4 else 3)
-        nrows = -(-len(slices) // ncols)
-        fig, axs = plt.subplots(
-            nrows,
-            ncols,
-            figsize=(4.6 * ncols + 1.2, 3.9 * nrows),
-            squeeze=False,
-            sharex=True,
-            sharey=True,
-            layout="constrained",
-        )
-        settling, ok = result.slices(slices)
-        shown = ok if result.best_feasible else np.isfinite(settling)
-        values = np.where(shown, settling, np.nan)
-        if result.best_feasible:
-            lo, hi = result.best_info.settling_time, result.settling_spec
-        elif np.isfinite(result.settling_range[0]):
-            lo, hi = result.settling_range
-        else:
-            lo, hi = 0.0, 1.0
-        mesh = None
-        for col, (ax, k) in enumerate(zip(axs.flat, slices, strict=False)):
-            ax.add_patch(
-                Rectangle(
-                    (0, 0),
-                    1,
-                    1,
-                    transform=ax.transAxes,
-                    facecolor="0.92",
-                    edgecolor="0.6",
-                    hatch="///",
-                    linewidth=0,
-                    zorder=0,
-                )
-            )
-            z = np.ma.masked_invalid(values[:, :, col].T)
-            mesh = ax.pcolormesh(
-                _edges(kp),
-                _edges(kd),
-                z,
-                cmap="viridis",
-                vmin=lo,
-                vmax=max(hi, lo + 1e-3),
-                zorder=1,
-            )
-            if k == result.best_index[2]:
-                b = result.best_gains
-                ax.plot(
-                    b[0],
-                    b[1],
-                    marker="*",
-                    markersize=16,
-                    color="red",
-                    markeredgecolor="white",
-                    linestyle="none",
-                    zorder=3,
-                )
-            mark = ", best" if k == result.best_index[2] else ""
-            ax.set_title(
-                f"$k_i$ = {ki[k]:.4g} V/(m s) (slice {k + 1} of {ki.size}{mark}): "
-                f"{per_slice[k]} feasible",
-                fontsize="medium",
-            )
-        for ax in axs.flat[len(slices) :]:
-            ax.set_visible(False)
-        for ax in axs[-1]:
-            ax.set_xlabel("$k_p$ [V/m]")
-        for ax in axs[:, 0]:
-            ax.set_ylabel("$k_d$ [V s/m]")
-        what = "feasible points" if result.best_feasible else "all points (none feasible)"
-        fig.colorbar(mesh, ax=axs, label=f"settling time [s], {what}")
-        handles = [
-            Patch(
-                facecolor="0.92",
-                edgecolor="0.6",
-                hatch="///",
-                label=_infeasible(result) if result.best_feasible else "does not settle in time",
-            ),
-            plt.Line2D(
-                [],
-                [],
-                marker="*",
-                markersize=12,
-                color="red",
-                linestyle="none",
-                label="best" if result.best_feasible else "closest to the spec",
-            ),
-        ]
-        fig.legend(handles=handles, loc="outside lower center", ncols=2, frameon=False)
-        fig.suptitle(_title(result) + "\n" + slice_note(result, slices))
+    fig = _plot_list(result) if result.axes is None else _plot_grid(result, n_slices)
     if path is not None:
         with _open(path, force) as f:
             fig.savefig(f, format="png", dpi=110)
     return fig
+
+
+def _plot_grid(result: GridResult, n_slices: int):
+    """The heat maps of :func:`plot_slices` for a grid."""
+    import matplotlib.pyplot as plt
+
+    ki = result.axes[2]
+    per_slice = result.ki_feasible
+    # Spread the slices over the ki range that has feasible points (all of it if none).
+    span = int(np.flatnonzero(per_slice).max()) + 1 if per_slice.any() else ki.size
+    slices = _slices(span, result.best_index[2], n_slices)
+    ncols = min(len(slices), 2 if len(slices) == 4 else 3)
+    nrows = -(-len(slices) // ncols)
+    fig, axs = plt.subplots(
+        nrows,
+        ncols,
+        figsize=(4.6 * ncols + 1.2, 3.9 * nrows),
+        squeeze=False,
+        sharex=True,
+        sharey=True,
+        layout="constrained",
+    )
+    settling, ok = result.slices(slices)
+    shown = ok if result.best_feasible else np.isfinite(settling)
+    values = np.where(shown, settling, np.nan)
+    limits = _colour_limits(result)
+    mesh = None
+    for col, (ax, k) in enumerate(zip(axs.flat, slices, strict=False)):
+        mesh = _draw_slice(ax, result, k, values[:, :, col], limits)
+    for ax in axs.flat[len(slices) :]:
+        ax.set_visible(False)
+    for ax in axs[-1]:
+        ax.set_xlabel("$k_p$ [V/m]")
+    for ax in axs[:, 0]:
+        ax.set_ylabel("$k_d$ [V s/m]")
+    what = "feasible points" if result.best_feasible else "all points (none feasible)"
+    fig.colorbar(mesh, ax=axs, label=f"settling time [s], {what}")
+    fig.legend(handles=_grid_legend(result), loc="outside lower center", ncols=2, frameon=False)
+    fig.suptitle(_title(result) + "\n" + slice_note(result, slices))
+    return fig
+
+
+def _colour_limits(result: GridResult) -> tuple[float, float]:
+    """(low, high) settling time [s] of the colour scale: from the best to the bound, or the
+    range of the settling times when none is feasible."""
+    if result.best_feasible:
+        return result.best_info.settling_time, result.settling_spec
+    if np.isfinite(result.settling_range[0]):
+        return result.settling_range
+    return 0.0, 1.0
+
+
+def _draw_slice(ax, result: GridResult, k: int, values, limits):
+    """One k_i slice ``k``: the hatched infeasible background, the settling times ``values``
+    (kp x kd, nan where not shown) and the best point's star; returns the mesh."""
+    from matplotlib.patches import Rectangle
+
+    kp, kd, ki = result.axes
+    lo, hi = limits
+    ax.add_patch(
+        Rectangle(
+            (0, 0),
+            1,
+            1,
+            transform=ax.transAxes,
+            facecolor="0.92",
+            edgecolor="0.6",
+            hatch="///",
+            linewidth=0,
+            zorder=0,
+        )
+    )
+    mesh = ax.pcolormesh(
+        _edges(kp),
+        _edges(kd),
+        np.ma.masked_invalid(values.T),
+        cmap="viridis",
+        vmin=lo,
+        vmax=max(hi, lo + 1e-3),
+        zorder=1,
+    )
+    best = k == result.best_index[2]
+    if best:
+        b = result.best_gains
+        ax.plot(
+            b[0],
+            b[1],
+            marker="*",
+            markersize=16,
+            color="red",
+            markeredgecolor="white",
+            linestyle="none",
+            zorder=3,
+        )
+    ax.set_title(
+        f"$k_i$ = {ki[k]:.4g} V/(m s) (slice {k + 1} of {ki.size}{', best' if best else ''}): "
+        f"{result.ki_feasible[k]} feasible",
+        fontsize="medium",
+    )
+    return mesh
+
+
+def _grid_legend(result: GridResult) -> list:
+    """The legend's handles: the hatched infeasible region and the best point's star."""
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    return [
+        Patch(
+            facecolor="0.92",
+            edgecolor="0.6",
+            hatch="///",
+            label=_infeasible(result) if result.best_feasible else "does not settle in time",
+        ),
+        plt.Line2D(
+            [],
+            [],
+            marker="*",
+            markersize=12,
+            color="red",
+            linestyle="none",
+            label="best" if result.best_feasible else "closest to the spec",
+        ),
+    ]
 
 
 def slice_note(result: GridResult, slices) -> str:

@@ -184,8 +184,36 @@ def blocks(store: BlockStore, n: int, block: int, names=None):
         yield i * block, store.load(i, names)
 
 
+def feasible_mask(flat, settling_spec, overshoot_spec) -> np.ndarray:
+    """True where a point meets the specification (settles in time, small overshoot, not
+    diverged): :meth:`jaxcart.StepInfo.meets` on arrays."""
+    ts, os_, bad = flat["settling_time"], flat["overshoot"], flat["diverged"]
+    return ~bad & (ts < settling_spec) & (os_ < overshoot_spec)
+
+
+def best_of(flat, feasible, settling_spec, overshoot_spec) -> tuple[int, bool]:
+    """Flat index of the best point and whether it is feasible.
+
+    Feasible: smallest settling time, ties (times are whole samples) broken by overshoot.
+    None feasible: smallest relative violation max(0, ts/spec - 1) + max(0, os/spec - 1), ties
+    (e.g. all never settle) broken by steady-state error, then overshoot; diverged runs last.
+    Remaining ties go to the lowest index, so the best of blocks' bests is the best of all.
+    """
+    ts, os_ = flat["settling_time"], flat["overshoot"]
+    if feasible.any():
+        candidates = np.flatnonzero(feasible & (ts == ts[feasible].min()))
+        return int(candidates[np.argmin(os_[candidates])]), True
+    with np.errstate(invalid="ignore"):
+        violation = np.maximum(0, ts / settling_spec - 1) + np.maximum(0, os_ / overshoot_spec - 1)
+    violation = np.where(np.isnan(violation), np.inf, violation)
+    pool = ~flat["diverged"] if not flat["diverged"].all() else np.ones_like(feasible)
+    candidates = np.flatnonzero(pool & (violation == violation[pool].min()))
+    order = np.lexsort((os_[candidates], flat["steady_state_error"][candidates]))
+    return int(candidates[order[0]]), False
+
+
 class Reducer:
-    """Streaming summaries of blocks given in flat order (see :func:`tuning.design.grid.best_of`).
+    """Streaming summaries of blocks given in flat order (see :func:`best_of`).
 
     keep_full: also keep every metric array (n points); nki: the k_i axis length of a grid
     (feasible points counted per k_i slice), None for a list.
@@ -205,8 +233,6 @@ class Reducer:
             self.full["feasible"] = np.empty(n, bool)
 
     def add(self, start: int, flat: dict) -> None:
-        from tuning.design.grid import best_of, feasible_mask
-
         ok = feasible_mask(flat, *self.spec)
         index, is_feasible = best_of(flat, ok, *self.spec)
         self.winners.append(
@@ -231,8 +257,6 @@ class Reducer:
 
     def best(self) -> tuple[int, bool, dict]:
         """(flat index, feasible, {name: value}) of the best point of every block added."""
-        from tuning.design.grid import best_of
-
         feasible = np.array([w[1] for w in self.winners])
         pool = [w for w in self.winners if w[1]] if feasible.any() else self.winners
         flat = {k: np.concatenate([w[2][k] for w in pool]) for k in pool[0][2]}
