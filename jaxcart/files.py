@@ -46,9 +46,12 @@ from hw.expfile import (  # noqa: F401  (the format's names, re-exported for jax
     ExpFileError,
     experiment_paths,
 )
+from jaxcart import matfile, plausibility
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
-from jaxcart.params import Plant, handout_plant, tap_plant
+from jaxcart.params import Plant
+from jaxcart.plantspec import build_plant, check_plant_overrides
+from jaxcart.smooth_sim import Response
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,8 +106,6 @@ class Recording:
         """The recording as a :class:`jaxcart.Response` (numpy arrays), for step_info and plots:
         velocity by central differences [m/s]; reference r (or y0 when there is none); command
         and voltage both the recorded v (zeros without a column v)."""
-        from jaxcart.smooth_sim import Response
-
         y = self.position
         r = self.reference if self.reference is not None else np.full(y.shape, y[0])
         v = self.command if self.command is not None else np.zeros(y.shape)
@@ -127,7 +128,7 @@ class Recording:
         motor-unplugged :func:`jaxcart.tap_plant` for a tap) with [plant] applied."""
         if base is None:
             base = default_base(self.kind, self.meta)
-        return plant_from_overrides(self.plant_overrides, base, where=f"{self.path} [plant]")
+        return build_plant(self.plant_overrides, base=base, where=f"{self.path} [plant]")
 
     def experiment_for(self, horizon: float) -> Experiment:
         """The experiment over ``horizon`` [s] instead of the recording's length: step and ramp
@@ -185,9 +186,7 @@ def read_experiment(path, *, check: bool = True) -> Recording:
         raise UserError(str(exc)) from None
     mat_layout = {}
     if mats:  # the layout each signal came in, from the variables already loaded
-        from jaxcart.matfile import layouts
-
-        mat_layout = layouts(data.meta.get("data"), mats.get)  # the files are not kept
+        mat_layout = matfile.layouts(data.meta.get("data"), mats.get)  # the files are not kept
     overrides = check_plant_overrides(data.plant, f"{data.path} [plant]")
     experiment = Experiment(
         jnp.asarray(data.signal),
@@ -213,8 +212,6 @@ def read_experiment(path, *, check: bool = True) -> Recording:
     )
     if not check:
         return rec
-    from jaxcart import plausibility
-
     warnings = tuple(plausibility.check_recording(rec))
     for message in warnings:
         plausibility.warn(message)
@@ -313,42 +310,10 @@ def _one_line(exc) -> str:
 # ---------------------------------------------------------------- plants
 
 
-def plant_parameter_names() -> tuple[str, ...]:
-    """Names allowed in [plant]: the plant's own parameters and every effect's parameters."""
-    from jaxcart.plantspec import parameter_names
-
-    return parameter_names()
-
-
-def check_plant_overrides(overrides, where: str = "plant overrides") -> dict:
-    """Validated {name: value} of plant overrides (SI units; names and ranges from the plant
-    spec, :mod:`jaxcart.plantspec`); ``where`` names the source in errors."""
-    from jaxcart.plantspec import build_plant, plant_values
-
-    overrides = dict(overrides)
-    build_plant(overrides, where=where)  # raises a one-line UserError for a bad name or value
-    return {k: plant_values(build_plant({k: v}), all_own=True)[k] for k, v in overrides.items()}
-
-
 def default_base(kind: str, meta: dict | None = None) -> Plant:
     """The nominal plant of an experiment kind: the handout's, or the unplugged motor of a tap."""
-    if kind == "tap" and not (meta or {}).get("tap", {}).get("motor_connected", False):
-        return tap_plant()
-    return handout_plant()
-
-
-def plant_from_overrides(overrides, base: Plant | None = None, *, where="plant overrides"):
-    """``base`` (default: the handout's nominal plant) with named parameters set, through the
-    plant spec (:func:`jaxcart.plantspec.build_plant`): a name of an effect's parameter adds
-    that effect (``f_c`` adds Coulomb friction, ``v_sat`` an amplifier limit)."""
-    from jaxcart.plantspec import with_values
-
-    base = handout_plant() if base is None else base
-    values = check_plant_overrides(overrides, where)
-    try:
-        return with_values(base, values, where=where)
-    except (ValueError, TypeError, KeyError) as exc:
-        raise UserError(f"{where}: {_one_line(exc)}") from None
+    unplugged = kind == "tap" and not (meta or {}).get("tap", {}).get("motor_connected", False)
+    return build_plant(motor_connected=not unplugged, where=f"a {kind} experiment's plant")
 
 
 # ---------------------------------------------------------------- writing

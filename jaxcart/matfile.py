@@ -29,6 +29,7 @@ import numpy as np
 
 from hw import expfile as _expfile
 from jaxcart.errors import UserError
+from jaxcart.plantspec import check_plant_overrides
 
 LAYOUTS = ("structure-with-time", "structure", "array", "vector")
 DEFAULT_LAYOUT = "structure-with-time"
@@ -274,8 +275,6 @@ def _write(
 ):
     """Check everything, then write the .mat and the TOML (never over a file unless force)."""
     import scipy.io
-
-    from jaxcart.files import check_plant_overrides
 
     toml_path, mat_path = mat_paths(path)
     try:

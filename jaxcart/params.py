@@ -8,7 +8,9 @@
 This is the nominal model, the handout's equation (0.1): no amplifier limit, no friction. The
 lab's 6 V limit is the Simulink saturation block, i.e. the controller's ``v_limit``. Effects
 beyond the linear model (saturation, friction, delay, ...) are pieces in ``Plant.effects`` that
-a file, an option or a fit adds; see :mod:`jaxcart.effects` and :func:`jaxcart.build_plant`.
+a file, an option or a fit adds; see :mod:`jaxcart.effects` and :func:`jaxcart.build_plant`
+(the one plant builder; :func:`jaxcart.handout_plant` and :func:`jaxcart.tap_plant` call it).
+The appendix's numbers are :mod:`hw.handout`'s, the one copy.
 
 >>> p = Plant()
 >>> round(float(p.m), 4), round(float(p.B_emf), 4), round(float(p.gamma), 4)
@@ -21,14 +23,13 @@ import dataclasses
 from dataclasses import dataclass, field, fields
 
 import jax
+import jax.numpy as jnp
 
+from hw.handout import APPENDIX
+from hw.handout import ENCODER_RESOLUTION as ENCODER_RESOLUTION
+from hw.handout import TRACK_LENGTH as TRACK_LENGTH
+from hw.handout import TRAVEL as TRAVEL
 from jaxcart.effects import REGISTRY, STAGE_ORDER
-
-#: Encoder resolution of the IP02 [m/count] (the handout's appendix).
-ENCODER_RESOLUTION = 2.275e-5
-#: Length of the track [m] and usable travel of the cart [m].
-TRACK_LENGTH = 0.990
-TRAVEL = 0.814
 
 
 @jax.tree_util.register_dataclass
@@ -50,17 +51,17 @@ class Plant:
     motor_connected: False for the tap test (no back-EMF, no drive) (static)
     """
 
-    M: float = 0.94
-    B_eq: float = 5.4
-    Rm: float = 2.6
-    Kt: float = 0.00767
-    Km: float = 0.00767
-    Jm: float = 3.9e-7
-    Kg: float = 3.71
-    r_mp: float = 6.35e-3
-    eta_g: float = 1.0
-    eta_m: float = 1.0
-    gamma_scale: float = 1.0
+    M: float = APPENDIX["M"]
+    B_eq: float = APPENDIX["B_eq"]
+    Rm: float = APPENDIX["Rm"]
+    Kt: float = APPENDIX["Kt"]
+    Km: float = APPENDIX["Km"]
+    Jm: float = APPENDIX["Jm"]
+    Kg: float = APPENDIX["Kg"]
+    r_mp: float = APPENDIX["r_mp"]
+    eta_g: float = APPENDIX["eta_g"]
+    eta_m: float = APPENDIX["eta_m"]
+    gamma_scale: float = APPENDIX["gamma_scale"]
     effects: tuple = ()
     motor_connected: bool = field(default=True, metadata={"static": True})
 
@@ -158,9 +159,8 @@ _OWN = frozenset(f.name for f in fields(Plant) if f.name not in ("effects", "mot
 def voltage_limit(plant: Plant, controller=None):
     """The effective voltage limit [V]: the smaller of the controller's software ``v_limit``
     and the amplifier's ``v_sat`` (inf when neither limits). Traced values pass through."""
-    import jax.numpy as jnp
-
-    limits = [e.v_sat for e in plant.effects if type(e).name == "saturation"]
+    # The amplifier's limit is the effect that declares the parameter v_sat.
+    limits = [e.v_sat for e in plant.effects if "v_sat" in e.param_names()]
     if controller is not None:
         limits.append(controller.v_limit)
     if not limits:
@@ -171,21 +171,3 @@ def voltage_limit(plant: Plant, controller=None):
     for x in limits[1:]:
         out = jnp.minimum(out, x)
     return out
-
-
-def handout_plant(**values) -> Plant:
-    """The handout's nominal model (appendix values, B_eq = 5.4 kg/s, no effects), with named
-    parameters set; naming an effect's parameter adds the effect (``f_c=0.3`` adds Coulomb
-    friction, ``v_sat=6.0`` an amplifier limit). See :func:`jaxcart.build_plant`."""
-    from jaxcart.plantspec import build_plant
-
-    return build_plant(values, where="handout_plant()")
-
-
-def tap_plant(**values) -> Plant:
-    """The tap test: motor unplugged (B_emf = 0, no drive), with named parameters set."""
-    from jaxcart.plantspec import build_plant
-
-    effects = values.pop("effects", ())
-    plant = build_plant(values, motor_connected=False, where="tap_plant()")
-    return dataclasses.replace(plant, effects=tuple(plant.effects) + tuple(effects))

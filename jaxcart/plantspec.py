@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcart.effects import REGISTRY, STAGE_ORDER, Param, effect_of_param
+from hw.handout import APPENDIX
+from jaxcart.effects import REGISTRY, STAGE_ORDER, Effect, Param, effect_of_param
 from jaxcart.errors import UserError
 from jaxcart.params import Plant
 
@@ -45,17 +46,25 @@ VERSION = 1
 
 #: The plant's own parameters (the handout's appendix and the corrections M, gamma_scale).
 PLANT_PARAMS = (
-    Param("M", "kg", 1e-3, 100.0, 0.94, None, "cart plus added mass Mc + Mw"),
-    Param("B_eq", "kg/s", 0.0, 200.0, 5.4, None, "equivalent viscous friction"),
-    Param("gamma_scale", "", 0.01, 100.0, 1.0, None, "multiplier on the input gain gamma"),
-    Param("Rm", "ohm", 1e-3, 1e3, 2.6, None, "armature resistance"),
-    Param("Kt", "N m/A", 0.0, 10.0, 0.00767, None, "motor torque constant"),
-    Param("Km", "V s/rad", 0.0, 10.0, 0.00767, None, "back-EMF constant"),
-    Param("Jm", "kg m^2", 0.0, 1.0, 3.9e-7, None, "rotor moment of inertia"),
-    Param("Kg", "", 1e-3, 1e3, 3.71, None, "gearbox ratio"),
-    Param("r_mp", "m", 1e-5, 1.0, 6.35e-3, None, "motor pinion radius"),
-    Param("eta_g", "", 1e-3, 1.0, 1.0, None, "gearbox efficiency"),
-    Param("eta_m", "", 1e-3, 1.0, 1.0, None, "motor efficiency"),
+    Param("M", "kg", 1e-3, 100.0, APPENDIX["M"], None, "cart plus added mass Mc + Mw"),
+    Param("B_eq", "kg/s", 0.0, 200.0, APPENDIX["B_eq"], None, "equivalent viscous friction"),
+    Param(
+        "gamma_scale",
+        "",
+        0.01,
+        100.0,
+        APPENDIX["gamma_scale"],
+        None,
+        "multiplier on the input gain gamma",
+    ),
+    Param("Rm", "ohm", 1e-3, 1e3, APPENDIX["Rm"], None, "armature resistance"),
+    Param("Kt", "N m/A", 0.0, 10.0, APPENDIX["Kt"], None, "motor torque constant"),
+    Param("Km", "V s/rad", 0.0, 10.0, APPENDIX["Km"], None, "back-EMF constant"),
+    Param("Jm", "kg m^2", 0.0, 1.0, APPENDIX["Jm"], None, "rotor moment of inertia"),
+    Param("Kg", "", 1e-3, 1e3, APPENDIX["Kg"], None, "gearbox ratio"),
+    Param("r_mp", "m", 1e-5, 1.0, APPENDIX["r_mp"], None, "motor pinion radius"),
+    Param("eta_g", "", 1e-3, 1.0, APPENDIX["eta_g"], None, "gearbox efficiency"),
+    Param("eta_m", "", 1e-3, 1.0, APPENDIX["eta_m"], None, "motor efficiency"),
 )
 _OWN = {p.name: p for p in PLANT_PARAMS}
 _NOMINAL = Plant()
@@ -118,33 +127,68 @@ def _check(decl: Param, value, where: str) -> None:
 def build_plant(
     values: Mapping | None = None,
     *,
-    motor_connected: bool = True,
-    effects: Mapping | None = None,
+    base: Plant | None = None,
+    effects=None,
+    motor_connected: bool | None = None,
     where: str = "plant",
+    check: bool = True,
 ) -> Plant:
-    """The handout's nominal plant with named parameters set; the one plant builder.
+    """``base`` (None: the handout's nominal plant) with named parameters set; the one plant
+    builder (:func:`handout_plant`, :func:`tap_plant`, experiment files' [plant], plant files,
+    fits, the tuner's robust sets, the lab and diagnose all call it).
 
-    values: {name: value} in SI units; a name of an effect's parameter adds that effect (its
-    other parameters at their defaults). effects: {effect name: {parameter: value}} (a plant
-    file's ``[effects.NAME]`` tables; an empty table adds the effect with its defaults).
-    motor_connected: False for the tap test. where: names the source in error messages.
+    values: {name: value} in SI units; a name of an effect's parameter sets it on the base's
+    effect of that kind, or adds that effect (its other parameters at their defaults).
+    effects: {effect name: {parameter: value}} (a plant file's ``[effects.NAME]`` tables; an
+    empty table adds the effect with its defaults), or effect objects, added as they are.
+    motor_connected: False for the tap test (None: the base's). where: names the source in
+    error messages. check: validate every value against its declaration (numbers in range);
+    False passes values as given, so traced values of fits and batches pass.
     Raises :class:`UserError` naming the key and the allowed values for an unknown name, a
     value out of its declared range, or an effect given twice.
     """
-    values = dict(values or {})
+    base = _NOMINAL if base is None else base
+    own, by_effect = _sorted_values(dict(values or {}), where, check)
+    extra = []
+    if isinstance(effects, Mapping):
+        _add_tables(by_effect, effects, where)
+    elif effects:
+        extra = list(effects)
+        if not all(isinstance(e, Effect) for e in extra):
+            raise UserError(f"{where}: effects must be effect objects or a table per effect")
+    built = []
+    for effect in (*base.effects, *extra):
+        mine = by_effect.pop(type(effect).name, None)
+        built.append(_effect(type(effect).name, mine, where, effect) if mine else effect)
+    built += [_effect(name, params, where) for name, params in by_effect.items()]
+    built.sort(key=lambda e: (STAGE_ORDER[e.stage], e.order))
+    connected = base.motor_connected if motor_connected is None else motor_connected
+    try:
+        return dataclasses.replace(base, effects=tuple(built), motor_connected=connected, **own)
+    except ValueError as exc:
+        raise UserError(f"{where}: {' '.join(str(exc).split())}") from None
+
+
+def _sorted_values(values: dict, where: str, check: bool) -> tuple[dict, dict]:
+    """({own parameter: value}, {effect name: {parameter: value}}) of named values."""
     own: dict = {}
     by_effect: dict[str, dict] = {}
     for name, value in values.items():
         if name in _OWN:
-            own[name] = _value(name, value, where)
+            own[name] = _value(name, value, where) if check else value
             continue
         cls = effect_of_param(name)
         if cls is None:
             raise UserError(
                 f"{where}: unknown plant parameter {name!r}; known: {', '.join(parameter_names())}"
             )
-        by_effect.setdefault(cls.name, {})[name] = _value(name, value, where)
-    for effect_name, table in dict(effects or {}).items():
+        by_effect.setdefault(cls.name, {})[name] = _value(name, value, where) if check else value
+    return own, by_effect
+
+
+def _add_tables(by_effect: dict, tables: Mapping, where: str) -> None:
+    """Adds a plant file's [effects.NAME] tables (validated) to ``by_effect``."""
+    for effect_name, table in tables.items():
         if effect_name not in REGISTRY:
             raise UserError(
                 f"{where}: unknown effect {effect_name!r}; known: {', '.join(REGISTRY)}"
@@ -166,40 +210,40 @@ def build_plant(
                     f"{', '.join(cls.param_names()) or '(none)'}"
                 )
             chosen[name] = _value(name, value, f"{where} effects.{effect_name}")
-    built = []
-    for effect_name, params in by_effect.items():
-        try:
-            built.append(REGISTRY[effect_name](**params))
-        except (TypeError, ValueError) as exc:
-            raise UserError(
-                f"{where}: effect {effect_name}: {' '.join(str(exc).split())}"
-            ) from None
-    built.sort(key=lambda e: (STAGE_ORDER[e.stage], e.order))
+
+
+def _effect(name: str, params: dict, where: str, old: Effect | None = None) -> Effect:
+    """The effect ``name`` with ``params`` set (on ``old``, or on the registry's defaults)."""
     try:
-        return Plant(effects=tuple(built), motor_connected=motor_connected, **own)
-    except ValueError as exc:
-        raise UserError(f"{where}: {' '.join(str(exc).split())}") from None
+        if old is None:
+            return REGISTRY[name](**params)
+        return dataclasses.replace(old, **params)
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{where}: effect {name}: {' '.join(str(exc).split())}") from None
 
 
-def with_values(plant: Plant, values: Mapping, *, where: str = "plant") -> Plant:
-    """``plant`` with named values set (unvalidated, so traced values pass: used by fits and
-    batches); a name of an effect the plant lacks adds that effect."""
-    have = set(plant.param_names())
-    new: dict[str, dict] = {}
-    for name in values:
-        if name not in have:
-            cls = effect_of_param(name)
-            if cls is None:
-                raise UserError(
-                    f"{where}: unknown plant parameter {name!r}; known: "
-                    f"{', '.join(parameter_names())}"
-                )
-            new.setdefault(cls.name, {})
-    if new:
-        added = [REGISTRY[n]() for n in new]
-        effects = sorted((*plant.effects, *added), key=lambda e: (STAGE_ORDER[e.stage], e.order))
-        plant = dataclasses.replace(plant, effects=tuple(effects))
-    return plant.replace(**dict(values))
+def handout_plant(**values) -> Plant:
+    """The handout's nominal model (appendix values, B_eq = 5.4 kg/s, no effects), with named
+    parameters set; naming an effect's parameter adds the effect (``f_c=0.3`` adds Coulomb
+    friction, ``v_sat=6.0`` an amplifier limit). See :func:`build_plant`."""
+    return build_plant(values, where="handout_plant()")
+
+
+def tap_plant(*, effects=(), **values) -> Plant:
+    """The tap test: motor unplugged (B_emf = 0, no drive), with named parameters set and
+    ``effects`` (effect objects) added. See :func:`build_plant`."""
+    return build_plant(values, effects=effects, motor_connected=False, where="tap_plant()")
+
+
+def check_plant_overrides(overrides, where: str = "plant overrides") -> dict:
+    """Validated {name: value} of plant overrides (SI units; Python floats, tuples for a
+    vector), as an experiment file's [plant] holds them; ``where`` names the source in
+    errors (one line: the name, the value, the allowed range)."""
+    overrides = dict(overrides)
+    own, by_effect = _sorted_values(overrides, where, check=True)
+    build_plant(overrides, where=where)  # the effects' own checks (f_s >= f_c, ...)
+    checked = {**own, **{k: v for table in by_effect.values() for k, v in table.items()}}
+    return {k: checked[k] for k in overrides}
 
 
 def plant_values(plant: Plant, *, all_own: bool = False) -> dict:
@@ -256,11 +300,9 @@ def write_plant_file(path, plant: Plant, *, fit: Mapping | None = None, force: b
         lines += [f"{k} = {toml_value(v)}   # [{unit(k)}]" for k, v in table.items()]
     if fit:
         lines += ["", "[fit]"] + _toml_table(fit, "fit")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    from hw.atomicio import write_text
+
+    return write_text(path, "\n".join(lines) + "\n", force=True)  # checked above
 
 
 def read_plant_file(path) -> tuple[Plant, dict]:
@@ -340,23 +382,6 @@ def _toml_table(table: Mapping, prefix: str) -> list[str]:
         else:
             lines.append(f"{key} = {toml_value(value)}")
     return lines
-
-
-def load_plant(path, *, where: str = "--plant") -> Plant:
-    """A plant from a plant file, or from an experiment file's [plant] table (its kind's
-    nominal plant with those values); the one reader behind every ``--plant FILE`` option."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{where} {path}: no such file; give a plant file (.toml)")
-    try:
-        head = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except (tomllib.TOMLDecodeError, OSError, UnicodeDecodeError):
-        head = {}
-    if head.get("format") == FORMAT or path.suffix.lower() != ".toml":
-        return read_plant_file(path)[0]
-    from jaxcart.files import read_experiment  # an experiment file: its [plant] applies
-
-    return read_experiment(path).plant()
 
 
 def describe_plant(plant: Plant) -> str:

@@ -34,8 +34,9 @@ import sys
 
 import numpy as np
 
+from hw.control_law import float_pid, pid_init, pid_update
 from jaxcart.errors import UserError
-from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL
+from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL, voltage_limit
 
 #: The lab amplifier's range [V] when neither the controller nor the plant states a limit.
 LAB_VOLTAGE = 6.0
@@ -139,8 +140,6 @@ def _check_sample_time(where, ts) -> list[str]:
 
 def _voltage_range(rec, plant) -> float:
     """The largest voltage the cart can have received [V] (see the module docstring)."""
-    from jaxcart.params import voltage_limit
-
     limit = float(voltage_limit(plant, rec.controller))
     if math.isfinite(limit):
         return limit
@@ -235,8 +234,6 @@ def controller_command(pid, r, y) -> np.ndarray:
     r_k, y_k [m], over the first ``COMMAND_PREFIX`` samples: vectorized when the law is linear
     up to its final clip (no anti-windup), else the exact loop over ``EXACT_PREFIX`` samples.
     The array is that prefix."""
-    from hw.control_law import float_pid, pid_init, pid_update
-
     pid = float_pid(pid)
     r, y = np.asarray(r, float), np.asarray(y, float)
     if pid.anti_windup != "none" and math.isfinite(pid.v_limit):
@@ -380,8 +377,6 @@ def closed_loop_eigenvalues(pid, plant, *, with_delay: bool = True) -> np.ndarra
 def check_controller(pid, plant, *, where: str = "controller") -> list[str]:
     """Warnings (strings) for an unstable or implausible PID on ``plant``'s linear part (its
     m, c, gamma and its transport delay; other effects left out)."""
-    from jaxcart.params import voltage_limit
-
     gains = f"kp={float(pid.kp):g} ki={float(pid.ki):g} kd={float(pid.kd):g}"
     if not all(math.isfinite(float(getattr(pid, k))) for k in ("kp", "ki", "kd", "tau")):
         return [f"{where}: {gains}: not finite"]

@@ -77,7 +77,7 @@ def test_json_and_outputs(fast_results, tmp_path):
         assert key in data
     assert data["left_out"] == ["coulomb"]
     assert all("rms" in c and "score" in c for c in data["candidates"])
-    plant = jc.plantspec.load_plant(written["plant_file"])
+    plant = jc.read_plant_file(written["plant_file"])[0]
     assert "coulomb" in plant.structure
     assert "Diagnosis" in render_markdown(d)
     with pytest.raises(UserError, match="exists"):

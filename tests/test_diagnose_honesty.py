@@ -135,7 +135,7 @@ def test_m_and_gamma_scale_give_the_same_closed_loop():
     """The claim behind the tie: with B_eq free one closed loop fixes only gamma/m, c/m and
     every force over m. The mapped plant moves exactly as the corrected one."""
     from jaxcart.exact import simulate_exact
-    from jaxcart.plantspec import with_values
+    from jaxcart.plantspec import build_plant
 
     base = jc.handout_plant()
     values = {"B_eq": 4.6, "M": 1.25, "v_sat": 4.0, "f_c": 0.3}
@@ -143,8 +143,8 @@ def test_m_and_gamma_scale_give_the_same_closed_loop():
     assert parts == ("saturation", "coulomb", "gain") and "M" not in mapped
     pid = jc.PID(kp=40.0, kd=3.0, v_limit=6.0)
     exp = jc.step(0.4, horizon=1.0)
-    a = simulate_exact(with_values(base, values), pid, exp)
-    b = simulate_exact(with_values(base, mapped), pid, exp)
+    a = simulate_exact(build_plant(values, base=base, check=False), pid, exp)
+    b = simulate_exact(build_plant(mapped, base=base, check=False), pid, exp)
     np.testing.assert_allclose(a.position, b.position, atol=1e-9)
     back = swapped_correction(parts, mapped, base)[1]
     for k, v in values.items():

@@ -10,7 +10,8 @@ import scipy.io
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from jaxcart.files import plant_from_overrides, read_experiment, write_experiment
+from jaxcart.files import read_experiment, write_experiment
+from jaxcart.plantspec import build_plant
 
 # One jitted simulator for the file, shared with the command's (same function, same cache).
 simulate = jax.jit(jc.simulate)
@@ -44,7 +45,7 @@ def test_closed_loop_round_trip_keeps_every_setting(tmp_path):
         anti_windup="back_calculation",
     )
     overrides = {"M": 1.1, "B_eq": 4.8, "f_c": 0.3, "v_sat": 5.0, "gamma_scale": 0.97}
-    plant = plant_from_overrides(overrides)
+    plant = build_plant(overrides)
     res = simulate(plant, pid, jc.step(0.3, horizon=0.4, sample_time=0.002, y0=0.01))
     path = write_experiment(
         tmp_path / "run.toml",
@@ -221,17 +222,17 @@ def test_reference_and_input_kinds(tmp_path):
     np.testing.assert_array_equal(np.asarray(step.experiment_for(0.3).signal), 1.5)
 
 
-def test_plant_from_overrides():
-    p = plant_from_overrides({"M": 1.25})
+def test_build_plant_from_overrides():
+    p = build_plant({"M": 1.25})
     assert float(p.m) == pytest.approx(1.25 + 0.1331, abs=1e-4)  # M + M_J (handout appendix)
     assert p.effects == ()  # the nominal plant: no amplifier limit, no friction
-    p = plant_from_overrides({"f_c": 0.4, "v_sat": 5.0})
+    p = build_plant({"f_c": 0.4, "v_sat": 5.0})
     assert p.effect(jc.Coulomb).f_c == 0.4 and p.effect(jc.Saturation).v_sat == 5.0
     assert p.structure == ("saturation", "coulomb")
-    p = plant_from_overrides({"B_eq": 3.0}, jc.tap_plant())
+    p = build_plant({"B_eq": 3.0}, base=jc.tap_plant())
     assert p.motor_connected is False and p.B_eq == 3.0 and p.effects == ()
     with pytest.raises(UserError, match="unknown plant parameter 'Beq'"):
-        plant_from_overrides({"Beq": 3.0})
+        build_plant({"Beq": 3.0})
 
 
 # ---------------------------------------------------------------- bad input

@@ -11,10 +11,10 @@ import pytest
 import jaxcart as jc
 from jaxcart.effects import REGISTRY
 from jaxcart.errors import UserError
+from jaxcart.plantsource import load_plant
 from jaxcart.plantspec import (
     build_plant,
     describe_plant,
-    load_plant,
     parameter_names,
     plant_values,
     read_plant_file,

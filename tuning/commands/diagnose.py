@@ -29,6 +29,9 @@ def register(subparsers) -> None:
     p.add_argument("--out", metavar="DIR", help="report folder (default ./jaxcart-out/diagnose-N)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    from jaxcart.plots import add_format_option
+
+    add_format_option(p)
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
     p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
     from tuning.commands.tune import add_cluster_options
@@ -99,7 +102,7 @@ def _run(args, share, out) -> int:
     recordings = [read_experiment(path) for path in args.experiments]
     start = None
     if args.plant_file:
-        from jaxcart.plantspec import load_plant
+        from jaxcart.plantsource import load_plant
 
         start = load_plant(args.plant_file)
     if share is not None:
@@ -108,7 +111,9 @@ def _run(args, share, out) -> int:
     if share is not None and not share.finish():
         print(f"process {me} of {share.count}: done, results sent to process 0")
         return 0 if d.status == "diagnosed" else 1
-    written = write_outputs(d, out, json_path=args.json_out, force=args.force)
+    written = write_outputs(
+        d, out, json_path=args.json_out, force=args.force, fmt=args.format or "png"
+    )
     print(d.verdict)
     if d.status == "diagnosed":
         print(

@@ -165,7 +165,8 @@ def _initial(plant_file) -> dict:
     """Start (and fixed) values of --plant, {name: value} [SI]; {} without it."""
     if not plant_file:
         return {}
-    from jaxcart.plantspec import load_plant, plant_values
+    from jaxcart.plantsource import load_plant
+    from jaxcart.plantspec import plant_values
 
     return plant_values(load_plant(plant_file))
 

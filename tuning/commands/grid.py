@@ -332,7 +332,8 @@ def run(args) -> int:
         folder = Path(args.out).parent if args.out else DEFAULT_DIR
     checkpoint = Path(args.checkpoint) if args.checkpoint else folder / "grid-blocks"
 
-    from jaxcart.plantspec import describe_plant, load_plant
+    from jaxcart.plantsource import load_plant
+    from jaxcart.plantspec import describe_plant
 
     plant = load_plant(args.plant) if args.plant else jc.handout_plant()
     where = _plants(args, plant)

@@ -68,7 +68,7 @@ def run(args) -> int:
 
     plant = None
     if args.plant:
-        from jaxcart.plantspec import load_plant
+        from jaxcart.plantsource import load_plant
 
         plant = load_plant(args.plant)
     with _terminate_as_interrupt():  # a killed job removes its half-written report too

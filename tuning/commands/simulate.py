@@ -122,7 +122,8 @@ def run(args) -> int:
         experiment = jc.step(DEFAULT_STEP, horizon=horizon)
         overrides = {}
     if args.plant:
-        from jaxcart.plantspec import load_plant, plant_values
+        from jaxcart.plantsource import load_plant
+        from jaxcart.plantspec import plant_values
 
         chosen = load_plant(args.plant)
         plant = dataclasses.replace(chosen, motor_connected=plant.motor_connected)

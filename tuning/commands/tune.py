@@ -473,8 +473,8 @@ def _controller(args):
 
 
 def _plant(args):
-    from jaxcart.params import handout_plant
-    from jaxcart.plantspec import load_plant, with_values
+    from jaxcart.plantsource import load_plant
+    from jaxcart.plantspec import build_plant, handout_plant
 
     plant = load_plant(args.plant_file) if args.plant_file else handout_plant()
     overrides = {}
@@ -484,7 +484,7 @@ def _plant(args):
             flag = {"B_eq": "--B-eq", "f_c": "--f-c", "M": "--M"}[name]
             _finite(value, flag, positive=name == "M", nonnegative=True)
             overrides[name] = value
-    return with_values(plant, overrides, where="--B-eq / --f-c / --M") if overrides else plant
+    return build_plant(overrides, base=plant, where="--B-eq / --f-c / --M")
 
 
 def _robust(args):

@@ -44,8 +44,8 @@ from jaxcart.errors import UserError
 from jaxcart.experiments import step
 from jaxcart.metrics import StepInfo
 from jaxcart.parallel import batch_sharding, devices, put, replicated
-from jaxcart.params import Plant, handout_plant, voltage_limit
-from jaxcart.plantspec import with_values
+from jaxcart.params import Plant, voltage_limit
+from jaxcart.plantspec import build_plant, handout_plant
 from jaxcart.smooth_sim import EXACT_FORMS
 from jaxcart.smoothing import continuation
 from tuning.design.losses import (
@@ -269,12 +269,6 @@ def on_bounds(values: Mapping, free: Sequence[str], bounds: Mapping, rel: float 
     return out
 
 
-def _with_params(plant: Plant, values: Mapping) -> Plant:
-    """``plant`` with named parameters set through the plant spec (a name of an effect the
-    plant lacks adds it: ``f_c`` adds Coulomb friction)."""
-    return with_values(plant, {k: float(v) for k, v in dict(values).items()}, where="robust set")
-
-
 def robust_plants(plant: Plant, ranges=None, *, n_random: int = 0, seed: int = 0):
     """Plants for robust tuning: the corners and centre of the box ``ranges`` ({name: (lo,
     hi)} in SI units; ``M`` as a fraction of the nominal M), plus ``n_random`` uniform samples.
@@ -303,10 +297,10 @@ def robust_plants(plant: Plant, ranges=None, *, n_random: int = 0, seed: int = 0
     # Same effect structure for every plant (an effect everywhere if anywhere).
     base = plant
     for name in sorted({n for v in values for n in v} - set(base.param_names())):
-        base = _with_params(base, {name: 0.0})
+        base = build_plant({name: 0.0}, base=base, check=False, where="robust set")
     for v in values:
         try:
-            plants.append(_with_params(base, v))
+            plants.append(build_plant(v, base=base, check=False, where="robust set"))
         except (KeyError, ValueError) as exc:
             raise UserError(f"robust plant set: {exc}") from None
     return plants, values
@@ -679,7 +673,7 @@ def _smooth_report(update, state, gains, plant, plants_arg, robust, theta, free_
         # The nominal plant with the set's effects (friction included even where f_c = 0).
         values = {n: float(plant.get(n)) for n in ("M", "B_eq") if n in plant.param_names()}
         values["f_c"] = float(plant.get("f_c")) if plant.effect("coulomb") is not None else 0.0
-        nominal = _with_params(plant, values)
+        nominal = build_plant(values, base=plant, check=False, where="robust set")
         n_plants = jax.tree.leaves(plants_arg)[0].shape[0]
         one = jax.tree.map(lambda x: x[0], plants_arg)
         if jax.tree.structure(nominal) != jax.tree.structure(one):

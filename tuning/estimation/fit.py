@@ -65,7 +65,8 @@ from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
 from jaxcart.files import signal64
 from jaxcart.parallel import put, sharded_map
-from jaxcart.params import ENCODER_RESOLUTION, Plant, handout_plant
+from jaxcart.params import ENCODER_RESOLUTION, Plant
+from jaxcart.plantspec import handout_plant
 from jaxcart.smooth_sim import simulate
 from jaxcart.smoothing import Smoothing, continuation
 
@@ -476,7 +477,7 @@ def with_values(plant: Plant, values: dict) -> Plant:
     lacks adds it). Names the plant cannot have (a drive effect on a tap) are ignored."""
     values = {canonical(k): v for k, v in values.items()}
     values = {k: v for k, v in values.items() if not _drives_nothing(k, plant)}
-    return plantspec.with_values(plant, values)
+    return plantspec.build_plant(values, base=plant, check=False)
 
 
 def _log_scaled(name: str) -> bool:

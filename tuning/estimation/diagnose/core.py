@@ -440,7 +440,7 @@ def _start_values(segments, recs, base_plants, free):
 
 
 def exact_plants(cand: Candidate, base_plants, values):
-    from jaxcart.plantspec import with_values
+    from jaxcart.plantspec import build_plant
 
     named = {"B_eq": values["B_eq"]}
     for p in cand.corrections:
@@ -451,7 +451,7 @@ def exact_plants(cand: Candidate, base_plants, values):
             named[n] = values[n]
     if "f_s" in named:
         named["f_s"] = max(named["f_s"], named.get("f_c", 0.0))
-    return [with_values(p, named) for p in base_plants]
+    return [build_plant(named, base=p, check=False) for p in base_plants]
 
 
 class ExactMemo:
@@ -956,7 +956,7 @@ def diagnose(
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jaxcart.params import handout_plant
+    from jaxcart.plantspec import handout_plant
     from tuning.estimation.diagnose import controller as ctl
     from tuning.estimation.diagnose import locate
 
@@ -1513,14 +1513,14 @@ def _counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
     simulation records what its controller read, whole counts; the diagnosis compares the
     cart's position instead (:func:`exact_residuals`), whose forward differences the exact
     polish needs (docs/diagnose.md, "The encoder in the loop")."""
-    from jaxcart.plantspec import with_values
+    from jaxcart.plantspec import build_plant
 
     plants, segs = [], []
     for plant, seg, counts in zip(base_plants, segments, read_counts, strict=True):
         q = seg.quantization
         modelled = "quantization" in plant.structure  # a plant file's own sensor
         if counts and q > 0 and not modelled:
-            plant = with_values(plant, {"quantization": q})
+            plant = build_plant({"quantization": q}, base=plant, check=False)
         if q > 0 and (modelled or counts):
             seg = dataclasses.replace(seg, counts_in_loop=True)
         plants.append(plant)
