@@ -41,10 +41,14 @@ from pathlib import Path
 
 import numpy as np
 
+from hw.atomicio import OutputError, atomic_paths, open_output
 from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, PID_DATA_FIELDS
 from hw.csvio import CSVError, read_numeric_csv, write_numeric_csv
+from hw.textfiles import HEAD, check_decodes, not_text, portable_path
 
 KINDS = ("tap", "open_loop", "closed_loop")
+#: Suffixes of data files (given where the experiment's TOML is expected, they are said so).
+DATA_SUFFIXES = (".csv", ".txt", ".dat", ".mat", ".xlsx", ".xls", ".tsv")
 COLUMNS = ("t", "y", "v", "r", "e")
 COLUMN_UNITS = {"t": "s", "y": "m", "v": "V", "r": "m", "e": "m"}
 #: Columns of the hardware loop's own timing, allowed in a CSV and ignored as signals.
@@ -122,13 +126,35 @@ def read_toml(path) -> dict:
         raise ExpFileError(f"experiment file {path} is a folder; give the path of a .toml file")
     if not path.is_file():
         raise ExpFileError(f"experiment file {path} not found; give the path of a .toml file")
+    # An experiment is a TOML file that names its data; a data file given in its place is
+    # said as such (docs/experiment-files.md).
+    given_data = path.suffix.lower() in DATA_SUFFIXES
+    also = (
+        f" (an experiment is a .toml file that names its data, data = {toml_str(path.name)}; "
+        f"see docs/experiment-files.md)"
+        if given_data
+        else ""
+    )
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise ExpFileError(f"{path}: not valid TOML ({_one_line(exc)}); fix the syntax") from None
-    except (OSError, UnicodeDecodeError) as exc:
+        raw = path.read_bytes()
+    except OSError as exc:
         raise ExpFileError(f"{path}: cannot read it ({_one_line(exc)})") from None
+    reason = not_text(raw[:HEAD], path) or check_decodes(raw, path)
+    if reason:
+        raise ExpFileError(reason + also)
+    try:  # a UTF-8 byte-order mark (Notepad) is dropped, as in the CSV files
+        return tomllib.loads(raw.decode("utf-8-sig"))
+    except tomllib.TOMLDecodeError as exc:
+        message = _one_line(exc)
+        fix = "fix the syntax"
+        if given_data:
+            fix = f"{path.name} is a data file, not an experiment file{also}"
+        elif "Unescaped '\\'" in message:
+            fix = (
+                'a backslash in a "..." string starts an escape: write paths with forward '
+                "slashes (data = \"runs/run.csv\") or in single quotes (data = 'runs\\run.csv')"
+            )
+        raise ExpFileError(f"{path}: not valid TOML ({message}); {fix}") from None
 
 
 def read_experiment_data(path, *, mat_reader=None) -> ExperimentData:
@@ -154,7 +180,7 @@ class Reader:
     """The checks of one experiment file; ``fail`` raises the one-line error."""
 
     def __init__(self, path: Path, meta: dict, mat_reader=None):
-        self.path, self.meta, self.folder = path, meta, path.parent
+        self.path, self.meta, self.folder = path, _portable_data(meta), path.parent
         self.mat_reader = mat_reader
         self._csv_cache: dict = {}
         self.cache: dict = {}  # for the mat reader
@@ -329,6 +355,11 @@ class Reader:
 
     def data_path(self, name, field) -> Path:
         path = self.folder / name
+        if path.is_dir():
+            self.fail(
+                f"{field}: data file {name} is a folder ({path}); give the path of the data "
+                f"file inside it"
+            )
         if not path.is_file():
             self.fail(
                 f"{field}: data file {name} not found (looked for {path}); "
@@ -514,6 +545,19 @@ _LONG = {
 }
 
 
+def _portable_data(meta: dict) -> dict:
+    """``meta`` with its data paths as the user meant them: a Windows path in a TOML basic
+    string ("runs\\run.csv" holds a carriage return) mended, backslashes read as folder
+    separators (:func:`hw.textfiles.portable_path`); anything else in the file is kept."""
+    data = meta.get("data")
+    if isinstance(data, str):
+        return {**meta, "data": portable_path(data)}
+    if isinstance(data, dict):
+        mended = {k: portable_path(v) if isinstance(v, str) else v for k, v in data.items()}
+        return {**meta, "data": mended}
+    return meta
+
+
 def _line_of(lines):
     return lambda i: f"line {int(lines[i])}"
 
@@ -629,16 +673,16 @@ def write_experiment_file(
         initial_velocity=initial_velocity,
         tables=tables,
     )
-    toml_path.parent.mkdir(parents=True, exist_ok=True)
-    mode = "w" if force else "x"  # "x": never over a file that appeared since the check
+    # Both files under temporary names, renamed together (the CSV first: a TOML never points
+    # at a missing CSV): a full disk or a crash leaves neither, so the rerun is not blocked.
     try:
-        with csv_path.open(mode, newline="") as f:
-            write_numeric_csv(f, names, arrays, name=csv_path.name)
-        with toml_path.open(mode) as f:
-            f.write("\n".join(lines) + "\n")
-    except FileExistsError as exc:
-        check_free((exc.filename,))
-        raise
+        with atomic_paths(csv_path, toml_path, force=force) as (csv_tmp, toml_tmp):
+            with open_output(csv_tmp, "w", newline="") as f:
+                write_numeric_csv(f, names, arrays, name=csv_path.name)
+            with open_output(toml_tmp, "w") as f:
+                f.write("\n".join(lines) + "\n")
+    except OutputError as exc:
+        raise ExpFileError(str(exc)) from None
     return toml_path
 
 

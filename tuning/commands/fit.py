@@ -54,6 +54,9 @@ def register(subparsers) -> None:
         help="write the report as JSON (or, for a name ending in .mat, as a MATLAB struct)",
     )
     p.add_argument("--plot", metavar="PNG", help="overlay plot of recordings and model")
+    from jaxcart.plots import add_format_option
+
+    add_format_option(p)
     p.add_argument(
         "--out",
         metavar="PLANT.toml",
@@ -189,8 +192,15 @@ def _warn_if_long(recordings) -> None:
 
 def check_outputs(args) -> None:
     """Every output path writable (not under a file, not in a read-only folder, not an
-    existing file without --force), checked before the fit computes anything."""
+    existing file without --force), checked before the fit computes anything; --plot takes
+    the suffix of --format."""
     from jaxcart.outputs import check_writable
+    from jaxcart.plots import figure_name
+
+    if args.format and not args.plot:
+        raise UserError(f"--format {args.format}: name the figure with --plot (e.g. fit.pdf)")
+    if args.plot:
+        args.plot = str(figure_name(args.plot, args.format))
 
     for option, path, suffixes in (
         ("--json", args.json_out, None),

@@ -61,6 +61,9 @@ def register(subparsers) -> None:
         "in, else structure-with-time, the Simulink scope's 'Structure With Time')",
     )
     p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
+    from jaxcart.plots import add_format_option
+
+    add_format_option(p)
     p.add_argument(
         "--exact", action="store_true", help="use the exact (nonsmooth, event-exact) simulator"
     )
@@ -219,6 +222,7 @@ def _outputs(args, recording):
     from jaxcart.files import experiment_paths
     from jaxcart.matfile import mat_paths
     from jaxcart.outputs import OUT_DIR, check_writable, free_names
+    from jaxcart.plots import figure_name
 
     if args.out:
         out = Path(args.out)
@@ -231,12 +235,13 @@ def _outputs(args, recording):
             toml_path, csv_path = mat_paths(out)
         else:
             toml_path, csv_path = experiment_paths(out)
-        png_path = Path(args.plot) if args.plot else None
+        png_path = figure_name(args.plot, args.format) if args.plot else None
     else:
         stem = "run" if recording is None else f"{recording.path.stem}-sim"
         data = ".mat" if args.mat_layout or _mat_data(recording) else ".csv"
-        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", ".png"))
-        png_path = Path(args.plot) if args.plot else auto_png
+        figure = "." + (args.format or "png")
+        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", figure))
+        png_path = figure_name(args.plot, args.format) if args.plot else auto_png
     if args.mat_layout and csv_path.suffix.lower() != ".mat":
         raise UserError(f"--mat-layout {args.mat_layout}: the output {csv_path} is not .mat")
     option = "--out" if args.out else None

@@ -25,6 +25,7 @@ With a plant set (a list of plants) every metric is the worst over the set.
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -660,13 +661,14 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
 
     Feasible points are coloured by settling time; the infeasible region is hatched grey; the
     best point is marked with a star in its ki slice (that slice is always shown). A list of
-    gains (no axes) is drawn as a kp-kd scatter instead. Saved as PNG to ``path`` when given
-    (refuses to overwrite unless ``force``).
+    gains (no axes) is drawn as a kp-kd scatter instead. Saved to ``path`` when given, as
+    PNG, SVG or PDF by its suffix (PNG for any other; refuses to overwrite unless ``force``).
     """
     fig = _plot_list(result) if result.axes is None else _plot_grid(result, n_slices)
     if path is not None:
+        suffix = os.path.splitext(str(path))[1].lower().lstrip(".")
         with _open(path, force) as f:
-            fig.savefig(f, format="png", dpi=110)
+            fig.savefig(f, format=suffix if suffix in ("svg", "pdf") else "png", dpi=110)
     return fig
 
 
