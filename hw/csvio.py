@@ -19,6 +19,8 @@ import warnings
 
 import numpy as np
 
+from hw.textfiles import HEAD, check_decodes, not_text
+
 #: Bytes parsed at a time (the temporaries are a few times this).
 BLOCK = 1 << 22
 #: Files at least this large report their progress on stderr.
@@ -35,8 +37,11 @@ def read_numeric_csv(path, name: str, progress=None):
     (None, empty, empty) for a file without a header.
 
     Blank lines and lines starting with # are skipped, a UTF-8 byte-order mark dropped, CRLF
-    line ends accepted. Raises :class:`CSVError` naming ``name``, the line and the column for a
-    line with the wrong number of fields or a value that is not a number. ``progress`` (a
+    line ends and a comma at the end of every line (a spreadsheet's empty last column)
+    accepted. Raises :class:`CSVError` naming ``name``, the line and the column for a line
+    with the wrong number of fields or a value that is not a number, and naming the cause and
+    the fix for a file that is not CSV text (UTF-16, a workbook, :mod:`hw.textfiles`), has no
+    header line, or is MATLAB's ``save -ascii`` output. ``progress`` (a
     callable taking a fraction 0-1, or None) defaults to a line on stderr for large files.
     """
     try:
@@ -48,9 +53,12 @@ def read_numeric_csv(path, name: str, progress=None):
 
 def _read_numeric_csv(path, name: str, progress=None):
     with open(path, "rb") as f:
+        reason = not_text(f.read(HEAD), name)
+        if reason:
+            raise CSVError(reason)
         size = f.seek(0, io.SEEK_END)
         f.seek(0)
-        header, lineno, start = _header(f)
+        header, lineno, start = _header(f, name)
         if header is None:
             return None, np.empty((0, 0)), np.empty(0, dtype=np.int64)
         for sep, what in ((";", "semicolons"), ("\t", "tabs")):
@@ -59,6 +67,9 @@ def _read_numeric_csv(path, name: str, progress=None):
                     f"{name} line {lineno}: the fields are separated by {what} (a spreadsheet's "
                     f"regional CSV?); save it with commas (CSV UTF-8)"
                 )
+        _check_header(header, lineno, name)
+        if len(header) > 1 and header[-1] == "":  # "t,y,v,": the spreadsheet's empty column
+            header = header[:-1]
         ncols = len(header)
         capacity = _count_lines(f, start)
         table = np.empty((capacity, ncols))
@@ -98,7 +109,7 @@ def _read_numeric_csv(path, name: str, progress=None):
     return header, table[:rows], lines[:rows]
 
 
-def _header(f):
+def _header(f, name):
     """(header, number of the header's line, byte offset after it), skipping blank and #
     lines; a BOM before the first line is dropped."""
     lineno = 0
@@ -109,11 +120,38 @@ def _header(f):
         lineno += 1
         if lineno == 1 and raw.startswith(b"\xef\xbb\xbf"):
             raw = raw[3:]
+        reason = check_decodes(raw, f"{name}")
+        if reason:
+            raise CSVError(reason.replace(" line 1:", f" line {lineno}:", 1))
         text = raw.decode("utf-8")
         row = next(csv.reader([text]), [])
         if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
             continue
         return [h.strip() for h in row], lineno, f.tell()
+
+
+def _numbers(fields) -> bool:
+    """Whether every field (at least one) is a number: a data line, not a header."""
+    fields = [x for x in fields if x.strip()]
+    return bool(fields) and all(_is_float(x) for x in fields)
+
+
+def _check_header(header, lineno, name) -> None:
+    """A first line of numbers is data: the file has no header (MATLAB's ``save -ascii``
+    writes numbers separated by spaces, csvwrite and writematrix commas)."""
+    if len(header) == 1 and len(header[0].split()) > 1 and _numbers(header[0].split()):
+        raise CSVError(
+            f"{name} line {lineno}: numbers separated by spaces and no header line (MATLAB's "
+            f"save -ascii?); write a CSV with a header instead, e.g. in MATLAB "
+            f"writetable(array2table([t y v], 'VariableNames', {{'t','y','v'}}), '{name}')"
+        )
+    if _numbers(header):
+        shown = ",".join(header[:4]) + (",..." if len(header) > 4 else "")
+        raise CSVError(
+            f"{name} line {lineno}: the first line holds numbers ({shown}), not column names: "
+            f"the file has no header; add a first line naming the {len(header)} column(s), "
+            f"e.g. t,y,v (time [s], position [m], voltage [V])"
+        )
 
 
 def _count_lines(f, start) -> int:
@@ -156,10 +194,17 @@ def _parse(data: bytes, ncols: int, lineno: int, header, name):
 def _parse_slowly(data: bytes, ncols, lineno, header, name):
     """The csv module's reading of ``data``, line by line, with the exact one-line errors."""
     rows, numbers = [], []
+    reason = check_decodes(data, name)
+    if reason:  # line numbers of the block, counted from the file's start
+        head, _, tail = reason.partition(" line ")
+        first, _, rest = tail.partition(":")
+        raise CSVError(f"{head} line {lineno + int(first)}:{rest}")
     text = data.decode("utf-8")
     for i, row in enumerate(csv.reader(io.StringIO(text, newline="")), start=lineno + 1):
         if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
             continue
+        if len(row) == ncols + 1 and not row[-1].strip():
+            row = row[:-1]  # a comma at the end of the line: an empty last column
         if len(row) != ncols:
             raise CSVError(
                 f"{name} line {i}: {len(row)} fields, the header has {ncols}; fix that line"

@@ -2,8 +2,9 @@
 
 Every command and report writes JSON through :func:`write_json`: numpy values, named tuples,
 dataclasses and paths become plain JSON; non-finite floats become the strings "inf", "-inf"
-and "nan" (JSON has no such numbers); a file is written beside its target and renamed, so a
-crash never leaves half a file; an existing file is kept unless ``force``.
+and "nan" (JSON has no such numbers); a file is written beside its target and renamed
+(:mod:`hw.atomicio`), so a crash or a full disk never leaves half a file; an existing file is
+kept unless ``force``.
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from hw.atomicio import OutputError, exists_message, write_text
 
-class JsonFileExists(ValueError):
+
+class JsonFileExists(OutputError):
     """The target exists and ``force`` was not given."""
 
 
@@ -58,16 +61,13 @@ def dumps(document) -> str:
 def write_json(path, document, *, force: bool = False) -> Path | None:
     """Write ``document`` to ``path`` ("-": standard output); returns the path written.
 
-    Raises :class:`JsonFileExists` if the file exists and not ``force``."""
+    Raises :class:`JsonFileExists` if the file exists and not ``force``, an
+    :class:`hw.atomicio.OutputError` (one line: cause and fix) if it cannot be written."""
     text = dumps(document)
     if str(path) == "-":
         sys.stdout.write(text)
         return None
     path = Path(path)
     if path.exists() and not force:
-        raise JsonFileExists(f"{path} exists; choose another name or pass --force to overwrite it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+        raise JsonFileExists(exists_message(path))
+    return write_text(path, text, force=force)

@@ -319,19 +319,16 @@ def _write(
     if motor_connected:
         lines = ["motor_connected = true" if x == "motor_connected = false" else x for x in lines]
     _make_folder(mat_path)
-    mode = "wb" if force else "xb"  # "x": never over a file that appeared since the check
-    try:
-        with mat_path.open(mode) as f:
-            scipy.io.savemat(f, variables, oned_as="column", long_field_names=True)
-        with toml_path.open(mode[0]) as f:
-            f.write("\n".join(lines) + "\n")
-    except FileExistsError as exc:
-        raise UserError(
-            f"{exc.filename} exists; choose another name or pass --force (force=True) to "
-            "overwrite it"
-        ) from None
-    except OSError as exc:
-        raise UserError(f"{mat_path}: cannot write it ({exc.strerror})") from None
+    from hw.atomicio import OutputError, atomic_paths, open_output
+
+    try:  # both under temporary names, renamed together: never one without the other
+        with atomic_paths(mat_path, toml_path, force=force) as (mat_tmp, toml_tmp):
+            with open_output(mat_tmp, "wb") as f:
+                scipy.io.savemat(f, variables, oned_as="column", long_field_names=True)
+            with open_output(toml_tmp, "w") as f:
+                f.write("\n".join(lines) + "\n")
+    except OutputError as exc:
+        raise UserError(str(exc)) from None
     return toml_path, mat_path
 
 
@@ -411,11 +408,11 @@ def write_mat_report(path, report: dict, *, name: str = "report", force: bool = 
     if path.exists() and not force:
         raise UserError(f"{path} exists; choose another name or pass --force to overwrite it")
     _make_folder(path)
-    try:
-        with path.open("wb" if force else "xb") as f:
+    from hw.atomicio import OutputError, atomic_open
+
+    try:  # a temporary name, renamed when complete: a full disk leaves no half file
+        with atomic_open(path, "wb", force=force) as f:
             scipy.io.savemat(f, {name: _matlab(report)}, long_field_names=True)
-    except FileExistsError:
-        raise UserError(f"{path} exists; choose another name or pass --force") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write it ({exc.strerror})") from None
+    except OutputError as exc:
+        raise UserError(str(exc)) from None
     return path

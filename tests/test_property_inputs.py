@@ -400,7 +400,8 @@ def test_mat_variables_read_or_one_line(folder, capsys, kind, name, ts):
 
 
 def _reference_read(text: str, name="run.csv"):
-    """The documented rules with the csv module, row by row (the reader before hw.csvio)."""
+    """The documented rules with the csv module, row by row (the reader before hw.csvio): a
+    first line of numbers is no header, a comma ending every line no column."""
     header, rows, lines = None, [], []
     if text.startswith("\ufeff"):
         text = text[1:]
@@ -411,7 +412,14 @@ def _reference_read(text: str, name="run.csv"):
             header = [h.strip() for h in row]
             if len(header) == 1 and (";" in header[0] or "\t" in header[0]):
                 raise CSVError(f"{name} line {lineno}: separated by semicolons or tabs")
+            words = header[0].split() if len(header) == 1 else [h for h in header if h]
+            if words and all(_is_number(w) for w in words):
+                raise CSVError(f"{name} line {lineno}: numbers, no header")
+            if len(header) > 1 and header[-1] == "":  # a trailing comma: no column
+                header = header[:-1]
             continue
+        if len(row) == len(header) + 1 and not row[-1].strip():
+            row = row[:-1]  # a trailing comma
         if len(row) != len(header):
             raise CSVError(f"{name} line {lineno}: {len(row)} fields")
         try:
@@ -420,6 +428,14 @@ def _reference_read(text: str, name="run.csv"):
             raise CSVError(f"{name} line {lineno}, column") from None
         lines.append(lineno)
     return header, rows, lines
+
+
+def _is_number(text) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 @settings(max_examples=150, **SETTINGS)

@@ -145,6 +145,14 @@ def run(args) -> int:
         if share is not None:
             print(f"  (each recording fitted by one of {share.count} processes)")
         report["cross_prediction"] = cross
+    from hw.atomicio import all_or_none
+
+    with all_or_none(args.json_out, args.out, args.plot):  # all written, or none left
+        _write_outputs(args, report, result, F)
+    return 0
+
+
+def _write_outputs(args, report, result, F) -> None:
     if args.json_out and str(args.json_out).lower().endswith(".mat"):
         from jaxcart.matfile import write_mat_report
 

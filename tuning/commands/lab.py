@@ -57,9 +57,6 @@ def register(subparsers) -> None:
         action="store_true",
         help="leave out the section that diagnoses each recording (most of the run time)",
     )
-    from jaxcart.plots import add_format_option
-
-    add_format_option(p)
     p.set_defaults(func=run)
 
 
@@ -75,14 +72,7 @@ def run(args) -> int:
 
         plant = load_plant(args.plant)
     with _terminate_as_interrupt():  # a killed job removes its half-written report too
-        run_lab(
-            args.data,
-            args.out,
-            force=args.force,
-            plant=plant,
-            diagnosis=not args.no_diagnosis,
-            fmt=args.format or "png",
-        )
+        run_lab(args.data, args.out, force=args.force, plant=plant, diagnosis=not args.no_diagnosis)
     return 0
 
 

@@ -71,12 +71,13 @@ def main(argv=None) -> int:
         from jaxcart.plots import preload
 
         preload()
+    from hw.atomicio import OutputError
     from hw.gains import GainsFileError
     from jaxcart.errors import UserError
 
     try:
         return int(args.func(args) or 0)
-    except (UserError, GainsFileError) as exc:
+    except (UserError, GainsFileError, OutputError) as exc:
         print(f"jaxcart {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -61,9 +61,6 @@ def register(subparsers) -> None:
         "in, else structure-with-time, the Simulink scope's 'Structure With Time')",
     )
     p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
-    from jaxcart.plots import add_format_option
-
-    add_format_option(p)
     p.add_argument(
         "--exact", action="store_true", help="use the exact (nonsmooth, event-exact) simulator"
     )
@@ -157,17 +154,22 @@ def run(args) -> int:
         description=f"jaxcart simulate ({method} simulator) of {source}",
         force=args.force,
     )
-    if csv_path.suffix.lower() == ".mat":
-        from jaxcart.matfile import source_layout, write_mat_experiment
+    from hw.atomicio import all_or_none
 
-        layout = source_layout(recording) if recording is not None else None
-        write_mat_experiment(csv_path, response, layout=args.mat_layout, source=layout, **written)
-    else:
-        from jaxcart.files import write_experiment
+    with all_or_none(csv_path, toml_path, png_path):  # a failed figure leaves no data either
+        if csv_path.suffix.lower() == ".mat":
+            from jaxcart.matfile import source_layout, write_mat_experiment
 
-        write_experiment(toml_path, response, **written)
-    if png_path is not None:
-        _plot(png_path, response, recording, controller, plant, source, method)
+            layout = source_layout(recording) if recording is not None else None
+            write_mat_experiment(
+                csv_path, response, layout=args.mat_layout, source=layout, **written
+            )
+        else:
+            from jaxcart.files import write_experiment
+
+            write_experiment(toml_path, response, **written)
+        if png_path is not None:
+            _plot(png_path, response, recording, controller, plant, source, method)
     _summary(
         source,
         experiment,
@@ -222,7 +224,6 @@ def _outputs(args, recording):
     from jaxcart.files import experiment_paths
     from jaxcart.matfile import mat_paths
     from jaxcart.outputs import OUT_DIR, check_writable, free_names
-    from jaxcart.plots import figure_name
 
     if args.out:
         out = Path(args.out)
@@ -235,13 +236,12 @@ def _outputs(args, recording):
             toml_path, csv_path = mat_paths(out)
         else:
             toml_path, csv_path = experiment_paths(out)
-        png_path = figure_name(args.plot, args.format) if args.plot else None
+        png_path = Path(args.plot) if args.plot else None
     else:
         stem = "run" if recording is None else f"{recording.path.stem}-sim"
         data = ".mat" if args.mat_layout or _mat_data(recording) else ".csv"
-        figure = "." + (args.format or "png")
-        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", figure))
-        png_path = figure_name(args.plot, args.format) if args.plot else auto_png
+        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", ".png"))
+        png_path = Path(args.plot) if args.plot else auto_png
     if args.mat_layout and csv_path.suffix.lower() != ".mat":
         raise UserError(f"--mat-layout {args.mat_layout}: the output {csv_path} is not .mat")
     option = "--out" if args.out else None

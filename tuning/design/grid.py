@@ -643,14 +643,12 @@ def _stream_member(zf, name, result) -> None:
 
 
 def _open(path, force):
-    try:
-        return open(path, "wb" if force else "xb")
-    except FileExistsError:
-        raise UserError(
-            f"{path} exists; pass --force to overwrite it or choose another name"
-        ) from None
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror}") from None
+    """The output file under a temporary name, renamed when the block ends
+    (:mod:`hw.atomicio`): a full disk leaves no half file; an existing file is refused
+    unless ``force``."""
+    from hw.atomicio import atomic_open
+
+    return atomic_open(path, "wb", force=force)
 
 
 # ---------------------------------------------------------------- plots

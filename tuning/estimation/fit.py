@@ -1708,7 +1708,6 @@ def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:
         held = ", ".join(f"{n} = {v:.4g}" for n, v in result.values.items() if n in FITTABLE)
         fitted = f"prediction with {held or 'the nominal plant'}"
     fig.suptitle(f"jaxcart fit: {fitted}", fontsize=11)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    return path
+    from hw.atomicio import save_figure
+
+    return save_figure(fig, path, dpi=dpi)

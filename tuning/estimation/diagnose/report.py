@@ -164,80 +164,48 @@ def figure_title(d, width: int = 95) -> str:
 
 
 def plot_diagnosis(d, path) -> Path:
-    """Recording, baseline and corrected model above, residuals below; saved at ``path`` (its
-    suffix sets the format: .png, .svg, .pdf). The mismatch of the baseline is shaded between
-    it and the recording, the encoder floor is a grey band around zero residual, and the
-    located windows are a strip along the time axis, each in the legend below the axes."""
+    """Recording, baseline and corrected model (windows shaded), residuals below."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
-
-    from jaxcart.plots import EXPERIMENT_STYLE, figure_legend, save
 
     n = max(len(d.traces), 1)
-    fig, axes = plt.subplots(
-        2, n, figsize=(6.5 * n, 6.6), squeeze=False, sharex="col", layout="constrained"
-    )
+    fig, axes = plt.subplots(2, n, figsize=(6.5 * n, 6), squeeze=False, sharex="col")
     for i, tr in enumerate(d.traces):
         top, bottom = axes[0, i], axes[1, i]
-        t, measured = np.asarray(tr["time"]), np.asarray(tr["measured"])
-        top.plot(t, measured, label="recording", **EXPERIMENT_STYLE)
-        top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline", zorder=3)
-        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})", zorder=3)
-        top.fill_between(
-            t,
-            measured,
-            tr["baseline"],
-            color="orange",
-            alpha=0.35,
-            lw=0,
-            label="mismatch of the baseline",
-        )
-        bottom.plot(t, (tr["baseline"] - measured) * 1e3, "C0-", lw=0.8, label="baseline")
-        bottom.plot(t, (tr["after"] - measured) * 1e3, "C3-", lw=0.8, label="corrected")
-        if math.isfinite(d.floor) and d.floor > 0:
-            bottom.axhspan(
-                -d.floor * 1e3,
-                d.floor * 1e3,
-                color="0.75",
-                alpha=0.6,
-                lw=0,
-                zorder=0,
-                label=f"encoder floor ±{d.floor * 1e3:.2g} mm",
-            )
-        for w in (w for w in d.windows if w["recording"] == tr["name"]):
-            bottom.axvspan(
-                w["start"],
-                w["end"],
-                ymin=0,
-                ymax=0.04,
-                color="orange",
-                lw=0,
-                label="windows beyond the floor (report's table)",
-            )
+        t = tr["time"]
+        top.plot(t, tr["measured"], "k.", ms=1.5, label="recording")
+        top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline")
+        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})")
+        bottom.plot(t, (tr["baseline"] - tr["measured"]) * 1e3, "C0-", lw=0.8, label="baseline")
+        bottom.plot(t, (tr["after"] - tr["measured"]) * 1e3, "C3-", lw=0.8, label="corrected")
+        for w in d.windows:
+            if w["recording"] == tr["name"]:
+                for ax in (top, bottom):
+                    ax.axvspan(w["start"], w["end"], color="orange", alpha=0.15, lw=0)
         top.set_title(tr["name"])
         top.set_ylabel("position [m]")
-        bottom.set_ylabel("residual model − recording [mm]")
+        bottom.set_ylabel("residual [mm]")
         bottom.set_xlabel("time [s]")
-    figure_legend(fig, list(axes.flat), ncols=4)
+        top.legend(fontsize=8)
+        bottom.legend(fontsize=8)
     fig.suptitle(figure_title(d), fontsize=9, color="black" if d.explained else "darkred")
-    path = save(fig, path, dpi=110)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str = "png") -> dict:
-    """Write report.md, diagnosis.FMT (fmt: "png", "svg" or "pdf"), corrected_plant.toml (and
-    the JSON) into ``out_dir``; refuses to overwrite any of them without ``force``. Returns
-    {what: path}."""
-    from jaxcart.plantspec import write_plant_file
-
+def write_outputs(d, out_dir, *, json_path=None, force: bool = False) -> dict:
+    """Write report.md, diagnosis.png, corrected_plant.toml (and the JSON) into ``out_dir``;
+    refuses to overwrite any of them without ``force``. Returns {what: path}."""
     out = Path(out_dir)
     paths = {
         "report": out / "report.md",
-        "figure": out / f"diagnosis.{fmt}",
+        "figure": out / "diagnosis.png",
         "plant_file": out / "corrected_plant.toml",
     }
     if d.status != "diagnosed":
@@ -247,6 +215,17 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
     for p in paths.values():
         if p.exists() and not force:
             raise UserError(f"{p} exists; choose another --out/--json or pass --force")
+    from hw.atomicio import all_or_none
+
+    with all_or_none(*paths.values()):  # a full disk at the last file leaves none of them
+        _write_outputs(d, out, paths, json_path, force)
+    return {k: str(v) for k, v in paths.items()}
+
+
+def _write_outputs(d, out, paths, json_path, force) -> None:
+    from hw.atomicio import write_text
+    from jaxcart.plantspec import write_plant_file
+
     out.mkdir(parents=True, exist_ok=True)
     if d.status == "diagnosed":
         fit = {
@@ -262,11 +241,9 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
         write_plant_file(paths["plant_file"], d.plant, fit=fit, force=force)
         d.plant_file = str(paths["plant_file"])
         plot_diagnosis(d, paths["figure"])
-    text = render_markdown(d, figure=paths["figure"].name if d.status == "diagnosed" else None)
-    paths["report"].write_text(text)
+    text = render_markdown(d, figure="diagnosis.png" if d.status == "diagnosed" else None)
+    write_text(paths["report"], text, force=True)
     if json_path:
-        paths["json"].parent.mkdir(parents=True, exist_ok=True)
         from hw.jsonio import write_json
 
         write_json(paths["json"], d.to_json(), force=True)  # checked above
-    return {k: str(v) for k, v in paths.items()}
