@@ -21,6 +21,7 @@ import numpy as np
 from hw.devices.base import DeviceError
 from hw.expfile import ExpFileError
 from hw.gains import GainsFileError, read_gains_file
+from hw.pacing import choose_watchdog
 from hw.safety import X_MAX, Limits
 
 DEVICES = ("sim", "q2_usb", "q8_usb", "replay")
@@ -54,15 +55,32 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="RUN.toml", help="the recording (default: jaxcart-out/...)")
     p.add_argument("--plant", metavar="FILE", help="sim: cart parameters (TOML/JSON, name = value)")
     p.add_argument("--replay", metavar="REC.toml", help="replay: the recording to play back")
+    pace = p.add_mutually_exclusive_group()
+    pace.add_argument(
+        "--virtual",
+        action="store_true",
+        help="sim/replay: no real time, as fast as possible (their default)",
+    )
+    pace.add_argument(
+        "--real-time",
+        action="store_true",
+        help="sim/replay: pace the loop at 1/Ts on the computer's clock, as on the cart",
+    )
     p.add_argument(
-        "--virtual", action="store_true", help="sim/replay: no real time, as fast as possible"
+        "--force",
+        action="store_true",
+        help="run gains the simulation refuses (unstable, or a relay at the voltage limit)",
     )
     p.add_argument("--x-max", type=float, default=X_MAX, help=f"track limit [m] ({X_MAX})")
     p.add_argument("--v-max", type=float, default=6.0, help="voltage clamp [V] (6)")
     p.add_argument("--speed-max", type=float, default=1.5, help="velocity limit [m/s] (1.5)")
     p.add_argument("--jump-max", type=float, default=0.005, help="encoder jump limit [m] (0.005)")
     p.add_argument(
-        "--watchdog", type=float, default=0.005, help="loop watchdog: max lateness [s] (0.005)"
+        "--watchdog",
+        type=float,
+        metavar="S",
+        help="loop watchdog: a sample read more than S seconds late stops the run (default: "
+        "chosen for this machine by a 0.2 s probe, 5-50 ms; 0: off)",
     )
     p.add_argument("--encoder-channel", type=int, default=0)
     p.add_argument("--analog-channel", type=int, default=0)
@@ -94,6 +112,9 @@ def main(argv=None) -> int:
     except (CommandError, GainsFileError, ExpFileError, DeviceError, ValueError) as exc:
         print(f"hw {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # outside the loop (which handles its own): nothing was driven
+        print(f"hw {args.command}: interrupted (Ctrl-C)", file=sys.stderr)
+        return 130
 
 
 # ---------------------------------------------------------------- run
@@ -171,59 +192,144 @@ def free_names(folder: Path, stem: str) -> Path:
         n += 1
 
 
-def run_command(args) -> int:
-    from hw.loop import run_loop
-
-    pid, meta = read_gains_file(args.gains)
+def _limits(args, clock: str | None, sample_time: float) -> tuple[Limits, str | None]:
+    """The run's limits; the watchdog chosen for this machine unless --watchdog gives it."""
+    how = None
+    late_max = args.watchdog
+    if late_max is None:
+        if clock == "virtual":
+            late_max = 0.0  # not checked in virtual time
+        else:
+            late_max, how = choose_watchdog(sample_time)
     try:
         limits = Limits(
             x_max=args.x_max,
             v_max=args.v_max,
             speed_max=args.speed_max,
             jump_max=args.jump_max,
-            late_max=args.watchdog,
+            late_max=late_max,
         )
     except ValueError as exc:
         raise CommandError(str(exc)) from None
+    return limits, how
+
+
+def _clock(args, device) -> str | None:
+    """sim and replay run in virtual time unless --real-time; a board on its own clock."""
+    if args.real_time:
+        if not device.virtual:
+            raise CommandError(f"--real-time: {args.device} is real hardware, always real time")
+        return "perf_counter"
+    if device.virtual:
+        return "virtual"
+    return None
+
+
+def _check(pid, reference, limits, force: bool):
+    """The pre-run plausibility (hw.prerun): refuse unstable or relay gains unless forced."""
+    from hw.prerun import check_gains
+
+    check = check_gains(pid, reference, limits)
+    for line in check.warnings:
+        print(f"hw run: warning: {line}", file=sys.stderr)
+    if check.refusals and not force:
+        raise CommandError("; ".join(check.refusals) + " (--force runs them anyway)")
+    for line in check.refusals:
+        print(f"hw run: warning (--force): {line}", file=sys.stderr)
+    return check
+
+
+def run_command(args) -> int:
+    from hw.loop import run_loop
+
+    pid, meta = read_gains_file(args.gains)
+    _limits(args, "virtual", pid.sample_time)  # the numbers checked first (no probe yet)
     reference = reference_from(args, pid.sample_time)
     device = make_device(args)
+    clock = _clock(args, device)
+    limits, how = _limits(args, clock, pid.sample_time)
+    check = _check(pid, reference, limits, args.force)
     out = Path(args.out) if args.out else free_names(OUT_DIR, OUT_STEM)
     notes = {"gains": str(Path(args.gains).resolve())}
     if isinstance(meta.get("date"), str):
         notes["gains_date"] = meta["date"]
-    clock = "virtual" if args.virtual else None
+    if check.refusals:
+        notes["forced"] = "; ".join(check.refusals)
+    if how:
+        notes["watchdog"] = how
     what = f"step {reference[-1]:g} m" if args.slider is None else f"slider {args.slider} m"
     description = args.description or f"hw run: {what} on {args.device}"
+    pacing = {
+        "virtual": "virtual time (as fast as possible; --real-time paces it at 1/Ts)",
+        "perf_counter": "real time on the computer's clock",
+        None: "real time on the board's clock",
+    }[clock]
     print(
-        f"hw run: {args.device}, {reference.size} samples at {pid.sample_time * 1e3:g} ms, "
-        f"kp={pid.kp:g} ki={pid.ki:g} kd={pid.kd:g}, writing {out}",
+        f"hw run: {args.device} in {pacing}, {reference.size} samples at "
+        f"{pid.sample_time * 1e3:g} ms, kp={pid.kp:g} ki={pid.ki:g} kd={pid.kd:g}, writing {out}",
         file=sys.stderr,
     )
-    result = run_loop(
-        device,
-        pid,
-        reference,
-        limits=limits,
-        clock=clock,
-        out=out,
-        description=description,
-        notes=notes,
-    )
-    t = result.timing
-    line = f"hw run: {result.status}, {result.n_samples} samples"
-    if "period_median_us" in t:
-        line += (
-            f"; period median {t['period_median_us']:.1f} us, p99 {t['period_p99_us']:.1f} us, "
-            f"max {t['period_max_us']:.1f} us, {t['overruns']} overruns"
+    if how:
+        print(f"hw run: {how}", file=sys.stderr)
+    try:
+        result = run_loop(
+            device,
+            pid,
+            reference,
+            limits=limits,
+            clock=clock,
+            out=out,
+            description=description,
+            notes=notes,
         )
-    line += f"; compute median {t.get('compute_median_us', math.nan):.1f} us"
-    print(line, file=sys.stderr)
+    except Exception as exc:  # recorded, 0 V written: one line, not a traceback
+        result = getattr(exc, "run_result", None)
+        if result is None:  # refused before anything was driven (an existing --out, ...)
+            raise
+        print(
+            f"hw run: stopped by an error in the software: {type(exc).__name__}: "
+            f"{' '.join(str(exc).split())}; 0 V written and the device stopped",
+            file=sys.stderr,
+        )
+        if result.path is not None:
+            print(result.path)
+        return 1
+    return _report(result, check.simulated, meta)
+
+
+def _report(result, simulated, meta) -> int:
+    """Print how the run went (metrics against the spec and the simulation); exit status."""
+    from hw.pacing import verdict
+    from hw.stepinfo import comparison_lines, run_metrics, spec_of
+
+    t = result.timing
+    print(f"hw run: {result.status}, {result.n_samples} samples", file=sys.stderr)
+    print(
+        f"hw run: {verdict(t)}; compute median {t.get('compute_median_us', math.nan):.1f} us",
+        file=sys.stderr,
+    )
+    if result.fault is None and result.n_samples >= 2:
+        sim = run_metrics(simulated) if simulated is not None else None
+        for line in comparison_lines(run_metrics(result), sim, spec_of(meta)):
+            print(f"hw run: {line}", file=sys.stderr)
     if result.fault:
         print(f"hw run: stopped: {result.fault} (0 V written)", file=sys.stderr)
-    print(result.path)
-    if result.fault:
-        return 130 if result.fault.startswith("interrupted") else 1
-    return 0
+    for note in result.notes:
+        print(f"hw run: note: {note}", file=sys.stderr)
+    if result.path is not None:
+        print(result.path)
+    return exit_status(result)
+
+
+def exit_status(result) -> int:
+    """0 completed; 128 + the signal's number when one stopped the run (130 Ctrl-C, 143
+    SIGTERM, 129 SIGHUP); 1 any other fault."""
+    import signal
+
+    if result.signals:
+        number = getattr(signal, result.signals[0], None)
+        return 128 + int(number) if number is not None else 1
+    return 0 if result.status == "completed" else 1
 
 
 # ---------------------------------------------------------------- bench

@@ -247,10 +247,10 @@ class Reader:
         signals = self.signals()
         time, ts = self.time(signals)
         n = time.size
-        position = signals["y"].values
+        k = np.arange(n)
+        position = self.position(kind, signals, k * ts)
         command = signals["v"].values if "v" in signals else None
         y0 = float(position[0])
-        k = np.arange(n)
         controller = reference = None
         if kind == "closed_loop":
             controller = self.controller(ts)
@@ -286,6 +286,31 @@ class Reader:
 
     # -- data
 
+    def position(self, kind, signals, t) -> np.ndarray:
+        """y [m]: the column y, or a recorded error e = r - y through the reference (the
+        handout's Error scope), y = r - e. With both y and e and no other reference, the
+        reference is y + e (a column r)."""
+        error = signals.get("e")
+        if "y" in signals:
+            if error is not None and kind == "closed_loop" and "r" not in signals:
+                if "reference" not in self.meta:
+                    r = signals["y"].values + error.values
+                    signals["r"] = Signal(r, None, f"y + {error.label}", error.row)
+            return signals["y"].values
+        where = f"{error.label} (the error e = r - y [m]) without a position y"
+        if kind != "closed_loop":
+            self.fail(f"{where}: an error needs a reference; map y, or use kind = 'closed_loop'")
+        spec = self.meta.get("reference")
+        if isinstance(spec, dict) and spec.get("kind") == "step" and "amplitude" in spec:
+            r = self.number(spec["amplitude"], "[reference] amplitude")
+            return r - error.values
+        if "r" in signals and not (isinstance(spec, dict) and spec.get("kind") != "column"):
+            return signals["r"].values - error.values
+        self.fail(
+            f'{where}: give the reference, [reference] kind = "step" with amplitude = ... [m] '
+            f"or a column r, so that y = r - e; or map y"
+        )
+
     def signals(self) -> dict[str, Signal]:
         data = self.meta.get("data")
         if data is None:
@@ -298,7 +323,7 @@ class Reader:
                 )
             header, columns, lines = self.read_csv(data, "data")
             unknown = [name for name in header if name not in COLUMNS + TIMING_COLUMNS]
-            for required in ("t", "y"):
+            for required in ("t",) if "e" in columns else ("t", "y"):  # e: y = r - e
                 if required not in columns:
                     guess = unknown[0] if unknown else "column"
                     self.fail(
@@ -326,8 +351,11 @@ class Reader:
                     f"unknown key {key!r} in [data]; allowed: {', '.join(COLUMNS)} "
                     f"({', '.join(f'{c} [{u}]' for c, u in COLUMN_UNITS.items())})"
                 )
-        if "y" not in data:
-            self.fail('[data] has no y; map the position [m]: y = "file.mat:variable"')
+        if "y" not in data and "e" not in data:
+            self.fail(
+                '[data] has no y; map the position [m]: y = "file.mat:variable" (or the '
+                "error e = r - y [m] with the reference)"
+            )
         return {name: self.mapped(name, source) for name, source in data.items()}
 
     def mapped(self, name, source) -> Signal:
@@ -392,9 +420,10 @@ class Reader:
         if len(set(sizes.values())) > 1:
             listing = ", ".join(f"{n} ({signals[n].label}) {sizes[n]}" for n in sizes)
             self.fail(f"data lengths differ: {listing} samples; give every signal the same samples")
-        n = sizes["y"]
+        main = "y" if "y" in signals else "e"  # the position, or the error that stands for it
+        n = sizes[main]
         if n < 2:
-            self.fail(f"{signals['y'].label}: {n} sample(s); a recording needs at least 2")
+            self.fail(f"{signals[main].label}: {n} sample(s); a recording needs at least 2")
         for s in signals.values():
             for what, values in (("", s.values), (" time", s.time)):
                 if values is None:

@@ -1,11 +1,17 @@
 """The hardware loop: every sample, read the encoder, run the canonical PID, check, write, log.
 
-    deadline k Ts --> read y_k --> [safety: track, jump, speed] --> PID (hw/control_law.py)
+    deadline k Ts --> read y_k --> [safety: nan, jump, track, speed] --> PID (hw/control_law.py)
          ^                                                              |
          |        log t, y, v, r, e, t_wall, compute <-- write u_k <-- [clamp v_max]
          '---------------------------- next sample ---------------------'
-    finally (normal end, fault, exception or Ctrl-C): write 0 V, stop the device, close the
-    recording with the timing statistics and the reason the run ended
+    every way out (the end, a fault, a device error, an exception, a full disk, Ctrl-C,
+    SIGTERM, SIGHUP) goes through one finally: write 0 V, stop the device; then the recording
+    is finished with the timing statistics and the reason the run ended
+
+Signals: while the loop runs, SIGINT, SIGTERM and SIGHUP (SIGBREAK on Windows) raise into it,
+once: a second Ctrl-C, or any signal while 0 V is written and the recording closed, is counted
+in the reason and does not interrupt the stop (:class:`_Signals`). A signal that lands while the
+recorder writes a chunk of the CSV waits for the chunk's end, so no line is cut.
 
 Pacing (``clock``):
     "device"        the device's own clock: read() blocks until the next sample (a Quanser board's
@@ -15,9 +21,9 @@ Pacing (``clock``):
                     next deadline)
     "virtual"       no waiting: as fast as the machine allows, timestamps k Ts (simulated or
                     replayed devices only; for tests and quick runs)
-``gc.freeze()`` moves what exists to the permanent generation before the loop, and the cyclic
-collector is off during a real-time run (the loop allocates no cycles; reference counting frees
-its floats), so that no collection pauses a sample.
+In real time, ``gc.freeze()`` moves what exists to the permanent generation before the loop,
+and the cyclic collector is off during the run (the loop allocates no cycles; reference
+counting frees its floats), so that no collection pauses a sample.
 
 >>> from hw.control_law import PID
 >>> from hw.devices.sim import SimCart
@@ -31,20 +37,30 @@ from __future__ import annotations
 import datetime as _dt
 import gc
 import math
+import signal
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from hw.control_law import PID, PIDState, float_pid, pid_init, pid_update
 from hw.devices.base import DeviceError
-from hw.recorder import RunRecorder
+from hw.pacing import SPIN, timing_stats
+from hw.recorder import MIN_SAMPLES, RecorderError, RunRecorder
 from hw.safety import Fault, Guard, Limits
 
 CLOCKS = ("device", "perf_counter", "virtual")
-#: The last stretch before a deadline is spun, not slept (sleep overshoots by ~50-100 us).
-SPIN = 300e-6
+#: What each stopping signal means to the person at the lab PC.
+SIGNAL_REASONS = {
+    "SIGINT": "interrupted (Ctrl-C)",
+    "SIGTERM": "stopped by SIGTERM (a kill, a session manager or a CI timeout)",
+    "SIGHUP": "stopped by SIGHUP (the terminal was closed)",
+    "SIGBREAK": "stopped by Ctrl-Break (or the console was closed)",
+}
+
+__all__ = ["CLOCKS", "RunResult", "check_controller", "run_loop", "timing_stats"]
 
 
 class _Floats:
@@ -69,8 +85,10 @@ class RunResult:
     status: "completed" | "fault"; fault: the reason the run stopped early (one line), or None
     time: k Ts [s]; position: y_k read [m]; command: u_k written [V] (0 at a faulting sample);
     reference: r_k [m]; t_wall: when y_k was read [s from the first sample]; compute: read to
-    write [s]; timing: the statistics recorded in [timing]; path: the recording (TOML) or None;
-    device: the device's description
+    write [s]; timing: the statistics recorded in [timing]; path: the recording (TOML), or None
+    (none asked, or the run never started and its files were removed); device: the device's
+    description; signals: the stopping signals received ("SIGINT", ...), in order; notes: what
+    could not be written to the recording itself (one line each)
     """
 
     status: str
@@ -84,10 +102,81 @@ class RunResult:
     timing: dict
     path: Path | None
     device: dict
+    signals: tuple = ()
+    notes: tuple = ()
 
     @property
     def n_samples(self) -> int:
         return int(self.position.shape[0])
+
+
+class StopSignal(BaseException):
+    """A stopping signal raised into the loop (a BaseException: nothing may swallow it)."""
+
+    def __init__(self, name: str):
+        super().__init__(name)
+        self.name = name
+
+
+class _Signals:
+    """Handlers of the stopping signals for one run: the first raises :class:`StopSignal` into
+    the loop (only when the loop's own frames are running, never while it stops); every one is
+    counted. Installed only in the main thread (the only one Python delivers signals to)."""
+
+    def __init__(self, enabled: bool):
+        self.received: list[str] = []
+        self.raised = False
+        self.pending: str | None = None
+        self._old: dict = {}
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+
+    def __enter__(self):
+        if self.enabled:
+            for name in SIGNAL_REASONS:
+                signum = getattr(signal, name, None)
+                if signum is not None:
+                    try:
+                        self._old[signum] = signal.signal(signum, self._handler)
+                    except (OSError, ValueError):  # not settable here
+                        pass
+        return self
+
+    def __exit__(self, *exc):
+        for signum, old in self._old.items():
+            try:
+                signal.signal(signum, old if old is not None else signal.SIG_DFL)
+            except (OSError, ValueError):
+                pass
+        self._old = {}
+        return False
+
+    def _handler(self, signum, frame):
+        name = signal.Signals(signum).name
+        self.received.append(name)
+        if self.raised or self.pending is not None:
+            return
+        if _raisable(frame):
+            self.raised = True
+            raise StopSignal(name)
+        self.pending = name  # the loop raises it at its next sample, if it still runs
+
+    def check(self) -> None:
+        """Raise a signal that arrived outside the loop's frames (called every sample)."""
+        if self.pending is not None and not self.raised:
+            self.raised = True
+            raise StopSignal(self.pending)
+
+
+def _raisable(frame) -> bool:
+    """True when ``frame`` runs inside the loop (``_drive``) and outside a critical section."""
+    while frame is not None:
+        code = frame.f_code
+        if code in _CRITICAL:
+            return False
+        if code is _drive.__code__:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def check_controller(pid: PID, limits: Limits) -> None:
@@ -106,6 +195,43 @@ def check_controller(pid: PID, limits: Limits) -> None:
         )
 
 
+def _check_clock(device, clock: str | None) -> str:
+    if clock is None:
+        clock = "device" if device.hardware_timed else "perf_counter"
+    if clock not in CLOCKS:
+        raise ValueError(f"clock = {clock!r}: use one of {', '.join(CLOCKS)}")
+    if clock == "device" and not device.hardware_timed:
+        raise ValueError(f"device {device.name} has no clock of its own; use clock='perf_counter'")
+    if clock == "virtual" and not device.virtual:
+        raise ValueError(f"device {device.name} is real hardware: it cannot run in virtual time")
+    if clock == "perf_counter" and device.hardware_timed:
+        raise ValueError(f"device {device.name} paces the loop itself; use clock='device'")
+    return clock
+
+
+@dataclass
+class _Run:
+    """What one run has done so far (the loop appends one row per sample read)."""
+
+    ts: float
+    clock: str
+    rows: list = field(default_factory=list)  # [t, y, u, r, t_wall, compute]
+    k: int = 0
+    fault: str | None = None
+    measured: bool = True  # the faulting sample's position is a measurement
+    error: BaseException | None = None
+    notes: list = field(default_factory=list)
+
+    def stop(self, reason: str, *, measured: bool = True, error=None) -> None:
+        """The reason the run ends (the first one given stands; later ones become notes)."""
+        if self.fault is None:
+            self.fault, self.measured = reason, measured
+            if error is not None:
+                self.error = error
+        else:
+            self.notes.append(reason)
+
+
 def run_loop(
     device,
     pid: PID,
@@ -117,6 +243,9 @@ def run_loop(
     description: str | None = None,
     notes: dict | None = None,
     flush_every: int = 100,
+    sync_every: float = 1.0,
+    files=None,
+    signals: bool = True,
 ) -> RunResult:
     """Run ``pid`` on ``device`` for ``len(reference)`` samples of r_k [m]; record to ``out``.
 
@@ -125,189 +254,269 @@ def run_loop(
     limits: :class:`hw.safety.Limits` (default: the handout's); clock: "device",
     "perf_counter" or "virtual" (default: the device's clock if it has one, else
     perf_counter); out: the recording's path (TOML; the CSV beside it), never overwritten, or
-    None for no recording; notes: extra provenance for [notes].
+    None for no recording; notes: extra provenance for [notes]; flush_every [samples],
+    sync_every [s], files: see :mod:`hw.recorder`; signals: handle SIGINT, SIGTERM, SIGHUP.
 
-    A safety fault, a device error or Ctrl-C ends the run with ``status = "fault"`` and the
-    reason; any other exception is recorded the same way and raised again. In every case 0 V
-    is written and the device stopped before this returns.
+    A safety fault, a device error, a recording error or a stopping signal ends the run with
+    ``status = "fault"`` and the reason; any other exception is recorded the same way and
+    raised again (with the result as its ``run_result``). In every case 0 V is written and the
+    device stopped before this returns. A run that stops before its second sample leaves no
+    recording (nothing to read; the name stays free for the retry).
     """
     limits = limits or Limits()
     check_controller(pid, limits)
-    if clock is None:
-        clock = "device" if device.hardware_timed else "perf_counter"
-    if clock not in CLOCKS:
-        raise ValueError(f"clock = {clock!r}: use one of {', '.join(CLOCKS)}")
-    if clock == "device" and not device.hardware_timed:
-        raise ValueError(f"device {device.name} has no clock of its own; use clock='perf_counter'")
-    if clock == "virtual" and not device.virtual:
-        raise ValueError(f"device {device.name} is real hardware: it cannot run in virtual time")
-    if clock == "perf_counter" and device.hardware_timed:
-        raise ValueError(f"device {device.name} paces the loop itself; use clock='device'")
+    clock = _check_clock(device, clock)
     ref = [float(r) for r in np.asarray(reference, dtype=float).ravel()]
-    n = len(ref)
-    if n < 2:
-        raise ValueError(f"the reference has {n} sample(s); give at least 2 (duration > Ts)")
-    ts = float(pid.sample_time)
-    law = float_pid(pid)
-
+    if len(ref) < 2:
+        raise ValueError(f"the reference has {len(ref)} sample(s); give at least 2 (duration > Ts)")
+    run = _Run(ts=float(pid.sample_time), clock=clock)
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     run_table = {"status": "running", "started": started, "clock": clock}
-    safety_table = {
-        f"limit_{k}": (float(v) if isinstance(v, float) else v) for k, v in limits.to_dict().items()
-    }
-    device_table = {**device.describe(), "clock": clock}
-    recorder = None
-    if out is not None:
-        tables = {"device": device_table, "run": {**run_table, **safety_table}}
-        if notes:
-            tables["notes"] = dict(notes)
-        recorder = RunRecorder(
-            out, pid, description=description, tables=tables, flush_every=flush_every
-        )
+    safety = {f"limit_{k}": v for k, v in limits.to_dict().items()}
+    with _Signals(signals) as stops:  # from here on a signal stops the run, never the stop
+        recorder = None
+        if out is not None:
+            tables = {
+                "device": {**device.describe(), "clock": clock},
+                "run": {**run_table, **safety},
+            }
+            if notes:
+                tables["notes"] = dict(notes)
+            recorder = RunRecorder(
+                out,
+                pid,
+                description=description,
+                tables=tables,
+                flush_every=flush_every,
+                sync_every=sync_every,
+                files=files,
+            )
+        gc_was_enabled = gc.isenabled()
+        real_time = clock != "virtual"
+        try:
+            if real_time:  # no collection may pause a sample (virtual time: no need)
+                gc.collect()
+                gc.freeze()
+                gc.disable()
+            _drive(device, pid, ref, limits, recorder, stops, run)
+        except BaseException as exc:  # every way out; classified, then the same finally
+            _classify(exc, run)
+        finally:
+            _zero(device, run)
+            if real_time:
+                if gc_was_enabled:
+                    gc.enable()
+                gc.unfreeze()
+        result = _finish(device, ref, recorder, run, stops, run_table)
+    if run.error is not None:
+        try:
+            run.error.run_result = result
+        except AttributeError:
+            pass
+        raise run.error
+    return result
 
-    log_y, log_u, log_tw, log_c = [], [], [], []
+
+def _drive(device, pid, ref, limits, recorder, stops, run) -> None:
+    """Start the device and run the samples (the only frames a signal raises into)."""
+    stops.check()
+    ts = run.ts
+    law = float_pid(pid)
     guard = Guard(limits, ts)
-    perf = time.perf_counter
-    sleep = time.sleep
-    virtual = clock == "virtual"
-    paced = clock == "perf_counter"
-    fault = None
-    error = None
-    stop_note = None
-    k = 0
-    gc_was_enabled = gc.isenabled()
-    gc.collect()
-    gc.freeze()
-    if not virtual:
-        gc.disable()
-    try:
-        device.start(ts)
-        state = None
-        t0 = perf() + (2 * SPIN if paced else 0.0)
-        for k in range(n):
-            kts = k * ts
-            if paced:
-                deadline = t0 + kts
-                remaining = deadline - perf()
-                if remaining > SPIN:
-                    sleep(remaining - SPIN)
-                while perf() < deadline:
-                    pass
-            y = device.read()
-            t_read = perf()
-            if k == 0 and not paced:
-                t0 = t_read
-            t_wall = kts if virtual else t_read - t0
-            r = ref[k]
-            log_y.append(y)
-            log_u.append(0.0)  # the 0 V of the finally, should this sample fault
-            log_tw.append(t_wall)
-            log_c.append(0.0)
-            if not virtual:
-                guard.check_late(k, t_wall - kts)
-            guard.check_position(k, y)
-            if state is None:
-                s = pid_init(law, r, y, xp=np)
-                state = PIDState(float(s.integral), float(s.derivative), float(s.previous))
-            u, _, state = pid_update(law, state, r, y, xp=_Floats, clip=_clip)
-            u = guard.clamp(u)
-            device.write(u)
-            compute = perf() - t_read
-            log_u[-1] = u
-            log_c[-1] = compute
-            if recorder is not None:
-                recorder.row(kts, y, u, r, t_wall, compute)
-        k = n
-    except Fault as exc:
-        fault = str(exc)
-    except DeviceError as exc:
-        fault = f"device: {exc}"
-    except KeyboardInterrupt:
-        fault = f"interrupted (Ctrl-C) at t = {k * ts:.3f} s"
-    except BaseException as exc:
-        fault = f"error: {type(exc).__name__}: {' '.join(str(exc).split())}"
-        error = exc
-    finally:
-        try:
-            device.write(0.0)
-        except BaseException as exc:  # noqa: BLE001 - stop() below tries again
-            stop_note = f"writing 0 V failed: {exc}"
-        try:
-            device.stop()
-        except BaseException as exc:  # noqa: BLE001 - the recording must still be closed
-            stop_note = f"stopping the device failed: {exc}"
-        if gc_was_enabled:
-            gc.enable()
-        gc.unfreeze()
+    perf, sleep = time.perf_counter, time.sleep
+    virtual = run.clock == "virtual"
+    paced = run.clock == "perf_counter"
+    rows = run.rows
+    device.start(ts)
+    state = None
+    t0 = perf() + (2 * SPIN if paced else 0.0)
+    for k in range(len(ref)):
+        run.k = k
+        stops.check()
+        kts = k * ts
+        if paced:
+            deadline = t0 + kts
+            remaining = deadline - perf()
+            if remaining > SPIN:
+                sleep(remaining - SPIN)
+            while perf() < deadline:
+                pass
+        y = float(device.read())
+        t_read = perf()
+        if k == 0 and not paced:
+            t0 = t_read
+        t_wall = kts if virtual else t_read - t0
+        r = ref[k]
+        row = [kts, y, 0.0, r, t_wall, 0.0]  # u = the 0 V of the finally, should this fault
+        rows.append(row)  # one append: a signal never leaves half a row
+        if not virtual:
+            guard.check_late(k, t_wall - kts)
+        guard.check_position(k, y)
+        if state is None:
+            s = pid_init(law, r, y, xp=np)
+            state = PIDState(float(s.integral), float(s.derivative), float(s.previous))
+        u, _, state = pid_update(law, state, r, y, xp=_Floats, clip=_clip)
+        u = guard.clamp(u)
+        device.write(u)
+        row[2] = u
+        row[5] = perf() - t_read
+        if recorder is not None:
+            recorder.row(*row)
+    run.k = len(ref)
 
-    m = len(log_y)
-    if recorder is not None and fault is not None and m > recorder.rows:
-        # The faulting sample: its position as read, the 0 V that was written.
-        recorder.row((m - 1) * ts, log_y[-1], 0.0, ref[m - 1], log_tw[-1], log_c[-1])
-    t_wall = np.asarray(log_tw, dtype=float)
-    compute = np.asarray(log_c, dtype=float)
-    timing = timing_stats(t_wall, compute, ts, virtual=virtual)
-    status = "completed" if fault is None else "fault"
-    run_final = {**run_table, "status": status, "samples": m, "duration": m * ts}
-    if fault is not None:
-        run_final["fault"] = fault
-    if stop_note:
-        run_final["stop"] = stop_note
-    stop_errors = getattr(device, "stop_errors", None)
-    if stop_errors:
-        run_final["stop_errors"] = "; ".join(stop_errors)
-    run_final["last_voltage"] = float(device.last_voltage)
-    device_table = {**device.describe(), "clock": clock}  # as started (e.g. the watchdog)
+
+def _classify(exc: BaseException, run: _Run) -> None:
+    """The reason a run ended, from what ended it."""
+    t = f"t = {run.k * run.ts:.3f} s"
+    if isinstance(exc, Fault):
+        run.stop(str(exc), measured=exc.measured)
+    elif isinstance(exc, DeviceError):
+        run.stop(f"device: {_line(exc)}")
+    elif isinstance(exc, RecorderError):
+        run.stop(f"{_line(exc)} (at {t})")
+    elif isinstance(exc, StopSignal):
+        run.stop(f"{SIGNAL_REASONS.get(exc.name, exc.name)} at {t}")
+    elif isinstance(exc, KeyboardInterrupt):  # signals not handled here (another thread)
+        run.stop(f"{SIGNAL_REASONS['SIGINT']} at {t}")
+    else:
+        run.stop(f"error: {type(exc).__name__}: {_line(exc)} (at {t})", error=exc)
+
+
+def _line(exc) -> str:
+    return " ".join(str(exc).split())
+
+
+def _zero(device, run: _Run) -> None:
+    """0 V, then stop(): each runs whatever the other does (a signal does not raise here)."""
+    try:
+        device.write(0.0)
+    except BaseException as exc:  # noqa: BLE001 - stop() below writes 0 V again
+        run.notes.append(f"writing 0 V failed: {_line(exc)}")
+    try:
+        device.stop()
+    except BaseException as exc:  # noqa: BLE001 - the recording must still be closed
+        run.notes.append(f"stopping the device failed: {_line(exc)}")
+
+
+def _finish(device, ref, recorder, run: _Run, stops: _Signals, run_table: dict) -> RunResult:
+    """The recording finished and the result built; every step runs whatever the others do."""
+    rows = run.rows
+    if rows and (not run.measured or not _finite(rows[-1][1])):
+        rows.pop()  # the faulting read was not a position (nan, a glitch): not data
+    if recorder is not None and len(rows) > recorder.rows and recorder.error is None:
+        try:  # the faulting sample: its position as read, the 0 V written
+            recorder.row(*rows[-1])
+        except BaseException as exc:  # noqa: BLE001
+            run.stop(_line(exc))
+    if recorder is not None and recorder.error is None:
+        try:
+            recorder.flush()
+        except BaseException as exc:  # noqa: BLE001
+            run.stop(_line(exc))
+    virtual = run.clock == "virtual"
+    t_wall = np.array([row[4] for row in rows], dtype=float)
+    compute = np.array([row[5] for row in rows], dtype=float)
+    try:
+        timing = timing_stats(t_wall, compute, run.ts, virtual=virtual)
+    except BaseException as exc:  # noqa: BLE001 - a summary must not lose the run
+        timing = {"samples": len(rows), "error": _line(exc)}
+        run.stop(f"error: {type(exc).__name__} in the timing summary: {_line(exc)}", error=exc)
+    extra = len(stops.received) - (1 if stops.raised else 0)
+    if stops.received and (extra > 0 or not stops.raised):
+        names = ", ".join(stops.received[1 if stops.raised else 0 :])
+        run.notes.append(f"signals while stopping (not interrupting it): {names}")
+        if run.fault is None:
+            run.stop(f"{SIGNAL_REASONS.get(stops.received[0], 'a signal')} as the run ended")
+    device_table = _describe(device, run)
     path = None
     if recorder is not None:
-        path = recorder.close({"run": run_final, "timing": timing, "device": device_table})
-    result = RunResult(
-        status=status,
-        fault=fault,
-        time=np.arange(m) * ts,
-        position=np.asarray(log_y, dtype=float),
-        command=np.asarray(log_u, dtype=float),
-        reference=np.asarray(ref[:m], dtype=float),
+        path = _close(recorder, run, run_table, timing, device_table, device)
+    return RunResult(
+        status="completed" if run.fault is None else "fault",
+        fault=run.fault,
+        time=np.array([row[0] for row in rows], dtype=float),
+        position=np.array([row[1] for row in rows], dtype=float),
+        command=np.array([row[2] for row in rows], dtype=float),
+        reference=np.asarray(ref[: len(rows)], dtype=float),
         t_wall=t_wall,
         compute=compute,
         timing=timing,
         path=path,
         device=device_table,
+        signals=tuple(stops.received),
+        notes=tuple(run.notes),
     )
-    if error is not None:
-        raise error
-    return result
 
 
-def timing_stats(t_wall, compute, sample_time: float, *, virtual: bool = False) -> dict:
-    """Sample-period and compute-time statistics of a run, in microseconds ([timing]).
+def _finite(y) -> bool:
+    try:
+        return math.isfinite(y)
+    except TypeError:
+        return False
 
-    period: steps of t_wall; late: t_wall - k Ts; overruns: samples whose write ended after the
-    next deadline (per 10,000 samples too). In virtual time only the compute times mean anything.
-    """
-    n = int(np.size(t_wall))
-    stats: dict = {"samples": n, "sample_time_us": sample_time * 1e6}
-    if n == 0:
-        return stats
-    us = 1e6
-    stats["compute_median_us"] = float(np.median(compute)) * us
-    stats["compute_p99_us"] = float(np.percentile(compute, 99)) * us
-    stats["compute_max_us"] = float(np.max(compute)) * us
-    if virtual or n < 2:
-        return stats
-    period = np.diff(t_wall)
-    late = t_wall - np.arange(n) * sample_time
-    over = int(np.count_nonzero(t_wall + compute > (np.arange(n) + 1) * sample_time))
-    stats.update(
-        period_median_us=float(np.median(period)) * us,
-        period_p99_us=float(np.percentile(period, 99)) * us,
-        period_max_us=float(np.max(period)) * us,
-        period_min_us=float(np.min(period)) * us,
-        late_max_us=float(np.max(late)) * us,
-        overruns=over,
-        overruns_per_10000=over * 10000.0 / n,
-    )
-    return {
-        k: (round(v, 3) if isinstance(v, float) and math.isfinite(v) else v)
-        for k, v in stats.items()
-    }
+
+def _describe(device, run: _Run) -> dict:
+    try:
+        return {**device.describe(), "clock": run.clock}  # as started (e.g. the watchdog)
+    except BaseException as exc:  # noqa: BLE001
+        run.notes.append(f"describing the device failed: {_line(exc)}")
+        return {"clock": run.clock}
+
+
+def _close(recorder, run: _Run, run_table, timing, device_table, device) -> Path | None:
+    """The recording's end: [run], [timing], [device]; or, never started, no files at all."""
+    if recorder.saved < MIN_SAMPLES:
+        try:
+            recorder.discard()
+        except BaseException as exc:  # noqa: BLE001
+            run.notes.append(f"removing the recording failed: {_line(exc)}")
+        why = f" ({run.fault})" if run.fault else ""
+        run.notes.append(
+            f"no recording kept: the run stopped before {MIN_SAMPLES} samples were saved{why}; "
+            f"{recorder.path} is free for the retry"
+        )
+        if run.fault is None:
+            run.stop("the recording holds fewer than 2 samples")
+        return None
+    timing = {k: v for k, v in timing.items() if isinstance(v, int | float | str)}
+    for _ in range(2):  # once more if finishing raised: the TOML then names that error
+        tables = {"run": _final(recorder, run, run_table, device), "timing": timing}
+        tables["device"] = device_table
+        try:
+            path, notes = recorder.close(tables)
+        except BaseException as exc:  # noqa: BLE001
+            run.stop(
+                f"error: {type(exc).__name__} finishing the recording: {_line(exc)}", error=exc
+            )
+            continue
+        run.notes.extend(notes)
+        return path
+    run.notes.append(f"{recorder.path} could not be finished: it may still say running")
+    return recorder.path
+
+
+def _final(recorder, run: _Run, run_table: dict, device) -> dict:
+    """The recording's [run] table at the end: status, samples, the reason, the notes."""
+    m = recorder.saved
+    final = {**run_table, "status": "completed" if run.fault is None else "fault"}
+    final.update(samples=m, duration=m * run.ts)
+    if len(run.rows) != m:
+        final["samples_read"] = len(run.rows)
+    if run.fault is not None:
+        final["fault"] = run.fault
+    if run.notes:
+        final["notes"] = "; ".join(run.notes)
+    stop_errors = getattr(device, "stop_errors", None)
+    if stop_errors:
+        final["stop_errors"] = "; ".join(stop_errors)
+    try:
+        final["last_voltage"] = float(device.last_voltage)
+    except BaseException:  # noqa: BLE001
+        pass
+    return final
+
+
+# Sections where a signal waits: a chunk of the CSV is written whole or cut back first.
+_CRITICAL = frozenset(
+    {RunRecorder.row.__code__, RunRecorder.flush.__code__, RunRecorder._write_all.__code__}
+)

@@ -1,7 +1,8 @@
 """Safety checks of the hardware loop: every sample, before and after the control law.
 
-    y_k --> [track limit |y| <= x_max] --> [encoder jump |y_k - y_k-1| <= jump_max]
-        --> [velocity |y_k - y_k-n| / (n Ts) <= speed_max] --> PID --> [clamp |u| <= v_max] --> u_k
+    y_k --> [a number, not nan or inf] --> [encoder jump |y_k - y_k-1| <= jump_max]
+        --> [track limit |y| <= x_max] --> [velocity |y_k - y_k-n| / (n Ts) <= speed_max]
+        --> PID --> [clamp |u| <= v_max] --> u_k
     and the loop's watchdog: sample k read more than ``late_max`` after its deadline k Ts
 
 Any check that fails raises :class:`Fault` with the reason as one line (what, the value, the
@@ -19,7 +20,16 @@ X_MAX = 0.6
 
 
 class Fault(Exception):
-    """A safety check that stopped the run; ``str(fault)`` is the reason (one line)."""
+    """A safety check that stopped the run; ``str(fault)`` is the reason (one line).
+
+    ``measured``: the faulting sample's position is a measurement (a track or velocity limit)
+    and is recorded; False when it is not (nan, an encoder glitch): the recording then ends at
+    the sample before, and the reason holds the value read.
+    """
+
+    def __init__(self, reason: str, *, measured: bool = True):
+        super().__init__(reason)
+        self.measured = measured
 
 
 @dataclass(frozen=True)
@@ -68,18 +78,28 @@ class Guard:
         self._watch = limits.late_max > 0 and math.isfinite(limits.late_max)
 
     def check_position(self, k: int, y: float) -> None:
-        """Track limit, encoder jump and velocity at sample k (position y [m])."""
+        """A number, encoder jump, track limit and velocity at sample k (position y [m]).
+
+        The jump is checked before the track limit: a glitch to a far value is a glitch, not a
+        cart beyond the track."""
         lim, t = self.limits, k * self.sample_time
-        if not abs(y) <= lim.x_max:  # also catches nan
-            raise Fault(f"track limit: y = {y:.4g} m beyond +/-{lim.x_max:g} m at t = {t:.3f} s")
+        if not math.isfinite(y):
+            raise Fault(
+                f"encoder: read {y} instead of a position at sample {k} (t = {t:.3f} s); check "
+                "the encoder cable and the board",
+                measured=False,
+            )
         history = self._history
         if history:
             jump = y - history[-1]
             if abs(jump) > lim.jump_max:
                 raise Fault(
                     f"encoder jump: y changed by {jump:.4g} m in one sample (limit "
-                    f"{lim.jump_max:g} m) at t = {t:.3f} s; check the encoder cable"
+                    f"{lim.jump_max:g} m) at t = {t:.3f} s; check the encoder cable",
+                    measured=False,
                 )
+        if not abs(y) <= lim.x_max:
+            raise Fault(f"track limit: y = {y:.4g} m beyond +/-{lim.x_max:g} m at t = {t:.3f} s")
         history.append(y)
         n = lim.speed_window
         if len(history) > n:

@@ -164,15 +164,51 @@ def signal64(recording) -> np.ndarray:
 # ---------------------------------------------------------------- reading
 
 
-def read_experiment(path, *, check: bool = True) -> Recording:
+def read_experiment(path, *, check: bool = True, experiment: str | None = None) -> Recording:
     """Read an experiment file (TOML + CSV/.mat data); see the module docstring for the format.
 
+    A raw .mat file as QUARC/Simulink saved it (no TOML) is read too: its experiment is
+    recognised from its content and names (:mod:`jaxcart.matimport`; ``experiment``, one of
+    :data:`jaxcart.recognition.EXPERIMENTS`, names it instead), the guess and its evidence are
+    printed to stderr, and weak evidence is a UserError that asks the user to name it.
     Relative data paths are relative to the TOML file's folder. Raises :class:`UserError` with a
     one-line message for any problem in the file or its data. With ``check`` (the default) the
     recording is checked for physical sense (:mod:`jaxcart.plausibility`): positions far off
     the track raise a UserError, milder doubts are printed once to stderr and kept in
     ``Recording.warnings``.
     """
+    if str(path).lower().endswith(".mat"):  # a raw scope file: recognised, no TOML
+        from jaxcart.matimport import run_of
+
+        return read_imported(run_of(Path(path), experiment), Path(path), check=check)
+    return _recording(
+        lambda mat_reader: _expfile.read_experiment_data(path, mat_reader=mat_reader), check
+    )
+
+
+def read_imported(run, path=None, *, check: bool = True, quiet: bool = False) -> Recording:
+    """The :class:`Recording` of a run of raw .mat files (a :class:`jaxcart.matimport.Imported`)
+    through the experiment file its recognised (or named) experiment implies, held in memory;
+    ``path`` (default: its first file) names it. The guess and its evidence go to stderr
+    unless ``quiet``. A run that is no recording, or whose evidence is weak, is a UserError
+    (one line; the weak one asks the user to name the experiment)."""
+    import sys
+
+    path = Path(path) if path is not None else run.files[0]
+    if run.problem:
+        raise UserError(run.problem)
+    if not run.usable():
+        how = f"with jaxcart import {path.name} --as PART (or read_experiment(..., experiment=))"
+        raise UserError(run.guess.question(path.name, how))
+    meta = run.meta()
+    if not quiet:
+        print("jaxcart: " + "\njaxcart: ".join(run.lines()), file=sys.stderr)
+    return _recording(lambda mat_reader: _expfile.Reader(path, meta, mat_reader).read(), check)
+
+
+def _recording(load, check: bool) -> Recording:
+    """The :class:`Recording` of ``load(mat_reader)`` (an :class:`hw.expfile.ExperimentData`),
+    checked for physical sense when ``check``."""
     mats: dict = {}  # {file: its loaded variables}, each file loaded once (reader.cache)
 
     def mat_reader(reader, name, variable, field):
@@ -181,7 +217,7 @@ def read_experiment(path, *, check: bool = True) -> Recording:
         return out
 
     try:
-        data = _expfile.read_experiment_data(path, mat_reader=mat_reader)
+        data = load(mat_reader)
     except ExpFileError as exc:
         raise UserError(str(exc)) from None
     mat_layout = {}
@@ -219,88 +255,30 @@ def read_experiment(path, *, check: bool = True) -> Recording:
 
 
 def _read_mat(reader, name, variable, field):
-    """Values and time (or None) of ``name:variable``, a .mat file's variable (scipy.io)."""
+    """Values and time (or None) of ``name:variable``, a .mat file's variable (MATLAB v4-v7
+    with scipy.io, v7.3 with h5py); ``variable[2]`` or ``variable[label]`` picks one signal of
+    a muxed scope (:func:`jaxcart.matfile.parse_variable`)."""
     path = reader.data_path(name, field)
     cache = reader.cache
     if name not in cache:
-        import scipy.io
-
         try:
-            cache[name] = scipy.io.loadmat(path, squeeze_me=True, struct_as_record=False)
-        except NotImplementedError:
-            reader.fail(
-                f"{field}: {name} is a MATLAB v7.3 file; save it with "
-                f"save('{name}', ..., '-v7') so it can be read"
-            )
-        except Exception as exc:  # scipy raises several kinds for a broken file
+            cache[name] = matfile.load_mat(path)
+        except Exception as exc:  # scipy and h5py raise several kinds for a broken file
             reader.fail(f"{field}: cannot read {name} as a .mat file ({_one_line(exc)})")
     mat = cache[name]
+    base, selector = matfile.parse_variable(variable)
     names = [k for k in mat if not k.startswith("__")]
-    if variable not in names:
+    if base not in names:
         reader.fail(
-            f"{field}: variable {variable!r} not in {name} (variables: "
+            f"{field}: variable {base!r} not in {name} (variables: "
             f"{', '.join(names) or 'none'}); map one of them"
         )
-    return _mat_signal(reader, mat[variable], f"{name}:{variable}", field)
-
-
-def _mat_signal(reader, obj, label, field):
-    """Values and time (or None) of one .mat variable in a Simulink scope layout."""
-    from scipy.io.matlab import mat_struct
-
-    time = None
-    if isinstance(obj, mat_struct):
-        names = list(getattr(obj, "_fieldnames", []))
-        if "signals" not in names:
-            reader.fail(
-                f"{field}: {label} is a structure without signals (fields: "
-                f"{', '.join(names)}); save the scope as 'Structure With Time'"
-            )
-        signals = obj.signals
-        if not isinstance(signals, mat_struct):
-            reader.fail(f"{field}: {label} holds several signals; save one signal per variable")
-        values = _numeric(signals.values)
-        if values is None or values.ndim != 1:
-            reader.fail(
-                f"{field}: {label}.signals.values is not one column of numbers "
-                f"(shape {np.shape(signals.values)}); save one signal per variable"
-            )
-        raw_time = _numeric(getattr(obj, "time", None))
-        if raw_time is not None and raw_time.size:
-            time = raw_time.ravel()
-            if time.size != values.size:
-                reader.fail(
-                    f"{field}: {label}.time has {time.size} samples, its values "
-                    f"{values.size}; save the scope again"
-                )
-        return values, time
-    values = _numeric(obj)
-    if values is None:
-        reader.fail(
-            f"{field}: {label} is not numeric (a {type(obj).__name__}); give an N x 2 "
-            f"array [t, value], a vector or a Simulink scope structure"
-        )
-    if values.ndim == 2 and values.shape[1] != 2 and values.shape[0] == 2:
-        values = values.T  # MATLAB's 2 x N row form
-    if values.ndim == 2 and values.shape[1] == 2:
-        return values[:, 1].copy(), values[:, 0].copy()
-    if values.ndim != 1 or values.size < 2:
-        reader.fail(
-            f"{field}: {label} has shape {values.shape}; give an N x 2 array "
-            f"[t, value], a vector or a Simulink scope structure"
-        )
-    return values, time
-
-
-def _numeric(obj):
-    """obj as a 1-D or 2-D float64 array (squeezed), or None if it is not numeric."""
-    if obj is None:
-        return None
-    arr = np.asarray(obj)
-    if arr.dtype.kind not in "biuf":
-        return None
-    arr = np.squeeze(arr.astype(float))
-    return arr.reshape(1) if arr.ndim == 0 else arr
+    try:
+        signals = matfile.scope_signals(mat[base], f"{name}:{base}")
+        chosen = matfile.select_signal(signals, selector, f"{name}:{base}")
+    except matfile.LayoutError as exc:
+        reader.fail(f"{field}: {exc}")
+    return chosen.values, chosen.time
 
 
 def _one_line(exc) -> str:

@@ -66,7 +66,8 @@ def classify(obj) -> str | None:
     from scipy.io.matlab import mat_struct
 
     if isinstance(obj, mat_struct):
-        if not isinstance(getattr(obj, "signals", None), mat_struct):
+        signals = getattr(obj, "signals", None)
+        if not isinstance(signals, mat_struct | np.ndarray):  # one struct or a struct array
             return None
         time = np.asarray(getattr(obj, "time", np.zeros(0)))
         return "structure-with-time" if time.size else "structure"
@@ -97,12 +98,8 @@ def source_layout(recording) -> dict[str, SignalLayout]:
 
     def load(file):
         if file not in cache:
-            import scipy.io
-
             try:
-                cache[file] = scipy.io.loadmat(
-                    folder / file, squeeze_me=True, struct_as_record=False
-                )
+                cache[file] = load_mat(folder / file)
             except (OSError, ValueError, NotImplementedError):
                 cache[file] = {}
         return cache[file]
@@ -122,6 +119,7 @@ def layouts(data, load) -> dict[str, SignalLayout]:
         file, _, variable = str(source).rpartition(":")
         if name == "t" or not file.lower().endswith(".mat"):
             continue
+        variable = parse_variable(variable)[0]  # a muxed scope's signal is written alone
         obj = (load(file) or {}).get(variable)
         layout = classify(obj)
         if layout is None:
@@ -129,7 +127,8 @@ def layouts(data, load) -> dict[str, SignalLayout]:
         block = label = ""
         if layout.startswith("structure"):
             block = _text(getattr(obj, "blockName", ""))
-            label = _text(getattr(obj.signals, "label", ""))
+            first = np.ravel(obj.signals)[0]  # a struct array's first input
+            label = _text(getattr(first, "label", ""))
         out[name] = SignalLayout(layout, variable, block, label)
     return out
 
@@ -416,3 +415,239 @@ def write_mat_report(path, report: dict, *, name: str = "report", force: bool = 
     except OutputError as exc:
         raise UserError(str(exc)) from None
     return path
+
+
+# ---------------------------------------------------------------- reading what scopes save
+
+
+class LayoutError(ValueError):
+    """A .mat variable in no layout the reader takes; the message says what to save instead."""
+
+
+@dataclass(frozen=True, eq=False)
+class ScopeSignal:
+    """One signal of a .mat variable: values, its own time [s] or None, its label ("" when
+    none), its place among the variable's signals (1-based, as MATLAB counts; an array's time
+    column is not counted) and how many signals the variable holds."""
+
+    values: np.ndarray
+    time: np.ndarray | None
+    label: str
+    index: int
+    count: int
+
+
+_SELECTOR = re.compile(r"(?P<name>[^\[\]]+)\[(?P<sel>[^\[\]]+)\]\Z")
+
+
+def parse_variable(variable: str) -> tuple[str, str | None]:
+    """("var", selector or None) of a [data] variable written ``var``, ``var[2]`` (the 2nd
+    signal of a muxed scope, counted from 1 as MATLAB does) or ``var[cart position]`` (the
+    signal with that label)."""
+    match = _SELECTOR.match(variable.strip())
+    if match is None:
+        return variable.strip(), None
+    return match["name"].strip(), match["sel"].strip()
+
+
+def load_mat(path) -> dict:
+    """The variables of a .mat file as ``scipy.io.loadmat(path, squeeze_me=True,
+    struct_as_record=False)`` returns them, MATLAB v7.3 (HDF5) files included: those are read
+    with h5py into the same objects (structs as ``mat_struct``, arrays squeezed and in
+    MATLAB's row-column order, text as str). Raises OSError/ValueError for a broken file."""
+    import scipy.io
+
+    try:
+        return scipy.io.loadmat(path, squeeze_me=True, struct_as_record=False)
+    except NotImplementedError:  # scipy reads v4-v7; v7.3 is HDF5
+        return _load_mat73(path)
+
+
+def _load_mat73(path) -> dict:
+    try:
+        import h5py
+    except ImportError:  # pragma: no cover - a declared dependency
+        raise ValueError("a MATLAB v7.3 file needs h5py (pip install h5py)") from None
+    with h5py.File(path, "r") as f:
+        return {name: _h5_value(f, f[name]) for name in f if not name.startswith("#")}
+
+
+def _h5_class(obj) -> str:
+    cls = obj.attrs.get("MATLAB_class", b"")
+    return cls.decode() if isinstance(cls, bytes) else str(cls)
+
+
+def _h5_value(f, obj):
+    """One HDF5 object of a v7.3 file as scipy's squeezed reader gives it."""
+    import h5py
+    from scipy.io.matlab import mat_struct
+
+    if isinstance(obj, h5py.Group):
+        names = list(obj.keys())
+        order = obj.attrs.get("MATLAB_fields")
+        if order is not None:  # MATLAB's field order (a vlen array of characters per field)
+            names = [b"".join(np.asarray(x).astype("S1")).decode() for x in order]
+        fields = {n: obj[n] for n in names if n in obj}
+        refs = [d for d in fields.values() if _is_refs(d) and _h5_class(d) != "cell"]
+        if refs and len(refs) == len(fields):  # a struct array: each field a list of references
+            count = refs[0].size
+            items = np.empty(count, dtype=object)
+            for i in range(count):
+                items[i] = _struct(
+                    mat_struct, {n: _h5_value(f, f[d[()].ravel()[i]]) for n, d in fields.items()}
+                )
+            return items[0] if count == 1 else items
+        return _struct(mat_struct, {n: _h5_value(f, d) for n, d in fields.items()})
+    cls = _h5_class(obj)
+    data = obj[()]
+    if obj.attrs.get("MATLAB_empty", 0):
+        return np.zeros(0)
+    if cls == "char":
+        return "".join(map(chr, np.asarray(data).T.ravel()))
+    if _is_refs(obj):  # a cell array
+        cells = np.empty(data.size, dtype=object)
+        for i, ref in enumerate(np.asarray(data).T.ravel()):
+            cells[i] = _h5_value(f, f[ref])
+        return cells
+    arr = np.asarray(data).T  # HDF5 holds MATLAB's column-major arrays transposed
+    arr = np.squeeze(arr.astype(bool) if cls == "logical" else arr)
+    return arr[()] if arr.ndim == 0 else arr
+
+
+def _is_refs(obj) -> bool:
+    import h5py
+
+    return isinstance(obj, h5py.Dataset) and obj.dtype == h5py.ref_dtype
+
+
+def _struct(cls, fields: dict):
+    out = cls()
+    out._fieldnames = list(fields)
+    for name, value in fields.items():
+        setattr(out, name, value)
+    return out
+
+
+def scope_signals(obj, where: str) -> list[ScopeSignal]:
+    """Every signal of one .mat variable (``where`` names it in errors): a Simulink scope
+    structure (with or without time; ``signals`` one struct whose ``values`` has one column per
+    signal, a muxed scope, or a struct array, a scope with several inputs), an array
+    ``[t, value, ...]`` (N x 2, or N x k with time first: Simulink's "Array") or a vector.
+    Raises :class:`LayoutError` for anything else."""
+    from scipy.io.matlab import mat_struct
+
+    if isinstance(obj, mat_struct):
+        return _structure_signals(obj, where)
+    values = _numeric(obj)
+    if values is None:
+        raise LayoutError(
+            f"{where} is not numeric (a {type(obj).__name__}); give an N x 2 array "
+            f"[t, value], a vector or a Simulink scope structure"
+        )
+    if values.ndim == 2 and values.shape[1] > values.shape[0]:
+        values = values.T  # MATLAB's row form (2 x N)
+    if values.ndim == 1 and values.size >= 2:
+        return [ScopeSignal(values, None, "", 1, 1)]
+    if values.ndim != 2 or values.shape[0] < 2:
+        raise LayoutError(
+            f"{where} has shape {values.shape}; give an N x 2 array [t, value], a vector or a "
+            f"Simulink scope structure"
+        )
+    k = values.shape[1]
+    time = values[:, 0].copy()
+    if k > 2 and not np.all(np.diff(time) > 0):  # no time column: k signals
+        return [ScopeSignal(values[:, i].copy(), None, "", i + 1, k) for i in range(k)]
+    return [ScopeSignal(values[:, i].copy(), time, "", i, k - 1) for i in range(1, k)]
+
+
+def _structure_signals(obj, where: str) -> list[ScopeSignal]:
+    from scipy.io.matlab import mat_struct
+
+    names = list(getattr(obj, "_fieldnames", []))
+    if "signals" not in names:
+        raise LayoutError(
+            f"{where} is a structure without signals (fields: {', '.join(names)}); save the "
+            f"scope as 'Structure With Time'"
+        )
+    signals = obj.signals
+    parts = [signals] if isinstance(signals, mat_struct) else list(np.ravel(signals))
+    if not parts or not all(isinstance(p, mat_struct) for p in parts):
+        raise LayoutError(f"{where}.signals is not a structure; save the scope again")
+    columns, labels = [], []
+    for i, part in enumerate(parts):
+        values = _numeric(getattr(part, "values", None))
+        if values is None or values.ndim not in (1, 2):
+            raise LayoutError(
+                f"{where}.signals({i + 1}).values is not a column of numbers (shape "
+                f"{np.shape(getattr(part, 'values', None))}); save the scope again"
+            )
+        block = values.reshape(values.shape[0], -1)
+        columns += [block[:, j] for j in range(block.shape[1])]
+        labels += _labels(getattr(part, "label", ""), block.shape[1])
+    raw_time = _numeric(getattr(obj, "time", None))
+    time = raw_time.ravel() if raw_time is not None and raw_time.size else None
+    n = columns[0].size
+    if any(c.size != n for c in columns):
+        raise LayoutError(f"{where}: its signals differ in length; save the scope again")
+    if time is not None and time.size != n:
+        raise LayoutError(
+            f"{where}.time has {time.size} samples, its values {n}; save the scope again"
+        )
+    k = len(columns)
+    return [ScopeSignal(c, time, labels[i], i + 1, k) for i, c in enumerate(columns)]
+
+
+def _labels(label, count: int) -> list[str]:
+    """One label per column: a cell array of them, a string "a,b" split at commas (a muxed
+    line's "<a>,<b>"), or one string for all."""
+    if isinstance(label, np.ndarray) and label.dtype == object:
+        texts = [_text(x) for x in label.ravel()]
+    else:
+        text = _text(label)
+        texts = [p.strip() for p in text.split(",")] if count > 1 else [text]
+    texts = [t.strip().strip("<>").strip() for t in texts]
+    if len(texts) != count:
+        texts = [texts[0] if texts else ""] * count
+    return texts
+
+
+def _numeric(obj):
+    """obj as a squeezed 1-D or 2-D float64 array, or None if it is not numeric."""
+    if obj is None:
+        return None
+    arr = np.asarray(obj)
+    if arr.dtype.kind not in "biuf":
+        return None
+    arr = np.squeeze(arr.astype(float))
+    return arr.reshape(1) if arr.ndim == 0 else arr
+
+
+def select_signal(signals: list[ScopeSignal], selector: str | None, where: str) -> ScopeSignal:
+    """The signal of a variable that ``selector`` names (``None``: the only one; "2": the
+    second, counted from 1; other text: the signal with that label). Raises
+    :class:`LayoutError` naming the choices."""
+    k = len(signals)
+    labels = [s.label for s in signals]
+    listed = ", ".join(f"[{s.index}] {s.label!r}" if s.label else f"[{s.index}]" for s in signals)
+    if selector is None:
+        if k == 1:
+            return signals[0]
+        raise LayoutError(
+            f"{where} holds {k} signals ({listed}); choose one as {where}[1] ... {where}[{k}] "
+            f"(counted from 1, as MATLAB does) or by its label"
+        )
+    if selector.isdigit():
+        i = int(selector)
+        if 1 <= i <= k:
+            return signals[i - 1]
+        raise LayoutError(
+            f"{where}[{selector}]: it holds {k} signal(s) ({listed}); choose 1 ... {k}"
+        )
+    want = selector.strip().strip("<>").strip().casefold()
+    hits = [s for s in signals if s.label.casefold() == want]
+    if len(hits) == 1:
+        return hits[0]
+    raise LayoutError(
+        f"{where}[{selector}]: no single signal labelled so (labels: "
+        f"{', '.join(repr(x) for x in labels) or 'none'}); choose by number, 1 ... {k}"
+    )

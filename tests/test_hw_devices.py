@@ -27,7 +27,7 @@ class HILError(Exception):
         return self.message
 
 
-def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None):
+def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=None):
     """A stand-in for ``quanser.hardware``; ``api.calls`` lists every call (name, args)."""
     calls = []
     cart = cart or SimCart(CartParams(quantization=0.0))
@@ -55,6 +55,8 @@ def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None):
                     return "task-1"
                 if name == "task_start":
                     cart.start(1.0 / args[2])
+                if name == "watchdog_reload":
+                    return expire_at is None or self.reads < expire_at  # False: expired
                 return None
 
             return call
@@ -99,6 +101,7 @@ def test_board_runs_the_loop_like_the_simulated_cart(tmp_path):
         "task_delete",
         "watchdog_stop",
         "watchdog_clear",
+        "write_analog",  # 0 V again: writes fail while an expired watchdog is not cleared
         "close",
     ]
     assert api.calls[names.index("task_stop") - 1] == ("write_analog", [0], 1, [0.0])
@@ -131,6 +134,19 @@ def test_board_errors_stop_with_zero_volts(tmp_path, fail, fail_at, words):
     meta = read_experiment(result.path).meta if result.n_samples >= 2 else None
     if meta:
         assert meta["run"]["fault"] == result.fault
+
+
+def test_an_expired_board_watchdog_stops_the_run(tmp_path):
+    """watchdog_reload() answers False once the board's watchdog expired (it set 0 V itself):
+    the loop stops with that reason, and 0 V is written again once the watchdog is cleared."""
+    api = fake_api(expire_at=300)
+    board = QuanserBoard("q2_usb", "0", api=api)
+    result = run_loop(board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "w.toml")
+    assert result.status == "fault" and "watchdog expired" in result.fault
+    assert result.n_samples == 299
+    names = _names(api)
+    assert names[-3:] == ["watchdog_clear", "write_analog", "close"] and _last_write(api) == 0.0
+    assert read_experiment(result.path).meta["run"]["fault"] == result.fault
 
 
 def test_board_without_watchdog_states_still_runs():

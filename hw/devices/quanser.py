@@ -14,8 +14,11 @@ The board's own clock paces the loop, as in Quanser's examples::
     finally:      write 0 V, task_stop, task_delete, watchdog_stop, watchdog_clear, close
 
 The watchdog sets the analog output to 0 V by itself if the loop stops reloading it (a hung
-process), on boards that support expiration states; on the others that is recorded and the
-loop's own watchdog and ``finally`` remain. Every ``HILError`` becomes a :class:`DeviceError`
+process, a process killed with SIGKILL, a read blocked in the driver), on boards that support
+expiration states; on the others that is recorded and the loop's own watchdog and ``finally``
+remain. ``watchdog_reload()`` answers False once the watchdog has expired: the loop then stops
+with that reason (the board has already set 0 V; ``watchdog_clear`` in stop() re-enables the
+outputs). Every ``HILError`` becomes a :class:`DeviceError`
 with the board's message.
 """
 
@@ -116,10 +119,16 @@ class QuanserBoard:
     def read(self) -> float:
         try:
             self.card.task_read_encoder(self.task, 1, self._counts)  # blocks until the tick
-            if self.watchdog_state.startswith("armed"):
-                self.card.watchdog_reload()
+            expired = self.watchdog_state.startswith("armed") and (
+                self.card.watchdog_reload() is False  # False: it had expired already
+            )
         except self._api.HILError as exc:
             raise self._error("reading the encoder", exc) from None
+        if expired:
+            raise DeviceError(
+                f"{self.board} {self.identifier}: the board's watchdog expired (the loop was "
+                f"more than {self.watchdog:g} s late): the board had set the output to 0 V"
+            )
         return float(self._counts[0]) * self.metres_per_count
 
     def write(self, volts: float) -> None:
@@ -148,6 +157,8 @@ class QuanserBoard:
             steps += [
                 ("watchdog_stop", card.watchdog_stop),
                 ("watchdog_clear", card.watchdog_clear),
+                # Writes fail while the watchdog is expired; cleared, 0 V is written again.
+                ("write 0 V after watchdog_clear", lambda: self.write(0.0)),
             ]
         steps.append(("close", card.close))
         for what, step in steps:

@@ -62,6 +62,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("--out", help="metrics file (.npz); default jaxcart-out/grid.npz, grid-2.npz...")
     p.add_argument("--plot", help="heat-map PNG; default beside --out with the suffix .png")
+    from jaxcart.plots import add_format_option
+
+    add_format_option(p)
     p.add_argument(
         "--float64",
         action="store_true",
@@ -206,16 +209,20 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def output_paths(out, plot, force) -> tuple[Path, Path]:
-    """The .npz and .png paths: given ones (checked not to exist unless ``force``), or the
-    first free jaxcart-out/grid.npz, grid-2.npz, ... with the PNG of the same name."""
+def output_paths(out, plot, force, fmt=None) -> tuple[Path, Path]:
+    """The .npz and figure paths: given ones (checked not to exist unless ``force``), or the
+    first free jaxcart-out/grid.npz, grid-2.npz, ... with the figure of the same name; fmt:
+    the figure's format ("png", the default, "svg" or "pdf")."""
+    from jaxcart.plots import figure_name
+
+    suffix = "." + (fmt or "png")
     if out is None and plot is None:
-        return free_names(DEFAULT_DIR, "grid", (".npz", ".png"))
+        return free_names(DEFAULT_DIR, "grid", (".npz", suffix))
     if out is None:
         out_path = output_paths(None, None, force)[0]
     else:
         out_path = Path(out)
-    plot_path = Path(plot) if plot is not None else out_path.with_suffix(".png")
+    plot_path = figure_name(plot, fmt) if plot is not None else out_path.with_suffix(suffix)
     if out_path == plot_path:
         raise UserError(f"--out and --plot are both {out_path}; give them different names")
     from jaxcart.outputs import check_writable
@@ -298,7 +305,10 @@ def run(args) -> int:
     if settings not in (None, "auto") and settings[2] == 0:
         # Process 0's outputs are checked before it joins: a bad one fails at once instead of
         # leaving the other processes waiting for it in the runtime's barrier.
-        early = (*output_paths(args.out, args.plot, args.force), _json_path(args.json, args.force))
+        early = (
+            *output_paths(args.out, args.plot, args.force, args.format),
+            _json_path(args.json, args.force),
+        )
     distributed = parallel.init_distributed(settings)
 
     import jax
@@ -324,7 +334,7 @@ def run(args) -> int:
     me = parallel.process_index()
     if me == 0:
         out_path, plot_path, json_path = early or (
-            *output_paths(args.out, args.plot, args.force),
+            *output_paths(args.out, args.plot, args.force, args.format),
             _json_path(args.json, args.force),
         )
         folder = out_path.parent

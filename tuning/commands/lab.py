@@ -57,6 +57,9 @@ def register(subparsers) -> None:
         action="store_true",
         help="leave out the section that diagnoses each recording (most of the run time)",
     )
+    from jaxcart.plots import add_format_option
+
+    add_format_option(p)
     p.set_defaults(func=run)
 
 
@@ -72,7 +75,14 @@ def run(args) -> int:
 
         plant = load_plant(args.plant)
     with _terminate_as_interrupt():  # a killed job removes its half-written report too
-        run_lab(args.data, args.out, force=args.force, plant=plant, diagnosis=not args.no_diagnosis)
+        run_lab(
+            args.data,
+            args.out,
+            force=args.force,
+            plant=plant,
+            diagnosis=not args.no_diagnosis,
+            fmt=args.format or "png",
+        )
     return 0
 
 

@@ -1,19 +1,20 @@
-"""What every section of the lab report shares: the output folder, the document, the numbers
-found so far (with units, where they came from and, for synthetic data, the truth) and the
-best-known model of the cart that later parts simulate with.
+"""What the lab report's rendering shares: the report being written (:class:`Lab`: its folder,
+document, figure format and progress line), the numbers of the summary (:class:`Value`) and how
+numbers are written (:func:`fmt`, :func:`mm`).
+
+Nothing computed travels through :class:`Lab`: each part is a function of its inputs that
+returns a frozen result (:mod:`tuning.lab.part_i` ... :mod:`tuning.lab.part_v`); the report
+(:mod:`tuning.lab.report`) hands results to the parts that need them and renders each.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from jaxcart.params import Plant
-from jaxcart.plantspec import build_plant, with_values
 from tuning.lab.html import Document
 from tuning.lab.inputs import Inputs
 
@@ -21,31 +22,45 @@ from tuning.lab.inputs import Inputs
 HANDOUT_B_EQ = 5.4
 #: Amplifier saturation of the lab [V].
 V_SAT = 6.0
+#: Figure formats the report can write (matplotlib's writers for them).
+FIGURE_FORMATS = ("png", "svg", "pdf")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Value:
-    """One number of the report: value [unit], what it is, which part found it, and the
-    true value when the data are synthetic (None otherwise)."""
+    """One number of the report's summary: value [unit], what it is, which part found it, and
+    the key of its true value among the synthetic data's parameters (None: no truth)."""
 
     key: str
     value: float | None
     unit: str
     label: str
     part: str
-    true: float | None = None
+    true_key: str | None = None
 
-    def as_json(self) -> dict:
+    def true(self, synthetic: dict | None) -> float | None:
+        """The true value [unit] when the data are synthetic and know it, else None."""
+        if synthetic is None or self.true_key is None or self.true_key not in synthetic:
+            return None
+        return float(synthetic[self.true_key])
+
+    def as_json(self, synthetic: dict | None = None) -> dict:
         out = {
             "value": _plain(self.value),
             "unit": self.unit,
             "label": self.label,
             "part": self.part,
         }
-        if self.true is not None:
-            out["true"] = self.true
-            out["relative_error"] = _plain(relative_error(self.value, self.true))
+        true = self.true(synthetic)
+        if true is not None:
+            out["true"] = true
+            out["relative_error"] = _plain(relative_error(self.value, true))
         return out
+
+
+def value(key, x, unit, label, part, *, true_key=None) -> Value:
+    """A :class:`Value` with ``x`` as a float (None stays None)."""
+    return Value(key, None if x is None else float(x), unit, label, part, true_key)
 
 
 def relative_error(value, true):
@@ -63,78 +78,40 @@ def _plain(x):
 
 @dataclass
 class Lab:
-    """The state of one report being written.
+    """The report being written (rendering only; no part reads what another left here).
 
-    out: the report folder; inputs: the recordings found; doc: the report; values: every number
-    (key -> :class:`Value`) in the order found; results: the results.json document by part;
-    B_eq [kg/s], f_c [N]: the best-known model, with where each came from.
+    out: the report folder; inputs: the recordings found; doc: the report; fmt: the figures'
+    format ("png", "svg" or "pdf"); diagnosis: whether the report has the diagnosis section;
+    results: the results.json document, assembled by the report; gains: the PID written to
+    gains.json (with ``gains_metrics``), or None; figures: every figure written, relative paths.
     """
 
     out: Path
     inputs: Inputs
     doc: Document
     stream: object = None
-    values: dict = field(default_factory=dict)
-    results: dict = field(default_factory=dict)
-    B_eq: float = HANDOUT_B_EQ
-    B_eq_source: str = "the handout's estimate"
-    B_eq_stderr: float | None = None  # [kg/s], when B_eq was fitted
-    f_c: float = 0.0
-    f_c_source: str = "none yet (the handout's model)"
-    tuned: object = None  # tuning.design.tune.TuneResult of the pre-lab
-    base: Plant | None = None  # the --plant model (its effects carry through), or None
     started: float = field(default_factory=time.perf_counter)
+    fmt: str = "png"
+    diagnosis: bool = True
+    results: dict = field(default_factory=dict)
+    gains: object = None
+    gains_metrics: dict = field(default_factory=dict)
     figures: list = field(default_factory=list)
-    diagnosis: bool = True  # the report has the diagnosis section
-
-    # -------------------------------------------------------------- progress
 
     def say(self, text: str) -> None:
         """A progress line on stderr with the elapsed time."""
         stream = self.stream if self.stream is not None else sys.stderr
         print(f"lab [{time.perf_counter() - self.started:6.1f} s] {text}", file=stream, flush=True)
 
-    # -------------------------------------------------------------- numbers
-
-    def value(self, key, value, unit, label, part, *, true_key=None) -> float | None:
-        """Record a number for the summary and results.json; returns it."""
-        true = None
-        synthetic = self.inputs.synthetic
-        if synthetic is not None and true_key is not None and true_key in synthetic:
-            true = float(synthetic[true_key])
-        self.values[key] = Value(
-            key, None if value is None else float(value), unit, label, part, true
-        )
-        return value
-
-    # -------------------------------------------------------------- figures
-
-    def figure_path(self, name: str) -> tuple[Path, str]:
-        """(absolute path, path relative to the report) of figure ``name``.png."""
-        rel = f"figures/{name}.png"
+    def figure_path(self, name: str) -> tuple:
+        """(where to save, path relative to the report) of figure ``name`` in the format.
+        Where to save is one path, or for PDF two: the PDF and the PNG that report.html
+        embeds (a browser shows no PDF inside a page)."""
+        rel = f"figures/{name}.{self.fmt}"
         self.figures.append(rel)
+        if self.fmt == "pdf":
+            return (self.out / rel, self.out / f"figures/{name}.png"), rel
         return self.out / rel, rel
-
-    # -------------------------------------------------------------- the model
-
-    def plant(self, *, saturation: bool = True, coulomb: bool = True, **overrides) -> Plant:
-        """The best-known cart (motor connected): appendix values, B_eq and f_c found so far,
-        and the lab's 6 V limit as an amplifier saturation (the handout's Simulink block, so
-        that recordings whose files name no software limit are simulated as they ran);
-        without the effects the flags turn off. Built by :func:`jaxcart.build_plant`."""
-        values = {"B_eq": self.B_eq}
-        if saturation and (self.base is None or self.base.effect("saturation") is None):
-            values["v_sat"] = V_SAT
-        if coulomb and self.f_c > 0:
-            values["f_c"] = self.f_c
-        if self.base is not None:
-            plant = self.base
-            if not coulomb and plant.effect("coulomb") is not None:
-                plant = dataclasses.replace(
-                    plant, effects=tuple(e for e in plant.effects if type(e).name != "coulomb")
-                )
-            return with_values(plant, {**values, **overrides}, where="the lab's plant")
-        return build_plant({**values, **overrides}, where="the lab's plant")
 
     def recording(self, slot):
         return self.inputs.recordings.get(slot)
@@ -161,3 +138,16 @@ def fmt(x, digits: int = 4) -> str:
 def mm(x, digits: int = 3) -> str:
     """A length [m] written in mm."""
     return "n/a" if x is None else f"{fmt(float(x) * 1e3, digits)} mm"
+
+
+def check_format(fmt_name: str) -> str:
+    """``fmt_name`` lower-cased if it is one of :data:`FIGURE_FORMATS`; else a one-line error."""
+    from jaxcart.errors import UserError
+
+    name = str(fmt_name).lower().lstrip(".")
+    if name not in FIGURE_FORMATS:
+        raise UserError(
+            f"--format {fmt_name}: not a figure format the report writes; use one of "
+            f"{', '.join(FIGURE_FORMATS)}"
+        )
+    return name

@@ -5,7 +5,6 @@ minutes)."""
 
 from __future__ import annotations
 
-from tuning.lab.context import Lab
 from tuning.lab.inputs import SLOTS
 
 #: What each slot's recording is, for the table.
@@ -19,14 +18,30 @@ PARTS = {
 }
 
 
-def section(lab: Lab) -> None:
-    """Diagnose every recording of the lab and write the section (results under "diagnosis")."""
+def compute(recordings: dict, *, say=lambda text: None) -> dict:
+    """Each recording diagnosed on its own: slot -> :class:`tuning.estimation.diagnose.Diagnosis`
+    in the order of :data:`SLOTS`; ``recordings``: slot -> recording (or None)."""
     from tuning.estimation.diagnose import diagnose
 
+    found = {}
+    for slot in SLOTS:
+        rec = recordings.get(slot)
+        if rec:
+            say(f"diagnosis: {PARTS[slot]} ({rec.path.name})")
+            found[slot] = diagnose([rec], progress=False)
+    return found
+
+
+def as_json(found: dict) -> dict:
+    return {slot: d.to_json() for slot, d in found.items()}
+
+
+def render(lab, found: dict, agreement=None) -> None:
+    """The diagnosis section from :func:`compute`'s results; ``agreement``: Part (ii)'s
+    :class:`tuning.lab.part_ii.Agreement` of the tap's and the step's B_eq (or None)."""
     doc = lab.doc
     doc.heading("Diagnosis: what the model leaves out")
-    recordings = [(slot, lab.recording(slot)) for slot in SLOTS if lab.recording(slot)]
-    if not recordings:
+    if not found:
         doc.paragraph("No recordings were given, so there is nothing to diagnose.")
         return
     doc.paragraph(
@@ -42,40 +57,37 @@ def section(lab: Lab) -> None:
         "is the handout's own example of "
         "left-out physics: the ±6 V saturation, which the linear model (0.1) has not."
     )
-    rows, results = [], {}
-    for slot, rec in recordings:
-        lab.say(f"diagnosis: {PARTS[slot]} ({rec.path.name})")
-        d = diagnose([rec], progress=False)
-        results[slot] = d.to_json()
-        rows.append(_row(PARTS[slot], rec.path.name, d))
-    lab.results["diagnosis"] = results
+    rows = [_row(PARTS[slot], lab.recording(slot).path.name, d) for slot, d in found.items()]
     doc.table(
         ["part", "recording", "left out", "RMS before [mm]", "RMS after [mm]", "fitted"],
         rows,
         numeric=[False, False, False, True, True, False],
     )
-    b_eq = {k: v["parameters"].get("B_eq", {}).get("value") for k, v in results.items()}
+    b_eq = {k: d.parameters.get("B_eq", {}).get("value") for k, d in found.items()}
     b_eq = {k: v for k, v in b_eq.items() if v is not None}
     if len(b_eq) > 1:
-        spread = max(b_eq.values()) - min(b_eq.values())
-        agreement = lab.results.get("part_ii", {}).get("B_eq_agreement")
-        before = ""
-        if agreement:
-            before = (
-                f"With the handout's model (viscous and Coulomb friction only) Part (i) found "
-                f"B_eq = {agreement['B_eq_tap']:.4g} kg/s from the tap and Part (ii) "
-                f"{agreement['B_eq_step']:.4g} kg/s from the P 50 step. "
-            )
-        doc.paragraph(
-            before + "B_eq is one cart's viscous friction, so a sound diagnosis gives the same "
-            f"value from every recording: with the effects it found it ranges over "
-            f"{spread:.3g} kg/s ("
-            + ", ".join(f"{PARTS.get(k, k)}: {v:.3g}" for k, v in b_eq.items())
-            + "). Where it still differs, or where no structure reaches the encoder floor, "
-            "physics outside the library is at work. `jaxcart diagnose` on the files gives "
-            "the windows, the residual tests and a figure for each, and diagnoses several "
-            "files jointly (one plant, every file's controller)."
+        doc.paragraph(_b_eq_spread(b_eq, agreement))
+
+
+def _b_eq_spread(b_eq: dict, agreement) -> str:
+    spread = max(b_eq.values()) - min(b_eq.values())
+    before = ""
+    if agreement is not None:
+        before = (
+            f"With the handout's model (viscous and Coulomb friction only) Part (i) found "
+            f"B_eq = {agreement.B_eq_tap:.4g} kg/s from the tap and Part (ii) "
+            f"{agreement.B_eq_step:.4g} kg/s from the P 50 step. "
         )
+    return (
+        before + "B_eq is one cart's viscous friction, so a sound diagnosis gives the same "
+        f"value from every recording: with the effects it found it ranges over "
+        f"{spread:.3g} kg/s ("
+        + ", ".join(f"{PARTS.get(k, k)}: {v:.3g}" for k, v in b_eq.items())
+        + "). Where it still differs, or where no structure reaches the encoder floor, "
+        "physics outside the library is at work. `jaxcart diagnose` on the files gives "
+        "the windows, the residual tests and a figure for each, and diagnoses several "
+        "files jointly (one plant, every file's controller)."
+    )
 
 
 def _row(part, name, d) -> list:

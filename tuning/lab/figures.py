@@ -1,7 +1,10 @@
-"""The lab report's figures: one PNG per handout item, axes labelled with units, the
-experiment drawn solid black and each simulation with its own line style, all in the legend.
+"""The lab report's figures: one per handout item, axes labelled with units, the experiment
+drawn as a wide light-grey line beneath the models (a model that matches shows as a coloured
+line inside the grey band; no markers to hide it), each simulation with its own colour and
+dashes, one legend below the axes.
 
-Each function draws, saves ``path`` (PNG) and closes its figure.
+Each function draws, saves ``path`` (its suffix sets the format, PNG, SVG or PDF; several paths
+write one file each, :func:`jaxcart.plots.save`) and closes its figure.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 DPI = 110
-SIZE = (7.5, 4.2)
+SIZE = (7.5, 5.0)
 #: Line styles of the simulations, in the order they are given (the experiment is solid black).
 STYLES = (
     {"color": "tab:blue", "linestyle": "--"},
@@ -19,14 +22,12 @@ STYLES = (
     {"color": "tab:green", "linestyle": ":"},
     {"color": "tab:purple", "linestyle": (0, (5, 2, 1, 2, 1, 2))},
 )
-#: The experiment's style, as in jaxcart.plots: solid black with open markers.
+#: The experiment's style, as in jaxcart.plots: wide, light grey, beneath the models.
 EXPERIMENT = {
-    "color": "black",
+    "color": "0.62",
     "linestyle": "-",
-    "linewidth": 1.0,
-    "marker": "o",
-    "markersize": 3.5,
-    "fillstyle": "none",
+    "linewidth": 3.2,
+    "solid_capstyle": "butt",
     "zorder": 2,
 }
 
@@ -55,25 +56,33 @@ def _draw(ax, traces):
     k = 0
     for trace in traces:
         if trace.measured:
-            style = {**EXPERIMENT, "markevery": max(1, np.size(trace.time) // 40)}
+            style = EXPERIMENT
         else:
             style = {"linewidth": 1.6, "zorder": 3, **STYLES[k % len(STYLES)]}
             k += 1
         ax.plot(np.asarray(trace.time), np.asarray(trace.values), label=trace.label, **style)
 
 
-def _save(fig, path):
-    fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
+def _save(fig, path, axes=None):
+    """Save (the legend of ``axes`` below them, if given) and close."""
+    from jaxcart.plots import figure_legend, save
+
+    if axes is not None:
+        figure_legend(fig, axes, ncols=1 if len(axes) == 1 else 2, fontsize=8.5)
+    out = save(fig, path, dpi=DPI)
     _pyplot().close(fig)
-    return path
+    return out
 
 
-def time_plot(path, traces, *, ylabel, title, hlines=(), xlim=None, ylim=None, legend="best"):
-    """Signals against time on one axis. ``hlines``: (value, label, style dict) references."""
+def time_plot(path, traces, *, ylabel, title, hlines=(), xlim=None, ylim=None, zoom=None):
+    """Signals against time on one axis. ``hlines``: (value, label, style dict) references.
+    zoom: (t0 [s], title) for an inset, upper right, of the traces from t0 on (where the
+    answer, a final error of millimetres, is small beside the start)."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=SIZE)
+    fig, ax = plt.subplots(figsize=SIZE, layout="constrained")
     _draw(ax, traces)
+    if zoom is not None:
+        _inset(ax, traces, hlines, *zoom)
     for value, label, style in hlines:
         ax.axhline(value, label=label, **{"color": "0.45", "linewidth": 1.0, **style})
     ax.set_xlabel("time t [s]")
@@ -84,8 +93,26 @@ def time_plot(path, traces, *, ylabel, title, hlines=(), xlim=None, ylim=None, l
     if ylim is not None:
         ax.set_ylim(*ylim)
     ax.grid(True, alpha=0.3)
-    ax.legend(loc=legend, fontsize=8.5)
-    return _save(fig, path)
+    return _save(fig, path, [ax])
+
+
+def _inset(ax, traces, hlines, t0: float, title: str) -> None:
+    inset = ax.inset_axes((0.5, 0.5, 0.47, 0.4))
+    _draw(inset, traces)
+    low, high = np.inf, -np.inf
+    for trace in traces:
+        t, v = np.asarray(trace.time), np.asarray(trace.values)
+        if np.any(t >= t0):
+            low, high = min(low, v[t >= t0].min()), max(high, v[t >= t0].max())
+    for value, _, style in hlines:
+        inset.axhline(value, **{"color": "0.45", "linewidth": 1.0, **style})
+    if np.isfinite(low):
+        pad = max(0.15 * (high - low), 0.05 * max(abs(low), abs(high)), 0.05)
+        inset.set_ylim(low - pad, high + pad)
+    inset.set_xlim(t0, max(float(np.asarray(tr.time)[-1]) for tr in traces))
+    inset.set_title(title, fontsize="x-small")
+    inset.tick_params(labelsize="x-small")
+    inset.grid(True, alpha=0.3)
 
 
 def two_panel(
@@ -102,7 +129,7 @@ def two_panel(
 ):
     """Two signals against the same time axis (e.g. position above, voltage below)."""
     plt = _pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7.5, 6.2), sharex=True)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7.5, 6.2), sharex=True, layout="constrained")
     for ax, traces, lines, label in (
         (ax1, top, top_hlines, top_ylabel),
         (ax2, bottom, bottom_hlines, bottom_ylabel),
@@ -112,12 +139,11 @@ def two_panel(
             ax.axhline(value, label=text, **{"color": "0.45", "linewidth": 1.0, **style})
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
-        ax.legend(loc="best", fontsize=8.5)
     ax2.set_xlabel("time t [s]")
     if xlim is not None:
         ax2.set_xlim(*xlim)
     ax1.set_title(title)
-    return _save(fig, path)
+    return _save(fig, path, [ax1, ax2])
 
 
 def root_locus(path, rldata, *, ki_bound, omega, title):
@@ -125,7 +151,7 @@ def root_locus(path, rldata, *, ki_bound, omega, title):
     import control
 
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.0, 5.6))
+    fig, ax = plt.subplots(figsize=(7.0, 5.6), layout="constrained")
     cplt = control.root_locus_plot(rldata, ax=ax, legend_loc=False)
     poles_line, _, loci = cplt.lines[0]
     for line in poles_line:

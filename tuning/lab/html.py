@@ -1,5 +1,6 @@
 """The report as a list of blocks, rendered twice: Markdown (report.md, figures linked) and
-self-contained HTML (report.html, figures embedded as base64 PNG).
+self-contained HTML (report.html, figures embedded as base64 PNG or SVG; a PDF figure by its
+PNG copy).
 
 Building blocks rather than parsing Markdown keeps both renderings exact. Inline text may use
 `code` and **bold**; everything else is escaped in the HTML.
@@ -119,10 +120,10 @@ class Document:
                 body.append(f"<table><tr>{head}</tr>{''.join(lines)}</table>")
             elif kind == "figure":
                 _, path, caption = block
-                data = base64.b64encode((root / path).read_bytes()).decode("ascii")
+                mime, data = _embedded(root / path)
                 body.append(
                     f'<figure><img alt="{html.escape(caption)}" '
-                    f'src="data:image/png;base64,{data}">'
+                    f'src="data:{mime};base64,{data}">'
                     f"<figcaption>{_inline(caption)}</figcaption></figure>"
                 )
         return (
@@ -131,6 +132,18 @@ class Document:
             + "\n".join(body)
             + "\n</body></html>\n"
         )
+
+
+#: What an <img> can show, by suffix; a PDF figure is shown by its PNG copy beside it.
+_MIME = {".png": "image/png", ".svg": "image/svg+xml"}
+
+
+def _embedded(path: Path) -> tuple[str, str]:
+    """(MIME type, base64 data) of a figure for the page: PNG and SVG as they are, a PDF by
+    the PNG of the same name."""
+    if path.suffix.lower() not in _MIME:
+        path = path.with_suffix(".png")
+    return _MIME[path.suffix.lower()], base64.b64encode(path.read_bytes()).decode("ascii")
 
 
 def _inline(text: str) -> str:

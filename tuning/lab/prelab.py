@@ -20,12 +20,14 @@ crossing numerically from python-control's closed-loop poles, independently of t
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import brentq
 
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.params import Plant
+from tuning.lab.context import value
 
 
 def appendix(plant: Plant | None = None) -> dict:
@@ -92,7 +94,7 @@ def locus_data(m, c, gamma, k, ki_max):
     return control.root_locus_map(open_loop(m, c, gamma, k), gains=gains)
 
 
-# ---------------------------------------------------------------- the report's section
+# ---------------------------------------------------------------- the PI bound as a result
 
 #: The handout's P gain for the PI analysis [V/m] and its B_eq estimate [kg/s].
 K_PI = 10.0
@@ -101,53 +103,100 @@ B_EQ_HANDOUT = 5.4
 TUNE_OPTIONS = {"max_iterations": 60, "n_starts": 4}
 
 
-def routh_and_locus(lab, m, c, gamma, k, *, name, part, title, key):
-    """Routh bound and root-locus crossing of the PI loop; figure ``name``; returns the bound."""
+@dataclass(frozen=True)
+class KiBound:
+    """The largest stable k_i of the PI loop on m s³ + c s² + γ k s + γ k_i, two ways.
+
+    m [kg], c [kg/s], gamma [N/V], k [V/m]; ki_routh, ki_locus [V/(m s)]; omega [rad/s]: the
+    imaginary-axis crossing; relative: |ki_locus - ki_routh| / ki_routh; poles [1/s]: the
+    closed-loop poles at the Routh bound; locus: python-control's root-locus map (figure).
+    """
+
+    m: float
+    c: float
+    gamma: float
+    k: float
+    ki_routh: float
+    ki_locus: float
+    omega: float
+    relative: float
+    poles: tuple
+    locus: object = field(repr=False, compare=False)
+
+    def as_json(self) -> dict:
+        return {
+            "k": self.k,
+            "m": self.m,
+            "c": self.c,
+            "gamma": self.gamma,
+            "ki_max_routh": self.ki_routh,
+            "ki_max_locus": self.ki_locus,
+            "crossing_omega": self.omega,
+            "relative_difference": self.relative,
+            "poles_at_bound": [[p.real, p.imag] for p in map(clean_pole, self.poles)],
+        }
+
+    def values(self, key: str, part: str) -> list:
+        return [
+            value(
+                f"{key}_routh",
+                self.ki_routh,
+                "V/(m s)",
+                f"largest stable k_i, Routh ({part})",
+                part,
+            ),
+            value(
+                f"{key}_locus",
+                self.ki_locus,
+                "V/(m s)",
+                f"largest stable k_i, root-locus crossing ({part})",
+                part,
+            ),
+        ]
+
+
+def ki_bound(m: float, c: float, gamma: float, k: float) -> KiBound:
+    """The Routh bound and the root-locus crossing of the PI loop (see :class:`KiBound`)."""
     ki_routh = ki_bound_routh(m, c, k)
     ki_locus, omega = ki_bound_locus(m, c, gamma, k)
     poles = closed_loop_poles(m, c, gamma, k, ki_routh)
-    rel = abs(ki_locus - ki_routh) / ki_routh
-    path, rel_path = lab.figure_path(name)
+    return KiBound(
+        m,
+        c,
+        gamma,
+        k,
+        ki_routh,
+        ki_locus,
+        omega,
+        abs(ki_locus - ki_routh) / ki_routh,
+        tuple(complex(p) for p in poles),
+        locus_data(m, c, gamma, k, ki_routh),
+    )
+
+
+def render_ki_bound(lab, bound: KiBound, *, name: str, title: str) -> None:
+    """The bound's paragraph and root-locus figure ``name``."""
     from tuning.lab import figures
 
-    figures.root_locus(
-        path, locus_data(m, c, gamma, k, ki_routh), ki_bound=ki_locus, omega=omega, title=title
-    )
-    lab.value(f"{key}_routh", ki_routh, "V/(m s)", f"largest stable k_i, Routh ({part})", part)
-    lab.value(
-        f"{key}_locus",
-        ki_locus,
-        "V/(m s)",
-        f"largest stable k_i, root-locus crossing ({part})",
-        part,
-    )
-    pole_text = ", ".join(_pole(p) for p in sorted(poles, key=lambda p: (p.real, p.imag)))
+    m, c, gamma, k = bound.m, bound.c, bound.gamma, bound.k
+    path, rel_path = lab.figure_path(name)
+    figures.root_locus(path, bound.locus, ki_bound=bound.ki_locus, omega=bound.omega, title=title)
+    pole_text = ", ".join(_pole(p) for p in sorted(bound.poles, key=lambda p: (p.real, p.imag)))
     lab.doc.paragraph(
         f"Characteristic polynomial m s³ + c s² + γ k s + γ k_i with m = {m:.4f} kg, "
         f"c = {c:.4f} kg/s, γ = {gamma:.4f} N/V, k = {k:g} V/m. Routh's first column "
         f"(m, c, γ (c k − m k_i)/c, γ k_i) stays positive for 0 < k_i < c k / m = "
-        f"**{ki_routh:.4f} V/(m s)**. The root locus of H(s) = γ / (m s³ + c s² + γ k s) "
-        f"(python-control) crosses the imaginary axis at k_i = {ki_locus:.4f} V/(m s), "
-        f"s = ±j {omega:.4f} rad/s (found by bisection on the closed-loop poles; relative "
-        f"difference from Routh {rel:.1e}; √(γ k / m) = {math.sqrt(gamma * k / m):.4f} rad/s). "
-        f"Closed-loop poles at the bound: {pole_text}."
+        f"**{bound.ki_routh:.4f} V/(m s)**. The root locus of H(s) = γ / (m s³ + c s² + γ k s) "
+        f"(python-control) crosses the imaginary axis at k_i = {bound.ki_locus:.4f} V/(m s), "
+        f"s = ±j {bound.omega:.4f} rad/s (found by bisection on the closed-loop poles; relative "
+        f"difference from Routh {bound.relative:.1e}; √(γ k / m) = "
+        f"{math.sqrt(gamma * k / m):.4f} rad/s). Closed-loop poles at the bound: {pole_text}."
     )
     lab.doc.figure(
         rel_path,
         f"Root locus of H(s) with gain k_i (k = {k:g} V/m, c = {c:.3f} "
         f"kg/s); the imaginary-axis crossing is marked.",
     )
-    return {
-        "k": k,
-        "m": m,
-        "c": c,
-        "gamma": gamma,
-        "ki_max_routh": ki_routh,
-        "ki_max_locus": ki_locus,
-        "crossing_omega": omega,
-        "relative_difference": rel,
-        "poles_at_bound": [[p.real, p.imag] for p in map(clean_pole, poles)],
-    }
 
 
 def clean_pole(p, rel: float = 1e-9) -> complex:
@@ -173,17 +222,99 @@ def gains_on_bounds(result) -> dict:
     return {n: (str(v[0]), float(v[1])) for n, v in (result.on_bound or {}).items()}
 
 
-def section(lab) -> None:
-    """The pre-lab: appendix constants, the PI bound on k_i, the tuned PID design."""
+# ---------------------------------------------------------------- the pre-lab: compute
+
+
+@dataclass(frozen=True)
+class Prelab:
+    """The pre-lab's answers: the appendix constants (:func:`appendix`), the PI bound on the
+    handout's model, and the PID tuned on it with its exact step response (0.5 m, 3 s) and
+    metrics; ``tuned``: the :class:`tuning.design.tune.TuneResult`."""
+
+    appendix: dict
+    bound: KiBound
+    tuned: object
+    response: object = field(repr=False)
+    info: object = None
+
+    @property
+    def gains(self):
+        """The tuned PID (:class:`jaxcart.PID`)."""
+        return self.tuned.gains
+
+    @property
+    def on_bounds(self) -> dict:
+        return gains_on_bounds(self.tuned)
+
+
+def compute(*, say=lambda text: None) -> Prelab:
+    """The pre-lab on the handout's model: constants, the k_i bound at k = 10 V/m, a tuned PID."""
     import jaxcart as jc
     from jaxcart.exact import simulate_exact, step_info_exact
-    from jaxcart.plots import Run, plot_runs, reference_run
     from tuning.design.tune import tune
 
-    doc = lab.doc
-    lab.say("pre-lab: appendix constants, Routh bound and root locus")
-    doc.heading("Pre-lab")
+    say("pre-lab: appendix constants, Routh bound and root locus")
     a = appendix(jc.Plant())
+    bound = ki_bound(a["m"], B_EQ_HANDOUT + a["B_emf"], a["gamma"], K_PI)
+    say("pre-lab: tuning the PID on the handout's model (jaxcart tune, 60 iterations, 4 starts)")
+    plant = jc.handout_plant()
+    res = tune(plant, progress=False, **TUNE_OPTIONS)
+    exp = jc.step(0.5, horizon=3.0)
+    info = step_info_exact(plant, res.gains, exp)
+    result = Prelab(a, bound, res, simulate_exact(plant, res.gains, exp), info)
+    g = res.gains
+    say(
+        f"pre-lab: tuned kp = {g.kp:.4g}, kd = {g.kd:.4g}, ki = {g.ki:.4g}: settling "
+        f"{info.settling_time:.3f} s, overshoot {info.overshoot:.2f} %"
+    )
+    return result
+
+
+def values(p: Prelab) -> list:
+    a, g, info = p.appendix, p.gains, p.info
+    out = [
+        value("gamma", a["gamma"], "N/V", "γ, force per volt (appendix)", "pre-lab"),
+        value("m", a["m"], "kg", "m = M + M_J (appendix)", "pre-lab"),
+        value("B_emf", a["B_emf"], "kg/s", "B_emf, back-EMF damping (appendix)", "pre-lab"),
+        *p.bound.values("ki_max_prelab", "pre-lab"),
+    ]
+    out += [
+        value(f"pid_{n}", float(getattr(g, n)), u, f"tuned PID {n}", "pre-lab")
+        for n, u in (("kp", "V/m"), ("kd", "V s/m"), ("ki", "V/(m s)"))
+    ]
+    for name, unit, what in (
+        ("rise_time", "s", "rise time"),
+        ("overshoot", "%", "overshoot"),
+        ("settling_time", "s", "settling time"),
+        ("steady_state_error", "m", "steady-state error"),
+    ):
+        label = f"tuned PID {what} (handout model)"
+        out.append(value(f"pid_{name}", getattr(info, name), unit, label, "pre-lab"))
+    return out
+
+
+def as_json(p: Prelab) -> dict:
+    return {
+        "appendix": p.appendix,
+        "pi_bound": p.bound.as_json(),
+        "pid": {
+            "gains": p.gains.to_dict(),
+            "metrics": p.info.as_dict(),
+            "meets": p.info.meets(),
+            "tune_seconds": p.tuned.seconds,
+            "tune_message": p.tuned.message,
+            "on_bounds": {n: {"side": s, "bound": b} for n, (s, b) in p.on_bounds.items()},
+        },
+    }
+
+
+# ---------------------------------------------------------------- the pre-lab: render
+
+
+def render(lab, p: Prelab) -> None:
+    """The pre-lab's section of the report."""
+    doc, a = lab.doc, p.appendix
+    doc.heading("Pre-lab")
     doc.paragraph(
         "Constants from the appendix (Rm = 2.6 Ω, Kt = Km = 0.00767, Jm = 3.9e-7 kg m², "
         "Kg = 3.71, r_mp = 6.35 mm, η = 1, M = Mc + Mw = 0.57 + 0.37 kg):"
@@ -198,35 +329,21 @@ def section(lab) -> None:
         ],
         numeric=[False, False, True, False],
     )
-    lab.value("gamma", a["gamma"], "N/V", "γ, force per volt (appendix)", "pre-lab")
-    lab.value("m", a["m"], "kg", "m = M + M_J (appendix)", "pre-lab")
-    lab.value("B_emf", a["B_emf"], "kg/s", "B_emf, back-EMF damping (appendix)", "pre-lab")
-
     doc.heading("Largest stable k_i (k = 10 V/m, B_eq = 5.4 kg/s)", 3)
-    c = B_EQ_HANDOUT + a["B_emf"]
-    bound = routh_and_locus(
+    render_ki_bound(
         lab,
-        a["m"],
-        c,
-        a["gamma"],
-        K_PI,
+        p.bound,
         name="prelab_root_locus",
-        part="pre-lab",
         title="Pre-lab: root locus of γ/(m s³ + c s² + γ k s), k = 10 V/m, B_eq = 5.4 kg/s",
-        key="ki_max_prelab",
     )
-
     doc.heading("PID design (jaxcart tune)", 3)
-    lab.say(
-        "pre-lab: tuning the PID on the handout's model (jaxcart tune, 60 iterations, 4 starts)"
-    )
-    plant = jc.handout_plant()
-    res = tune(plant, progress=False, **TUNE_OPTIONS)
-    lab.tuned = res
-    g = res.gains
-    exp = jc.step(0.5, horizon=3.0)
-    info = step_info_exact(plant, g, exp)
-    response = simulate_exact(plant, g, exp)
+    _render_design(lab, p)
+
+
+def _render_design(lab, p: Prelab) -> None:
+    from jaxcart.plots import Run, plot_runs, reference_run
+
+    doc, g, res, info, response = lab.doc, p.gains, p.tuned, p.info, p.response
     path, rel = lab.figure_path("prelab_pid_step")
     plot_runs(
         [
@@ -243,6 +360,7 @@ def section(lab) -> None:
         path=path,
         v_limit=6.0,
         band=SETTLING_BAND,
+        zoom=True,
     )
     message = res.message.strip().rstrip(".")
     message = message[:1].upper() + message[1:]
@@ -255,26 +373,8 @@ def section(lab) -> None:
         f"ki = 5) found the gains below in {res.seconds:.1f} s; the metrics are those of the "
         f"exact simulator (hard clip, 1 ms digital loop). {message}."
     )
-    on_bounds = gains_on_bounds(res)
-    if on_bounds:
-        units = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)", "tau": "s"}
-        listed = ", ".join(
-            f"{n} = {float(getattr(g, n)):.4g} {units.get(n, '')} on its {side} bound "
-            f"({b:g} {units.get(n, '')})".replace(" )", ")")
-            for n, (side, b) in on_bounds.items()
-        )
-        why = ""
-        if on_bounds.get("kp", ("",))[0] == "upper":
-            why = (
-                " The cap on kp is deliberate: beyond it the loop is near bang-bang and "
-                "settles only a few milliseconds sooner on the model, while unmodelled delay "
-                "and amplifier dynamics make such gains chatter on a real cart."
-            )
-        doc.note(
-            f"The tuned gains sit on the tuner's search box: {listed}. This is the box's "
-            f"answer, not the problem's: gains beyond it may do better on the model.{why} "
-            f"`jaxcart tune --bound NAME=LO,HI` widens the box."
-        )
+    if p.on_bounds:
+        doc.note(_on_bounds_note(g, p.on_bounds))
     rows = [
         ["kp", f"{g.kp:.4g}", "V/m"],
         ["kd", f"{g.kd:.4g}", "V s/m"],
@@ -292,43 +392,26 @@ def section(lab) -> None:
         "Pre-lab: step response of the tuned PID (exact simulator, handout model "
         "with the 6 V saturation); voltage below, ±6 V limits dotted.",
     )
-    for name, unit in (("kp", "V/m"), ("kd", "V s/m"), ("ki", "V/(m s)")):
-        lab.value(f"pid_{name}", float(getattr(g, name)), unit, f"tuned PID {name}", "pre-lab")
-    lab.value(
-        "pid_rise_time", info.rise_time, "s", "tuned PID rise time (handout model)", "pre-lab"
+
+
+def _on_bounds_note(g, on_bounds: dict) -> str:
+    units = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)", "tau": "s"}
+    listed = ", ".join(
+        f"{n} = {float(getattr(g, n)):.4g} {units.get(n, '')} on its {side} bound "
+        f"({b:g} {units.get(n, '')})".replace(" )", ")")
+        for n, (side, b) in on_bounds.items()
     )
-    lab.value(
-        "pid_overshoot", info.overshoot, "%", "tuned PID overshoot (handout model)", "pre-lab"
-    )
-    lab.value(
-        "pid_settling_time",
-        info.settling_time,
-        "s",
-        "tuned PID settling time (handout model)",
-        "pre-lab",
-    )
-    lab.value(
-        "pid_steady_state_error",
-        info.steady_state_error,
-        "m",
-        "tuned PID steady-state error (handout model)",
-        "pre-lab",
-    )
-    lab.results["prelab"] = {
-        "appendix": a,
-        "pi_bound": bound,
-        "pid": {
-            "gains": g.to_dict(),
-            "metrics": info.as_dict(),
-            "meets": info.meets(),
-            "tune_seconds": res.seconds,
-            "tune_message": res.message,
-            "on_bounds": {n: {"side": side, "bound": b} for n, (side, b) in on_bounds.items()},
-        },
-    }
-    lab.say(
-        f"pre-lab: tuned kp = {g.kp:.4g}, kd = {g.kd:.4g}, ki = {g.ki:.4g}: settling "
-        f"{info.settling_time:.3f} s, overshoot {info.overshoot:.2f} %"
+    why = ""
+    if on_bounds.get("kp", ("",))[0] == "upper":
+        why = (
+            " The cap on kp is deliberate: beyond it the loop is near bang-bang and "
+            "settles only a few milliseconds sooner on the model, while unmodelled delay "
+            "and amplifier dynamics make such gains chatter on a real cart."
+        )
+    return (
+        f"The tuned gains sit on the tuner's search box: {listed}. This is the box's "
+        f"answer, not the problem's: gains beyond it may do better on the model.{why} "
+        f"`jaxcart tune --bound NAME=LO,HI` widens the box."
     )
 
 

@@ -131,7 +131,7 @@ class BatchFitter:
         import jax.numpy as jnp
 
         from jaxcart.parallel import sharded_map
-        from jaxcart.plantspec import build_plant
+        from jaxcart.plantspec import with_values
         from jaxcart.smooth import simulate
         from jaxcart.smoothing import Smoothing
 
@@ -140,7 +140,7 @@ class BatchFitter:
         supers = []
         for plant in start_plants:
             missing = {k: v for k, v in NEUTRAL.items() if k not in plant.param_names()}
-            supers.append(build_plant(missing, base=plant, check=False))
+            supers.append(with_values(plant, missing))
         self.supers = supers
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))

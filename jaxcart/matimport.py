@@ -1,0 +1,415 @@
+"""Raw QUARC/Simulink .mat files to experiment files, without a hand-written TOML.
+
+The lab's scopes save each signal in the layout the scope was set to (docs/experiment-files.md,
+"MATLAB .mat layouts"): an N x 2 array [t, value] (``part1.1.mat``), a "Structure" with an
+empty time (``2.1pos.mat``, ``2.1volt.mat``: one signal per file), a "Structure With Time"
+(``p50_repeat.mat``: position and voltage in one file), a muxed scope (several columns, or a
+struct array, in one variable), MATLAB v7.3 (HDF5) files. This module
+
+1. reads every variable of the files and names each signal's role from its variable name,
+   label and block name (position y, voltage v, error e = r - y, reference r, time t), else
+   from its content (positions are whole encoder counts; voltages exceed the track's metres);
+2. puts the signals of one run together: the variables of one file, and files whose names
+   differ only by the signal ("2.1pos.mat" + "2.1volt.mat") and that hold as many samples;
+3. recognises the experiment of each run (:mod:`jaxcart.recognition`) and writes the experiment
+   file it implies (:meth:`Imported.toml_text`): kind, sample time, the [data] table that maps
+   each signal to its variable, the controller and reference or input the evidence gives, the
+   evidence itself as comments and in [notes].
+
+>>> runs = scan(["2.1pos.mat", "2.1volt.mat", "part1.1.mat"])     # doctest: +SKIP
+>>> [(r.label, r.guess.experiment) for r in runs]                 # doctest: +SKIP
+[('2.1pos.mat + 2.1volt.mat', 'p_step'), ('part1.1.mat', 'tap')]
+
+Units: s, m, V. A sample time is the data's own; a file without time (the "Structure" layout)
+is taken at the lab's 1 kHz (``ASSUMED_SAMPLE_TIME``) and says so.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from jaxcart import matfile
+from jaxcart.errors import UserError
+from jaxcart.params import ENCODER_RESOLUTION
+from jaxcart.recognition import EXPERIMENTS, Guess, Traces, recognise
+
+#: The lab's QUARC sample time [s], for data saved without time.
+ASSUMED_SAMPLE_TIME = 0.001
+ROLES = ("y", "v", "e", "r")
+_ROLE_WORDS = (  # first match wins: "voltage out" is a voltage, "cart position" a position
+    ("t", r"^(t|time|tout|tt)$"),
+    ("e", r"err|(?<![a-z])e(?![a-z])"),
+    ("v", r"volt|(?<![a-z])(v|u|vm|um)(?![a-z])|motor|command|control|drive|input"),
+    ("r", r"ref|setpoint|set point|desired|slider|(?<![a-z])r(?![a-z])"),
+    ("y", r"pos|cart|(?<![a-z])(y|x)(?![a-z])|encoder|output|displacement|distance"),
+)
+
+
+@dataclass(frozen=True, eq=False)
+class RawSignal:
+    """One signal found in a .mat file: the file, its [data] source ("file.mat:var" or
+    "file.mat:var[k]"), values, its own time [s] or None, role (y, v, e, r, t or "?") and how
+    the role was found, and the names it came with."""
+
+    file: Path
+    source: str
+    values: np.ndarray
+    time: np.ndarray | None
+    role: str
+    why: str
+    names: tuple[str, ...]
+
+
+@dataclass(eq=False)
+class Imported:
+    """One run put together from raw .mat files: its files, signals by role, sample time
+    [s] (and whether it was assumed), the guess, and what kept it from being a recording
+    (``problem``, one line) if anything."""
+
+    files: list[Path]
+    signals: dict = field(default_factory=dict)
+    sample_time: float = ASSUMED_SAMPLE_TIME
+    time_assumed: bool = True
+    guess: Guess | None = None
+    problem: str | None = None
+
+    @property
+    def label(self) -> str:
+        return " + ".join(p.name for p in self.files)
+
+    @property
+    def stem(self) -> str:
+        """A name for its experiment file: the first file's stem."""
+        return self.files[0].stem
+
+    @property
+    def experiment(self) -> str | None:
+        return None if self.guess is None else self.guess.experiment
+
+    def usable(self) -> bool:
+        """True when it is a recording of a named or confidently recognised experiment."""
+        return self.problem is None and self.guess is not None and self.guess.confident
+
+    def lines(self) -> list[str]:
+        """What was found and why, one line each."""
+        head = [f"{self.label}:"]
+        roles = ", ".join(f"{k} = {s.source} ({s.why})" for k, s in self.signals.items())
+        if roles:
+            head.append(f"  signals: {roles}")
+        when = "assumed (no time in the data)" if self.time_assumed else "from the data"
+        head.append(f"  sample time {self.sample_time:g} s, {when}")
+        if self.guess is not None:
+            head += ["  " + line for line in self.guess.lines()]
+        if self.problem:
+            head.append(f"  {self.problem}")
+        return head
+
+    def meta(self, toml_folder=None) -> dict:
+        """The experiment file's tables ({key: value}, as tomllib would read them), its data
+        mapped as "file.mat:var" relative to ``toml_folder`` (None: the data's own folder).
+        Raises :class:`UserError` when the run is not a recording of one experiment."""
+        if self.problem:
+            raise UserError(self.problem)
+        if self.guess is None or self.guess.experiment is None:
+            raise UserError(f"{self.label}: no experiment recognised; name it")
+        return _meta(self, toml_folder)
+
+    def toml_text(self, toml_folder=None) -> str:
+        """The experiment file (in ``toml_folder``): the meta as TOML, the evidence as
+        comments."""
+        return _toml_text(self, self.meta(toml_folder))
+
+
+# ---------------------------------------------------------------- reading the files
+
+
+def read_signals(path: Path) -> list[RawSignal]:
+    """Every signal of every variable of one .mat file, each with its role. Raises
+    :class:`UserError` (one line) for a file that does not load."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such .mat file; give the path of a .mat file")
+    try:
+        variables = matfile.load_mat(path)
+    except Exception as exc:  # scipy and h5py raise several kinds for a broken file
+        raise UserError(f"{path}: cannot read it as a .mat file ({_one_line(exc)})") from None
+    out = []
+    for name, obj in variables.items():
+        if name.startswith("__"):
+            continue
+        try:
+            signals = matfile.scope_signals(obj, f"{path.name}:{name}")
+        except matfile.LayoutError:
+            continue  # not a signal (a parameter, a text): not the scope's
+        block = _text(getattr(obj, "blockName", ""))
+        for s in signals:
+            selector = f"[{s.index}]" if s.count > 1 else ""
+            names = tuple(x for x in (name, s.label, block) if x)
+            role, why = _role(names, s, many=s.count > 1)
+            out.append(
+                RawSignal(path, f"{path.name}:{name}{selector}", s.values, s.time, role, why, names)
+            )
+    return out
+
+
+def _role(names, signal, *, many: bool) -> tuple[str, str]:
+    """(role, why) of one signal: from its names (variable, label, block; the last segment of
+    a block path first), else from its values."""
+    texts = []
+    for text in names:
+        texts += [text.rsplit("/", 1)[-1], text]
+    for text in texts:
+        low = text.lower()
+        for role, pattern in _ROLE_WORDS:
+            if role == "t" and (many or signal.time is not None):
+                continue
+            if re.search(pattern, low):
+                return role, f"name {text!r}"
+    values = signal.values
+    if signal.time is None and signal.count == 1 and np.all(np.diff(values) > 0) and not many:
+        return "t", "increasing values"
+    if float(np.max(np.abs(values))) > 1.0:
+        return "v", "values beyond 1 (V, not m on the 1 m track)"
+    counts = (values - values[0]) / ENCODER_RESOLUTION
+    if np.ptp(values) > 0 and np.all(np.abs(counts - np.rint(counts)) < 1e-3):
+        return "y", "whole encoder counts"
+    return "?", "no name or content that says what it is"
+
+
+def _text(value) -> str:
+    return value if isinstance(value, str) else ""
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split())
+
+
+# ---------------------------------------------------------------- runs
+
+
+_STEM_WORDS = re.compile(
+    r"pos(ition)?|volt(age)?|err(or)?|ref(erence)?|cart|command|input|output|signal"
+)
+
+
+def run_key(path: Path) -> str:
+    """A file's name without the signal words: "2.1pos.mat" and "2.1volt.mat" give "2.1"."""
+    stem = _STEM_WORDS.sub("", Path(path).stem.lower())
+    return re.sub(r"[\s_\-]+", "", stem).strip(".")
+
+
+def scan(paths, *, named: dict | None = None) -> list[Imported]:
+    """The runs in the .mat files ``paths``, each recognised (``named``: {file name:
+    experiment} the user named, taken as the answer). Files that hold only a voltage or a
+    reference join the run of a file with a position (or error) whose name differs only by the
+    signal and that holds as many samples."""
+    named = dict(named or {})
+    per_file = {Path(p): read_signals(p) for p in paths}
+    anchors, partners, runs = [], [], []
+    for path, signals in per_file.items():
+        if any(s.role in ("y", "e") for s in signals):
+            anchors.append(path)
+        elif signals:
+            partners.append(path)
+        else:
+            runs.append(Imported([path], problem=f"{path.name}: no signal saved by a scope in it"))
+    groups = {path: [path] for path in anchors}
+    for path in partners:
+        n = per_file[path][0].values.size
+        fits = [
+            a for a in anchors if run_key(a) == run_key(path) and per_file[a][0].values.size == n
+        ]
+        if len(fits) == 1:
+            groups[fits[0]].append(path)
+        else:
+            what = ", ".join(sorted({s.role for s in per_file[path]}))
+            runs.append(
+                Imported(
+                    [path],
+                    problem=f"{path.name} holds no position (signals: {what}) and "
+                    f"{'no' if not fits else 'more than one'} file with a position has its "
+                    f"name and length; map it in an experiment file's [data] table",
+                )
+            )
+    for files in groups.values():
+        run = _assemble(files, [s for f in files for s in per_file[f]])
+        if run.problem is None:
+            choice = next((named[f.name] for f in files if f.name in named), None)
+            run.guess = recognise(_traces(run), choice)
+        runs.append(run)
+    return runs
+
+
+def _assemble(files, signals) -> Imported:
+    run = Imported(list(files))
+    by_role: dict[str, list[RawSignal]] = {}
+    for s in signals:
+        by_role.setdefault(s.role, []).append(s)
+    for role in ("y", "e", "v", "r", "t"):
+        found = by_role.get(role, [])
+        if len(found) > 1:
+            listed = ", ".join(s.source for s in found)
+            run.problem = (
+                f"{run.label}: {len(found)} signals look like {_LONG[role]} ({listed}); map "
+                f"the one to use in an experiment file's [data] table"
+            )
+            return run
+        if found and role != "t":
+            run.signals[role] = found[0]
+    unknown = by_role.get("?", [])
+    if unknown and "y" not in run.signals and "e" not in run.signals:
+        run.problem = f"{run.label}: no signal that is a position; map it in [data]"
+        return run
+    n = {s.values.size for s in run.signals.values()}
+    if len(n) > 1:
+        run.problem = (
+            f"{run.label}: its signals hold different numbers of samples ("
+            + ", ".join(f"{s.source} {s.values.size}" for s in run.signals.values())
+            + "); save them from one run"
+        )
+        return run
+    timed = [s.time for s in run.signals.values() if s.time is not None]
+    if "t" in by_role:
+        timed.insert(0, by_role["t"][0].values)
+        run.signals["t"] = by_role["t"][0]
+    if timed and timed[0].size > 1:
+        time = timed[0]
+        run.sample_time = float(f"{(time[-1] - time[0]) / (time.size - 1):.12g}")
+        run.time_assumed = False
+    return run
+
+
+_LONG = {"y": "a position", "v": "a voltage", "e": "an error", "r": "a reference", "t": "time"}
+
+
+def _traces(run: Imported) -> Traces:
+    values = {k: s.values for k, s in run.signals.items() if k in ROLES}
+    names = [f.stem for f in run.files]
+    for s in run.signals.values():
+        names += list(s.names)
+    return Traces(
+        sample_time=run.sample_time,
+        position=values.get("y"),
+        command=values.get("v"),
+        error=values.get("e"),
+        reference=values.get("r"),
+        names=tuple(dict.fromkeys(names)),
+    )
+
+
+# ---------------------------------------------------------------- the experiment file
+
+
+def _meta(run: Imported, toml_folder) -> dict:
+    guess = run.guess
+    spec = EXPERIMENTS[guess.experiment]
+    data = {}
+    for k, s in run.signals.items():
+        prefix = "" if toml_folder is None else data_prefix(toml_folder, s.file.parent)
+        data[k] = prefix + s.source
+    meta = {
+        "description": f"{spec.what} (Part ({spec.part})), imported from {run.label}",
+        "kind": spec.kind,
+        "sample_time": run.sample_time,
+        "data": data,
+    }
+    where = f"{run.label} ({guess.experiment})"
+    if spec.kind == "tap":
+        meta["tap"] = {"motor_connected": False}
+    elif spec.kind == "open_loop":
+        if "v" in data:
+            meta["input"] = {"kind": "column"}
+        else:
+            meta["input"] = {"kind": "ramp", "slope": guess.ramp}
+    else:
+        if guess.controller is not None:
+            meta["controller"] = dict(guess.controller)
+        if "r" not in data and not ("e" in data and "y" in data):
+            step = guess.step
+            if step is None and "e" in data:
+                step = float(run.signals["e"].values[0])  # e(0) = r - y(0), the cart at 0
+            if step is None:
+                raise UserError(
+                    f"{where}: the step's size is unknown (no voltage, reference or error "
+                    f'recorded); write the experiment file with [reference] kind = "step", '
+                    f"amplitude = ... [m]"
+                )
+            meta["reference"] = {"kind": "step", "amplitude": step}
+    meta["notes"] = {
+        "imported_from": run.label,
+        "recognised_as": guess.experiment,
+        "evidence": "; ".join(e.text for e in guess.evidence) or "none",
+        "strength": "named by the user" if guess.named else "strong" if guess.confident else "weak",
+        "sample_time_assumed": run.time_assumed,
+    }
+    return meta
+
+
+def _toml_text(run: Imported, meta: dict) -> str:
+    from hw.expfile import toml_value
+
+    lines = [f"# Written by jaxcart import from {run.label}: correct any line and rerun."]
+    lines += [f"# {line}" for line in run.lines()[1:]]
+    for key, value in meta.items():
+        if not isinstance(value, dict):
+            lines.append(f"{key} = {toml_value(value)}")
+    for key, value in meta.items():
+        if isinstance(value, dict):
+            lines += ["", f"[{key}]"] + [f"{k} = {toml_value(v)}" for k, v in value.items()]
+    return "\n".join(lines) + "\n"
+
+
+def data_prefix(toml_folder, data_folder) -> str:
+    """How an experiment file in ``toml_folder`` names data in ``data_folder``: a relative
+    path ("" for the same folder, "../data/"), or the absolute one across drives."""
+    toml_folder, data_folder = Path(toml_folder).resolve(), Path(data_folder).resolve()
+    try:
+        rel = os.path.relpath(data_folder, toml_folder)
+    except ValueError:  # another drive (Windows)
+        return data_folder.as_posix() + "/"
+    return "" if rel == "." else Path(rel).as_posix() + "/"
+
+
+def write_imported(run: Imported, toml_path, *, force: bool = False) -> Path:
+    """Write ``run``'s experiment file at ``toml_path`` (its data mapped relative to it);
+    never over an existing file unless ``force``. Returns the path."""
+    toml_path = Path(toml_path)
+    text = run.toml_text(toml_path.parent)
+    if toml_path.exists() and not force:
+        raise UserError(f"{toml_path} exists; choose another name or pass --force to replace it")
+    try:
+        toml_path.parent.mkdir(parents=True, exist_ok=True)
+        with toml_path.open("w" if force else "x") as f:
+            f.write(text)
+    except FileExistsError:
+        raise UserError(f"{toml_path} exists; choose another name or pass --force") from None
+    except OSError as exc:
+        raise UserError(f"{toml_path}: cannot write it ({exc.strerror or exc})") from None
+    return toml_path
+
+
+def run_of(path, experiment: str | None = None) -> Imported:
+    """The run that the .mat file ``path`` belongs to, with the files of its folder whose names
+    differ only by the signal (2.1pos.mat brings 2.1volt.mat); ``experiment`` names it."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path}: a folder; give a .mat file")
+    if not path.is_file():
+        raise UserError(f"{path}: no such file; give the path of a .mat file")
+    key = run_key(path)
+    siblings = sorted(
+        p for p in path.parent.glob("*.mat") if p != path and run_key(p) == key and key
+    )
+    named = {path.name: experiment} if experiment else {}
+    runs = scan([path, *siblings], named=named)
+    for run in runs:
+        if path in run.files:
+            if experiment and run.guess is not None and not run.guess.named:
+                run.guess = recognise(_traces(run), experiment)  # joined through a sibling
+            return run
+    raise AssertionError("every file is in a run")  # pragma: no cover

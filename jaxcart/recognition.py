@@ -1,0 +1,562 @@
+"""Which of the handout's experiments a raw recording is, from its content and its names.
+
+A student's QUARC/Simulink scopes save positions, voltages and errors in .mat files without
+saying which experiment ran. :func:`recognise` looks at the samples (and the file, variable,
+label and block names) and returns a :class:`Guess`: the experiment, the settings it implies
+(controller, reference or input) and every piece of evidence with its strength, so that the
+user sees why. Where the evidence is weak it says so (:meth:`Guess.question`) instead of
+guessing. The experiments (their names are the lab's slots, tuning/lab/inputs.py):
+
+    tap      Part (i)    cart tapped by hand, motor unplugged: no voltage, one push, coasting
+    p_step   Part (ii)   P control k = 50 V/m, 6 V limit, step 0.4 m
+    ramp     Part (iii)  open-loop voltage ramp 0.1 V/s
+    p_error  Part (iii)  P control k = 10 V/m, step 0.2 m (the steady-state error)
+    pi       Part (iv)   PI control k = 10 V/m, k_i = 15 V/(m s), step 0.2 m
+    pid      Part (v)    the designed PID, one step
+    slider   Part (v)    the designed PID, the cart sent to several positions with the slider
+
+Content features (each an :class:`Evidence`, weight 1 weak, 2 moderate, 3 strong):
+
+- the controller identified from the recorded voltage v: least squares of v on the PID's
+  terms over the samples below the software limit, v = kp e + ki int(e) + kd de/dt with
+  e = r - y (the step r unknown: v = kp r + ki r t - kp y - ki int(y) - kd dy/dt); the fit's
+  R^2 says how strong it is, the gains say which experiment;
+- an open-loop ramp: v linear in time (R^2), its slope;
+- a 6 V limit block: v held at its largest magnitude for several samples;
+- the motion: how many times the cart moves, when the first move starts (a step at t = 0, a
+  tap after the cart rested), whether it coasts (deceleration proportional to speed, no
+  drive), where it comes to rest (the handout's step sizes);
+- the recorded error e alone: a step (e(0) = r) and whether it settles to zero (PI) or not.
+
+Name features: "tap", "ramp", "p50", "p10", "pi", "pid", "slider", "err" and the handout's
+numbering ("2.1pos" is Part (ii), "part1.1" Part (i)) in file, variable, label and block names.
+
+The experiment with the highest total weight is the guess when it has at least 3 and leads
+the next by at least 2; otherwise the guess is weak. Units: s, m, V.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One of the handout's experiments: part, what it is, its kind, the handout's settings
+    (controller gains kp [V/m], ki [V/(m s)], kd [V s/m], v_limit [V]; step [m]; ramp [V/s])."""
+
+    part: str
+    what: str
+    kind: str
+    controller: dict | None = None
+    step: float | None = None
+    ramp: float | None = None
+
+
+EXPERIMENTS = {
+    "tap": Spec("i", "tap test, motor unplugged", "tap"),
+    "p_step": Spec(
+        "ii", "P control k = 50 V/m, step 0.4 m", "closed_loop", {"kp": 50.0, "v_limit": 6.0}, 0.4
+    ),
+    "ramp": Spec("iii", "open-loop voltage ramp 0.1 V/s", "open_loop", ramp=0.1),
+    "p_error": Spec("iii", "P control k = 10 V/m, step 0.2 m", "closed_loop", {"kp": 10.0}, 0.2),
+    "pi": Spec(
+        "iv",
+        "PI control k = 10 V/m, k_i = 15 V/(m s), step 0.2 m",
+        "closed_loop",
+        {"kp": 10.0, "ki": 15.0},
+        0.2,
+    ),  # fmt: skip
+    "pid": Spec("v", "the designed PID, step", "closed_loop", None, 0.5),
+    "slider": Spec("v", "the designed PID, slider moves", "closed_loop"),
+}
+#: The parts' numbers as the handout writes them ("2.1pos" is Part (ii)).
+PART_EXPERIMENTS = {
+    "1": ("tap",),
+    "2": ("p_step",),
+    "3": ("ramp", "p_error"),
+    "4": ("pi",),
+    "5": ("pid", "slider"),
+}
+_ROMAN = {"i": "1", "ii": "2", "iii": "3", "iv": "4", "v": "5"}
+WEIGHTS = {1: "weak", 2: "moderate", 3: "strong"}
+#: The guess needs this total weight and this lead over the next experiment.
+CONFIDENT_SCORE, CONFIDENT_LEAD = 3, 2
+#: A cart moves when its speed is above this [m/s] (an encoder count per 2 ms is 1.1 cm/s).
+MOVING_SPEED = 0.02
+#: The derivative filter assumed when the controller is identified [s] (the handout's).
+TAU = 0.01
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """One feature: what was measured (text), the experiments it supports, its weight."""
+
+    text: str
+    supports: tuple[str, ...]
+    weight: int
+
+    def line(self) -> str:
+        return f"{self.text} [{WEIGHTS[self.weight]}]"
+
+
+@dataclass(frozen=True)
+class Traces:
+    """A raw recording's samples (numpy float64, at ``sample_time`` [s] apart): position y [m],
+    voltage v [V], error e = r - y [m], reference r [m], each or None; ``names``: the file,
+    variable, label and block names it came with."""
+
+    sample_time: float
+    position: np.ndarray | None = None
+    command: np.ndarray | None = None
+    error: np.ndarray | None = None
+    reference: np.ndarray | None = None
+    names: tuple[str, ...] = ()
+
+
+@dataclass
+class Guess:
+    """The experiment a recording is (None when no experiment has evidence), the evidence,
+    whether it is ``confident``, and the settings the evidence gives: ``controller`` {kp, ki,
+    kd, v_limit}, ``step`` [m], ``ramp`` [V/s] (None when not measured)."""
+
+    experiment: str | None
+    evidence: list[Evidence]
+    scores: dict[str, int]
+    confident: bool
+    controller: dict | None = None
+    step: float | None = None
+    ramp: float | None = None
+    notes: list[str] = field(default_factory=list)
+    named: bool = False
+
+    def title(self) -> str:
+        if self.experiment is None:
+            return "no experiment recognised"
+        spec = EXPERIMENTS[self.experiment]
+        strength = "strong evidence" if self.confident else "weak evidence"
+        if self.named:
+            strength = "named by the user"
+        return f"Part ({spec.part}) {spec.what} [{self.experiment}] ({strength})"
+
+    def lines(self) -> list[str]:
+        """The guess and its evidence, one line each."""
+        return (
+            [self.title()]
+            + [f"  - {e.line()}" for e in self.evidence]
+            + [f"  - {note}" for note in self.notes]
+        )
+
+    def candidates(self) -> list[str]:
+        """The two experiments with the most evidence, best first."""
+        return sorted(self.scores, key=self.scores.get, reverse=True)[:2]
+
+    def question(self, name: str, how: str | None = None) -> str:
+        """One line that asks the user to name the experiment of ``name``; ``how`` says where
+        (default: an index lab.toml, ``[recordings] PART = "name"``)."""
+        ranked = self.candidates()
+        maybe = " or ".join(f"{k} (Part ({EXPERIMENTS[k].part}))" for k in ranked)
+        why = f"it may be {maybe}" if ranked else "nothing in it looks like the handout's"
+        first = ranked[0] if ranked else "p_step"
+        how = how or f'in lab.toml beside it, e.g. [recordings] {first} = "{name}"'
+        return (
+            f"{name}: the evidence is weak ({why}); name its part {how} (parts: "
+            f"{', '.join(EXPERIMENTS)})"
+        )
+
+
+def recognise(traces: Traces, experiment: str | None = None) -> Guess:
+    """The :class:`Guess` for one recording (see the module docstring); ``experiment``, when
+    the user named it, is taken as the answer (the evidence is still measured and shown)."""
+    evidence: list[Evidence] = []
+    settings: dict = {}
+    ts = float(traces.sample_time)
+    if traces.command is not None:
+        evidence += _voltage_features(traces, ts, settings)
+    elif traces.error is not None:
+        evidence += _error_features(traces.error, ts, settings)
+    if traces.position is not None:
+        evidence += _motion_features(traces, ts, settings)
+    evidence += _name_features(traces.names)
+    scores: dict[str, int] = {}
+    for e in evidence:
+        for name in e.supports:
+            scores[name] = scores.get(name, 0) + e.weight
+    ranked = sorted(scores.items(), key=lambda kv: kv[1], reverse=True)
+    best = ranked[0][0] if ranked else None
+    lead = ranked[0][1] - (ranked[1][1] if len(ranked) > 1 else 0) if ranked else 0
+    confident = best is not None and scores[best] >= CONFIDENT_SCORE and lead >= CONFIDENT_LEAD
+    if experiment is not None:
+        if experiment not in EXPERIMENTS:
+            raise ValueError(f"{experiment!r}: the experiments are {', '.join(EXPERIMENTS)}")
+        best, confident = experiment, True
+    guess = Guess(best, evidence, scores, confident, named=experiment is not None)
+    if best is not None:
+        _settings(guess, settings)
+    return guess
+
+
+# ---------------------------------------------------------------- the voltage
+
+
+def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidence]:
+    v = np.asarray(traces.command, dtype=float)
+    out = []
+    t = np.arange(v.size) * ts
+    ramp = _line_fit(t, v)
+    if ramp is not None and ramp[2] > 0.999 and ramp[1] > 0 and v[-1] - v[0] > 0.05:
+        _, slope, r2 = ramp
+        near = abs(slope - EXPERIMENTS["ramp"].ramp) < 0.3 * EXPERIMENTS["ramp"].ramp
+        settings["ramp"] = slope
+        text = f"the voltage rises linearly with time, {slope:.4g} V/s (R^2 = {r2:.5f})"
+        out.append(Evidence(text + (": the handout's 0.1 V/s" if near else ""), ("ramp",), 3))
+        return out
+    limit = _limit(v)
+    if limit is not None:
+        settings["v_limit"] = limit[0]
+        out.append(
+            Evidence(
+                f"the voltage is held at {limit[0]:.4g} V for {limit[1]} samples: a software "
+                "limit block",
+                ("p_step", "pid", "slider"),
+                1,
+            )
+        )
+    ident = identify_controller(traces, ts, None if limit is None else limit[0])
+    if ident is None:
+        return out
+    gains, r2, used, step = ident
+    settings.update(gains=gains, step=step, r2=r2)
+    law = ", ".join(f"{k} = {gains[k]:.4g}" for k in ("kp", "ki", "kd"))
+    text = f"the voltage is a PID of the position, {law} (R^2 = {r2:.4f} over {used} samples)"
+    weight = 3 if r2 > 0.99 else 2 if r2 > 0.95 else 0
+    if weight == 0:
+        moves = len(_moves(traces.position, ts)) if traces.position is not None else 0
+        text = (
+            f"the voltage is no PID of the position with a fixed reference (R^2 = {r2:.3f}); "
+            f"the cart moves {moves} times"
+        )
+        out.append(Evidence(text, ("slider",), 2 if moves >= 2 else 1))
+        return out
+    kp, ki, kd = gains["kp"], gains["ki"], gains["kd"]
+    if kd > 0:
+        out.append(Evidence(text + ": a PID", ("pid", "slider"), weight))
+    elif ki > 0:
+        near = _near(kp, 10.0) and _near(ki, 15.0)
+        out.append(Evidence(text + ": PI" + (", the handout's" if near else ""), ("pi",), weight))
+    elif _near(kp, 50.0):
+        out.append(Evidence(text + ": P with the handout's k = 50 V/m", ("p_step",), weight))
+    elif _near(kp, 10.0):
+        out.append(Evidence(text + ": P with the handout's k = 10 V/m", ("p_error",), weight))
+    else:
+        out.append(Evidence(text + ": P with a gain the handout does not use", ("p_step",), 1))
+        out.append(Evidence("(Part (iii)'s P step uses another gain)", ("p_error",), 1))
+    return out
+
+
+def identify_controller(traces: Traces, ts: float, v_limit: float | None = None):
+    """(gains {kp, ki, kd}, R^2, samples used, step r [m] or None) of the PID that made the
+    recorded voltage, by least squares over the samples below ``v_limit``; None when there
+    are too few. With an error e (or y and r) the terms are e, int(e) and de/dt (filtered with
+    ``TAU``); with y alone the unknown constant r enters as an intercept and a ramp in t."""
+    v = np.asarray(traces.command, dtype=float)
+    n = v.size
+    t = np.arange(n) * ts
+    free = np.ones(n, dtype=bool) if v_limit is None else np.abs(v) < v_limit * (1 - 1e-6)
+    free[0] = False  # the derivative's kick at the step
+    if traces.error is not None:
+        e = np.asarray(traces.error, dtype=float)
+    elif traces.position is not None and traces.reference is not None:
+        e = np.asarray(traces.reference, dtype=float) - np.asarray(traces.position, dtype=float)
+    else:
+        e = None
+    if e is not None:
+        terms = {"kp": e, "ki": np.cumsum(e) * ts, "kd": _filtered_rate(e, ts)}
+        base = {}
+    elif traces.position is not None:
+        y = np.asarray(traces.position, dtype=float)
+        terms = {"kp": -y, "ki": -np.cumsum(y) * ts, "kd": -_filtered_rate(y, ts)}
+        base = {"c0": np.ones(n), "c1": t}
+    else:
+        return None
+    if free.sum() < 20:
+        return None
+    names = list(terms)
+    for _ in range(3):  # drop terms that add under 2 % of the voltage's spread
+        fit = _least_squares({**base, **{k: terms[k] for k in names}}, v, free)
+        if fit is None:
+            return None
+        coef, r2 = fit
+        spread = float(np.std(v[free])) or 1.0
+        weak = [k for k in names if k != "kp" and np.std(coef[k] * terms[k][free]) < 0.02 * spread]
+        if not weak:
+            break
+        names = [k for k in names if k not in weak]
+    gains = {k: float(coef.get(k, 0.0)) for k in ("kp", "ki", "kd")}
+    step = None
+    if e is None and abs(gains["kp"]) > 1e-9:
+        step = float(coef["c0"]) / gains["kp"]
+    return gains, r2, int(free.sum()), step
+
+
+def _least_squares(columns: dict, target, mask):
+    a = np.column_stack([np.asarray(c, dtype=float)[mask] for c in columns.values()])
+    b = np.asarray(target, dtype=float)[mask]
+    scale = np.linalg.norm(a, axis=0)
+    if np.any(scale == 0):
+        return None
+    x, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
+    x = x / scale
+    resid = b - a @ x
+    total = float(np.sum((b - b.mean()) ** 2))
+    r2 = 1.0 - float(np.sum(resid**2)) / total if total > 0 else 0.0
+    return dict(zip(columns, map(float, x), strict=True)), r2
+
+
+def _filtered_rate(x, ts: float):
+    """dx/dt through the first-order filter tau s / (tau s + 1), backward Euler [unit/s]."""
+    from scipy.signal import lfilter
+
+    a = TAU / (TAU + ts)
+    rate = lfilter([1.0 / (TAU + ts), -1.0 / (TAU + ts)], [1.0, -a], x)
+    rate[0] = 0.0
+    return rate
+
+
+def _line_fit(t, v):
+    """(intercept, slope, R^2) of v against t, or None for a constant."""
+    fit = _least_squares({"c0": np.ones_like(t), "c1": t}, v, np.ones(t.size, dtype=bool))
+    if fit is None or np.ptp(v) == 0:
+        return None
+    coef, r2 = fit
+    return coef["c0"], coef["c1"], r2
+
+
+def _limit(v):
+    """(limit [V], samples at it) when the voltage sits at its largest magnitude for at least
+    5 samples (a limit block's flat top), else None; a limit within 1 % of 6 V is 6 V."""
+    top = float(np.max(np.abs(v)))
+    if top <= 0:
+        return None
+    held = int(np.sum(np.abs(np.abs(v) - top) <= 1e-9 * top))
+    if held < 5:
+        return None
+    return (6.0 if _near(top, 6.0, 0.01) else top), held
+
+
+def _near(x: float, target: float, tol: float = 0.05) -> bool:
+    return abs(x - target) <= tol * abs(target)
+
+
+# ---------------------------------------------------------------- the error and the motion
+
+
+def _error_features(e, ts: float, settings: dict) -> list[Evidence]:
+    e = np.asarray(e, dtype=float)
+    r = float(e[0])
+    if abs(r) < 1e-3:
+        return [Evidence("the recorded error starts at zero: no step at t = 0", (), 1)]
+    settings["step"] = r
+    tail = e[-max(2, e.size // 10) :]
+    final = float(np.mean(tail))
+    text = f"the recorded error steps to {r:.4g} m at t = 0 and ends at {final * 1e3:.3g} mm"
+    if abs(final) > 0.002 * abs(r):  # 0.4 mm of a 0.2 m step: P control's steady error
+        return [Evidence(text + ": a steady-state error (P control)", ("p_error",), 2)]
+    return [Evidence(text + ": the error vanishes (integral action)", ("pi",), 2)]
+
+
+def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence]:
+    y = np.asarray(traces.position, dtype=float)
+    moves = _moves(y, ts)
+    if not moves:
+        return [Evidence("the cart does not move", (), 1)]
+    out = []
+    start = moves[0][0] * ts
+    final = float(np.mean(y[-max(2, y.size // 20) :])) - float(y[0])
+    if traces.command is None and traces.error is None:
+        out.append(Evidence("no voltage recorded (the motor unplugged?)", ("tap",), 1))
+    if len(moves) >= 3:
+        where = np.unique(np.round([y[b] for _, b in moves], 2))
+        out.append(
+            Evidence(
+                f"the cart moves {len(moves)} times and rests at {where.size} places",
+                ("slider",),
+                2,
+            )
+        )
+        return out
+    if len(moves) == 1 and start > 0.1:
+        out.append(
+            Evidence(
+                f"the cart rests {start:.3g} s, then moves once: not a step at t = 0", ("tap",), 1
+            )  # fmt: skip
+        )
+        coast = _coasting(y, ts, moves[0])
+        if coast is not None:
+            c, r2 = coast
+            text = f"after the push it slows in proportion to its speed (c/M = {c:.3g} 1/s, "
+            out.append(Evidence(text + f"R^2 = {r2:.3f}): coasting, no drive", ("tap",), 2))
+    elif start <= 0.1 and traces.command is None:
+        near = [
+            k
+            for k, spec in EXPERIMENTS.items()
+            if spec.step is not None and abs(final - spec.step) < 0.05 * spec.step
+        ]
+        text = f"the cart moves at t = {start:.3g} s and comes to rest {final:.4g} m away"
+        if near:
+            sizes = " or ".join(sorted({f"{EXPERIMENTS[k].step:g} m" for k in near}))
+            out.append(Evidence(f"{text}: a step of the handout's {sizes}", tuple(near), 1))
+        else:
+            steps = tuple(k for k, s in EXPERIMENTS.items() if s.step is not None)
+            out.append(Evidence(f"{text}: a step of a size the handout does not use", steps, 1))
+        settings.setdefault("step_final", final)
+    return out
+
+
+def _speed(y, ts: float):
+    """Speed [m/s] by central differences over 10 ms (encoder counts are 2.3e-5 m)."""
+    w = max(1, int(round(0.005 / ts)))
+    v = np.zeros_like(y)
+    v[w:-w] = (y[2 * w :] - y[: -2 * w]) / (2 * w * ts)
+    return v
+
+
+def _moves(y, ts: float) -> list[tuple[int, int]]:
+    """(first, last) sample of each move: speed above ``MOVING_SPEED``, pauses under 0.2 s
+    joined, moves of under 2 mm dropped."""
+    if y is None or y.size < 10:
+        return []
+    moving = np.abs(_speed(np.asarray(y, dtype=float), ts)) > MOVING_SPEED
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], moving.astype(int), [0]])))
+    runs = list(zip(edges[::2], edges[1::2] - 1, strict=True))
+    joined: list[list[int]] = []
+    for a, b in runs:
+        if joined and (a - joined[-1][1]) * ts < 0.2:
+            joined[-1][1] = b
+        else:
+            joined.append([a, b])
+    return [(a, b) for a, b in joined if abs(y[b] - y[a]) > 0.002]
+
+
+def _coasting(y, ts: float, move):
+    """(c [1/s], R^2) of deceleration = -c speed after the fastest sample of a move (the
+    speeds smoothed over 20 ms), or None when it does not fit."""
+    w = max(1, int(round(0.02 / ts)))
+    speed = np.convolve(_speed(y, ts), np.ones(w) / w, mode="same")
+    a, b = move
+    peak = a + int(np.argmax(np.abs(speed[a : b + 1])))
+    seg = slice(peak + w, b)
+    s = speed[seg]
+    if s.size < 20:
+        return None
+    acc = np.gradient(s, ts)
+    keep = np.abs(s) > 2 * MOVING_SPEED
+    if keep.sum() < 20:
+        return None
+    fit = _least_squares({"c": -s[keep]}, acc[keep], np.ones(int(keep.sum()), dtype=bool))
+    if fit is None:
+        return None
+    coef, _ = fit
+    c = coef["c"]
+    resid = acc[keep] + c * s[keep]
+    r2 = 1.0 - float(np.sum(resid**2)) / float(np.sum(acc[keep] ** 2))
+    if c <= 0 or r2 < 0.5:
+        return None
+    return c, r2
+
+
+# ---------------------------------------------------------------- names
+
+
+_WORDS = (
+    (r"tap|unplug|coast", ("tap",), "a tap"),
+    (r"ramp", ("ramp",), "a ramp"),
+    (r"(?<![a-z0-9])k?p_?50(?![0-9])|k_?50(?![0-9])", ("p_step",), "P 50"),
+    (r"(?<![a-z0-9])k?p_?10(?![0-9])|k_?10(?![0-9])", ("p_error",), "P 10"),
+    (r"(?<![a-z])pid(?![a-z])", ("pid", "slider"), "a PID"),
+    (r"(?<![a-z])pi(?![a-z])", ("pi",), "PI"),
+    (r"slider|slide", ("slider",), "slider moves"),
+    (r"(?<![a-z])err(or)?(?![a-z])", ("p_error", "pi"), "the error scope (Parts (iii), (iv))"),
+)
+_PART = re.compile(
+    r"(?:(?<![a-z0-9])(?:part|lab|p)?[ _-]?(?P<n>[1-5])\.\d)"
+    r"|(?:part[ _-]?(?P<m>[1-5]|iii|ii|iv|v|i)(?![a-z0-9]))"
+)
+
+
+def _name_features(names) -> list[Evidence]:
+    out, seen = [], set()
+    for raw in names:
+        text = str(raw).lower()
+        if not text:
+            continue
+        for pattern, supports, what in _WORDS:
+            if re.search(pattern, text) and (supports, text) not in seen:
+                seen.add((supports, text))
+                out.append(Evidence(f"the name {raw!r} says {what}", supports, 2))
+        match = _PART.search(text)
+        if match:
+            number = match["n"] or _ROMAN.get(match["m"], match["m"])
+            supports = PART_EXPERIMENTS[number]
+            if (supports, text) not in seen:
+                seen.add((supports, text))
+                roman = [k for k, v in _ROMAN.items() if v == number][0]
+                out.append(Evidence(f"the name {raw!r} numbers Part ({roman})", supports, 2))
+    return out
+
+
+# ---------------------------------------------------------------- settings
+
+
+def _settings(guess: Guess, found: dict) -> None:
+    """The controller, step and ramp of the guessed experiment: the handout's where the
+    measurement agrees with it (within 5 %), else the measurement, with a note for each."""
+    spec = EXPERIMENTS[guess.experiment]
+    if spec.kind == "open_loop":
+        guess.ramp = found.get("ramp", spec.ramp)
+        return
+    if spec.kind != "closed_loop":
+        return
+    handout = dict(spec.controller or {})
+    gains = found.get("gains")
+    if gains is not None:
+        controller = {}
+        for key in ("kp", "ki", "kd"):
+            value, book = gains[key], handout.get(key, 0.0)
+            if book and _near(value, book):
+                controller[key] = book
+            else:
+                controller[key] = float(f"{value:.4g}") if abs(value) > 1e-9 else 0.0
+        guess.notes.append(
+            "controller: "
+            + ", ".join(f"{k} = {controller[k]:g}" for k in ("kp", "ki", "kd"))
+            + f" from the voltage (derivative filter assumed tau = {TAU:g} s)"
+        )
+    elif handout:
+        controller = {k: handout.get(k, 0.0) for k in ("kp", "ki", "kd")}
+        guess.notes.append("controller: the handout's (no voltage recorded to measure it)")
+    else:
+        controller = None
+        guess.notes.append("controller: unknown (no voltage recorded); add it to [controller]")
+    if controller is not None:
+        if "v_limit" in found:
+            controller["v_limit"] = found["v_limit"]
+        elif gains is None and "v_limit" in handout:
+            controller["v_limit"] = handout["v_limit"]
+    guess.controller = controller
+    step = found.get("step")
+    if step is None and "step_final" in found and spec.step is not None:
+        step = spec.step if abs(found["step_final"] - spec.step) < 0.05 * spec.step else None
+        if step is None:
+            step = round(found["step_final"], 3)
+            guess.notes.append(f"step: {step:g} m, where the cart came to rest (not measured)")
+    if step is not None and math.isfinite(step):
+        if spec.step is not None and abs(step - spec.step) < 0.002:
+            step = spec.step
+        else:
+            step = round(step, 4)
+        guess.step = step

@@ -1,0 +1,45 @@
+"""How the lab's parts fit parameters to recordings: one swappable function.
+
+A part that fits takes ``fit`` as an argument (default :func:`fit`), so a report can hand the
+parts another estimator (a joint fit over every recording, say) without touching them. Any
+replacement takes the same arguments and returns an object with the
+:class:`tuning.estimation.fit.FitResult` fields the parts read: ``params`` (name -> estimate
+with ``value``, ``stderr``, ``identifiable``, ``note``), ``segments`` (``time``,
+``after_exact``, ``nuisance``), ``rms_after_exact`` and ``to_json()``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from tuning.lab.context import fmt
+
+#: Fit settings for the report: the default continuation for the tap (a real tap needs it),
+#: a short Levenberg-Marquardt polish where the start is already close.
+QUICK_FIT = {"widths": (1e-3, 1e-4), "adam_steps": 0, "lm_iterations": 15}
+
+#: fit(recordings, params, *, initial=None, quick=False) -> FitResult
+FitFunction = Callable[..., object]
+
+
+def fit(recordings, params, *, initial=None, quick=False):
+    """Fit ``params`` (names) to ``recordings`` from ``initial`` (name -> value) with the
+    estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close."""
+    from tuning.estimation.fit import FitSettings
+    from tuning.estimation.fit import fit as engine_fit
+
+    settings = FitSettings(**QUICK_FIT) if quick else FitSettings()
+    return engine_fit(recordings, params, initial=initial, settings=settings, progress=False)
+
+
+def estimate(result, name):
+    """The fitted estimate of ``name``, or None when it is missing or not identifiable."""
+    est = result.params.get(name)
+    return None if est is None or not est.identifiable else est
+
+
+def pm(est, unit, digits=5) -> str:
+    """ "value ± stderr unit" for a table, or "not identifiable"."""
+    if est is None:
+        return "not identifiable"
+    return f"{fmt(est.value, digits)} ± {fmt(est.stderr, 2)} {unit}"
