@@ -61,6 +61,9 @@ def register(subparsers) -> None:
         "in, else structure-with-time, the Simulink scope's 'Structure With Time')",
     )
     p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
+    from jaxcart.plots import add_format_option
+
+    add_format_option(p)
     p.add_argument(
         "--exact", action="store_true", help="use the exact (nonsmooth, event-exact) simulator"
     )
@@ -136,7 +139,7 @@ def run(args) -> int:
         for message in plausibility.check_controller(controller, plant, where="controller"):
             plausibility.warn(message)
 
-    response = _simulate(_solver(args.exact, experiment), plant, controller, experiment)
+    response = _simulate(args.exact, plant, controller, experiment)
     if bool(np.asarray(response.diverged)):
         raise SimulationDiverged(
             f"simulation of {source} diverged (|y| > 1 km or not finite) with "
@@ -224,6 +227,7 @@ def _outputs(args, recording):
     from jaxcart.files import experiment_paths
     from jaxcart.matfile import mat_paths
     from jaxcart.outputs import OUT_DIR, check_writable, free_names
+    from jaxcart.plots import figure_name
 
     if args.out:
         out = Path(args.out)
@@ -236,12 +240,13 @@ def _outputs(args, recording):
             toml_path, csv_path = mat_paths(out)
         else:
             toml_path, csv_path = experiment_paths(out)
-        png_path = Path(args.plot) if args.plot else None
+        png_path = figure_name(args.plot, args.format) if args.plot else None
     else:
         stem = "run" if recording is None else f"{recording.path.stem}-sim"
         data = ".mat" if args.mat_layout or _mat_data(recording) else ".csv"
-        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", ".png"))
-        png_path = Path(args.plot) if args.plot else auto_png
+        figure = "." + (args.format or "png")
+        csv_path, toml_path, auto_png = free_names(OUT_DIR, stem, (data, ".toml", figure))
+        png_path = figure_name(args.plot, args.format) if args.plot else auto_png
     if args.mat_layout and csv_path.suffix.lower() != ".mat":
         raise UserError(f"--mat-layout {args.mat_layout}: the output {csv_path} is not .mat")
     option = "--out" if args.out else None
@@ -276,36 +281,31 @@ def _mat_data(recording) -> bool:
     )
 
 
-def _solver(exact: bool, experiment):
-    """The simulator the options choose, as a value (jaxcart.simulate's solver): the exact
-    one with --exact, else the smooth one, in chunks with progress for a long run."""
-    import jaxcart as jc
-    from jaxcart import chunked_sim
-
-    if exact:
-        return jc.Exact()
-    if experiment.n_samples > chunked_sim.LONG_SAMPLES:
-        columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
-        return jc.Chunked(n_columns=columns)
-    return jc.Smooth()
-
-
-def _simulate(solver, plant, controller, experiment):
-    import functools
-
+def _simulate(exact, plant, controller, experiment):
     import jax
 
     import jaxcart as jc
     from jaxcart import chunked_sim
+    from jaxcart.errors import UserError
 
     pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
-    if isinstance(solver, jc.Smooth):
-        return jax.jit(functools.partial(jc.simulate, solver=solver))(plant, pid, experiment)
-    if isinstance(solver, jc.Exact) and experiment.n_samples > chunked_sim.EXACT_PROBE:
-        columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
+    columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
+    if not exact:
+        if experiment.n_samples > chunked_sim.LONG_SAMPLES:
+            return chunked_sim.simulate_chunked(plant, pid, experiment, n_columns=columns)
+        return jax.jit(jc.simulate)(plant, pid, experiment)
+    try:
+        from jaxcart.exact import simulate_exact
+    except ModuleNotFoundError as exc:
+        if exc.name != "jaxcart.exact":
+            raise
+        raise UserError(
+            "--exact: the exact simulator (jaxcart/exact.py) is not installed; run without --exact"
+        ) from None
+    if experiment.n_samples > chunked_sim.EXACT_PROBE:
         seconds = chunked_sim.estimate_exact(plant, pid, experiment)
         chunked_sim.announce(seconds, experiment.n_samples, columns, experiment.sample_time)
-    return jc.simulate(plant, pid, experiment, solver=solver)
+    return simulate_exact(plant, pid, experiment)
 
 
 def _gains(pid) -> str:

@@ -22,15 +22,17 @@ import math
 import os
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from jaxcart.errors import UserError
 from tuning.lab import diagnosis as diagnosis_section
-from tuning.lab import parts, prelab
-from tuning.lab.context import Lab, fmt, relative_error
+from tuning.lab import fits, part_i, part_ii, part_iii, part_iv, part_v, prelab
+from tuning.lab.context import Lab, check_format, fmt, relative_error
 from tuning.lab.data import builtin_dir
 from tuning.lab.html import Document
 from tuning.lab.inputs import SLOTS, find_inputs
+from tuning.lab.model import CartModel
 
 DEFAULT_OUT = Path("jaxcart-lab")
 #: Prefix of the hidden staging folder the report is written into before it is renamed.
@@ -125,7 +127,14 @@ def _publish(tmp: Path, final: Path) -> None:
 
 
 def run_lab(
-    data=None, out=None, *, force: bool = False, stream=None, plant=None, diagnosis: bool = True
+    data=None,
+    out=None,
+    *,
+    force: bool = False,
+    stream=None,
+    plant=None,
+    diagnosis: bool = True,
+    fmt: str = "png",
 ) -> Path:
     """Write the lab report; returns its folder.
 
@@ -134,21 +143,27 @@ def run_lab(
     stream: where progress goes (default stderr); plant: a starting model (a
     :class:`jaxcart.Plant`, e.g. from a plant file): its B_eq, f_c and effects start the lab's
     model, and the parts refit B_eq and f_c from the recordings as usual; diagnosis: add the
-    section that diagnoses each recording (most of the run time).
+    section that diagnoses each recording (most of the run time); fmt: the figures' format,
+    "png", "svg" or "pdf" (report.html embeds PNG and SVG; with PDF it embeds a PNG copy).
     """
     import jax
 
+    fmt = check_format(fmt)
     with jax.enable_x64(True):  # fits and exact checks need float64
-        return _run_lab(data, out, force=force, stream=stream, plant=plant, diagnosis=diagnosis)
+        return _run_lab(
+            data, out, force=force, stream=stream, plant=plant, diagnosis=diagnosis, fmt=fmt
+        )
 
 
-def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True) -> Path:
+def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True, fmt="png") -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
     inputs = find_inputs(folder)  # every input read and checked before anything is computed
     final = output_dir(out, force=force)
     with staged(final) as tmp:
-        lab = Lab(out=tmp, inputs=inputs, doc=Document(TITLE), stream=stream, started=started)
+        lab = Lab(
+            out=tmp, inputs=inputs, doc=Document(TITLE), stream=stream, started=started, fmt=fmt
+        )
         _sections(lab, folder, data is None, plant, diagnosis)
     lab.say(
         f"done: {final / 'report.md'}, {final / 'report.html'}, {final / 'results.json'} "
@@ -157,36 +172,96 @@ def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True) -> Path:
     return final
 
 
+@dataclass(frozen=True, eq=False)
+class LabResults:
+    """Every part's result (see each part's module); ``agreement``: the tap's and Part (ii)'s
+    B_eq compared (None without both); ``diagnosis``: slot -> diagnosis, or None when the
+    report leaves that section out."""
+
+    prelab: prelab.Prelab
+    part_i: part_i.TapResult
+    part_ii: part_ii.P50Result
+    agreement: part_ii.Agreement | None
+    part_iii: part_iii.Part3
+    part_iv: part_iv.PIResult
+    part_v: part_v.PIDResult
+    diagnosis: dict | None = None
+
+
+def compute(
+    inputs, start: CartModel, *, diagnosis: bool = True, fit=fits.fit, say=lambda t: None
+) -> LabResults:
+    """Every part of the lab from the recordings ``inputs`` and the starting model, in the
+    order their data need: the tap's model feeds Parts (ii) and (iii), Part (iii)'s f_c feeds
+    Parts (iv) and (v), the pre-lab's tuned gains feed Part (v). ``fit``: the fitter every
+    part uses (:func:`tuning.lab.fits.fit`)."""
+    recordings = inputs.recordings
+    pre = prelab.compute(say=say)
+    tap = part_i.compute(recordings.get("tap"), start, fit=fit, say=say)
+    step = part_ii.compute(recordings.get("p_step"), tap.model, fit=fit, say=say)
+    friction = part_iii.compute(recordings, tap.model, fit=fit, say=say)
+    pi = part_iv.compute(recordings.get("pi"), friction.model, say=say)
+    pid = part_v.compute(recordings.get("pid"), friction.model, pre.gains, say=say)
+    found = diagnosis_section.compute(recordings, say=say) if diagnosis else None
+    return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found)
+
+
+def values(r: LabResults) -> list:
+    """The summary's numbers, part by part."""
+    return [
+        *prelab.values(r.prelab),
+        *part_i.values(r.part_i),
+        *part_ii.values(r.part_ii),
+        *part_iii.values(r.part_iii),
+        *part_iv.values(r.part_iv),
+        *part_v.values(r.part_v),
+    ]
+
+
 def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool) -> None:
     lab.diagnosis = diagnosis
+    start = CartModel.starting(plant)
     if plant is not None:
         from jaxcart.plantspec import describe_plant
 
-        lab.base = plant
-        lab.B_eq, lab.B_eq_source = float(plant.B_eq), "the --plant file"
-        if plant.effect("coulomb") is not None:
-            lab.f_c, lab.f_c_source = float(plant.get("f_c")), "the --plant file"
         lab.say(f"starting model: {describe_plant(plant)}")
     lab.say(f"data: {'built-in example recordings' if builtin else folder}")
     for line in lab.inputs.summary_lines():
         lab.say("  " + line)
+    r = compute(lab.inputs, start, diagnosis=diagnosis, say=lab.say)
     _introduction(lab, folder, builtin)
-    for section in (
-        prelab.section,
-        parts.part_i,
-        parts.part_ii,
-        parts.part_iii,
-        parts.part_iv,
-        parts.part_v,
-        diagnosis_section.section if diagnosis else None,
-    ):
-        if section is not None:
-            section(lab)
-    _summary(lab)
+    render(lab, r)
+    _summary(lab, values(r))
     elapsed = time.perf_counter() - lab.started
     lab.results["elapsed_seconds"] = elapsed
     lab.doc.paragraph(f"Report written by `jaxcart lab` in {elapsed:.0f} s.")
     _write(lab)
+
+
+def render(lab: Lab, r: LabResults) -> None:
+    """Every part's section of the report and its entry in results.json, in the handout's
+    order; the tuned gains go to gains.json."""
+    prelab.render(lab, r.prelab)
+    part_i.render(lab, r.part_i)
+    part_ii.render(lab, r.part_ii, r.agreement)
+    part_iii.render(lab, r.part_iii)
+    part_iv.render(lab, r.part_iv)
+    part_v.render(lab, r.part_v)
+    lab.results.update(
+        {
+            "prelab": prelab.as_json(r.prelab),
+            "part_i": part_i.as_json(r.part_i),
+            "part_ii": part_ii.as_json(r.part_ii, r.agreement, diagnosis=lab.diagnosis),
+            "part_iii": part_iii.as_json(r.part_iii),
+            "part_iv": part_iv.as_json(r.part_iv),
+            "part_v": part_v.as_json(r.part_v),
+        }
+    )
+    if r.diagnosis is not None:
+        diagnosis_section.render(lab, r.diagnosis, r.agreement)
+        lab.results["diagnosis"] = diagnosis_section.as_json(r.diagnosis)
+    lab.gains = r.prelab.gains
+    lab.gains_metrics = lab.results["prelab"]["pid"]["metrics"]
 
 
 # ---------------------------------------------------------------- sections
@@ -263,40 +338,42 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
     }
 
 
-def _summary(lab: Lab) -> None:
+def _summary(lab: Lab, numbers: list) -> None:
     doc = lab.doc
     doc.heading("Summary")
-    synthetic = lab.synthetic
+    synthetic = lab.inputs.synthetic
     header = ["part", "quantity", "value", "unit"]
-    if synthetic:
+    if synthetic is not None:
         header += ["true value", "relative error"]
-    rows = []
-    for v in lab.values.values():
-        value, unit = v.value, v.unit
-        shown_unit = unit
-        if unit == "m" and value is not None:
-            value, shown_unit = value * 1e3, "mm"
-        shown = fmt(value)
-        if value is not None and math.isinf(value) and unit == "s":
-            shown, shown_unit = "does not settle within the horizon", ""
-        row = [v.part, v.label, shown, shown_unit]
-        if synthetic:
-            if v.true is None:
-                row += ["", ""]
-            else:
-                err = relative_error(v.value, v.true)
-                row += [
-                    fmt(v.true * (1e3 if unit == "m" else 1.0)),
-                    "n/a" if err is None else f"{100 * err:.2g} %",
-                ]
-        rows.append(row)
+    rows = [_summary_row(v, synthetic) for v in numbers]
     doc.table(header, rows, numeric=[False, False, True, False] + [True, True][: len(header) - 4])
     doc.paragraph(
         "Every number is also in `results.json` (SI units; `results.mat` holds the same as a "
         "MATLAB struct `results`); the tuned gains are in "
         "`gains.json` (jaxcart gains-file format, every PID setting)."
     )
-    lab.results["values"] = {k: v.as_json() for k, v in lab.values.items()}
+    lab.results["values"] = {v.key: v.as_json(synthetic) for v in numbers}
+
+
+def _summary_row(v, synthetic) -> list:
+    value, unit = v.value, v.unit
+    shown_unit = unit
+    if unit == "m" and value is not None:
+        value, shown_unit = value * 1e3, "mm"
+    shown = fmt(value)
+    if value is not None and math.isinf(value) and unit == "s":
+        shown, shown_unit = "does not settle within the horizon", ""
+    row = [v.part, v.label, shown, shown_unit]
+    if synthetic is None:
+        return row
+    true = v.true(synthetic)
+    if true is None:
+        return row + ["", ""]
+    err = relative_error(v.value, true)
+    return row + [
+        fmt(true * (1e3 if unit == "m" else 1.0)),
+        "n/a" if err is None else f"{100 * err:.2g} %",
+    ]
 
 
 # ---------------------------------------------------------------- writing
@@ -312,11 +389,11 @@ def _write(lab: Lab) -> None:
     write_mat_report(out / "results.mat", to_jsonable(lab.results), name="results", force=True)
     (out / "report.md").write_text(lab.doc.to_markdown())
     (out / "report.html").write_text(lab.doc.to_html(out))
-    if lab.tuned is not None:
+    if lab.gains is not None:
         write_gains(
             out / "gains.json",
-            lab.tuned.gains,
+            lab.gains,
             force=True,
             source="jaxcart lab: pre-lab design (handout model)",
-            metrics=lab.results.get("prelab", {}).get("pid", {}).get("metrics", {}),
+            metrics=lab.gains_metrics,
         )

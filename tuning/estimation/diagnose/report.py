@@ -164,48 +164,79 @@ def figure_title(d, width: int = 95) -> str:
 
 
 def plot_diagnosis(d, path) -> Path:
-    """Recording, baseline and corrected model (windows shaded), residuals below."""
+    """Recording, baseline and corrected model above, residuals below; saved at ``path`` (its
+    suffix sets the format: .png, .svg, .pdf). The mismatch of the baseline is shaded between
+    it and the recording, the encoder floor is a grey band around zero residual, and the
+    located windows are a strip along the time axis, each in the legend below the axes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
+
+    from jaxcart.plots import EXPERIMENT_STYLE, figure_legend, save
 
     n = max(len(d.traces), 1)
-    fig, axes = plt.subplots(2, n, figsize=(6.5 * n, 6), squeeze=False, sharex="col")
+    fig, axes = plt.subplots(
+        2, n, figsize=(6.5 * n, 6.6), squeeze=False, sharex="col", layout="constrained"
+    )
     for i, tr in enumerate(d.traces):
         top, bottom = axes[0, i], axes[1, i]
-        t = tr["time"]
-        top.plot(t, tr["measured"], "k.", ms=1.5, label="recording")
-        top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline")
-        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})")
-        bottom.plot(t, (tr["baseline"] - tr["measured"]) * 1e3, "C0-", lw=0.8, label="baseline")
-        bottom.plot(t, (tr["after"] - tr["measured"]) * 1e3, "C3-", lw=0.8, label="corrected")
-        for w in d.windows:
-            if w["recording"] == tr["name"]:
-                for ax in (top, bottom):
-                    ax.axvspan(w["start"], w["end"], color="orange", alpha=0.15, lw=0)
+        t, measured = np.asarray(tr["time"]), np.asarray(tr["measured"])
+        top.plot(t, measured, label="recording", **EXPERIMENT_STYLE)
+        top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline", zorder=3)
+        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})", zorder=3)
+        top.fill_between(
+            t,
+            measured,
+            tr["baseline"],
+            color="orange",
+            alpha=0.35,
+            lw=0,
+            label="mismatch of the baseline",
+        )
+        bottom.plot(t, (tr["baseline"] - measured) * 1e3, "C0-", lw=0.8, label="baseline")
+        bottom.plot(t, (tr["after"] - measured) * 1e3, "C3-", lw=0.8, label="corrected")
+        if math.isfinite(d.floor) and d.floor > 0:
+            bottom.axhspan(
+                -d.floor * 1e3,
+                d.floor * 1e3,
+                color="0.75",
+                alpha=0.6,
+                lw=0,
+                zorder=0,
+                label=f"encoder floor ±{d.floor * 1e3:.2g} mm",
+            )
+        for w in (w for w in d.windows if w["recording"] == tr["name"]):
+            bottom.axvspan(
+                w["start"],
+                w["end"],
+                ymin=0,
+                ymax=0.04,
+                color="orange",
+                lw=0,
+                label="windows beyond the floor (report's table)",
+            )
         top.set_title(tr["name"])
         top.set_ylabel("position [m]")
-        bottom.set_ylabel("residual [mm]")
+        bottom.set_ylabel("residual model − recording [mm]")
         bottom.set_xlabel("time [s]")
-        top.legend(fontsize=8)
-        bottom.legend(fontsize=8)
+    figure_legend(fig, list(axes.flat), ncols=4)
     fig.suptitle(figure_title(d), fontsize=9, color="black" if d.explained else "darkred")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    path = save(fig, path, dpi=110)
     plt.close(fig)
     return path
 
 
-def write_outputs(d, out_dir, *, json_path=None, force: bool = False) -> dict:
-    """Write report.md, diagnosis.png, corrected_plant.toml (and the JSON) into ``out_dir``;
-    refuses to overwrite any of them without ``force``. Returns {what: path}."""
+def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str = "png") -> dict:
+    """Write report.md, diagnosis.FMT (fmt: "png", "svg" or "pdf"), corrected_plant.toml (and
+    the JSON) into ``out_dir``; refuses to overwrite any of them without ``force``. Returns
+    {what: path}."""
+
     out = Path(out_dir)
     paths = {
         "report": out / "report.md",
-        "figure": out / "diagnosis.png",
+        "figure": out / f"diagnosis.{fmt}",
         "plant_file": out / "corrected_plant.toml",
     }
     if d.status != "diagnosed":
@@ -241,7 +272,7 @@ def _write_outputs(d, out, paths, json_path, force) -> None:
         write_plant_file(paths["plant_file"], d.plant, fit=fit, force=force)
         d.plant_file = str(paths["plant_file"])
         plot_diagnosis(d, paths["figure"])
-    text = render_markdown(d, figure="diagnosis.png" if d.status == "diagnosed" else None)
+    text = render_markdown(d, figure=paths["figure"].name if d.status == "diagnosed" else None)
     write_text(paths["report"], text, force=True)
     if json_path:
         from hw.jsonio import write_json
