@@ -47,11 +47,12 @@ import numpy as np
 
 from hw.control_law import PID, PIDState, float_pid, pid_init, pid_update
 from jaxcart.effects import Held
-from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
 from jaxcart.metrics import StepInfo, step_info
 from jaxcart.params import Plant, voltage_limit
+from jaxcart.runcheck import check_run
 from jaxcart.smooth_sim import DIVERGED_POSITION, Response
+from jaxcart.substeps import substeps_per_sample
 
 #: Safety cap on stick-slip events per sample (the physics allows at most 2).
 _MAX_EVENTS = 8
@@ -158,10 +159,9 @@ class _GeneralCart:
     the closed form where both apply).
     """
 
-    SUBSTEPS = 20
-
-    def __init__(self, m, c, gamma, drive, dry, others, h):
+    def __init__(self, m, c, gamma, drive, dry, others, h, substeps):
         self.m, self.c, self.gamma, self.drive, self.h = m, c, gamma, drive, h
+        self.substeps = substeps
         self.dry, self.others = dry, others
         statics = [e.static() for e in dry if e.static() is not None]
         self.static = max(statics) if statics else None
@@ -250,7 +250,7 @@ class _GeneralCart:
                 s = 1.0 if applied > 0.0 else -1.0
             else:
                 s = 1.0 if yd > 0.0 else -1.0
-            n = max(1, math.ceil(left / self.h * self.SUBSTEPS - 1e-9))
+            n = max(1, math.ceil(left / self.h * self.substeps - 1e-9))
             hs = left / n
             rk4 = self._stepper(v, s)
             for i in range(n):
@@ -282,10 +282,10 @@ class _BacklashCart:
     smoothing anywhere. Holds the play's state (d [m], d' [m/s], mode) across samples.
     """
 
-    SUBSTEPS = 20
     MAX_EVENTS = 16
 
-    def __init__(self, plant, effect, gamma, drive, dry, others, h):
+    def __init__(self, plant, effect, gamma, drive, dry, others, h, substeps):
+        self.substeps = substeps
         self.big_m, self.m_j = float(plant.M), float(plant.M_J)
         self.m = self.big_m + self.m_j
         self.b_eq, self.b_emf = float(plant.B_eq), float(plant.B_emf)
@@ -369,7 +369,7 @@ class _BacklashCart:
                 continue
             if self.mode and s == 0.0:
                 break  # joined and stuck: every force is constant until the next sample
-            n = max(1, math.ceil(left / self.h * self.SUBSTEPS - 1e-9))
+            n = max(1, math.ceil(left / self.h * self.substeps - 1e-9))
             hs = left / n
             for i in range(n):
                 x1 = self._rk4(x, v, s, hs)
@@ -448,27 +448,28 @@ def _cart(plant: Plant, ts: float):
             )
     transmission = next((e for e in forces if e.transmission), None)
     forces = [e for e in forces if e is not transmission]
+    substeps = substeps_per_sample(plant, rk4=True)
     dry = [e for e in forces if e.dry_friction]
     others = [e for e in forces if not e.dry_friction]
     if transmission is not None:
         drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
-        cart = _BacklashCart(plant, transmission, gamma, drive, dry, others, ts)
-        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts, gamma_v=False)
+        cart = _BacklashCart(plant, transmission, gamma, drive, dry, others, ts, substeps)
+        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts)
     varying = any(e.position_dependent for e in dry)
     if others or varying:
         drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
-        cart = _GeneralCart(m, c, gamma, drive, dry, others, ts)
-        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts, gamma_v=False)
+        cart = _GeneralCart(m, c, gamma, drive, dry, others, ts, substeps)
+        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts)
     f_k = sum(float(e.kinetic(0.0, math)) for e in dry)
     statics = [float(e.static()) for e in dry if e.static() is not None]
     f_s = max(statics) if statics else f_k
     cart = _Cart(m, c, f_k, f_s, ts)
     return lambda y, v, held: _pieces(
-        lambda y, v, volt, h: cart.advance(y, v, gamma * volt, h), y, v, held, ts, gamma_v=True
+        lambda y, v, volt, h: cart.advance(y, v, gamma * volt, h), y, v, held, ts
     )
 
 
-def _pieces(advance, y, v, held, ts, gamma_v):
+def _pieces(advance, y, v, held, ts):
     """Advance over the sample's one or two held-voltage pieces."""
     if held.split > 0.0:
         y, v = advance(y, v, held.early, held.split)
@@ -498,21 +499,13 @@ def simulate_exact(plant: Plant, controller: PID | None, experiment: Experiment)
     sample with |y| > DIVERGED_POSITION or not finite the simulation stops and the later samples
     are nan), kind.
     """
+    check_run(plant, controller, experiment)
     ts = float(experiment.sample_time)
     kind = experiment.kind
     closed = kind == "closed_loop"
-    if closed and controller is None:
-        raise UserError("a closed-loop experiment needs a controller (a jaxcart.PID), got None")
-    if closed and abs(controller.sample_time - ts) > 1e-12 * ts:
-        raise UserError(
-            f"controller sample_time {controller.sample_time} s differs from the experiment's "
-            f"{ts} s; simulate them at one sample time"
-        )
     advance = _cart(plant, ts)
     sensors = [_as_floats(e) for e in plant.stage("sensor")]
     voltages = [_as_floats(e) for e in plant.stage("voltage")]
-    for e in sensors + voltages:
-        e.check(ts)
     sensor_states = [e.exact_init(ts) for e in sensors]
     voltage_states = [e.exact_init(ts) for e in voltages]
 

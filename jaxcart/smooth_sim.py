@@ -32,7 +32,9 @@ from jaxcart.effects import Held
 from jaxcart.effects.stiction import STRIBECK_SCALE
 from jaxcart.experiments import Experiment
 from jaxcart.params import Plant
+from jaxcart.runcheck import check_run
 from jaxcart.smoothing import Smoothing, smooth_clip, smooth_sign
+from jaxcart.substeps import substeps_per_sample
 
 #: |y| beyond this [m] (the track is 1 m long) or a non-finite value marks a diverged run.
 DIVERGED_POSITION = 1e3
@@ -307,97 +309,110 @@ def _plant_step(plant: Plant, smoothing: Smoothing, h: float, substeps: int):
     return advance
 
 
-#: Sub-steps per sample where force effects act (each of two linearization stages). Against
-#: 200 sub-steps the position error is <= 5.3 um at the default widths and <= 1.1 um at 0.1x
-#: (P and PID runs with Coulomb friction, measured); a quarter of an encoder count.
-FORCE_SUBSTEPS = 2
+class LoopState(NamedTuple):
+    """The smooth loop's state between two samples (a pytree; the carry of its ``lax.scan``).
+
+    position y [m] and velocity y' [m/s] of the cart; controller: the PID's
+    :class:`hw.control_law.PIDState` (None for open-loop and tap experiments); effects: the
+    sensor effects' states, then the voltage effects', in loop order; transmission: the
+    transmission effect's state (backlash: the play d [m] and its rate d' [m/s]), () without
+    one.
+    """
+
+    position: jax.Array
+    velocity: jax.Array
+    controller: object
+    effects: tuple
+    transmission: tuple
 
 
-#: Sub-steps per sample with backlash: the gap is crossed in a few samples and each impact
-#: is located inside its sub-step (see :mod:`jaxcart.effects.backlash`).
-BACKLASH_SUBSTEPS = 4
+@dataclass(frozen=True)
+class StepConfig:
+    """What :func:`step` needs besides the state and the sample's signal: fixed for a run."""
+
+    controller: PID | None
+    kind: str
+    y0: jax.Array
+    sample_time: float
+    smoothing: Smoothing
+    sensors: tuple
+    voltages: tuple
+    advance: object  # advance(y, yd, held, extra) -> (y, yd, extra) over one period
 
 
-def default_substeps(plant: Plant) -> int:
-    """Sub-steps per sample: 1 for a linear plant, FORCE_SUBSTEPS where force effects act,
-    BACKLASH_SUBSTEPS with backlash."""
-    if _transmission(plant) is not None:
-        return BACKLASH_SUBSTEPS
-    return FORCE_SUBSTEPS if plant.stage("force") else 1
+def step(config: StepConfig, state: LoopState, signal_k) -> tuple[LoopState, Sample]:
+    """One sample period of the smooth loop (pure): the sensor effects turn y_k into what the
+    controller reads (and what the response records as ``position``), the controller computes
+    u_k, the voltage effects turn it into the held voltage, and the cart is advanced over the
+    period. ``signal_k``: r_k [m] (closed loop) or u_k [V] (open loop)."""
+    n_sensors = len(config.sensors)
+    sensor_states = state.effects[:n_sensors]
+    voltage_states = state.effects[n_sensors:]
+    y_read, sensor_states = _measure(
+        config.sensors, sensor_states, state.position, config.smoothing
+    )
+    pid_state = state.controller
+    if config.kind == "closed_loop":
+        width = config.smoothing.voltage
+
+        def clip(v, limit):
+            return smooth_clip(v, limit, width)
+
+        u, v, pid_state = pid_update(
+            config.controller, pid_state, signal_k, y_read, xp=jnp, clip=clip
+        )
+        r = signal_k
+    elif config.kind == "open_loop":
+        u, v, r = signal_k, signal_k, config.y0
+    else:
+        u, v, r = 0.0 * signal_k, 0.0 * signal_k, config.y0
+    held = Held(u, u, 0.0 * u)
+    new_voltage_states = []
+    for effect, st in zip(config.voltages, voltage_states, strict=True):
+        held, st = effect.smooth(st, held, config.smoothing, config.sample_time)
+        new_voltage_states.append(st)
+    y1, yd1, extra = config.advance(state.position, state.velocity, held, state.transmission)
+    z = 0 * state.position
+    new = LoopState(y1, yd1, pid_state, tuple(sensor_states) + tuple(new_voltage_states), extra)
+    return new, Sample(y_read, state.velocity, r + z, u + z, held.late + z, v + z)
 
 
 def loop(plant, controller, experiment, *, smoothing=None, substeps=None):
-    """The loop as (initial carry, step function) for lax.scan over the experiment's signal.
-
-    ``step(carry, signal_k) -> (carry, Sample)``. Shared by :func:`simulate` (which stores every
-    sample) and the streaming metrics (which store none, to keep the working set in cache).
-    Each sample: the sensor effects turn y_k into what the controller reads (and what the
-    response records as ``position``), the controller computes u_k, the voltage effects turn it
-    into the held voltage, and the cart is advanced over the sample.
+    """The loop as (initial :class:`LoopState`, step function) for lax.scan over the
+    experiment's signal: ``step(state, signal_k) -> (state, Sample)``, :func:`step` with the
+    run's :class:`StepConfig` bound. Shared by :func:`simulate_smooth` (which stores every
+    sample), the chunked simulator and the streaming metrics (which store none, to keep the
+    working set in cache). ``substeps``: default :func:`jaxcart.substeps.substeps_per_sample`.
+    Raises :class:`jaxcart.runcheck.IncompatibleRun` for a run that cannot be simulated.
     """
+    check_run(plant, controller, experiment)
     smoothing = Smoothing() if smoothing is None else smoothing
-    substeps = default_substeps(plant) if substeps is None else int(substeps)
+    substeps = substeps_per_sample(plant) if substeps is None else int(substeps)
     ts = experiment.sample_time
-    if experiment.kind == "closed_loop" and abs(controller.sample_time - ts) > 1e-12 * ts:
-        raise ValueError(
-            f"controller sample_time {controller.sample_time} s differs from the experiment's "
-            f"{ts} s; simulate them at one sample time"
-        )
-    for effect in plant.effects:
-        effect.check(ts)
     advance = _plant_step(plant, smoothing, ts, substeps)
     sensors, voltages = plant.stage("sensor"), plant.stage("voltage")
-
-    def clip(v, limit):
-        return smooth_clip(v, limit, smoothing.voltage)
-
     dtype = jnp.result_type(experiment.signal)
     y0 = jnp.asarray(experiment.y0, dtype=dtype)
     yd0 = jnp.asarray(experiment.yd0, dtype=y0.dtype)
-    states = {
-        id(e): tuple(jnp.asarray(s, dtype=dtype) for s in e.init_state(ts))
-        for e in sensors + voltages
-    }
-    order = [id(e) for e in sensors + voltages]
-    init_states = tuple(states[i] for i in order)
+    effect_states = tuple(
+        tuple(jnp.asarray(s, dtype=dtype) for s in e.init_state(ts)) for e in sensors + voltages
+    )
     # The transmission's state (backlash: the play and its rate) rides in the carry; () for
     # every other plant, so the plain loop is unchanged.
     transmission = _transmission(plant)
     extra = () if transmission is None else transmission.init_state(ts)
     extra = tuple(jnp.asarray(x, dtype=dtype) for x in extra)
     zero = 0 * experiment.signal[0]
+    pid_state = None
     if experiment.kind == "closed_loop":
         r0 = experiment.signal[0]
-        y0_read = _measure(sensors, init_states[: len(sensors)], y0 + zero, smoothing)[0]
-        init = (y0 + zero, yd0 + zero, pid_init(controller, r0, y0_read, xp=jnp), init_states) + (
-            extra,
-        )
-    else:
-        init = (y0 + zero, yd0 + zero, None, init_states, extra)
-
-    def step(carry, signal_k):
-        y, yd, state, effect_states, extra = carry
-        sensor_states = effect_states[: len(sensors)]
-        voltage_states = effect_states[len(sensors) :]
-        y_read, sensor_states = _measure(sensors, sensor_states, y, smoothing)
-        if experiment.kind == "closed_loop":
-            u, v, state = pid_update(controller, state, signal_k, y_read, xp=jnp, clip=clip)
-            r = signal_k
-        elif experiment.kind == "open_loop":
-            u, v, r = signal_k, signal_k, y0
-        else:
-            u, v, r = 0.0 * signal_k, 0.0 * signal_k, y0
-        held = Held(u, u, 0.0 * u)
-        new_voltage_states = []
-        for effect, st in zip(voltages, voltage_states, strict=True):
-            held, st = effect.smooth(st, held, smoothing, ts)
-            new_voltage_states.append(st)
-        y1, yd1, extra = advance(y, yd, held, extra)
-        z = 0 * y
-        carry = (y1, yd1, state, tuple(sensor_states) + tuple(new_voltage_states), extra)
-        return carry, Sample(y_read, yd, r + z, u + z, held.late + z, v + z)
-
-    return init, step
+        y0_read = _measure(sensors, effect_states[: len(sensors)], y0 + zero, smoothing)[0]
+        pid_state = pid_init(controller, r0, y0_read, xp=jnp)
+    init = LoopState(y0 + zero, yd0 + zero, pid_state, effect_states, extra)
+    config = StepConfig(
+        controller, experiment.kind, y0, ts, smoothing, tuple(sensors), tuple(voltages), advance
+    )
+    return init, functools.partial(step, config)
 
 
 def _measure(sensors, states, y, smoothing):
@@ -408,7 +423,7 @@ def _measure(sensors, states, y, smoothing):
     return y, tuple(new)
 
 
-def simulate(
+def simulate_smooth(
     plant: Plant,
     controller: PID,
     experiment: Experiment,
@@ -416,13 +431,14 @@ def simulate(
     smoothing: Smoothing | None = None,
     substeps: int | None = None,
 ) -> Response:
-    """Simulate one experiment with the smooth model; returns a :class:`Response`.
+    """Simulate one experiment with the smooth model; returns a :class:`Response`
+    (:func:`jaxcart.simulate` with ``solver=Smooth(...)`` calls this).
 
     plant: :class:`jaxcart.Plant` (with its effects); controller: :class:`jaxcart.PID`
     (ignored for tap and open-loop experiments); experiment: :class:`jaxcart.Experiment`.
     smoothing: widths of the smoothed nonlinearities (default :class:`Smoothing`);
     ``jaxcart.EXACT_FORMS`` uses hard clip (fine without friction). substeps: sub-steps per
-    sample where force effects act (static; default FORCE_SUBSTEPS = 2).
+    sample (static; default :func:`jaxcart.substeps.substeps_per_sample`).
 
     Pure JAX: wrap in ``jax.jit``, ``jax.vmap`` over gains or plant parameters, ``jax.grad``.
     """

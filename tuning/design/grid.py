@@ -35,8 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcart.batch_metrics import default_chunk, step_metrics_batch
-from jaxcart.errors import UserError
 from jaxcart.chunked_sim import duration_text
+from jaxcart.errors import UserError
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth_sim import EXACT_FORMS
 from tuning.design import gridrun

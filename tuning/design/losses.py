@@ -31,7 +31,7 @@ from jaxcart.errors import UserError
 from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo, info_from_accumulated
 from jaxcart.params import voltage_limit
 from jaxcart.accumulators import accumulate, value_and_jacfwd_rows
-from jaxcart.smooth_sim import DIVERGED_POSITION, loop, simulate
+from jaxcart.smooth_sim import DIVERGED_POSITION, loop, simulate_smooth
 from jaxcart.smoothing import Smoothing
 from jaxcart.surrogates import (
     SmoothStepInfo,
@@ -125,7 +125,7 @@ def plant_loss(
     """(loss, SmoothStepInfo) of one gain set (kp, kd, ki) on one plant, at continuation
     ``scale`` (widths = scale x their values in ``settings``)."""
     smoothing = settings.smoothing.scaled(scale)
-    response = simulate(
+    response = simulate_smooth(
         plant,
         controller_with(controller, gains),
         experiment,

@@ -32,6 +32,7 @@ import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -44,7 +45,7 @@ from jaxcart.errors import UserError
 from jaxcart.experiments import step
 from jaxcart.metrics import StepInfo
 from jaxcart.parallel import batch_sharding, devices, put, replicated
-from jaxcart.params import Plant, voltage_limit
+from jaxcart.params import Plant
 from jaxcart.plantspec import build_plant, handout_plant
 from jaxcart.smooth_sim import EXACT_FORMS
 from jaxcart.smoothing import continuation
@@ -416,8 +417,66 @@ def tune(
     constraints and ``message`` says so; the best effort is returned.
     """
     t0 = time.perf_counter()
-    spec = spec or Spec()
-    settings = settings or LossSettings()
+    p = _problem(
+        plant,
+        spec=spec or Spec(),
+        start=start,
+        free=free,
+        controller=controller,
+        robust=robust,
+        bounds=bounds,
+        settings=settings or LossSettings(),
+        substeps=substeps,
+        n_check=n_check,
+        seed=seed,
+    )
+    n_starts = max(1, n_starts)
+    theta, rows = _starts(p, n_starts, spread, seed)
+    treedef = jax.tree.structure(p.plants_arg)
+    update, adam = _compiled(p.template, p.spec, p.settings, p.robust, p.substeps, treedef)
+    if processes is not None:  # this process's starts computed, the whole batch returned
+        update = processes.wrap(update)
+    # The optimizer state lives where the update puts it (else the second step recompiles).
+    opt_state = initial_state(adam, theta, rows)
+    schedule = _Schedule(max_iterations, learning_rate, patience, stage_iterations, check_every)
+    run = _descend(update, p, theta, opt_state, schedule, _progress(progress), t0)
+    if processes is not None and not processes.finish():
+        return None  # another process of a distributed run: process 0 verifies and reports
+    return _conclude(p, update, run, n_starts, t0)
+
+
+@dataclass
+class _Problem:
+    """What :func:`tune` was asked, checked and placed: the specification, the controller
+    template, the free parameters (names and mask over :data:`PARAM_NAMES`), the start, the
+    box (logs ``lo``, ``hi``; ``box`` in units), the plant (or stacked set ``plants_arg``) and
+    the plants the result is checked on (robust tuning; else None)."""
+
+    spec: Spec
+    settings: LossSettings
+    plant: Plant
+    template: PID
+    free: tuple[str, ...]
+    free_mask: np.ndarray
+    start_params: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    box: dict
+    experiment: object
+    plants_arg: Plant
+    substeps: int | None
+    check_plants: list | None
+    check_values: list | None
+
+    @property
+    def robust(self) -> bool:
+        return self.check_plants is not None
+
+
+def _problem(
+    plant, *, spec, start, free, controller, robust, bounds, settings, substeps, n_check, seed
+) -> _Problem:
+    """The checked problem of :func:`tune` (a UserError names what is wrong)."""
     plant = handout_plant() if plant is None else plant
     free_mask = _free_mask(free)
     free = tuple(n for n in PARAM_NAMES if n in free)
@@ -430,161 +489,236 @@ def tune(
         )
     lo, hi, box = _bounds(bounds)
     experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
-    ts = template.sample_time
+    plants_arg, friction, check_plants, check_values = _plant_set(plant, robust, n_check, seed)
+    return _Problem(
+        spec=spec,
+        settings=settings,
+        plant=plant,
+        template=template,
+        free=free,
+        free_mask=free_mask,
+        start_params=start_params,
+        lo=lo,
+        hi=hi,
+        box=box,
+        experiment=experiment,
+        plants_arg=plants_arg,
+        substeps=FRICTION_SUBSTEPS if substeps is None and friction else substeps,
+        check_plants=check_plants,
+        check_values=check_values,
+    )
 
-    # The plant set (robust) or the plant.
-    check_plants = check_values = None
-    if robust is not False and robust is not None:
-        if isinstance(robust, Sequence) and all(isinstance(p, Plant) for p in robust):
-            train = list(robust)
-            if not train or len({jax.tree.structure(p) for p in train}) != 1:
-                raise UserError(
-                    "robust plant list: give one or more plants with the same effects (add "
-                    "Coulomb(0.0) where a plant has no friction)"
-                )
-            check_values = [
-                {n: float(p.get(n)) for n in ("M", "B_eq", "f_c") if n in p.param_names()}
-                for p in train
-            ]
-            check_plants = train
-        else:
-            ranges = None if robust is True else robust
-            train, _ = robust_plants(plant, ranges)
-            check_plants, check_values = robust_plants(
-                plant, ranges, n_random=n_check, seed=seed + 1
-            )
-        plants_arg = _stack(train)
-        friction = any(_has_friction(p) for p in train)
-    else:
+
+def _plant_set(plant: Plant, robust, n_check: int, seed: int):
+    """(plants_arg: the plant on the device or the stacked training set, friction: whether
+    force effects act, check_plants, check_values: the set the result is checked on and its
+    parameters, None without robust tuning)."""
+    if robust is False or robust is None:
         # On the device once (a Python number is transferred again at every call).
-        plants_arg = jax.tree.map(put, plant)
-        friction = _has_friction(plant)
-    is_robust = check_plants is not None
+        return jax.tree.map(put, plant), _has_friction(plant), None, None
+    if isinstance(robust, Sequence) and all(isinstance(p, Plant) for p in robust):
+        train = list(robust)
+        if not train or len({jax.tree.structure(p) for p in train}) != 1:
+            raise UserError(
+                "robust plant list: give one or more plants with the same effects (add "
+                "Coulomb(0.0) where a plant has no friction)"
+            )
+        check_values = [
+            {n: float(p.get(n)) for n in ("M", "B_eq", "f_c") if n in p.param_names()}
+            for p in train
+        ]
+        check_plants = train
+    else:
+        ranges = None if robust is True else robust
+        train, _ = robust_plants(plant, ranges)
+        check_plants, check_values = robust_plants(plant, ranges, n_random=n_check, seed=seed + 1)
+    friction = any(_has_friction(p) for p in train)
+    return _stack(train), friction, check_plants, check_values
 
-    # Starts: the given one, then log-normal perturbations of the free parameters.
+
+def _starts(p: _Problem, n_starts: int, spread: float, seed: int):
+    """(theta, rows): the logs of the starts, on the devices, and their placement. The given
+    start, then log-normal perturbations of the free parameters (``spread``: standard
+    deviation of their logs), clipped into the box."""
+    free_mask, start_params = p.free_mask, p.start_params
     base = np.where(
         free_mask & (start_params <= 0), [ZERO_START[n] for n in PARAM_NAMES], start_params
     )
     theta0 = np.log(np.where(free_mask, base, 1.0))
     rng = np.random.default_rng(seed)
-    n_starts = max(1, n_starts)
     noise = spread * rng.standard_normal((n_starts - 1, len(PARAM_NAMES)))
     theta = np.concatenate([theta0[None], theta0[None] + noise]) * free_mask
-    theta = np.clip(theta, lo, hi) * free_mask
+    theta = np.clip(theta, p.lo, p.hi) * free_mask
     # The batch of starts is sharded over every device: pad it to a multiple with copies of the
     # first start (never new random ones), so the result does not depend on the device count.
     n_dev = len(devices())
     theta = np.concatenate([theta, np.repeat(theta[:1], -n_starts % n_dev, axis=0)])
     # One device: the placement the compiled update returns (a second signature otherwise).
     rows = batch_sharding() if n_dev > 1 else replicated()
-    theta = put(theta, float, rows)
-    fixed = put(np.where(np.isfinite(start_params), start_params, 1e30), float)
-    mask = put(free_mask)
-    free_idx = put(np.flatnonzero(free_mask), np.int32)
+    return put(theta, float, rows), rows
 
-    if substeps is None and friction:
-        substeps = FRICTION_SUBSTEPS
-    update, adam = _compiled(
-        template, spec, settings, is_robust, substeps, jax.tree.structure(plants_arg)
-    )
-    if processes is not None:  # this process's starts computed, the whole batch returned
-        update = processes.wrap(update)
-    # The optimizer state lives where the update puts it (else the second step recompiles).
-    opt_state = initial_state(adam, theta, rows)
-    lo_j, hi_j = put(np.asarray(lo)[None], float), put(np.asarray(hi)[None], float)
 
-    report = _progress(progress)
-    history: list[dict] = []
-    candidates: dict[tuple, tuple] = {}  # rounded params -> (key, params, settling, overshoot)
-    best = {"key": (math.inf, math.inf), "improved_at": None, "seconds_to_spec": None}
+class _Schedule(NamedTuple):
+    """The iterations of :func:`tune` (see its arguments)."""
 
-    def record(params, metrics, it, scale):
-        """The step metrics (exact thresholds) of every start's smooth run: candidates."""
+    max_iterations: int
+    learning_rate: float
+    patience: int
+    stage_iterations: int
+    check_every: int
+
+
+@dataclass
+class _Candidates:
+    """The step metrics (exact thresholds) of every start's smooth run: the candidates for
+    the exact check and the best point so far.
+
+    found: rounded params -> (key, params, settling [s], overshoot [%], scale); key: the
+    best (settling, overshoot), or (inf, violation) while nothing meets the specification;
+    improved_at: the last iteration the settling time improved by half a sample or more;
+    seconds_to_spec: when a point first met the specification [s]."""
+
+    spec: Spec
+    t0: float
+    found: dict = field(default_factory=dict)
+    key: tuple = (math.inf, math.inf)
+    improved_at: int | None = None
+    seconds_to_spec: float | None = None
+
+    def record(self, params, metrics, it: int, scale: float, ts: float) -> None:
+        spec = self.spec
         settle, over = np.asarray(metrics.settling_time), np.asarray(metrics.overshoot)
         bad = np.asarray(metrics.diverged)
         for g, s, o, b in zip(np.asarray(params), settle, over, bad, strict=True):
             feasible = (not b) and s < spec.settling_time and o < spec.overshoot
             key = (s, o) if feasible else (math.inf, _violation(s, o, spec))
             # The finest widths rank first among equals: they are closest to the exact loop.
-            candidates[tuple(float(f"{x:.5g}") for x in g)] = (key, g, s, o, scale)
-            if key < best["key"]:
+            self.found[tuple(float(f"{x:.5g}") for x in g)] = (key, g, s, o, scale)
+            if key < self.key:
                 # Progress is half a sample or more of settling time (or the first feasible).
-                if feasible and key[0] < best["key"][0] - 0.5 * ts:
-                    best["improved_at"] = it
-                if feasible and best["seconds_to_spec"] is None:
-                    best["seconds_to_spec"] = time.perf_counter() - t0
-                best["key"] = key
+                if feasible and key[0] < self.key[0] - 0.5 * ts:
+                    self.improved_at = it
+                if feasible and self.seconds_to_spec is None:
+                    self.seconds_to_spec = time.perf_counter() - self.t0
+                self.key = key
 
-    stage, stage_start = 0, 0
-    anchor = np.asarray(theta)
+
+@dataclass
+class _Run:
+    """Where :func:`_descend` ended: the last iterate (logs), the optimizer state, the
+    candidates, the history (one dict per iteration), the iterations done, and the update's
+    arguments that stay on the devices (the free parameters' indices, the box's logs)."""
+
+    theta: object
+    opt_state: object
+    candidates: _Candidates
+    history: list
+    iterations: int
+    free_idx: object
+    box: tuple
+
+
+def _descend(update, p: _Problem, theta, opt_state, schedule: _Schedule, report, t0) -> _Run:
+    """The adam iterations over the batch of starts, with the continuation of the smoothing
+    widths (:data:`SCALES`) and the early stop."""
+    ts = p.template.sample_time
+    free_idx = put(np.flatnonzero(p.free_mask), np.int32)
+    fixed = put(np.where(np.isfinite(p.start_params), p.start_params, 1e30), float)
+    mask = put(p.free_mask)
+    lo_j, hi_j = put(np.asarray(p.lo)[None], float), put(np.asarray(p.hi)[None], float)
+    candidates = _Candidates(p.spec, t0)
+    history: list[dict] = []
+    stage = _Stage(np.asarray(theta))
     it = 0
-    for it in range(max_iterations):  # noqa: B007 (it is used after the loop)
-        scale = put(SCALES[stage], theta.dtype)
-        lr = _cosine(learning_rate, it, max_iterations)
+    for it in range(schedule.max_iterations):  # noqa: B007 (it is used after the loop)
+        scale = put(SCALES[stage.index], theta.dtype)
+        lr = _cosine(schedule.learning_rate, it, schedule.max_iterations)
         params, theta, opt_state, values_now, info, metrics = update(
-            theta, opt_state, lr, free_idx, fixed, mask, plants_arg, scale, lo_j, hi_j
+            theta, opt_state, lr, free_idx, fixed, mask, p.plants_arg, scale, lo_j, hi_j
         )
-        if it % check_every == 0:
-            record(params, metrics, it, SCALES[stage])
-
-        values_np = np.asarray(values_now)
-        j = int(np.argmin(values_np))
-        entry = {
-            "iteration": it,
-            "seconds": time.perf_counter() - t0,
-            "scale": float(scale),
-            "loss": float(values_np[j]),
-            "settling_time": float(np.max(np.asarray(info.settling_time)[j])),
-            "overshoot": float(np.max(np.asarray(info.overshoot)[j])),
-            "best_settling_time": float(best["key"][0]),
-        }
+        if it % schedule.check_every == 0:
+            candidates.record(params, metrics, it, SCALES[stage.index], ts)
+        entry = _history_entry(it, t0, scale, values_now, info, candidates.key)
         history.append(entry)
         report(entry)
-
-        # Continuation: shrink the widths once the parameters stop moving at this width.
-        done_in_stage = it + 1 - stage_start
-        if done_in_stage % 5 == 0:
-            moved = float(np.max(np.abs(np.asarray(theta) - anchor)))  # over 5 iterations
-            if stage + 1 < len(SCALES) and (moved < 0.02 or done_in_stage >= stage_iterations):
-                stage, stage_start = stage + 1, it + 1
-            anchor = np.asarray(theta)
-        # Early stop: finest width and no better point for ``patience`` iterations.
-        if stage == len(SCALES) - 1 and it - stage_start >= patience:
-            last = best["improved_at"] if best["improved_at"] is not None else stage_start
-            if it - max(last, stage_start) >= patience:
-                break
+        stage.advance(it, theta, schedule.stage_iterations)
+        if stage.finished(it, schedule.patience, candidates.improved_at):
+            break
     report(None)
-    if processes is not None and not processes.finish():
-        return None  # another process of a distributed run: process 0 verifies and reports
-    iterations = it + 1
-    seconds_to_spec = best["seconds_to_spec"]
+    return _Run(theta, opt_state, candidates, history, it + 1, free_idx, (lo_j, hi_j))
 
+
+def _history_entry(it, t0, scale, values_now, info, best_key) -> dict:
+    """One iteration's history: its loss, the settling time and overshoot surrogates of the
+    best start, the best settling time that meets the specification so far."""
+    values_np = np.asarray(values_now)
+    j = int(np.argmin(values_np))
+    return {
+        "iteration": it,
+        "seconds": time.perf_counter() - t0,
+        "scale": float(scale),
+        "loss": float(values_np[j]),
+        "settling_time": float(np.max(np.asarray(info.settling_time)[j])),
+        "overshoot": float(np.max(np.asarray(info.overshoot)[j])),
+        "best_settling_time": float(best_key[0]),
+    }
+
+
+class _Stage:
+    """The continuation: the stage (index into :data:`SCALES`) of the smoothing widths, the
+    iteration it began and the parameters 5 iterations ago."""
+
+    def __init__(self, anchor):
+        self.index, self.start, self.anchor = 0, 0, anchor
+
+    def advance(self, it: int, theta, stage_iterations: int) -> None:
+        """Shrink the widths once the parameters stop moving at this width."""
+        done_in_stage = it + 1 - self.start
+        if done_in_stage % 5 == 0:
+            moved = float(np.max(np.abs(np.asarray(theta) - self.anchor)))  # over 5 iterations
+            last = self.index + 1 >= len(SCALES)
+            if not last and (moved < 0.02 or done_in_stage >= stage_iterations):
+                self.index, self.start = self.index + 1, it + 1
+            self.anchor = np.asarray(theta)
+
+    def finished(self, it: int, patience: int, improved_at: int | None) -> bool:
+        """Early stop: finest width and no better point for ``patience`` iterations."""
+        if self.index == len(SCALES) - 1 and it - self.start >= patience:
+            last = improved_at if improved_at is not None else self.start
+            return it - max(last, self.start) >= patience
+        return False
+
+
+def _conclude(p: _Problem, update, run: _Run, n_starts: int, t0: float) -> TuneResult:
+    """The best candidates checked on the exact simulator, and the :class:`TuneResult`."""
     chosen, exact, checked = _verify(
-        candidates, template, plant, experiment, spec, check_plants if is_robust else None
+        run.candidates.found, p.template, p.plant, p.experiment, p.spec, p.check_plants
     )
-    tuned = controller_with(float_pid(template), [float(x) for x in chosen])
-    gains = float_pid(tuned)
+    gains = float_pid(controller_with(float_pid(p.template), [float(x) for x in chosen]))
     smooth = _smooth_report(
-        update, opt_state, gains, plant, plants_arg, is_robust, theta, free_idx, (lo_j, hi_j)
+        update,
+        run.opt_state,
+        gains,
+        p.plant,
+        p.plants_arg,
+        p.robust,
+        run.theta,
+        run.free_idx,
+        run.box,
     )
-
     worst = plant_set = None
-    if is_robust:
-        infos = checked
-        worst = _worst(infos)
+    judged = exact
+    if p.robust:
+        worst = judged = _worst(checked)
         plant_set = [
-            {"params": v, "exact": _info_dict(i)} for v, i in zip(check_values, infos, strict=True)
+            {"params": v, "exact": _info_dict(i)}
+            for v, i in zip(p.check_values, checked, strict=True)
         ]
-        judged = worst
-    else:
-        judged = exact
-    failing = failing_constraints(judged, spec)
+    failing = failing_constraints(judged, p.spec)
     meets = not failing
+    seconds_to_spec = run.candidates.seconds_to_spec
     if meets and seconds_to_spec is None:
         seconds_to_spec = time.perf_counter() - t0
-    if not meets:
-        seconds_to_spec = None
-    message = _message(meets, failing, judged, spec, is_robust, len(check_plants or []))
     values = dict(zip(PARAM_NAMES, params_of(gains), strict=True))
     return TuneResult(
         gains=gains,
@@ -592,19 +726,19 @@ def tune(
         smooth=smooth,
         meets=meets,
         failing=failing,
-        message=message,
-        spec=spec,
-        plant=plant,
-        history=history,
+        message=_message(meets, failing, judged, p.spec, p.robust, len(p.check_plants or [])),
+        spec=p.spec,
+        plant=p.plant,
+        history=run.history,
         seconds=time.perf_counter() - t0,
-        seconds_to_spec=seconds_to_spec,
-        iterations=iterations,
+        seconds_to_spec=seconds_to_spec if meets else None,
+        iterations=run.iterations,
         n_starts=n_starts,
         worst=worst,
         plant_set=plant_set,
-        free=free,
-        bounds={n: box[n] for n in free},
-        on_bound=on_bounds(values, free, box),
+        free=p.free,
+        bounds={n: p.box[n] for n in p.free},
+        on_bound=on_bounds(values, p.free, p.box),
     )
 
 
@@ -672,7 +806,7 @@ def _smooth_report(update, state, gains, plant, plants_arg, robust, theta, free_
     if robust:
         # The nominal plant with the set's effects (friction included even where f_c = 0).
         values = {n: float(plant.get(n)) for n in ("M", "B_eq") if n in plant.param_names()}
-        values["f_c"] = float(plant.get("f_c")) if plant.effect("coulomb") is not None else 0.0
+        values["f_c"] = float(plant.get("f_c")) if "f_c" in plant.param_names() else 0.0
         nominal = build_plant(values, base=plant, check=False, where="robust set")
         n_plants = jax.tree.leaves(plants_arg)[0].shape[0]
         one = jax.tree.map(lambda x: x[0], plants_arg)
@@ -737,10 +871,6 @@ def _worst(infos: Sequence[StepInfo]) -> StepInfo:
 
 def _info_dict(info: StepInfo) -> dict:
     return {k: (bool(v) if k == "diverged" else _num(v)) for k, v in info._asdict().items()}
-
-
-def _limit(plant, pid) -> float:
-    return float(voltage_limit(plant, pid))
 
 
 def _message(meets, failing, info, spec, robust, n_plants) -> str:
@@ -881,18 +1011,14 @@ def compare_tuners(
     seconds_to_gradient: when its best point first matched the gradient result's worst-case
     settling time, to 0.5 ms, or None), "ratios" and a printable "table".
     """
-    from scipy.optimize import minimize
-
     spec = spec or Spec()
     plant = handout_plant() if plant is None else plant
     p_free, p_controller, robust, n_check, plants, n_starts = compare_problem(
         problem, plant, seed=seed
     )
     free = tuple(free or p_free)
-    controller = controller or p_controller
-    nm_max_evaluations = nm_max_evaluations or NM_EVALUATIONS[problem]
     free_mask = _free_mask(free)
-    start_params, template = _start_and_template(start, controller, free)
+    start_params, template = _start_and_template(start, controller or p_controller, free)
     template = float_pid(template)
     experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
     check = plants if plants is not None else [plant]
@@ -915,37 +1041,93 @@ def compare_tuners(
         bounds=bounds,
         progress=progress,
     )
-    budget = ours.seconds
     ours_info = ours.worst if ours.worst is not None else ours.exact
     log_lo, log_hi, _ = _bounds(bounds)
 
     # 2. Nelder-Mead on the exact simulator, penalty objective, same start.
     say(f"compare ({problem}): Nelder-Mead on the exact simulator, {len(check)} plant(s) ...")
+    nm = _nelder_mead(
+        _NelderMeadProblem(template, experiment, spec, check, free_mask, start_params),
+        (log_lo, log_hi),
+        # The gradient result's worst-case settling time, to half a sample, where it meets
+        # the specification: the point Nelder-Mead's time to it is measured at.
+        target=(
+            None
+            if failing_constraints(ours_info, spec)
+            else float(ours_info.settling_time) + 0.5 * template.sample_time
+        ),
+        max_evaluations=nm_max_evaluations or NM_EVALUATIONS[problem],
+        max_seconds=nm_max_seconds,
+    )
+
+    # 3. Quasi-random grid on the batched simulator for the same wall time (lab problem).
+    grid_entry = None
+    if (problem == "lab") if grid is None else grid:
+        say(f"compare ({problem}): grid of equal wall time ({ours.seconds:.1f} s) ...")
+        grid_entry = _grid_baseline(
+            plant,
+            template,
+            experiment,
+            spec,
+            free_mask,
+            start_params,
+            log_lo,
+            log_hi,
+            ours.seconds,
+            seed,
+        )
+    return _comparison(problem, free, len(check), spec, ours, ours_info, nm, grid_entry)
+
+
+class _NelderMeadProblem(NamedTuple):
+    """What Nelder-Mead tunes: the controller template, the experiment, the specification,
+    the plants judged (worst case), which parameters are free and where they start."""
+
+    template: PID
+    experiment: object
+    spec: Spec
+    plants: list
+    free_mask: np.ndarray
+    start_params: np.ndarray
+
+
+class _Done(Exception):
+    """Nelder-Mead's time cap was reached."""
+
+
+def _nelder_mead(
+    nmp: _NelderMeadProblem, log_box, *, target, max_evaluations: int, max_seconds: float
+) -> dict:
+    """scipy's Nelder-Mead on the exact simulator: the penalty objective of the worst case
+    over the plants, in the logs of the free parameters projected into ``log_box``. Returns
+    {params, info (exact StepInfo of the best point), seconds, first_feasible [s],
+    evaluations, to_gradient: when the best point first reached ``target`` settling time [s]
+    (None: never, or no target), stopped: why it stopped}."""
+    from scipy.optimize import minimize
+
+    spec, free_mask = nmp.spec, nmp.free_mask
+    log_lo, log_hi = log_box
     base = np.where(
-        free_mask & (start_params <= 0), [ZERO_START[n] for n in PARAM_NAMES], start_params
+        free_mask & (nmp.start_params <= 0), [ZERO_START[n] for n in PARAM_NAMES], nmp.start_params
     )
     nm = {"evaluations": 0, "best": None, "first_feasible": None, "to_gradient": None}
-    target = float(ours_info.settling_time) + 0.5 * template.sample_time
-    ours_ok = not failing_constraints(ours_info, spec)
     t0 = time.perf_counter()
 
-    class _Done(Exception):
-        pass
-
     def objective(x):
-        if time.perf_counter() - t0 > nm_max_seconds:
+        if time.perf_counter() - t0 > max_seconds:
             raise _Done
         g = base.copy()
         # Projected into the tuner's box, so both search the same parameters.
         g[free_mask] = np.exp(np.clip(x, log_lo[free_mask], log_hi[free_mask]))
-        pid = controller_with(template, list(g))
-        info = _worst([exact_info(p, pid, experiment) for p in check])
+        pid = controller_with(nmp.template, list(g))
+        info = _worst([exact_info(p, pid, nmp.experiment) for p in nmp.plants])
         nm["evaluations"] += 1
         feasible = not failing_constraints(info, spec)
         now = time.perf_counter() - t0
         if feasible and nm["first_feasible"] is None:
             nm["first_feasible"] = now
-        if feasible and ours_ok and nm["to_gradient"] is None and info.settling_time <= target:
+        reached = target is not None and info.settling_time <= target
+        if feasible and reached and nm["to_gradient"] is None:
             nm["to_gradient"] = now
         key = (
             0 if feasible else 1,
@@ -960,96 +1142,96 @@ def compare_tuners(
     x0 = np.log(base[free_mask])
     # Initial simplex: +/- 30 % steps in each log parameter (scipy's 5 % is too timid here).
     simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(x0.size)[i] for i in range(x0.size)])
+    options = {"maxfev": max_evaluations, "xatol": 1e-3, "fatol": 1e-4, "initial_simplex": simplex}
     try:
-        minimize(
-            objective,
-            x0,
-            method="Nelder-Mead",
-            options={
-                "maxfev": nm_max_evaluations,
-                "xatol": 1e-3,
-                "fatol": 1e-4,
-                "initial_simplex": simplex,
-            },
-        )
-        nm_stopped = "converged or evaluation cap"
+        minimize(objective, x0, method="Nelder-Mead", options=options)
+        stopped = "converged or evaluation cap"
     except _Done:
-        nm_stopped = f"time cap {nm_max_seconds:g} s"
-    nm_seconds = time.perf_counter() - t0
-    _, nm_params, nm_info = nm["best"]
+        stopped = f"time cap {max_seconds:g} s"
+    _, params, info = nm.pop("best")
+    return {
+        **nm,
+        "params": params,
+        "info": info,
+        "seconds": time.perf_counter() - t0,
+        "stopped": stopped,
+    }
 
-    # 3. Quasi-random grid on the batched simulator for the same wall time (lab problem).
-    grid = (problem == "lab") if grid is None else grid
-    grid_entry = None
-    if grid:
-        say(f"compare ({problem}): grid of equal wall time ({budget:.1f} s) ...")
-        grid_entry = _grid_baseline(
-            plant, template, experiment, spec, free_mask, start_params, log_lo, log_hi, budget, seed
-        )
 
-    def entry(params, info, seconds, to_spec, evaluations):
-        return {
-            "gains": None
-            if params is None
-            else dict(zip(PARAM_NAMES, map(float, params), strict=True)),
-            "settling_time": None if info is None else _num(info.settling_time),
-            "overshoot": None if info is None else _num(info.overshoot),
-            "meets": info is not None and not failing_constraints(info, spec),
-            "seconds": seconds,
-            "seconds_to_spec": to_spec,
-            "evaluations": evaluations,
-        }
+def _entry(params, info, seconds, to_spec, evaluations, spec: Spec) -> dict:
+    """One method's row of :func:`compare_tuners`."""
+    return {
+        "gains": None
+        if params is None
+        else dict(zip(PARAM_NAMES, map(float, params), strict=True)),
+        "settling_time": None if info is None else _num(info.settling_time),
+        "overshoot": None if info is None else _num(info.overshoot),
+        "meets": info is not None and not failing_constraints(info, spec),
+        "seconds": seconds,
+        "seconds_to_spec": to_spec,
+        "evaluations": evaluations,
+    }
 
+
+def _comparison(problem, free, n_plants, spec, ours, ours_info, nm, grid_entry) -> dict:
+    """The result of :func:`compare_tuners`: the rows, the ratios and the table."""
     result = {
         "problem": problem,
         "free": list(free),
-        "plants": len(check),
-        "gradient": entry(
+        "plants": n_plants,
+        "gradient": _entry(
             params_of(ours.gains),
             ours_info,
             ours.seconds,
             ours.seconds_to_spec,
             ours.iterations * ours.n_starts,
+            spec,
         ),
-        "nelder_mead": entry(
-            nm_params, nm_info, nm_seconds, nm["first_feasible"], nm["evaluations"]
+        "nelder_mead": _entry(
+            nm["params"], nm["info"], nm["seconds"], nm["first_feasible"], nm["evaluations"], spec
         ),
     }
     result["gradient"]["on_bound"] = sorted(ours.on_bound)
     result["nelder_mead"]["seconds_to_gradient"] = nm["to_gradient"]
-    result["nelder_mead"]["stopped"] = nm_stopped
+    result["nelder_mead"]["stopped"] = nm["stopped"]
     if grid_entry is not None:
-        result["grid"] = entry(*grid_entry)
+        result["grid"] = _entry(*grid_entry, spec)
+    result["ratios"] = _ratios(result, nm, ours)
+    result["table"] = _compare_table(result)
+    return result
 
-    def ratio(a, b):
-        try:
-            a, b = float(a), float(b)
-        except (TypeError, ValueError):
-            return None
-        return a / b if b > 0 and math.isfinite(a) and math.isfinite(b) else None
 
+def _ratio(a, b):
+    try:
+        a, b = float(a), float(b)
+    except (TypeError, ValueError):
+        return None
+    return a / b if b > 0 and math.isfinite(a) and math.isfinite(b) else None
+
+
+def _ratios(result, nm, ours) -> dict:
+    """Nelder-Mead's (and the grid's) figures over the gradient tuner's."""
     g = result["gradient"]
-    result["ratios"] = {
-        "settling_nelder_mead_over_gradient": ratio(
+    ratios = {
+        "settling_nelder_mead_over_gradient": _ratio(
             result["nelder_mead"]["settling_time"], g["settling_time"]
         ),
-        "seconds_nelder_mead_over_gradient": ratio(nm_seconds, ours.seconds),
+        "seconds_nelder_mead_over_gradient": _ratio(nm["seconds"], ours.seconds),
         # Nelder-Mead's time to the gradient tuner's worst case, over the gradient's time;
         # where it never got there, its whole run is a lower bound (reported as such).
-        "seconds_to_gradient_result_nelder_mead_over_gradient": ratio(
-            nm["to_gradient"] if nm["to_gradient"] is not None else nm_seconds, ours.seconds
+        "seconds_to_gradient_result_nelder_mead_over_gradient": _ratio(
+            nm["to_gradient"] if nm["to_gradient"] is not None else nm["seconds"], ours.seconds
         ),
         "nelder_mead_reached_gradient_result": nm["to_gradient"] is not None,
-        "seconds_to_spec_nelder_mead_over_gradient": ratio(
+        "seconds_to_spec_nelder_mead_over_gradient": _ratio(
             nm["first_feasible"], ours.seconds_to_spec
         ),
     }
     if "grid" in result:
-        result["ratios"]["settling_grid_over_gradient"] = ratio(
+        ratios["settling_grid_over_gradient"] = _ratio(
             result["grid"]["settling_time"], g["settling_time"]
         )
-    result["table"] = _compare_table(result)
-    return result
+    return ratios
 
 
 def _grid_baseline(

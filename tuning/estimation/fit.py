@@ -67,7 +67,7 @@ from jaxcart.files import signal64
 from jaxcart.parallel import put, sharded_map
 from jaxcart.params import ENCODER_RESOLUTION, Plant
 from jaxcart.plantspec import handout_plant
-from jaxcart.smooth_sim import simulate
+from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing, continuation
 
 #: Parameters a fit offers: the plant's corrections and every registered effect's parameters
@@ -713,7 +713,9 @@ def _positions(theta, data, smoothing, layout: _Layout):
             for j, (v, i) in enumerate(nuisance)
         }
         experiment = dataclasses.replace(experiment, **values)
-        res = simulate(plant, controller, experiment, smoothing=smoothing, substeps=layout.substeps)
+        res = simulate_smooth(
+            plant, controller, experiment, smoothing=smoothing, substeps=layout.substeps
+        )
         out.append(res.position)
     return jnp.concatenate(out)
 

@@ -131,8 +131,8 @@ class BatchFitter:
         import jax.numpy as jnp
 
         from jaxcart.parallel import sharded_map
-        from jaxcart.plantspec import with_values
-        from jaxcart.smooth import simulate
+        from jaxcart.plantspec import build_plant
+        from jaxcart.smooth_sim import simulate_smooth
         from jaxcart.smoothing import Smoothing
 
         self.segments = segments
@@ -140,7 +140,7 @@ class BatchFitter:
         supers = []
         for plant in start_plants:
             missing = {k: v for k, v in NEUTRAL.items() if k not in plant.param_names()}
-            supers.append(with_values(plant, missing))
+            supers.append(build_plant(missing, base=plant, check=False))
         self.supers = supers
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
@@ -184,7 +184,7 @@ class BatchFitter:
                     # exact re-check reads whole counts.
                     sm = dataclasses.replace(smoothing, position=seg.quantization)
                     shift = seg.quantization / 2
-                res = simulate(plant, seg.controller, exp, smoothing=sm, substeps=substeps)
+                res = simulate_smooth(plant, seg.controller, exp, smoothing=sm, substeps=substeps)
                 pos = jnp.where(jnp.isfinite(res.position), res.position + shift, 1.0)
                 out.append(pos - tgt)
             return jnp.concatenate(out) * scale
