@@ -139,7 +139,7 @@ def run(args) -> int:
         for message in plausibility.check_controller(controller, plant, where="controller"):
             plausibility.warn(message)
 
-    response = _simulate(args.exact, plant, controller, experiment)
+    response = _simulate(_solver(args.exact, experiment), plant, controller, experiment)
     if bool(np.asarray(response.diverged)):
         raise SimulationDiverged(
             f"simulation of {source} diverged (|y| > 1 km or not finite) with "
@@ -281,31 +281,36 @@ def _mat_data(recording) -> bool:
     )
 
 
-def _simulate(exact, plant, controller, experiment):
+def _solver(exact: bool, experiment):
+    """The simulator the options choose, as a value (jaxcart.simulate's solver): the exact
+    one with --exact, else the smooth one, in chunks with progress for a long run."""
+    import jaxcart as jc
+    from jaxcart import chunked_sim
+
+    if exact:
+        return jc.Exact()
+    if experiment.n_samples > chunked_sim.LONG_SAMPLES:
+        columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
+        return jc.Chunked(n_columns=columns)
+    return jc.Smooth()
+
+
+def _simulate(solver, plant, controller, experiment):
+    import functools
+
     import jax
 
     import jaxcart as jc
     from jaxcart import chunked_sim
-    from jaxcart.errors import UserError
 
     pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
-    columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
-    if not exact:
-        if experiment.n_samples > chunked_sim.LONG_SAMPLES:
-            return chunked_sim.simulate_chunked(plant, pid, experiment, n_columns=columns)
-        return jax.jit(jc.simulate)(plant, pid, experiment)
-    try:
-        from jaxcart.exact import simulate_exact
-    except ModuleNotFoundError as exc:
-        if exc.name != "jaxcart.exact":
-            raise
-        raise UserError(
-            "--exact: the exact simulator (jaxcart/exact.py) is not installed; run without --exact"
-        ) from None
-    if experiment.n_samples > chunked_sim.EXACT_PROBE:
+    if isinstance(solver, jc.Smooth):
+        return jax.jit(functools.partial(jc.simulate, solver=solver))(plant, pid, experiment)
+    if isinstance(solver, jc.Exact) and experiment.n_samples > chunked_sim.EXACT_PROBE:
+        columns = {"closed_loop": 5, "open_loop": 3, "tap": 2}[experiment.kind]
         seconds = chunked_sim.estimate_exact(plant, pid, experiment)
         chunked_sim.announce(seconds, experiment.n_samples, columns, experiment.sample_time)
-    return simulate_exact(plant, pid, experiment)
+    return jc.simulate(plant, pid, experiment, solver=solver)
 
 
 def _gains(pid) -> str:
