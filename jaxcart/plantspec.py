@@ -46,8 +46,29 @@ VERSION = 1
 
 #: The plant's own parameters (the handout's appendix and the corrections M, gamma_scale).
 PLANT_PARAMS = (
-    Param("M", "kg", 1e-3, 100.0, APPENDIX["M"], None, "cart plus added mass Mc + Mw"),
-    Param("B_eq", "kg/s", 0.0, 200.0, APPENDIX["B_eq"], None, "equivalent viscous friction"),
+    # Plausible: the cart is 0.57 kg, 0.94 kg with its weight; the handout's B_eq is 5.4 kg/s
+    # and real IP02 taps fit 1.4-1.5 kg/s; a motor gain off by more than a factor 2 is a wrong
+    # motor, not a correction.
+    Param(
+        "M",
+        "kg",
+        1e-3,
+        100.0,
+        APPENDIX["M"],
+        None,
+        "cart plus added mass Mc + Mw",
+        plausible=(0.4, 3.0),
+    ),
+    Param(
+        "B_eq",
+        "kg/s",
+        0.0,
+        200.0,
+        APPENDIX["B_eq"],
+        None,
+        "equivalent viscous friction",
+        plausible=(0.5, 30.0),
+    ),
     Param(
         "gamma_scale",
         "",
@@ -56,6 +77,8 @@ PLANT_PARAMS = (
         APPENDIX["gamma_scale"],
         None,
         "multiplier on the input gain gamma",
+        role="drive",
+        plausible=(0.5, 2.0),
     ),
     Param("Rm", "ohm", 1e-3, 1e3, APPENDIX["Rm"], None, "armature resistance"),
     Param("Kt", "N m/A", 0.0, 10.0, APPENDIX["Kt"], None, "motor torque constant"),

@@ -37,7 +37,12 @@ from tuning.estimation.diagnose.core import (
     swapped_correction,
 )
 from tuning.estimation.diagnose.report import figure_title
-from tuning.estimation.fit import MISFIT_RATIO, effective_samples, misfits, widened_for_model_error
+from tuning.estimation.engine.noise import (
+    MISFIT_RATIO,
+    effective_samples,
+    misfits,
+    widened_for_model_error,
+)
 
 Q = 2.275e-5
 FLOOR = Q / math.sqrt(12)
@@ -78,7 +83,7 @@ def test_an_effect_at_its_bound_or_near_its_neutral_value_is_not_significant():
     """The evaluation's two cases: a spring with k_s at its lower bound (y_rest off the
     track), and f_c = 0.0005 +/- 0.0005 N beside a saturation; a real effect passes."""
     spring = significance(
-        ("spring",), {"B_eq": 5.4, "k_s": 0.001, "y_rest": 1.13}, lambda w: 0.00037
+        ("spring",), {"B_eq": 5.4, "k_s": 5e-4, "y_rest": 0.3}, lambda w: 0.00037
     )
     assert "lower bound" in spring["spring"]["why"]
     values = {"B_eq": 4.0, "v_sat": 4.0, "f_c": 0.000573}
@@ -116,17 +121,20 @@ def test_an_effect_at_its_bound_or_near_its_neutral_value_is_not_significant():
 
 
 def test_implausible_values_are_flagged():
+    """Values at the edge of a lab cart's range (the fits are held inside it) or at a fit's
+    bound are flagged, and only those."""
     lines = implausible(
-        {"B_eq": 0.3814, "v_sat": 4.48, "f_c": 0.37, "k_s": 0.001, "y_rest": 1.13, "M": 1.2},
+        {"B_eq": 0.3814, "v_sat": 4.48, "f_c": 0.37, "k_s": 5e-4, "y_rest": 1.13, "M": 1.2},
         ["B_eq", "v_sat", "f_c", "k_s", "y_rest", "M", "y0@0"],
     )
     text = "\n".join(lines)
     assert "B_eq = 0.3814 kg/s is outside" in text and f"{PLAUSIBLE['B_eq'][0]:.3g}" in text
-    assert "k_s = 0.001 N/m sits at its lower bound" in text
-    assert "y_rest = 1.13 m is off the" in text
+    assert "k_s = 0.0005 N/m is outside what a cart of this lab has (0-200 N/m)" in text
+    assert "y_rest = 1.13 m is outside what a cart of this lab has (-0.5-0.5 m)" in text
     assert not any(x.startswith(("v_sat", "f_c", "M ")) for x in lines)
     assert implausible({"B_eq": 4.0, "gamma_scale": 0.3}, ["B_eq", "gamma_scale"]) == [
-        "gamma_scale = 0.3 is outside what a cart of this lab has (0.5-2)"
+        "gamma_scale = 0.3 is outside what a cart of this lab has (0.5-2): the data ask for "
+        "a value beyond it"
     ]
     assert implausible({"B_eq": 5.0, "M": 1.2, "gamma_scale": 0.9}, ["B_eq", "M"]) == []
 

@@ -14,6 +14,7 @@ import jaxcart as jc
 from jaxcart.errors import UserError
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.estimation import fit as F
+from tuning.estimation.engine.segments import coasting_segment
 
 Q = jc.ENCODER_RESOLUTION
 P50 = jc.PID(kp=50.0, v_limit=6.0)
@@ -188,7 +189,7 @@ def test_parameter_names():
 
 def test_coasting_segment_needs_a_tap():
     with pytest.raises(ValueError, match="no tap"):
-        F.coasting_segment(np.zeros(500), 1e-3)
+        coasting_segment(np.zeros(500), 1e-3)
 
 
 def test_fitted_plant_file_round_trip(tmp_path, cl_fit):

@@ -14,6 +14,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.synthetic import make_recording, write_recording
 from tuning.estimation import fit as F
+from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples
 
 Q = jc.ENCODER_RESOLUTION
 TRUTH = {"B_eq": 3.0, "f_c": 0.5}
@@ -38,7 +39,7 @@ def test_a_correct_model_is_not_flagged(good):
     assert good.misfit == "" and good.converged and good.warnings == []
     doc = good.to_json()
     assert doc["model_explains_data"] is True and doc["converged"] is True
-    assert good.rms_after_exact < F.MISFIT_RATIO * doc["noise_floor"]
+    assert good.rms_after_exact < MISFIT_RATIO * doc["noise_floor"]
     for name, e in good.params.items():  # the HAC error, not widened
         assert abs(e.value - TRUTH[name]) < 3 * e.stderr
 
@@ -110,8 +111,8 @@ def test_effective_samples_of_an_ar1_series(rho):
     for k in range(1, n):
         x[k] = rho * x[k - 1] + e[k]
     tau = (1 + rho) / (1 - rho)
-    assert F.effective_samples([x]) == pytest.approx(n / tau, rel=0.1)
-    assert F.effective_samples([np.ones(500)]) < 2  # a bias is one observation
+    assert effective_samples([x]) == pytest.approx(n / tau, rel=0.1)
+    assert effective_samples([np.ones(500)]) < 2  # a bias is one observation
 
 
 def test_outputs_are_checked_before_fitting(tmp_path, tap, capsys):

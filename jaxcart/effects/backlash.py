@@ -76,7 +76,23 @@ class Backlash(Effect):
     #: owns the motion between samples (a second body, the motor side, and its state)
     transmission = True
     summary = "backlash: play b between pinion and rack, crossed after each reversal"
-    params = (Param("backlash", "m", 0.0, 5e-3, 2e-4, None, "total play of pinion and rack"),)
+    not_candidate = (
+        "its two-body sub-step makes the batch's compile several times longer; fit it "
+        "with jaxcart fit"
+    )
+    shows_in = ("sign_velocity",)
+    params = (
+        Param(
+            "backlash",
+            "m",
+            0.0,
+            5e-3,
+            2e-4,
+            None,
+            "total play of pinion and rack",
+            neutral=0.0,
+        ),
+    )
 
     def init_state(self, sample_time: float) -> tuple:
         """(d, d'): the play x_m - y [m] and its rate [m/s]; mid-gap at rest."""

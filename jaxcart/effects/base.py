@@ -68,6 +68,32 @@ class Param:
     width: str | None = None
     doc: str = ""
     size: int = 0
+    #: "drive" (motor and amplifier: acts only with the motor connected, and may differ from
+    #: one run to the next as the motor warms and the supply sags), "cart" (the mechanics,
+    #: one value for every run of a cart) or "sensor"
+    role: str = "cart"
+    #: what a cart of this lab has [unit]: a fit is held inside it (None: the valid range)
+    plausible: tuple[float, float] | None = None
+    #: the value at which the parameter's effect does nothing (None: it always acts);
+    #: inf for a limit [unit]
+    neutral: float | None = None
+    #: the least value worth naming an effect for [unit]: a strength below it is too small
+    #: to matter physically, however significant (None: any significant value)
+    min_size: float | None = None
+
+    @property
+    def log(self) -> bool:
+        """Fitted as its logarithm (relative steps): a parameter that cannot be negative."""
+        return self.low >= 0
+
+    @property
+    def fit_range(self) -> tuple[float, float]:
+        """The bounds of a fit [unit]: the plausible range, else the valid one; strictly
+        positive for a parameter fitted as a logarithm."""
+        lo, hi = self.plausible if self.plausible is not None else (self.low, self.high)
+        if self.log and lo <= 0:
+            lo = max(self.start * 1e-4, 1e-12)
+        return float(lo), float(hi)
 
     def check(self, value, where: str) -> None:
         """Raise ValueError naming the parameter, its range and ``where`` if out of range."""
@@ -112,6 +138,51 @@ class Effect:
     position_dependent: ClassVar[bool] = False
     #: one line for listings and reports
     summary: ClassVar[str] = ""
+    #: why the effect is not a candidate of the diagnosis's structure search ("": it is)
+    not_candidate: ClassVar[str] = ""
+    #: effects whose parameters a candidate of this one frees and names too (stiction is
+    #: static friction above a kinetic level: it stands on Coulomb friction)
+    requires: ClassVar[tuple[str, ...]] = ()
+    #: the largest signal of a run a limit caps ("command" [V], "current" [A]): a limit above
+    #: it never acts, and its strength is how far below it the limit lies
+    limits: ClassVar[str] = ""
+    #: the signals a residual left by this effect's absence correlates with (a diagnosis's
+    #: regressor tests: "command", "sign_velocity", "position", "acceleration")
+    shows_in: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def drive_only(cls) -> bool:
+        """True when every parameter belongs to the drive: the effect needs the motor."""
+        return all(p.role == "drive" for p in cls.params)
+
+    @classmethod
+    def consistent(cls, values: dict) -> dict:
+        """``values`` [SI] made consistent with the effect's own constraints (default: as
+        given); a fit's trial values pass through it before they are simulated exactly."""
+        return values
+
+    @classmethod
+    def strengths(cls, values: dict, peaks: dict):
+        """How far each item this effect names is from doing nothing: yields (item, strength,
+        weights of the parameters in it, what it measures, where it does nothing). Positive
+        when it acts; ``peaks``: {"command": largest |command| [V], "current": largest
+        |armature current| [A]} of the run, for a limit."""
+        for p in cls.params:
+            if p.neutral is None or p.size:
+                continue
+            v = values[p.name]
+            if cls.limits:
+                top = peaks.get(cls.limits, math.inf)
+                yield (
+                    cls.name,
+                    top - v,
+                    {p.name: -1.0},
+                    f"{p.name} = {v:.3g} {p.unit}",
+                    f"the largest {cls.limits}, {top:.3g} {p.unit}",
+                )
+            else:
+                zero = f"{p.neutral:g} {p.unit}"
+                yield cls.name, v - p.neutral, {p.name: 1.0}, f"{p.name} = {v:.3g} {p.unit}", zero
 
     @classmethod
     def param_names(cls) -> tuple[str, ...]:

@@ -26,7 +26,21 @@ class Coulomb(Effect):
     stage = "force"
     dry_friction = True
     summary = "Coulomb friction: -f_c sign(y')"
-    params = (Param("f_c", "N", 0.0, 20.0, 0.3, "velocity", "kinetic friction force"),)
+    shows_in = ("sign_velocity",)
+    params = (
+        Param(
+            "f_c",
+            "N",
+            0.0,
+            20.0,
+            0.3,
+            "velocity",
+            "kinetic friction force",
+            plausible=(0.0, 5.0),
+            neutral=0.0,
+            min_size=0.02,
+        ),
+    )
 
     def kinetic(self, y, xp):
         return self.f_c + 0.0 * y

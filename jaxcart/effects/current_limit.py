@@ -33,7 +33,23 @@ class CurrentLimit(Effect):
     name = "current_limit"
     stage = "force"
     summary = "amplifier current limit: |i| <= i_max (the force saturates, not the voltage)"
-    params = (Param("i_max", "A", 1e-3, math.inf, 1.5, "voltage", "armature current limit"),)
+    limits = "current"
+    shows_in = ("command",)
+    params = (
+        Param(
+            "i_max",
+            "A",
+            1e-3,
+            math.inf,
+            1.5,
+            "voltage",
+            "armature current limit",
+            role="drive",
+            plausible=(0.05, 20.0),
+            neutral=math.inf,
+            min_size=0.02,
+        ),
+    )
 
     def smooth_force(self, y, yd, v, smoothing, plant):
         gamma = plant.gamma

@@ -26,7 +26,22 @@ class Deadzone(Effect):
     stage = "voltage"
     order = 40
     summary = "amplifier deadzone: v = u - clip(u, -deadzone, deadzone)"
-    params = (Param("deadzone", "V", 0.0, 5.0, 0.3, "voltage", "half-width of the dead band"),)
+    shows_in = ("command", "sign_velocity")
+    params = (
+        Param(
+            "deadzone",
+            "V",
+            0.0,
+            5.0,
+            0.3,
+            "voltage",
+            "half-width of the dead band",
+            role="drive",
+            plausible=(0.0, 2.0),
+            neutral=0.0,
+            min_size=0.05,
+        ),
+    )
 
     def smooth(self, state, held: Held, smoothing, sample_time):
         f = lambda v: v - smooth_clip(v, self.deadzone, smoothing.voltage)  # noqa: E731

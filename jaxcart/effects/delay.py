@@ -36,7 +36,22 @@ class Delay(Effect):
     order = 10  # first: it sees the plain zero-order hold
     splits_sample = True
     summary = "transport delay: the command acts `delay` seconds late"
-    params = (Param("delay", "s", 0.0, 0.05, 0.002, None, "input delay"),)
+    shows_in = ("acceleration",)
+    params = (
+        Param(
+            "delay",
+            "s",
+            0.0,
+            0.05,
+            0.002,
+            None,
+            "input delay",
+            role="drive",
+            plausible=(0.0, 0.024),
+            neutral=0.0,
+            min_size=5e-4,
+        ),
+    )
 
     def _length(self, sample_time: float) -> int:
         return int(math.ceil(self.max_delay / sample_time)) + 2

@@ -31,7 +31,10 @@ class Quantization(Effect):
     name = "quantization"
     stage = "sensor"
     summary = "encoder quantization: the controller reads q floor(y / q)"
-    params = (Param("quantization", "m", 1e-9, 1e-2, 2.275e-5, "position", "count size"),)
+    not_candidate = "the encoder's count, read from each recording"
+    params = (
+        Param("quantization", "m", 1e-9, 1e-2, 2.275e-5, "position", "count size", role="sensor"),
+    )
 
     def smooth_measure(self, state, y, smoothing):
         q = self.quantization

@@ -26,7 +26,23 @@ class Saturation(Effect):
     stage = "voltage"
     order = 60
     summary = "amplifier voltage limit: v = clip(u, -v_sat, v_sat)"
-    params = (Param("v_sat", "V", 1e-3, math.inf, 6.0, "voltage", "amplifier voltage limit"),)
+    limits = "command"
+    shows_in = ("command",)
+    params = (
+        Param(
+            "v_sat",
+            "V",
+            1e-3,
+            math.inf,
+            6.0,
+            "voltage",
+            "amplifier voltage limit",
+            role="drive",
+            plausible=(0.5, 30.0),
+            neutral=math.inf,
+            min_size=0.1,
+        ),
+    )
 
     def smooth(self, state, held: Held, smoothing, sample_time):
         f = lambda v: smooth_clip(v, self.v_sat, smoothing.voltage)  # noqa: E731

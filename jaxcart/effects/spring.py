@@ -25,9 +25,30 @@ class Spring(Effect):
     name = "spring"
     stage = "force"
     summary = "cable spring: F = -k_s (y - y_rest)"
+    shows_in = ("position",)
     params = (
-        Param("k_s", "N/m", 0.0, 1e4, 5.0, None, "spring stiffness"),
-        Param("y_rest", "m", -1.0, 1.0, 0.0, None, "rest position of the spring"),
+        Param(
+            "k_s",
+            "N/m",
+            0.0,
+            1e4,
+            5.0,
+            None,
+            "spring stiffness",
+            plausible=(0.0, 200.0),
+            neutral=0.0,
+            min_size=0.1,
+        ),
+        Param(
+            "y_rest",
+            "m",
+            -1.0,
+            1.0,
+            0.0,
+            None,
+            "rest position of the spring",
+            plausible=(-0.5, 0.5),
+        ),
     )
 
     def smooth_force(self, y, yd, v, smoothing, plant):

@@ -36,7 +36,35 @@ class Stiction(Effect):
     stage = "force"
     dry_friction = True
     summary = "stiction: breakaway needs |F| > f_s (static above kinetic)"
-    params = (Param("f_s", "N", 0.0, 20.0, 0.5, "velocity", "static friction level"),)
+    requires = ("coulomb",)
+    shows_in = ("sign_velocity",)
+    params = (
+        Param(
+            "f_s",
+            "N",
+            0.0,
+            20.0,
+            0.5,
+            "velocity",
+            "static friction level",
+            plausible=(0.0, 5.0),
+            neutral=0.0,
+            min_size=0.03,
+        ),
+    )
+
+    @classmethod
+    def consistent(cls, values: dict) -> dict:
+        """Static friction is never below the kinetic level it breaks away from."""
+        if "f_s" in values and "f_c" in values:
+            values = {**values, "f_s": max(values["f_s"], values["f_c"])}
+        return values
+
+    @classmethod
+    def strengths(cls, values: dict, peaks: dict):
+        """Stiction is there when static friction exceeds the kinetic level: f_s - f_c > 0."""
+        excess = values["f_s"] - values["f_c"]
+        yield cls.name, excess, {"f_s": 1.0, "f_c": -1.0}, f"f_s - f_c = {excess:.3g} N", "0 N"
 
     def static(self):
         return self.f_s

@@ -39,7 +39,22 @@ class TrackFriction(Effect):
     dry_friction = True
     position_dependent = True
     summary = "friction along the track: a smooth map f(y) through knots over +/-0.4 m"
-    params = (Param("f_track", "N", 0.0, 20.0, 0.3, "velocity", "friction at the knots", size=5),)
+    not_candidate = "a 5-vector that triples the batch's compile time; fit it with jaxcart fit"
+    shows_in = ("position",)
+    params = (
+        Param(
+            "f_track",
+            "N",
+            0.0,
+            20.0,
+            0.3,
+            "velocity",
+            "friction at the knots",
+            size=5,
+            plausible=(0.0, 5.0),
+            neutral=0.0,
+        ),
+    )
 
     def kinetic(self, y, xp):
         if xp is math:  # the exact simulator: plain floats, called ~10^5 times a run

@@ -82,7 +82,7 @@ def _count(position, quantization) -> float:
     """The encoder count [m]: as given, else found in the data, else the IP02's."""
     if quantization is not None:
         return float(quantization)
-    from tuning.estimation.fit import encoder_count
+    from tuning.estimation.engine.noise import encoder_count
 
     return encoder_count(position) or ENCODER_RESOLUTION
 
@@ -120,7 +120,7 @@ def loglinear_beq(
     ts = float(recording.sample_time)
     t = np.asarray(recording.time, dtype=float)
     if segment is None:
-        from tuning.estimation.fit import coasting_segment
+        from tuning.estimation.engine.segments import coasting_segment
 
         try:
             segment = coasting_segment(y, ts)

@@ -69,15 +69,30 @@ from jaxcart.params import ENCODER_RESOLUTION, Plant
 from jaxcart.plantspec import handout_plant
 from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing, continuation
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.lm import gauss_newton_step, marquardt_step
+from tuning.estimation.engine.noise import (
+    effective_samples,
+    encoder_count,
+    floor_of,
+    misfits,
+    noise_level,
+    widened_for_model_error,
+)
+from tuning.estimation.engine.parameters import base_name
+from tuning.estimation.engine.segments import coasting_segment, initial_state
 
 #: Parameters a fit offers: the plant's corrections and every registered effect's parameters
 #: (naming one adds its effect; a vector such as f_track is fitted element by element, as
 #: f_track[0], f_track[1], ...). The encoder count is read from each recording, not fitted.
 NOT_FITTED = {
-    "quantization": "the encoder's count size is read from each recording (every position is "
-    "a whole number of counts); it is not fitted",
+    p.name: f"the sensor's {p.doc} is read from each recording (every position is a whole "
+    "number of them); it is not fitted"
+    for cls in plantspec.REGISTRY.values()
+    for p in cls.params
+    if p.role == "sensor"
 }
-FITTABLE = ("B_eq", "M", "gamma_scale") + tuple(
+FITTABLE = P.CORRECTABLE + tuple(
     p.name for cls in plantspec.REGISTRY.values() for p in cls.params if p.name not in NOT_FITTED
 )
 #: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
@@ -139,12 +154,6 @@ LM_TOLERANCE_WIDE = 0.1
 BOUNDED_LIMIT = 6.0
 #: Segments are padded to a multiple of this many samples (fewer recompilations).
 PAD = 256
-#: A fit whose RMS error exceeds this many times the noise floor (:func:`noise_floor`) is
-#: reported as a model that does not explain the data (the fits of correct models on encoder
-#: data end at 1.0-1.3 times it).
-MISFIT_RATIO = 3.0
-#: Smallest noise floor [m]: a smooth model differs from the exact one by about this much.
-FLOOR_MIN = 1e-6
 #: Format tag of a fitted-plant file (``--out fitted.json``).
 FITTED_FORMAT = "jaxcart.fitted_plant"
 
@@ -160,7 +169,8 @@ class FitSettings:
     learning_rate: adam step in internal units (log of a parameter, or mm and 0.1 m/s)
     lm_iterations: at most this many Levenberg-Marquardt iterations at each width
     exact_iterations: at most this many Gauss-Newton iterations on the exact simulator
-    substeps: sub-steps per sample of the smooth simulator
+    substeps: sub-steps per sample of the smooth simulator (None: the one policy,
+        :func:`jaxcart.substeps.substeps_per_sample`)
     max_rel_stderr: a parameter whose standard error exceeds this fraction of its value is
         reported as not identifiable (and held at its starting value)
     tap_margin: skip this long after the peak speed of a tap, where the hand may still push [s]
@@ -173,7 +183,7 @@ class FitSettings:
     learning_rate: float = 0.02
     lm_iterations: int = 30
     exact_iterations: int = 10
-    substeps: int = 5
+    substeps: int | None = None
     max_rel_stderr: float = 0.5
     tap_margin: float = 0.02
     quantization: float | None = None
@@ -426,11 +436,6 @@ def parse_params(text) -> tuple[str, ...]:
     return tuple(expanded)
 
 
-def base_name(name: str) -> str:
-    """The parameter a name belongs to: "f_track[2]" -> "f_track"."""
-    return name.split("[", 1)[0]
-
-
 def _element(name: str) -> int | None:
     return int(name[name.index("[") + 1 : -1]) if "[" in name else None
 
@@ -463,12 +468,11 @@ def _known_names() -> set:
 
 
 def _drives_nothing(name: str, plant: Plant) -> bool:
-    """True for a parameter of the drive (voltage stage, current limit) on an unplugged motor."""
-    cls = plantspec.effect_of_param(name)
+    """True for an effect's parameter of the drive (amplifier, motor) on an unplugged motor."""
     return (
         not plant.motor_connected
-        and cls is not None
-        and (cls.stage == "voltage" or cls.name == "current_limit")
+        and plantspec.effect_of_param(base_name(name)) is not None
+        and P.is_drive(name)
     )
 
 
@@ -480,31 +484,18 @@ def with_values(plant: Plant, values: dict) -> Plant:
     return plantspec.build_plant(values, base=plant, check=False)
 
 
-def _log_scaled(name: str) -> bool:
-    """Parameters that cannot be negative are fitted as their logarithm (relative steps)."""
-    try:
-        return plantspec.param(base_name(name)).low >= 0
-    except KeyError:
-        return True
-
-
-#: Internal unit of a parameter fitted linearly (one that may be negative, like y_rest) [SI].
-LINEAR_SCALE = 0.1
+_log_scaled = P.is_log
+LINEAR_SCALE = P.LINEAR_SCALE
 
 
 def to_value(name: str, theta, xp=np):
-    """A parameter's value [SI] from its internal coordinate theta."""
-    return xp.exp(theta) if _log_scaled(name) else LINEAR_SCALE * theta
+    """A parameter's value [SI] from its internal coordinate (:mod:`.engine.parameters`)."""
+    return xp.exp(theta) if P.is_log(name) else LINEAR_SCALE * theta
 
 
 def to_theta(name: str, value: float) -> float:
     """The internal coordinate of a parameter value (inverse of :func:`to_value`)."""
-    return math.log(value) if _log_scaled(name) else float(value) / LINEAR_SCALE
-
-
-def value_slope(name: str, theta) -> float:
-    """d value / d theta (the Jacobian factor of standard errors)."""
-    return float(np.exp(theta)) if _log_scaled(name) else LINEAR_SCALE
+    return P.to_theta(name, value)
 
 
 def plant_values(plant: Plant, names=FITTABLE) -> dict:
@@ -529,78 +520,6 @@ def _initial_value(name, value):
         return float(value)
     except (TypeError, ValueError):
         raise UserError(f"initial value {name} = {value!r}: give a number (SI units)") from None
-
-
-def coasting_segment(
-    position, sample_time: float, *, margin: float = 0.02, quantization: float = ENCODER_RESOLUTION
-) -> tuple[int, int]:
-    """The coasting part of a tap recording as sample indices (start, stop).
-
-    start: ``margin`` [s] after the peak speed (the end of the push: the hand's force is gone
-    once the cart outruns it); stop: the first sample from which the cart makes no further
-    progress in its direction for 50 ms (rest), plus the samples it then stays within one count
-    of rest (at most 50 ms; a real cart may then drift back). Raises UserError without motion.
-    """
-    y = np.asarray(position, dtype=float)
-    n = y.size
-    w = max(3, int(round(0.01 / sample_time)))  # 10 ms moving average of the velocity
-    v = np.gradient(y, sample_time)
-    kernel = np.ones(w) / w
-    padded = np.concatenate([np.full(w, v[0]), v, np.full(w, v[-1])])
-    v_smooth = np.convolve(padded, kernel, mode="same")[w:-w]
-    peak = int(np.argmax(np.abs(v_smooth)))
-    count = quantization if quantization > 0 else 1e-6
-    if abs(v_smooth[peak]) * 0.05 < 3 * count:  # under 3 counts in 50 ms: no tap
-        raise ValueError("no tap found: the cart never moves more than a few encoder counts")
-    direction = np.sign(v_smooth[peak])
-    start = min(peak + int(round(margin / sample_time)), n - 2)
-    z = direction * y
-    window = max(2, int(round(0.05 / sample_time)))
-    # Running maximum of what is still to come: rest where nothing ahead exceeds the present.
-    ahead = np.maximum.accumulate(z[::-1])[::-1]
-    stop = n - 1
-    for k in range(start, n - 1):
-        if ahead[min(k + 1, n - 1)] <= z[k] and np.all(z[k : k + window] <= z[k]):
-            stop = k
-            break
-    end = stop
-    while end + 1 < n and end - stop < window and abs(y[end + 1] - y[stop]) <= 1.01 * count:
-        end += 1
-    return start, end + 1
-
-
-def encoder_count(position) -> float:
-    """The count size q [m] of encoder data (every value a whole number of counts), or 0.
-
-    q is the smallest step between samples, accepted when it is between 0.1 um and 1 mm and
-    every position is a whole multiple of it (to 1e-6 of a count)."""
-    y = np.asarray(position, dtype=float)
-    steps = np.abs(np.diff(y))
-    steps = steps[steps > 1e-12]
-    if steps.size == 0:
-        return 0.0
-    q = float(steps.min())
-    counts = y / q
-    if 1e-7 <= q <= 1e-3 and np.max(np.abs(counts - np.round(counts))) < 1e-6:
-        return q
-    return 0.0
-
-
-def noise_level(position) -> float:
-    """Standard deviation [m] of white noise on positions, from the median absolute second
-    difference (a smooth motion sampled at 1 ms barely contributes to it)."""
-    d2 = np.diff(np.asarray(position, dtype=float), 2)
-    if d2.size == 0:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6))
-
-
-def _initial_state(time, y, start):
-    """(y0, yd0) at sample ``start`` from a quadratic over the next 20 ms [m, m/s]."""
-    k = min(y.size - start, max(5, int(round(0.02 / (time[1] - time[0]))) + 1))
-    t = time[start : start + k] - time[start]
-    coef = np.polyfit(t, y[start : start + k], 2 if k > 5 else 1)
-    return float(np.polyval(coef, 0.0)), float(np.polyval(np.polyder(coef), 0.0))
 
 
 def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
@@ -640,7 +559,7 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
                 f"{time[stop - 1]:.3f} s) is shorter than 20 samples; "
                 "record a longer tap"
             )
-        y0, yd0 = _initial_state(time, y, start)
+        y0, yd0 = initial_state(time, y, start)
         nuisance = (
             Nuisance("y0", 0.0, NUISANCE_SCALE["y0"]),
             Nuisance("yd0", 0.0, NUISANCE_SCALE["yd0"]),
@@ -870,6 +789,10 @@ class _Problem:
         """theta with each bounded nuisance within +-BOUNDED_LIMIT (its sigmoid keeps a slope
         there), or at 0, the middle of its range, with ``reset``."""
         theta = np.array(theta, dtype=float)
+        # The plant's values stay inside what a cart of this lab has (engine.parameters.bounds).
+        for i, name in enumerate(self.params):
+            lo, hi = (to_theta(name, b) for b in P.bounds(name))
+            theta[i] = min(max(theta[i], lo), hi)
         for k in range(len(self.segments)):
             for v, i in self.nuisance_index(k):
                 if v.bounded:
@@ -988,15 +911,13 @@ def _lm(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
         ja = jac[:, idx]
         g = ja.T @ r
         b = ja.T @ ja
-        d = np.diag(b).copy()
-        d[d <= 0] = 1.0
         best = None
         while best is None and lam < 1e10:
             lams = lam * np.asarray(LM_DAMPING)
             trials, clipped = [], []
             for lam_k in lams:
                 try:
-                    step = np.linalg.solve(b + lam_k * np.diag(d), -g)
+                    step = marquardt_step(b, g, lam_k)
                 except np.linalg.LinAlgError:
                     step = np.zeros(idx.size)
                 # Trust region: each entry moves at most MAX_STEP internal units (an e-fold
@@ -1028,29 +949,6 @@ def _lm(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
         if not clipped[best] and decrease <= tolerance**2 * cost / n_eff:
             return theta, r, jac, done, True
     return theta, r, jac, done, False
-
-
-def effective_samples(parts) -> float:
-    """Effective number of independent residuals, summed over parts (arrays, one per segment):
-    N / tau per part,
-    tau = 1 + 2 sum rho_k the integrated autocorrelation time of the residual about zero (a
-    bias counts as correlation), summed to the first lag where rho_k <= 0 (Geyer's cut-off).
-    Encoder error held for hundreds of samples, or a smooth model error, make tau large."""
-    total = 0.0
-    for part in parts:
-        part = np.asarray(part, dtype=float)
-        n = part.size
-        if n < 2 or not np.all(np.isfinite(part)) or not np.any(part):
-            total += max(n, 1)
-            continue
-        spec = np.fft.rfft(part, 2 * n)
-        acf = np.fft.irfft(spec * np.conj(spec))[:n]
-        rho = acf / acf[0]
-        neg = np.flatnonzero(rho[1:] <= 0)
-        cut = int(neg[0]) + 1 if neg.size else n
-        tau = max(1.0, 1.0 + 2.0 * float(np.sum(rho[1:cut])))
-        total += n / tau
-    return max(total, 1.0)
 
 
 def _exact_polish(problem, theta, active, jac, iterations):
@@ -1097,7 +995,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
     while done < iterations:
         done += 1
         ja = jac[:, idx]
-        step = np.clip(-np.linalg.lstsq(ja, r, rcond=None)[0], -MAX_STEP, MAX_STEP)
+        step = np.clip(gauss_newton_step(ja, r), -MAX_STEP, MAX_STEP)
         b_pinv = np.linalg.pinv(ja.T @ ja)
         scale = np.sqrt(np.maximum(np.diag(b_pinv) * cost / max(r.size - idx.size, 1), 1e-300))
         t = 1.0
@@ -1433,7 +1331,7 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         i = problem.params.index(name)
         if active[i]:
             value = float(to_value(name, theta[i]))
-            slope = value_slope(name, theta[i])
+            slope = P.value_slope(name, value)
             estimates[asked] = Estimate(
                 asked, value, slope * float(se_internal[i]), stderr_naive=slope * float(se_naive[i])
             )
@@ -1516,42 +1414,9 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
     return result
 
 
-def misfits(rms: float, floor: float) -> bool:
-    """True when an RMS error is model error rather than noise: above :data:`MISFIT_RATIO`
-    times the noise floor (``jaxcart fit`` and ``jaxcart diagnose`` both judge by it)."""
-    return rms > MISFIT_RATIO * floor
-
-
-def widened_for_model_error(stderr, naive_variance, n: int, n_eff: float) -> np.ndarray:
-    """Standard errors of a model that does not explain the data (:func:`misfits`).
-
-    The residual is model error (or uninformative data), not noise: its ``n_eff`` independent
-    samples (:func:`effective_samples`) support the naive sigma^2 (J^T J)^-1 times N / n_eff,
-    which the sandwich can miss when the error is one slow wave; the larger of the two.
-    stderr: the robust standard errors; naive_variance: the diagonal of sigma^2 (J^T J)^-1
-    (sigma^2 = RSS / (N - p)), in the same units squared; n: residuals N."""
-    tau = n / n_eff
-    return np.maximum(stderr, np.sqrt(naive_variance * tau))
-
-
 def noise_floor(segments) -> float:
     """RMS position error [m] a correct model leaves on these segments (:func:`floor_of`)."""
     return floor_of((seg.measured, seg.quantization) for seg in segments)
-
-
-def floor_of(data) -> float:
-    """RMS position error [m] a correct model leaves on recorded positions: for each
-    (positions [m], encoder count q [m] or 0) of ``data``, the encoder's q / sqrt(12), or for
-    data that are not whole counts their white noise (:func:`noise_level`); weighted by
-    samples, at least :data:`FLOOR_MIN`. Shared by ``jaxcart fit`` and ``jaxcart diagnose``."""
-    total = n = 0
-    for positions, q in data:
-        positions = np.asarray(positions, dtype=float)
-        # Encoder data are whole counts (their noise is in the counts); other data: white noise.
-        var = q**2 / 12 if q > 0 else noise_level(positions) ** 2
-        total += positions.size * var
-        n += positions.size
-    return max(math.sqrt(total / max(n, 1)), FLOOR_MIN)
 
 
 def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:

@@ -64,7 +64,7 @@ def check(recording):
     """{consistent, mismatch_rms, message, inferred (PID or None), reads_counts} for a closed
     loop with a recorded command; None when there is nothing to check. reads_counts: the
     controller read the recorded encoder counts (:func:`reads_counts`)."""
-    from tuning.estimation.fit import encoder_count
+    from tuning.estimation.engine.noise import encoder_count
 
     pid = recording.controller
     v = recording.command

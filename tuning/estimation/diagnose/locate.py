@@ -18,12 +18,16 @@ import math
 
 import numpy as np
 
-#: Which kinds of physics a residual correlated with each signal can explain.
+from jaxcart.effects import REGISTRY
+
+#: The parameter corrections a residual correlated with a signal can point to.
+_CORRECTIONS = {"command": ("gain (gamma_scale)",), "acceleration": ("mass (M)",)}
+#: Which kinds of physics a residual correlated with each signal can explain: every effect
+#: that declares the signal (``Effect.shows_in``), then the corrections.
 POINTS_TO = {
-    "command": ("saturation", "current_limit", "deadzone", "gain (gamma_scale)"),
-    "sign_velocity": ("coulomb", "stiction", "deadzone", "backlash"),
-    "position": ("spring", "track_friction"),
-    "acceleration": ("mass (M)", "delay"),
+    signal: tuple(n for n, cls in REGISTRY.items() if signal in cls.shows_in)
+    + _CORRECTIONS.get(signal, ())
+    for signal in ("command", "sign_velocity", "position", "acceleration")
 }
 REGIMES = ("command at its limit", "reversing", "stuck", "accelerating", "settling", "coasting")
 
@@ -182,3 +186,27 @@ def residual_tests(segments, residuals, commands, n_eff):
             "points_to": list(POINTS_TO[name]),
         }
     return out
+
+
+def describe_residual(residual, sample_time: float) -> str:
+    """What is left in a residual [m], in words: white (no structure a model could take up),
+    a slow drift, or a ripple at its dominant frequency, with the share of its energy there.
+
+    White: its effective independent samples are most of its samples (the autocorrelation
+    dies within a few samples). Otherwise the periodogram's largest peak above the lowest
+    bins: below 1 Hz a drift, else a ripple at that frequency."""
+    from tuning.estimation.engine.noise import effective_samples
+
+    r = np.asarray(residual, dtype=float)
+    r = r[np.isfinite(r)]
+    if r.size < 16 or not np.any(r):
+        return "nothing"
+    if effective_samples([r - r.mean()]) > 0.5 * r.size:
+        return "white noise"
+    spec = np.abs(np.fft.rfft(r - r.mean())) ** 2
+    freq = np.fft.rfftfreq(r.size, sample_time)
+    k = int(np.argmax(spec[1:])) + 1
+    share = float(spec[max(k - 1, 1) : k + 2].sum() / spec[1:].sum())
+    if freq[k] < 1.0:
+        return f"a slow drift ({share:.0%} of its energy below 1 Hz)"
+    return f"a ripple at {freq[k]:.3g} Hz ({share:.0%} of its energy)"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from jaxcart.effects import REGISTRY
 from jaxcart.errors import UserError
 
 
@@ -135,18 +136,22 @@ def render_markdown(d, figure: str | None = None) -> str:
         lines += ["", f"![recording, baseline and corrected model]({figure})"]
     if d.plant_file:
         lines += ["", f"Corrected plant: `{d.plant_file}` (for simulate, fit, tune, lab --plant)."]
+    elif d.status == "diagnosed" and d.implausible:
+        lines += [
+            "",
+            "No corrected plant file is written: a value above is outside what a cart of this "
+            "lab has, and other commands would use it.",
+        ]
     return "\n".join(lines) + "\n"
 
 
-#: The significance item of a strength parameter (the Markdown's z column).
+#: The significance item of a strength parameter (the Markdown's z column): the effect that
+#: declares it, for every parameter that has a neutral value.
 _ITEM = {
-    "f_c": "coulomb",
-    "f_s": "stiction",
-    "delay": "delay",
-    "deadzone": "deadzone",
-    "k_s": "spring",
-    "v_sat": "saturation",
-    "i_max": "current_limit",
+    p.name: name
+    for name, cls in REGISTRY.items()
+    for p in cls.params
+    if p.neutral is not None and not p.size
 }
 
 
@@ -232,7 +237,6 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
     """Write report.md, diagnosis.FMT (fmt: "png", "svg" or "pdf"), corrected_plant.toml (and
     the JSON) into ``out_dir``; refuses to overwrite any of them without ``force``. Returns
     {what: path}."""
-
     out = Path(out_dir)
     paths = {
         "report": out / "report.md",
@@ -241,6 +245,9 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
     }
     if d.status != "diagnosed":
         paths = {"report": out / "report.md"}
+    elif d.implausible:
+        # A value a cart of this lab does not have is never handed to other commands.
+        del paths["plant_file"]
     if json_path:
         paths["json"] = Path(json_path)
     for p in paths.values():
@@ -269,8 +276,9 @@ def _write_outputs(d, out, paths, json_path, force) -> None:
         for n, p in d.parameters.items():
             if math.isfinite(p["stderr"]):
                 fit[f"stderr_{n}"] = float(p["stderr"])
-        write_plant_file(paths["plant_file"], d.plant, fit=fit, force=force)
-        d.plant_file = str(paths["plant_file"])
+        if "plant_file" in paths:
+            write_plant_file(paths["plant_file"], d.plant, fit=fit, force=force)
+            d.plant_file = str(paths["plant_file"])
         plot_diagnosis(d, paths["figure"])
     text = render_markdown(d, figure=paths["figure"].name if d.status == "diagnosed" else None)
     write_text(paths["report"], text, force=True)

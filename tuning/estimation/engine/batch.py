@@ -19,49 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: The shared plant parameters of the superset, in slot order.
-SHARED = (
-    "B_eq",
-    "M",
-    "gamma_scale",
-    "v_sat",
-    "f_c",
-    "f_s",
-    "delay",
-    "deadzone",
-    "k_s",
-    "y_rest",
-    "i_max",
-)
-#: Values that make an effect act as if it were absent.
-NEUTRAL = {
-    "v_sat": 1e4,
-    "f_c": 0.0,
-    "f_s": 0.0,
-    "delay": 0.0,
-    "deadzone": 0.0,
-    "k_s": 0.0,
-    "y_rest": 0.0,
-    "i_max": 1e4,
-}
-#: Fitted as logarithms (positive parameters).
-LOG = {"B_eq", "M", "gamma_scale", "v_sat", "f_c", "f_s", "deadzone", "k_s", "i_max"}
-#: Bounds in natural units of each fitted parameter.
-BOUNDS = {
-    "B_eq": (1e-3, 100.0),
-    "M": (0.1, 20.0),
-    "gamma_scale": (0.05, 20.0),
-    "v_sat": (0.05, 1e3),
-    "f_c": (1e-4, 10.0),
-    "f_s": (1e-4, 10.0),
-    "delay": (0.0, 0.024),
-    "deadzone": (1e-4, 4.0),
-    "k_s": (1e-3, 1e3),
-    "y_rest": (-2.0, 2.0),
-    "i_max": (0.01, 1e3),
-    "y0": (-2.0, 2.0),
-    "yd0": (-10.0, 10.0),
-}
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.lm import marquardt_step
+
+#: The plant parameters of the superset, in slot order (derived from the effects registry).
+SHARED = P.superset()
 
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
@@ -93,10 +55,21 @@ class Segment:
 
 
 class Layout:
-    """Slots of the full parameter vector: SHARED, then (y0, yd0) of each tap, then a dummy."""
+    """Slots of the full parameter vector: SHARED; then, for each name of ``per_recording``, a
+    copy per recording it acts in (``v_sat@2``: the drive's value in recording 2 alone; a
+    drive parameter has none in a tap with the motor unplugged); then (y0, yd0) of each tap;
+    then a dummy."""
 
-    def __init__(self, segments):
+    def __init__(self, segments, per_recording=()):
         self.names = list(SHARED)
+        self.per_recording = tuple(per_recording)
+        self.copies = {}  # recording -> {name: slot}
+        for i, seg in enumerate(segments):
+            own = {n: None for n in self.per_recording if seg.motor or not P.is_drive(n)}
+            for n in own:
+                own[n] = len(self.names)
+                self.names.append(f"{n}@{i}")
+            self.copies[i] = own
         self.nuisance = {}
         for i, seg in enumerate(segments):
             if seg.kind == "tap":
@@ -109,24 +82,30 @@ class Layout:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
+    def expand(self, names) -> tuple:
+        """``names`` with each per-recording name replaced by its copies."""
+        out = []
+        for n in names:
+            if n in self.per_recording:
+                out += [f"{n}@{i}" for i, own in self.copies.items() if n in own]
+            else:
+                out.append(n)
+        return tuple(out)
+
+    def slots_of(self, i: int) -> list:
+        """The slot of each SHARED name in recording ``i``: its own copy where it has one."""
+        own = self.copies.get(i, {})
+        return [own.get(n, j) for j, n in enumerate(SHARED)]
+
     @staticmethod
     def kind(name: str) -> str:
-        return name.split("@")[0]
-
-
-def _to_theta(name, value):
-    kind = Layout.kind(name)
-    return math.log(max(value, 1e-300)) if kind in LOG else float(value)
-
-
-def _to_value(name, theta):
-    return math.exp(theta) if Layout.kind(name) in LOG else float(theta)
+        return P.base_name(name)
 
 
 class BatchFitter:
     """The compiled, vmapped LM step for a set of segments (built once per diagnosis)."""
 
-    def __init__(self, segments, start_plants, substeps: int = 1):
+    def __init__(self, segments, start_plants, substeps: int | None = None, per_recording=()):
         import jax
         import jax.numpy as jnp
 
@@ -136,32 +115,39 @@ class BatchFitter:
         from jaxcart.smoothing import Smoothing
 
         self.segments = segments
-        self.layout = layout = Layout(segments)
+        self.layout = layout = Layout(segments, per_recording)
         supers = []
         for plant in start_plants:
-            missing = {k: v for k, v in NEUTRAL.items() if k not in plant.param_names()}
+            have = plant.param_names()
+            missing = {k: P.stand_in(k) for k in SHARED if k not in have}
+            # A drive effect cannot be added to a plant without its motor (a tap).
+            if not plant.motor_connected:
+                missing = {k: v for k, v in missing.items() if not P.is_drive(k)}
             supers.append(build_plant(missing, base=plant, check=False))
         self.supers = supers
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
-        shared_idx = [layout.index(n) for n in SHARED]
-        log_mask = np.array([Layout.kind(n) in LOG for n in layout.names])
-        lo = np.array(
-            [_to_theta(n, BOUNDS.get(Layout.kind(n), (-1e9, 1e9))[0]) for n in layout.names]
-        )
-        hi = np.array(
-            [_to_theta(n, BOUNDS.get(Layout.kind(n), (-1e9, 1e9))[1]) for n in layout.names]
+        slots = [layout.slots_of(i) for i in range(len(segments))]
+        log_mask = np.array([n != "_dummy" and P.is_log(n) for n in layout.names])
+        ranges = [P.bounds(n) if n != "_dummy" else (-1e9, 1e9) for n in layout.names]
+        lo = np.array([P.to_theta(n, r[0]) for n, r in zip(layout.names, ranges, strict=True)])
+        hi = np.array([P.to_theta(n, r[1]) for n, r in zip(layout.names, ranges, strict=True)])
+        scale_v = np.array(
+            [
+                1.0 if m or n == "_dummy" else P.value_slope(n, 1.0)
+                for n, m in zip(layout.names, log_mask, strict=True)
+            ]
         )
         self.log_mask = log_mask
-        log_mask_j = jnp.asarray(log_mask)
+        log_mask_j, scale_j = jnp.asarray(log_mask), jnp.asarray(scale_v)
         lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
         base_smoothing = Smoothing()
 
         def full_values(theta, idx, base):
-            vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta)
+            vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta * scale_j[idx])
             return base.at[idx].set(vals)
 
-        def residuals(theta, idx, base, width):
+        def residuals(theta, idx, base, own, width):
             full = full_values(theta, idx, base)
             # Velocity and position widths follow the continuation; the voltage corners stay
             # narrow (as in tuning.estimation.fit): a rounded software limit misplaces a saturated
@@ -170,7 +156,14 @@ class BatchFitter:
             smoothing = dataclasses.replace(smoothing, voltage=VOLTAGE_WIDTH * width / 4.0)
             out = []
             for i, (seg, sup, tgt) in enumerate(zip(segments, supers, targets, strict=True)):
-                values = {n: full[j] for n, j in zip(SHARED, shared_idx, strict=True)}
+                have = sup.param_names()
+                # A candidate's own copy of a per-recording parameter where it frees one, else
+                # the shared value (one compiled step serves both kinds of candidate).
+                values = {
+                    n: jnp.where(own[i, k] > 0, full[j], full[k])
+                    for k, (n, j) in enumerate(zip(SHARED, slots[i], strict=True))
+                    if n in have
+                }
                 plant = sup.replace(**values)
                 exp = seg.experiment
                 if i in layout.nuisance:
@@ -189,22 +182,17 @@ class BatchFitter:
                 out.append(pos - tgt)
             return jnp.concatenate(out) * scale
 
-        def step(theta, lam, idx, free, base, width):
+        def step(theta, lam, idx, free, base, own, width):
             def f(th):
-                r = residuals(th, idx, base, width)
+                r = residuals(th, idx, base, own, width)
                 return r, r
 
             jac, r = jax.jacfwd(f, has_aux=True)(theta)
             jac = jac * free[None, :]
             cost = r @ r
-            g = jac.T @ r
-            h = jac.T @ jac
-            d = jnp.diag(h)
-            dmax = jnp.max(d)
-            reg = jnp.where(free > 0, lam * (d + 1e-9 * dmax) + 1e-30, 1.0)
-            delta = -jnp.linalg.solve(h + jnp.diag(reg), g) * free
+            delta = marquardt_step(jac.T @ jac, jac.T @ r, lam, free, xp=jnp)
             new = jnp.clip(theta + delta, lo_j[idx], hi_j[idx])
-            r_new = residuals(new, idx, base, width)
+            r_new = residuals(new, idx, base, own, width)
             cost_new = r_new @ r_new
             ok = jnp.isfinite(cost_new) & (cost_new < cost)
             theta_out = jnp.where(ok, new, theta)
@@ -213,22 +201,24 @@ class BatchFitter:
 
         # One candidate per item, the width shared; sharded over every local device.
         run = sharded_map(lambda item, width: step(*item, width), cache=False)
-        self._step = lambda theta, lam, idx, free, base, width: run(
-            (theta, lam, idx, free, base), width
+        self._step = lambda theta, lam, idx, free, base, own, width: run(
+            (theta, lam, idx, free, base, own), width
         )
         self._jnp = jnp
 
     def base_vector(self, values: dict) -> np.ndarray:
-        """The full vector (natural units) from {name: value}; neutral elsewhere."""
+        """The full vector (natural units) from {name: value}; a per-recording copy takes the
+        shared value where it is not given; neutral elsewhere."""
         base = np.zeros(self.layout.size)
         for j, n in enumerate(self.layout.names):
             k = Layout.kind(n)
             if n in values:
                 base[j] = values[n]
-            elif k in values and "@" not in n:
+            elif k in values and k in SHARED:
                 base[j] = values[k]
             elif k in SHARED:
-                base[j] = float(np.asarray(self.supers[0].get(k)))
+                sup = next((p for p in self.supers if k in p.param_names()), self.supers[0])
+                base[j] = float(np.asarray(sup.get(k)))
         for i, (a, b) in self.layout.nuisance.items():
             exp = self.segments[i].experiment
             base[a], base[b] = values.get(f"y0@{i}", exp.y0), values.get(f"yd0@{i}", exp.yd0)
@@ -248,13 +238,16 @@ class BatchFitter:
         free = np.zeros((len(problems), kmax))
         theta = np.zeros((len(problems), kmax))
         base = np.zeros((len(problems), lay.size))
+        own = np.zeros((len(problems), len(self.segments), len(SHARED)))
         for c, (names, start, base_vals) in enumerate(problems):
+            for i in range(len(self.segments)):
+                own[c, i] = [f"{n}@{i}" in names for n in SHARED]
             base[c] = self.base_vector({**base_vals, **start})
             for s, n in enumerate(names):
                 j = lay.index(n)
                 idx[c, s] = j
                 free[c, s] = 1.0
-                theta[c, s] = _to_theta(n, base[c, j])
+                theta[c, s] = P.to_theta(n, base[c, j])
         n = len(problems)
         rows = np.arange(n) if share is None else np.asarray(share.items(n), dtype=int)
         if rows.size == 0:  # more processes than problems: this one only gathers
@@ -270,12 +263,15 @@ class BatchFitter:
         theta = jnp.asarray(theta[rows])
         lam = jnp.full(rows.size, 1e-2)
         idx_j, free_j, base_j = jnp.asarray(idx[rows]), jnp.asarray(free[rows]), base[rows]
+        own_j = jnp.asarray(own[rows])
         base_j = jnp.asarray(base_j)
         cost = jac = r = None
         for width, its in zip(widths, iterations, strict=True):
             lam = jnp.maximum(lam, 1e-3)
             for _ in range(its):
-                theta, lam, cost, jac, r = self._step(theta, lam, idx_j, free_j, base_j, width)
+                theta, lam, cost, jac, r = self._step(
+                    theta, lam, idx_j, free_j, base_j, own_j, width
+                )
             if progress and share is None:
                 progress(width, np.asarray(cost))
         if share is not None:
@@ -305,6 +301,6 @@ class BatchFitter:
         for c, (names, _start, _b) in enumerate(problems):
             vals = {}
             for s, n in enumerate(names):
-                vals[n] = _to_value(n, float(theta[c, s]))
+                vals[n] = float(P.to_value(n, float(theta[c, s])))
             out.append((vals, float(cost[c]), np.asarray(jac[c]), np.asarray(r[c])))
         return out

@@ -1,0 +1,13 @@
+"""The one estimation engine that ``jaxcart fit``, ``jaxcart diagnose`` and the lab share.
+
+- :mod:`.parameters`: every fitted parameter's transform, bounds, neutral value and role,
+  derived from the effects registry (``jaxcart.effects``) and the plant's own declarations;
+  names of the form ``name@i`` are per-recording copies (recording ``i``), ``name[k]`` the
+  elements of a vector parameter.
+- :mod:`.noise`: the encoder count, the noise floor, the effective number of samples, and the
+  widening of standard errors for model error.
+- :mod:`.lm`: the damped least-squares (Levenberg-Marquardt) step.
+- :mod:`.batch`: candidates x recordings in one compiled, sharded Levenberg-Marquardt loop,
+  with parameters shared across recordings or free per recording.
+- :mod:`.covariance`: robust (run-clustered sandwich) covariances.
+"""

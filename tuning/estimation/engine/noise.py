@@ -1,0 +1,122 @@
+"""The noise a correct model leaves, and what the residual is worth: the encoder count, the
+noise floor, the effective number of independent samples, and standard errors widened for
+model error. ``jaxcart fit`` and ``jaxcart diagnose`` judge by these alone."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: A fit whose RMS error exceeds this many times the noise floor (:func:`noise_floor`) is
+#: reported as a model that does not explain the data (the fits of correct models on encoder
+#: data end at 1.0-1.3 times it).
+MISFIT_RATIO = 3.0
+#: Smallest noise floor [m]: a smooth model differs from the exact one by about this much.
+FLOOR_MIN = 1e-6
+
+
+def encoder_count(position) -> float:
+    """The count size q [m] of encoder data (every value a whole number of counts), or 0.
+
+    q is the smallest step between samples, accepted when it is between 0.1 um and 1 mm and
+    every position is a whole multiple of it (to 1e-6 of a count)."""
+    y = np.asarray(position, dtype=float)
+    steps = np.abs(np.diff(y))
+    steps = steps[steps > 1e-12]
+    if steps.size == 0:
+        return 0.0
+    q = float(steps.min())
+    counts = y / q
+    if 1e-7 <= q <= 1e-3 and np.max(np.abs(counts - np.round(counts))) < 1e-6:
+        return q
+    return 0.0
+
+
+def noise_level(position) -> float:
+    """Standard deviation [m] of white noise on positions, from the median absolute second
+    difference (a smooth motion sampled at 1 ms barely contributes to it)."""
+    d2 = np.diff(np.asarray(position, dtype=float), 2)
+    if d2.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6))
+
+
+def effective_samples(parts) -> float:
+    """Effective number of independent residuals, summed over parts (arrays, one per segment):
+    N / tau per part,
+    tau = 1 + 2 sum rho_k the integrated autocorrelation time of the residual about zero (a
+    bias counts as correlation), summed to the first lag where rho_k <= 0 (Geyer's cut-off).
+    Encoder error held for hundreds of samples, or a smooth model error, make tau large."""
+    total = 0.0
+    for part in parts:
+        part = np.asarray(part, dtype=float)
+        n = part.size
+        if n < 2 or not np.all(np.isfinite(part)) or not np.any(part):
+            total += max(n, 1)
+            continue
+        spec = np.fft.rfft(part, 2 * n)
+        acf = np.fft.irfft(spec * np.conj(spec))[:n]
+        rho = acf / acf[0]
+        neg = np.flatnonzero(rho[1:] <= 0)
+        cut = int(neg[0]) + 1 if neg.size else n
+        tau = max(1.0, 1.0 + 2.0 * float(np.sum(rho[1:cut])))
+        total += n / tau
+    return max(total, 1.0)
+
+
+def misfits(rms: float, floor: float) -> bool:
+    """True when an RMS error is model error rather than noise: above :data:`MISFIT_RATIO`
+    times the noise floor (``jaxcart fit`` and ``jaxcart diagnose`` both judge by it)."""
+    return rms > MISFIT_RATIO * floor
+
+
+def widened_for_model_error(stderr, naive_variance, n: int, n_eff: float) -> np.ndarray:
+    """Standard errors of a model that does not explain the data (:func:`misfits`).
+
+    The residual is model error (or uninformative data), not noise: its ``n_eff`` independent
+    samples (:func:`effective_samples`) support the naive sigma^2 (J^T J)^-1 times N / n_eff,
+    which the sandwich can miss when the error is one slow wave; the larger of the two.
+    stderr: the robust standard errors; naive_variance: the diagonal of sigma^2 (J^T J)^-1
+    (sigma^2 = RSS / (N - p)), in the same units squared; n: residuals N."""
+    tau = n / n_eff
+    return np.maximum(stderr, np.sqrt(naive_variance * tau))
+
+
+def floor_of(data) -> float:
+    """RMS position error [m] a correct model leaves on recorded positions: for each
+    (positions [m], encoder count q [m] or 0) of ``data``, the encoder's q / sqrt(12), or for
+    data that are not whole counts their white noise (:func:`noise_level`); weighted by
+    samples, at least :data:`FLOOR_MIN`. Shared by ``jaxcart fit`` and ``jaxcart diagnose``."""
+    total = n = 0
+    for positions, q in data:
+        positions = np.asarray(positions, dtype=float)
+        # Encoder data are whole counts (their noise is in the counts); other data: white noise.
+        var = q**2 / 12 if q > 0 else noise_level(positions) ** 2
+        total += positions.size * var
+        n += positions.size
+    return max(math.sqrt(total / max(n, 1)), FLOOR_MIN)
+
+
+def repeatability(runs) -> dict:
+    """How far repeated runs of one experiment differ: what a real cart repeats, the floor
+    below which no model of it can be judged.
+
+    runs: {index: (key, positions [m])}, ``key`` equal for runs of the same experiment (kind,
+    controller, reference, sample time). Returns {index: RMS [m]} for each run that has a
+    repeat: the RMS distance of the runs of its group from their mean over their common
+    length (for two runs, the RMS of their difference / 2)."""
+    groups: dict = {}
+    for i, (key, y) in runs.items():
+        groups.setdefault(key, []).append((i, np.asarray(y, dtype=float)))
+    out = {}
+    for members in groups.values():
+        if len(members) < 2:
+            continue
+        n = min(y.size for _, y in members)
+        stack = np.stack([y[:n] for _, y in members])
+        spread = stack - stack.mean(axis=0)
+        level = float(np.sqrt(np.mean(spread**2)))
+        for i, _ in members:
+            out[i] = level
+    return out
