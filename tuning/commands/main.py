@@ -22,6 +22,7 @@ COMMANDS = (
     "tuning.commands.run",
     "tuning.commands.tune",
     "tuning.commands.grid",
+    "tuning.commands.app",
     "tuning.commands.fit",
     "tuning.commands.diagnose",
     "tuning.commands.lab",

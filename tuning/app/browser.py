@@ -1,0 +1,200 @@
+"""Drive the design page in headless Chromium: the browser test and the latency benchmark.
+
+Playwright for Python (its wheel carries its driver, so it works offline) drives Debian's
+Chromium at :data:`CHROMIUM`; nothing is downloaded. The page is served by a real
+``jaxcart app`` process (:func:`served_app`), and sliders are moved the way a person moves them
+with the keyboard: focus a slider's handle, press an arrow key.
+
+Latency (:func:`timed_moves`): from the key press (a capture listener on ``keydown`` stamps
+``performance.now()``) to the animation frame after the new response reached the page (Bokeh
+paints the changed plot in the frame its data change requested, before ours).
+
+Chromium's flags keep it off the network: without the background-networking ones it keeps
+trying to reach Google's services, which floods a closed network.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+#: Debian's Chromium (``tools/provide-browser`` installs it).
+CHROMIUM = "/usr/bin/chromium"
+FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
+#: Seconds to wait for ``jaxcart app`` to say where the page is (imports, the region's
+#: compilation: about 10 s on a loaded 2-core machine).
+START_TIMEOUT = 180.0
+#: The page is up when Bokeh has built the document and the metric table has text.
+READY = (
+    "() => window.Bokeh !== undefined && Bokeh.documents.length > 0 && "
+    "Bokeh.documents[0].get_model_by_name('metrics') !== null && "
+    "Bokeh.documents[0].get_model_by_name('metrics').text.length > 0"
+)
+_URL = re.compile(r"(http://\S+/)")
+
+
+def chromium() -> str | None:
+    """The Chromium executable, or None when it is not installed."""
+    return CHROMIUM if os.access(CHROMIUM, os.X_OK) else shutil.which("chromium")
+
+
+def playwright_missing() -> str | None:
+    """Why the browser cannot be driven here (one line), or None when it can."""
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "Playwright is not installed (pip install -e '.[test]')"
+    if chromium() is None:
+        return f"no Chromium at {CHROMIUM} (run tools/provide-browser as root)"
+    return None
+
+
+@contextlib.contextmanager
+def served_app(*args: str, timeout: float = START_TIMEOUT):
+    """Run ``python -m tuning app --port 0 --no-browser ARGS`` and yield the page's URL; the
+    server is stopped on the way out."""
+    command = [sys.executable, "-m", "tuning", "app", "--port", "0", "--no-browser", *args]
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen(
+        command,
+        cwd=root,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    lines: queue.Queue = queue.Queue()
+    # A thread reads the server's output so that a silent server cannot block the wait (and
+    # its later lines never fill the pipe).
+    pump = threading.Thread(target=_pump, args=(proc.stdout, lines), daemon=True)
+    pump.start()
+    try:
+        yield _wait_for_url(lines, timeout)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        pump.join(timeout=10)
+        proc.stdout.close()
+
+
+def _wait_for_url(lines: queue.Queue, timeout: float) -> str:
+    deadline = time.monotonic() + timeout
+    seen = []
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            line = lines.get(timeout=left)
+        except queue.Empty:
+            break
+        if line is None:  # the server ended
+            break
+        seen.append(line)
+        found = _URL.search(line)
+        if found:
+            return found.group(1)
+    tail = "".join(seen[-20:])
+    raise RuntimeError(f"jaxcart app did not say where the page is; its output:\n{tail}")
+
+
+def _pump(stream, lines: queue.Queue) -> None:
+    for line in stream:
+        lines.put(line)
+    lines.put(None)
+
+
+@contextlib.contextmanager
+def page_at(url: str, *, width: int = 1420, height: int = 900, timeout: float = 120.0):
+    """A Playwright page of Chromium (fresh profile, off the network) showing ``url``, once the
+    design page is built."""
+    from playwright.sync_api import sync_playwright
+
+    profile = tempfile.mkdtemp(prefix="jaxcart-chromium-")
+    try:
+        with sync_playwright() as p:
+            context = p.chromium.launch_persistent_context(
+                profile,
+                executable_path=chromium(),
+                headless=True,
+                args=list(FLAGS),
+                viewport={"width": width, "height": height},
+            )
+            try:
+                page = context.new_page()
+                page.goto(url, timeout=timeout * 1e3)
+                page.wait_for_function(READY, timeout=timeout * 1e3)
+                yield page
+            finally:
+                context.close()
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def model_value(page, name: str, attribute: str = "value"):
+    """An attribute of the Bokeh model called ``name`` as the browser has it."""
+    return page.evaluate(
+        "([n, a]) => { const v = Bokeh.documents[0].get_model_by_name(n)[a];"
+        " return ArrayBuffer.isView(v) ? Array.from(v) : v; }",
+        [name, attribute],
+    )
+
+
+def response_data(page) -> dict:
+    """The response source's columns (t, y, r, v) as lists."""
+    return page.evaluate(
+        "() => { const d = Bokeh.documents[0].get_model_by_name('response').data;"
+        " const out = {}; for (const k of Object.keys(d)) out[k] = Array.from(d[k]);"
+        " return out; }"
+    )
+
+
+def handle(page, name: str):
+    """The keyboard handle of the slider called ``name`` (Playwright's CSS sees through
+    Bokeh's shadow roots)."""
+    return page.locator(f".slider-{name} .noUi-handle")
+
+
+_LISTEN = """() => {
+    if (window.__jaxcart !== undefined) { window.__jaxcart = {t0: null, lat: []}; return; }
+    const src = Bokeh.documents[0].get_model_by_name('response');
+    window.__jaxcart = {t0: null, lat: []};
+    document.addEventListener('keydown', () => { window.__jaxcart.t0 = performance.now(); },
+                              true);
+    src.properties.data.change.connect(() => {
+        const t0 = window.__jaxcart.t0;
+        if (t0 === null) return;
+        window.__jaxcart.t0 = null;
+        requestAnimationFrame(() => window.__jaxcart.lat.push(performance.now() - t0));
+    });
+}"""
+
+
+def timed_moves(page, name: str, keys, *, timeout: float = 30.0) -> list[float]:
+    """Press each of ``keys`` on the slider ``name``, one at a time, each after the page showed
+    the last; returns each press's latency [ms] until the new response was painted."""
+    page.evaluate(_LISTEN)
+    knob = handle(page, name)
+    knob.focus()
+    for i, key in enumerate(keys):
+        knob.press(key)
+        page.wait_for_function(f"() => window.__jaxcart.lat.length > {i}", timeout=timeout * 1e3)
+    return page.evaluate("() => window.__jaxcart.lat")

@@ -1,0 +1,96 @@
+"""Serve the design page: a local Bokeh server (``jaxcart app``) or a Jupyter notebook cell.
+
+Bokeh's server serves BokehJS from the installed package, so the page works offline; each
+browser tab gets a session of its own (its own sliders) over one :class:`DesignProblem`, whose
+feasible regions are shared through its memo.
+
+    jaxcart app                                  # the handout's plant
+    jaxcart app --data pid.toml --plant P.toml   # a recording and a fitted plant overlaid
+
+In a notebook (classic Jupyter or JupyterLab with the jupyter_bokeh extension)::
+
+    from tuning.app.server import show_in_notebook
+    show_in_notebook(data="pid.toml", plant="P.toml")
+"""
+
+from __future__ import annotations
+
+import socket
+import sys
+
+from tuning.app.design import DesignProblem, Settings, problem_from_files
+from tuning.app.view import build
+
+#: The port ``jaxcart app`` asks for first (Bokeh's own default).
+DEFAULT_PORT = 5006
+
+
+def warm(problem: DesignProblem) -> None:
+    """Compute the first slider position once, so that the first page opens at once (the
+    region's batched program compiles here, about a second)."""
+    start = problem.start
+    problem.design(start)
+    problem.region_at(start)
+    # The setpoint slider's other sign compiles nothing new but fills the experiment memo.
+    problem.region_at(Settings(ki=start.ki, tau=start.tau, setpoint=-start.setpoint))
+
+
+def free_port(address: str) -> int:
+    """A port the system has free on ``address`` now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((address, 0))
+        return s.getsockname()[1]
+
+
+def make_server(problem: DesignProblem, *, port: int = DEFAULT_PORT, address="127.0.0.1"):
+    """A started-to-be :class:`bokeh.server.server.Server` of the page on ``address:port``
+    (port 0: a free one), accepting pages opened from that address or localhost."""
+    from bokeh.application import Application
+    from bokeh.application.handlers.function import FunctionHandler
+    from bokeh.server.server import Server
+
+    port = port or free_port(address)
+    app = Application(FunctionHandler(lambda doc: build(doc, problem)))
+    origins = [f"{address}:{port}", f"localhost:{port}"]
+    return Server({"/": app}, port=port, address=address, allow_websocket_origin=origins)
+
+
+def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", browser=True):
+    """Serve the page until Ctrl-C (or SIGTERM); prints its address first. Returns 0."""
+    warm(problem)
+    try:
+        server = make_server(problem, port=port, address=address)
+    except OSError as exc:
+        from jaxcart.errors import UserError
+
+        raise UserError(
+            f"--port {port}: cannot listen on {address}:{port} ({exc.strerror}); give another "
+            "port (--port 0 picks a free one)"
+        ) from None
+    url = f"http://{address}:{server.port}/"
+    server.start()
+    print(f"jaxcart app: the design page is at {url} (Ctrl-C to stop)", flush=True)
+    if browser:
+        import webbrowser
+
+        server.io_loop.add_callback(webbrowser.open, url)
+    try:
+        server.io_loop.start()
+    except KeyboardInterrupt:
+        print("jaxcart app: stopped", file=sys.stderr)
+    finally:
+        server.stop()
+    return 0
+
+
+def show_in_notebook(data=None, plant=None, *, notebook_url="localhost:8888"):
+    """Show the page in the running Jupyter notebook (a Bokeh server inside the kernel)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from bokeh.io import output_notebook, show
+
+    problem = problem_from_files(data, plant)
+    warm(problem)
+    output_notebook(hide_banner=True)
+    show(lambda doc: build(doc, problem), notebook_url=notebook_url)

@@ -1,0 +1,470 @@
+"""The design page drawn with Bokeh: sliders on the left, the step response and the voltage in
+the middle, the feasible region and the poles on the right, the metric table under the sliders.
+
+The numbers come from :mod:`tuning.app.design`; this module only turns them into Bokeh models.
+:func:`build` fills a :class:`bokeh.document.Document` (a server session's or a notebook's), so
+the same page runs under ``jaxcart app`` and in Jupyter. Models the browser test and the latency
+benchmark look up carry names: the sliders ``kp``, ``ki``, ``kd``, ``tau``, ``setpoint``; the data
+sources ``response``, ``region``, ``poles``; the metric table ``metrics``.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+
+import numpy as np
+from bokeh.events import Tap
+from bokeh.layouts import column, row
+from bokeh.models import (
+    BoxAnnotation,
+    ColorBar,
+    ColumnDataSource,
+    Div,
+    FixedTicker,
+    LinearColorMapper,
+    Range1d,
+    Slider,
+    Span,
+)
+from bokeh.plotting import figure
+
+from tuning.app.design import (
+    RANGES,
+    STATUS_NAMES,
+    V_LIMIT,
+    Design,
+    DesignProblem,
+    Region,
+    Settings,
+    checks_of,
+)
+
+#: Slider order and titles: the handout writes the PID as kp, ki, kd. tau is shown in ms.
+SLIDERS = ("kp", "ki", "kd", "tau", "setpoint")
+TITLES = {
+    "kp": "kp [V/m]",
+    "ki": "ki [V/(m s)]",
+    "kd": "kd [V s/m]",
+    "tau": "derivative filter tau [ms]",
+    "setpoint": "setpoint [m]",
+}
+#: Slider value = SI value x this (tau in ms on the page).
+SCALE = {"tau": 1e3}
+#: Region colours by status code (design.STATUS_NAMES): green feasible, orange/purple one
+#: bound missed, grey both, black diverged.
+REGION_COLOURS = ("#4daf4a", "#ff7f00", "#984ea3", "#bdbdbd", "#252525")
+#: The poles plot's window [1/s]: the dominant poles of the lab's gains; faster ones are counted.
+POLE_WINDOW = (-300.0, 50.0, -200.0, 200.0)
+SIM_COLOUR, REC_COLOUR, NOMINAL_COLOUR = "#1f77b4", "#d62728", "#7f7f7f"
+
+
+def build(doc, problem: DesignProblem) -> DesignPage:
+    """Fill ``doc`` with the design page of ``problem``; returns the page (its models and
+    :meth:`DesignPage.update`)."""
+    page = DesignPage(problem)
+    doc.add_root(page.layout)
+    doc.title = "jaxcart design page"
+    page.doc = doc
+    return page
+
+
+class DesignPage:
+    """The page's models and the one update that redraws them from the sliders."""
+
+    def __init__(self, problem: DesignProblem):
+        self.problem = problem
+        self.doc = None
+        self._pending = False
+        self._setpoint = None
+        start = problem.start
+        self.sliders = {name: _slider(name, getattr(start, name)) for name in SLIDERS}
+        self.response = ColumnDataSource(_empty("t", "y", "r", "v"), name="response")
+        self.nominal = ColumnDataSource(_empty("t", "y", "v"), name="nominal")
+        self.region = ColumnDataSource(
+            dict(image=[np.zeros((1, 1), np.int8)], x=[0.0], y=[0.0], dw=[1.0], dh=[1.0]),
+            name="region",
+        )
+        self.point = ColumnDataSource(dict(kp=[start.kp], kd=[start.kd]), name="point")
+        self.poles = ColumnDataSource(_empty("re", "im"), name="poles")
+        self.spec = ColumnDataSource(_empty("t", "lo", "hi"), name="spec")
+        self.bounds = ColumnDataSource(dict(xs=[], ys=[]), name="bounds")
+        self.metrics = Div(name="metrics", width=330)
+        self.figures = _Figures(self)
+        for slider in self.sliders.values():
+            slider.on_change("value", self._moved)
+        self.figures.region.on_event(Tap, self._tapped)
+        note = Div(text=_note(problem), width=330)
+        controls = column(*self.sliders.values(), self.metrics, note, width=340)
+        middle = column(self.figures.position, self.figures.voltage)
+        right = column(self.figures.region, self.figures.poles)
+        self.layout = row(controls, middle, right)
+        self.update()
+
+    def settings(self) -> Settings:
+        """The sliders' position in SI units."""
+        values = {n: float(s.value) / SCALE.get(n, 1.0) for n, s in self.sliders.items()}
+        return Settings(**values)
+
+    def _moved(self, attr, old, new):
+        # A drag sends many values; while the page computes, the later ones queue. Coalesce:
+        # one update per tick, reading the sliders as they are when it runs.
+        served = self.doc is not None and self.doc.session_context is not None
+        if not served:
+            self.update()
+        elif not self._pending:
+            self._pending = True
+            self.doc.add_next_tick_callback(self._tick)
+
+    def _tick(self):
+        self._pending = False
+        self.update()
+
+    def _tapped(self, event):
+        """A click on the region moves kp and kd there."""
+        for name, value in (("kp", event.x), ("kd", event.y)):
+            lo, hi, _ = RANGES[name]
+            if value is not None and math.isfinite(value):
+                self.sliders[name].value = float(min(max(value, lo), hi))
+
+    def update(self) -> Design:
+        """Recompute at the sliders' position and push every changed number to the page (in
+        one message when served: the page never shows half an update)."""
+        if self.doc is not None:
+            self.doc.hold("combine")
+        try:
+            return self._update()
+        finally:
+            if self.doc is not None:
+                self.doc.unhold()
+
+    def _update(self) -> Design:
+        settings = self.settings()
+        design = self.problem.design(settings)
+        region = self.problem.region_at(settings)
+        res = design.response
+        runs = dict(y=np.asarray(res.position), v=np.asarray(res.voltage))
+        if len(self.response.data["t"]) == len(res.time) and settings.setpoint == self._setpoint:
+            self.response.data.update(runs)  # time and reference as they were: send half
+        else:
+            self.response.data = dict(t=np.asarray(res.time), r=np.asarray(res.reference), **runs)
+        self._setpoint = settings.setpoint
+        if design.nominal is not None:
+            nom = design.nominal
+            self.nominal.data = dict(
+                t=np.asarray(nom.time), y=np.asarray(nom.position), v=np.asarray(nom.voltage)
+            )
+        self.point.data = dict(kp=[settings.kp], kd=[settings.kd])
+        self.poles.data = dict(re=design.poles.real, im=design.poles.imag)
+        self.figures.show(design, region)
+        self.metrics.text = metrics_html(design, self.problem)
+        return design
+
+
+class _Figures:
+    """The four plots and the annotations that move with the settings."""
+
+    def __init__(self, page: DesignPage):
+        self.page = page
+        problem = page.problem
+        tools = "pan,wheel_zoom,box_zoom,reset,save"
+        horizon = float(problem.spec.horizon)
+        self.position = figure(
+            title="Step response (exact simulator, 6 V limit)",
+            x_axis_label="time [s]",
+            y_axis_label="position [m]",
+            width=620,
+            height=330,
+            tools=tools,
+            x_range=Range1d(0.0, horizon),
+            name="position_figure",
+        )
+        p = self.position
+        # The spec drawn as glyphs (not annotations) so that the legend names them: the 2 %
+        # band shaded, the overshoot bound and the settling bound dotted red.
+        p.varea(
+            "t",
+            "lo",
+            "hi",
+            source=page.spec,
+            fill_color="#2ca02c",
+            fill_alpha=0.15,
+            legend_label="2 % band",
+        )
+        p.multi_line(
+            "xs",
+            "ys",
+            source=page.bounds,
+            line_color="#d62728",
+            line_dash="dotted",
+            line_width=1.5,
+            legend_label="spec: overshoot, settling",
+        )
+        p.line(
+            "t",
+            "r",
+            source=page.response,
+            color="black",
+            line_dash="dashed",
+            legend_label="reference",
+        )
+        if problem.fitted:
+            p.line(
+                "t",
+                "y",
+                source=page.nominal,
+                color=NOMINAL_COLOUR,
+                line_dash="dashdot",
+                legend_label="handout plant",
+            )
+        p.line(
+            "t",
+            "y",
+            source=page.response,
+            color=SIM_COLOUR,
+            line_width=2,
+            legend_label="fitted plant" if problem.fitted else "simulated",
+        )
+        _recording(page, p, "position")
+        p.legend.location = "bottom_right"
+        p.legend.click_policy = "hide"
+        self.voltage = self._voltage_figure(page, tools, horizon)
+        self.region = self._region_figure(page)
+        self.poles = self._poles_figure(page)
+
+    def _voltage_figure(self, page, tools, horizon):
+        v = figure(
+            title="Voltage",
+            x_axis_label="time [s]",
+            y_axis_label="voltage [V]",
+            width=620,
+            height=250,
+            tools=tools,
+            x_range=self.position.x_range,
+            y_range=Range1d(-1.25 * V_LIMIT, 1.25 * V_LIMIT),
+        )
+        for sign in (1, -1):
+            v.add_layout(
+                Span(
+                    location=sign * V_LIMIT,
+                    dimension="width",
+                    line_color="black",
+                    line_dash="dotted",
+                )
+            )
+        v.line(
+            "t",
+            "v",
+            source=page.response,
+            color=SIM_COLOUR,
+            line_width=1.5,
+            legend_label="simulated",
+        )
+        _recording(page, v, "command")
+        v.legend.location = "top_right"
+        return v
+
+    def _region_figure(self, page):
+        lo_kp, hi_kp, _ = RANGES["kp"]
+        lo_kd, hi_kd, _ = RANGES["kd"]
+        f = figure(
+            title="Feasible region",
+            x_axis_label="kp [V/m]",
+            y_axis_label="kd [V s/m]",
+            width=420,
+            height=330,
+            tools="tap,reset,save",
+            x_range=Range1d(lo_kp, hi_kp),
+            y_range=Range1d(lo_kd, hi_kd),
+            name="region_figure",
+        )
+        mapper = LinearColorMapper(palette=list(REGION_COLOURS), low=-0.5, high=4.5)
+        f.image("image", x="x", y="y", dw="dw", dh="dh", source=page.region, color_mapper=mapper)
+        f.scatter(
+            "kp",
+            "kd",
+            source=page.point,
+            size=12,
+            marker="circle",
+            fill_color="white",
+            line_color="black",
+            line_width=2,
+        )
+        bar = ColorBar(
+            color_mapper=mapper,
+            ticker=FixedTicker(ticks=list(range(len(STATUS_NAMES)))),
+            major_label_overrides={i: name for i, name in enumerate(STATUS_NAMES)},
+            width=10,
+        )
+        f.add_layout(bar, "right")
+        return f
+
+    def _poles_figure(self, page):
+        x0, x1, y0, y1 = POLE_WINDOW
+        f = figure(
+            title="Closed-loop poles",
+            x_axis_label="Re s [1/s]",
+            y_axis_label="Im s [rad/s]",
+            width=420,
+            height=250,
+            tools="pan,wheel_zoom,reset,save",
+            x_range=Range1d(x0, x1),
+            y_range=Range1d(y0, y1),
+        )
+        f.add_layout(BoxAnnotation(left=0, fill_color="#d62728", fill_alpha=0.08))
+        f.add_layout(Span(location=0, dimension="height", line_color="black"))
+        f.scatter(
+            "re", "im", source=page.poles, marker="x", size=12, line_width=2, color=SIM_COLOUR
+        )
+        return f
+
+    _setpoint = None
+    _region = None
+
+    def show_region(self, region: Region) -> None:
+        kp, kd = region.kp, region.kd
+        dkp, dkd = kp[1] - kp[0], kd[1] - kd[0]
+        self.page.region.data = dict(
+            image=[region.status],
+            x=[kp[0] - dkp / 2],
+            y=[kd[0] - dkd / 2],
+            dw=[kp[-1] - kp[0] + dkp],
+            dh=[kd[-1] - kd[0] + dkd],
+        )
+        self.region.title.text = (
+            f"Feasible region at ki = {region.ki:g}, tau = {1e3 * region.tau:g} ms: "
+            f"{region.n_feasible} of {region.status.size} points"
+        )
+
+    def show(self, design: Design, region: Region) -> None:
+        """Move the annotations and titles to ``design`` and ``region``."""
+        s = design.settings
+        page = self.page
+        if s.setpoint != self._setpoint:
+            self._setpoint = s.setpoint
+            page.spec.data, page.bounds.data = spec_lines(page.problem.spec, s.setpoint)
+            # Legends where the run is not: below the curve for a step up, above for a step down.
+            up = s.setpoint >= 0
+            self.position.legend.location = "bottom_right" if up else "top_right"
+            self.voltage.legend.location = "bottom_right" if up else "top_right"
+        if region is not self._region:  # moving kp or kd keeps the region: send nothing
+            self._region = region
+            self.show_region(region)
+        x0, x1, y0, y1 = POLE_WINDOW
+        p = design.poles
+        outside = int(np.count_nonzero((p.real < x0) | (p.real > x1) | (abs(p.imag) > y1)))
+        verdict = "stable" if design.stable else "UNSTABLE"
+        beyond = f", {outside} faster beyond the window" if outside else ""
+        self.poles.title.text = f"Closed-loop poles, linear loop: {verdict}{beyond}"
+
+
+def spec_lines(spec, setpoint: float) -> tuple[dict, dict]:
+    """The spec on the position plot for a step to ``setpoint`` [m] from 0: the settling band
+    (t, lo, hi) and the bounds as polylines: the overshoot limit over the run, the settling
+    time as a vertical line."""
+    horizon = float(spec.horizon)
+    half = spec.band * abs(setpoint)
+    band = dict(t=[0.0, horizon], lo=[setpoint - half] * 2, hi=[setpoint + half] * 2)
+    over = setpoint * (1 + spec.overshoot / 100.0)
+    lo, hi = sorted((0.0, over))
+    t_s = float(spec.settling_time)
+    bounds = dict(xs=[[0.0, horizon], [t_s, t_s]], ys=[[over, over], [lo, hi]])
+    return band, bounds
+
+
+def _slider(name: str, value: float) -> Slider:
+    lo, hi, step = RANGES[name]
+    scale = SCALE.get(name, 1.0)
+    fmt = "0.00" if step * scale < 0.1 else "0.0" if step * scale < 1 else "0"
+    return Slider(
+        start=lo * scale,
+        end=hi * scale,
+        step=step * scale,
+        value=value * scale,
+        title=TITLES[name],
+        name=name,
+        css_classes=[f"slider-{name}"],
+        format=fmt,
+        width=320,
+    )
+
+
+def _empty(*names) -> dict:
+    return {n: np.zeros(0) for n in names}
+
+
+def _recording(page: DesignPage, fig, what: str) -> None:
+    rec = page.problem.overlay
+    if rec is None:
+        return
+    values = rec.position if what == "position" else rec.command
+    if values is None:
+        return
+    source = ColumnDataSource(dict(t=rec.time, y=values), name=f"recording_{what}")
+    fig.line(
+        "t",
+        "y",
+        source=source,
+        color=REC_COLOUR,
+        line_width=1.2,
+        alpha=0.8,
+        legend_label=f"recorded ({rec.name})",
+    )
+
+
+def _number(value: float, unit: str) -> str:
+    if not math.isfinite(value):
+        return "not within the run" if value > 0 else "-"
+    if unit == "m":
+        return f"{1e3 * value:.2f} mm"
+    if unit == "s":
+        return f"{value:.3f} s"
+    return f"{value:.2f} {unit}"
+
+
+def metrics_html(design: Design, problem: DesignProblem) -> str:
+    """The metric table: each metric, its bound, simulated (green: meets, red: misses) and,
+    with a recording, recorded."""
+    if design.info is None:
+        return "<p>setpoint 0 m: no step to measure; move the setpoint.</p>"
+    rec = problem.overlay.info if problem.overlay is not None else None
+    head = "<tr><th>metric</th><th>spec</th><th>simulated</th>"
+    head += "<th>recorded</th></tr>" if rec is not None else "</tr>"
+    rows = [head]
+    recorded = {c.name: c for c in checks_of(rec, problem.spec)} if rec is not None else {}
+    for check in design.checks:
+        bound = f"&lt; {check.bound:g} {check.unit}" if check.bound is not None else ""
+        colour = {True: "#1a7f37", False: "#cf222e", None: "inherit"}[check.ok]
+        cell = html.escape(_number(check.value, check.unit))
+        line = f"<tr><td>{html.escape(check.name)}</td><td>{bound}</td>"
+        line += f'<td style="color:{colour};font-weight:bold">{cell}</td>'
+        if rec is not None:
+            line += f"<td>{html.escape(_number(recorded[check.name].value, check.unit))}</td>"
+        rows.append(line + "</tr>")
+    missing = [c.name for c in design.checks if c.ok is False]
+    verdict = (
+        '<b style="color:#1a7f37">meets the spec</b>'
+        if design.meets
+        else f'<b style="color:#cf222e">misses: {", ".join(missing) or "the run diverged"}</b>'
+    )
+    spec = problem.spec
+    title = (
+        f"<p>{verdict} (step {spec.step:g} m, settling &lt; {spec.settling_time:g} s, "
+        f"overshoot &lt; {spec.overshoot:g} %, {V_LIMIT:g} V)</p>"
+    )
+    return title + '<table style="border-spacing:8px 2px">' + "".join(rows) + "</table>"
+
+
+def _note(problem: DesignProblem) -> str:
+    lines = [
+        "Exact simulator (event-exact friction, hard 6 V clip) over "
+        f"{problem.spec.horizon:g} s; region: {problem.region_points}x{problem.region_points} "
+        "hard-clip runs at the current ki (click it to move kp, kd there); poles: the linear "
+        "digital loop (no limit, no friction) as s = ln(z)/Ts."
+    ]
+    if problem.fitted:
+        lines.append("Design plant: the fitted plant file; grey: the handout's plant.")
+    if problem.overlay is not None:
+        o = problem.overlay
+        lines.append(f"Red: {html.escape(o.name)}, from its start y0 = {o.y0:.4f} m.")
+    return "<p style='font-size:85%;color:#555'>" + " ".join(lines) + "</p>"
