@@ -101,9 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
+def main(argv=None, *, exiting: bool = False) -> int:
+    """The command line; ``exiting``: the process ends after this (``python -m hw``), so a
+    signal that arrives after a run is ignored to the end instead of raising at the exit."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.exiting = exiting
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -271,20 +274,25 @@ def run_command(args) -> int:
     )
     if how:
         print(f"hw run: {how}", file=sys.stderr)
+    held = _HeldSignals()
     try:
-        result = run_loop(
-            device,
-            pid,
-            reference,
-            limits=limits,
-            clock=clock,
-            out=out,
-            description=description,
-            notes=notes,
-        )
+        try:
+            result = run_loop(
+                device,
+                pid,
+                reference,
+                limits=limits,
+                clock=clock,
+                out=out,
+                description=description,
+                notes=notes,
+            )
+        finally:
+            held.hold()  # the run is over: later signals must not cut the report short
     except Exception as exc:  # recorded, 0 V written: one line, not a traceback
         result = getattr(exc, "run_result", None)
         if result is None:  # refused before anything was driven (an existing --out, ...)
+            held.release()
             raise
         print(
             f"hw run: stopped by an error in the software: {type(exc).__name__}: "
@@ -293,8 +301,53 @@ def run_command(args) -> int:
         )
         if result.path is not None:
             print(result.path)
+        held.release()
         return 1
-    return _report(result, check.simulated, meta)
+    try:
+        return _report(result, check.simulated, meta)
+    finally:
+        if not getattr(args, "exiting", False):  # else held until the process ends
+            held.release()
+
+
+class _HeldSignals:
+    """After the loop: stopping signals are noted and ignored until the report is printed (a
+    fourth Ctrl-C must not leave a traceback after the run was stopped and recorded)."""
+
+    NAMES = ("SIGINT", "SIGTERM", "SIGHUP", "SIGBREAK")
+
+    def __init__(self):
+        self._old: dict = {}
+        self.received: list[str] = []
+
+    def hold(self) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for name in self.NAMES:
+            signum = getattr(signal, name, None)
+            if signum is not None:
+                try:
+                    self._old[signum] = signal.signal(signum, self._note)
+                except (OSError, ValueError):
+                    pass
+
+    def _note(self, signum, frame) -> None:
+        import signal
+
+        self.received.append(signal.Signals(signum).name)
+
+    def release(self) -> None:
+        import signal
+
+        for signum, old in self._old.items():
+            try:
+                signal.signal(signum, old if old is not None else signal.SIG_DFL)
+            except (OSError, ValueError):
+                pass
+        self._old = {}
 
 
 def _report(result, simulated, meta) -> int:

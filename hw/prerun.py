@@ -32,6 +32,8 @@ AT_LIMIT = 0.95
 UNIT_CIRCLE_TOL = 1e-6
 #: The simulated run is at most this long [s] (the check takes ~10 ms per second).
 MAX_SECONDS = 10.0
+#: The relay check simulates at least this long [s], the last set point held.
+MIN_SECONDS = 2.0
 
 
 @dataclass(frozen=True)
@@ -72,12 +74,15 @@ def closed_loop_matrix(pid: PID, params: CartParams | None = None) -> np.ndarray
     )
 
 
-def simulate(pid: PID, reference, params: CartParams | None = None):
+def simulate(pid: PID, reference, params: CartParams | None = None, *, padded: bool = False):
     """The run on the simulated cart, in virtual time, limits off (it shows what would
-    happen), at most ``MAX_SECONDS`` long."""
+    happen), at most ``MAX_SECONDS`` long (``padded``: at least ``MIN_SECONDS``, the last
+    set point held)."""
     from hw.loop import SIGNAL_REASONS, run_loop
 
     r = np.asarray(reference, dtype=float)[: int(MAX_SECONDS / pid.sample_time) + 1]
+    if padded:  # a short run still shows what the loop does once the cart arrives
+        r = np.pad(r, (0, max(0, int(MIN_SECONDS / pid.sample_time) + 1 - r.size)), mode="edge")
     off = Limits(x_max=1e9, v_max=max(float(pid.v_limit), 1e-9), speed_max=1e9, jump_max=1e9)
     sim = run_loop(
         SimCart(params or CartParams()), pid, r, limits=off, clock="virtual", signals=False
@@ -96,10 +101,10 @@ def check_gains(pid: PID, reference, limits: Limits | None = None) -> GainsCheck
     gains = f"kp={pid.kp:g} ki={pid.ki:g} kd={pid.kd:g}"
     if worst > 1.0 + UNIT_CIRCLE_TOL:
         refusals.append(
-            f"unstable: {gains} put a closed-loop pole at |z| = {worst:.4g} > 1 on the nominal "
+            f"unstable: {gains} put a closed-loop pole at |z| = {worst:.6f} > 1 on the nominal "
             "cart (the handout's); retune (jaxcart tune) or lower kp / ki"
         )
-    sim = simulate(pid, reference)
+    sim = simulate(pid, reference, padded=True)
     u = sim.command
     lim = float(min(pid.v_limit, limits.v_max))
     at = np.abs(u) >= AT_LIMIT * lim
@@ -119,4 +124,7 @@ def check_gains(pid: PID, reference, limits: Limits | None = None) -> GainsCheck
             f"the simulated cart reaches |y| = {reach:.3g} m, beyond the track limit "
             f"{limits.x_max:g} m: the run would stop there"
         )
+    n = np.asarray(reference).size
+    if sim.n_samples > n:  # the padded part was for the relay check only
+        sim = simulate(pid, reference)
     return GainsCheck(poles, rate, share, tuple(refusals), tuple(warnings), sim)

@@ -156,3 +156,42 @@ def test_bench_prints_both_loops(capsys):
     assert main(["bench", "--samples", "200"]) == 0
     out = capsys.readouterr().out
     assert "us/sample" in out and "naive time.sleep" in out and "overruns" in out
+
+
+@pytest.mark.parametrize(
+    "signals, code", [(["SIGTERM"], 143), (["SIGINT"] * 4, 130), (["SIGHUP"], 129)]
+)
+def test_a_real_signal_from_outside_stops_a_numpy_only_run(tmp_path, signals, code):
+    """`python -m hw run` in a child with numpy only, in real time, sent real signals while it
+    runs: 0 V, the recording finished with the reason, the conventional exit status."""
+    import signal
+    import time
+
+    gains = _gains(tmp_path)
+    out = tmp_path / "sig.toml"
+    code_text = (
+        BLOCKED + "sys.argv = ['hw'] + sys.argv[1:]\nrunpy.run_module('hw', run_name='__main__')\n"
+    )
+    argv = ["run", gains, "--real-time", "--duration", "5", "--watchdog", "0.5"]
+    child = subprocess.Popen(
+        [sys.executable, "-c", code_text, *argv, "--out", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    first = child.stderr.readline()  # printed just before the loop starts
+    assert "real time" in first, first
+    time.sleep(0.5)
+    for name in signals:
+        child.send_signal(getattr(signal, name))
+        time.sleep(0.01)
+    stdout, stderr = child.communicate(timeout=60)
+    assert child.returncode == code, stderr
+    rec = read_experiment(out)
+    run = rec.meta["run"]
+    assert run["status"] == "fault" and run["last_voltage"] == 0.0
+    word = {"SIGINT": "Ctrl-C"}.get(signals[0], signals[0])
+    assert word in run["fault"] and word in stderr
+    assert 100 < rec.n_samples < 5000 and "timing" in rec.meta
+    assert "Traceback" not in stderr  # later signals never cut the stop or the report short
