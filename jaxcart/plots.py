@@ -118,6 +118,12 @@ def plot_runs(
     path: the file (its suffix sets the format: .png, .svg, .pdf), or several paths, each
     written. Uses matplotlib's object API (no pyplot state). Returns the (first) path.
     """
+    fig = runs_figure(runs, title=title, voltage=voltage, v_limit=v_limit, band=band, zoom=zoom)
+    return save(fig, path, dpi=dpi)
+
+
+def runs_figure(runs, *, title: str, voltage=True, v_limit=None, band=None, zoom=False):
+    """The :class:`matplotlib.figure.Figure` that :func:`plot_runs` saves (same arguments)."""
     from matplotlib.figure import Figure
 
     runs = list(runs)
@@ -162,7 +168,7 @@ def plot_runs(
         if ax is not None:
             ax.grid(True, alpha=0.3)
     figure_legend(fig, [ax_y] + ([ax_v] if ax_v is not None else []))
-    return save(fig, path, dpi=dpi)
+    return fig
 
 
 def figure_legend(fig, axes, *, ncols: int = 2, fontsize="small") -> None:
@@ -248,7 +254,7 @@ def _error_inset(ax, drawn) -> None:
         if not keep.any():
             continue
         e = (target - np.asarray(run.position, dtype=float)[keep]) * 1e3
-        inset.plot(t[keep], e, **style)
+        inset.plot(t[keep], e, label=run.label, **style)
         top = max(top, float(np.max(np.abs(e))))
     inset.axhline(0.0, **REFERENCE_STYLE)
     span = max(1.25 * top, 0.05)

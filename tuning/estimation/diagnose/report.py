@@ -191,14 +191,16 @@ def plot_diagnosis(d, path) -> Path:
         top.plot(t, measured, label="recording", **EXPERIMENT_STYLE)
         top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline", zorder=3)
         top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})", zorder=3)
+        floor = d.floor if math.isfinite(d.floor) else 0.0
         top.fill_between(
             t,
             measured,
             tr["baseline"],
+            where=np.abs(np.asarray(tr["baseline"]) - measured) > floor,
             color="orange",
             alpha=0.35,
             lw=0,
-            label="mismatch of the baseline",
+            label="mismatch of the baseline (beyond the floor)",
         )
         bottom.plot(t, (tr["baseline"] - measured) * 1e3, "C0-", lw=0.8, label="baseline")
         bottom.plot(t, (tr["after"] - measured) * 1e3, "C3-", lw=0.8, label="corrected")
