@@ -148,8 +148,8 @@ def read_toml(path) -> dict:
         message = _one_line(exc)
         fix = "fix the syntax"
         if given_data:
-            fix = f"{path.name} is a data file, not an experiment file{also}"
-        elif "Unescaped '\\'" in message:
+            raise ExpFileError(f"{path} is a data file, not an experiment file{also}") from None
+        if "Unescaped '\\'" in message:
             fix = (
                 'a backslash in a "..." string starts an escape: write paths with forward '
                 "slashes (data = \"runs/run.csv\") or in single quotes (data = 'runs\\run.csv')"

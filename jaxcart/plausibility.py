@@ -13,6 +13,10 @@ fits (a tap in mm "fits" f_c = 461 N). These checks run whenever a recording is 
   a tap (motor unplugged, pushed by hand) must coast to rest within the travel, so v(0) <=
   travel c / m, and its push has no limit;
 - the sample time against the lab's 1 kHz loop;
+- an open loop's input voltage: beyond what any amplifier of the lab gives it is an error that
+  names the likely unit (a column in mV), as the closed loop's command is checked against
+  its controller below; a motion far smaller than the nominal cart makes of that input is a
+  warning;
 - the recorded command against the command the file's own controller computes from the
   recorded position and reference (:mod:`hw.control_law`, up to a sample of delay);
 - the controller: the eigenvalues of the discrete closed loop of the linear part (nominal
@@ -23,6 +27,11 @@ fits (a tap in mm "fits" f_c = 461 N). These checks run whenever a recording is 
   whole range, or when a mode rings faster than the 1 kHz loop resolves (above fs / 8, judged
   on the loop without the delay, whose delay line has fast poles of its own).
 
+Before a fit (:func:`check_fit_recordings`, called at the top of
+:func:`tuning.estimation.fit.fit`): a recording in which the cart does not move (amplifier off)
+and the same data given twice are refused, where a fit would otherwise report a friction of
+1e55 kg/s or standard errors sqrt(2) too small.
+
 Errors are :class:`UserError` (one line: file, column, value, fix); warnings are strings, which
 :func:`warn` prints once to stderr.
 """
@@ -31,6 +40,7 @@ from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -59,6 +69,16 @@ COMMAND_TOL_REL = 0.001
 MAX_MODE_FRACTION = 1.0 / 8.0
 #: Eigenvalues this far outside the unit circle are unstable (an integrator sits on it).
 UNIT_CIRCLE_TOL = 1e-6
+#: The most voltage a lab amplifier puts on the motor [V] (Quanser's VoltPAQ-X1 at gain 3 gives
+#: +-24 V; the lab's own range is LAB_VOLTAGE): an open-loop input beyond it is in other units.
+AMPLIFIER_VOLTAGE = 24.0
+#: An open loop whose cart moves less than this fraction of what the nominal linear cart (no
+#: friction) makes of its input is doubtful (friction, 0.3-0.5 N, takes a part; an input 1000
+#: times too large, in mV, takes nearly all).
+MOTION_FRACTION = 0.02
+#: Fewer encoder counts of motion than this in a whole recording: the cart did not move (the
+#: diagnosis's own floor, tuning.estimation.diagnose.core.MIN_COUNTS).
+MIN_MOTION_COUNTS = 20
 
 _printed: set[str] = set()
 
@@ -91,6 +111,8 @@ def _check_recording(rec) -> list[str]:
     plant = rec.plant()
     volts = _voltage_range(rec, plant)
     warnings += _check_motion(where, _label(rec, "y"), rec, plant, volts)
+    if rec.kind == "open_loop":
+        warnings += check_input_units(rec, plant)
     if rec.kind == "closed_loop" and rec.controller is not None:
         warnings += check_controller(rec.controller, plant, where=f"{where} [controller]")
         if rec.command is not None:
@@ -187,6 +209,120 @@ def _check_motion(where, label, rec, plant, volts) -> list[str]:
                 f"time not in s, or a wrong [plant]?"
             )
     return out
+
+
+def check_input_units(rec, plant=None) -> list[str]:
+    """An open loop's input u [V] in volts: raises :class:`UserError` when it exceeds what a
+    lab amplifier gives (:data:`AMPLIFIER_VOLTAGE`: a column in mV, naming the fix); returns a
+    warning when the cart moved far less than the nominal linear cart does under that input
+    (:data:`MOTION_FRACTION`), the same sign of other units at a smaller scale."""
+    where = str(getattr(rec, "path", "recording"))
+    label = _label(rec, "v") if hasattr(rec, "meta") else "the input v"
+    u = np.asarray(rec.signal64() if hasattr(rec, "signal64") else rec.experiment.signal, float)
+    peak = float(np.max(np.abs(u))) if u.size else 0.0
+    if peak > AMPLIFIER_VOLTAGE:
+        guess = (
+            f"recorded in mV? divide by 1000 for volts ({peak / 1000:.3g} V)"
+            if peak / 1000 <= AMPLIFIER_VOLTAGE
+            else "not a voltage in V? convert it to volts"
+        )
+        raise UserError(
+            f"{where}: {label}: the input reaches {peak:.4g} V, beyond the {AMPLIFIER_VOLTAGE:g} V "
+            f"a lab amplifier gives: {guess} (docs/experiment-files.md: v is in V)"
+        )
+    plant = rec.plant() if plant is None and hasattr(rec, "plant") else plant
+    y = np.asarray(rec.position, dtype=float)
+    if plant is None or peak == 0 or y.size < 3:
+        return []
+    n = min(y.size, u.size, COMMAND_PREFIX)  # the first samples: a bounded cost
+    moved = float(np.ptp(y[:n]))
+    expected = float(np.ptp(_linear_response(plant, rec.sample_time, u[:n])))
+    if moved >= MOTION_FRACTION * expected:
+        return []
+    return [
+        f"{where}: {label}: the cart moves {moved * 1e3:.3g} mm, {moved / expected:.2g} of the "
+        f"{expected * 1e3:.3g} mm the nominal cart moves under this input without friction: "
+        f"v in mV (divide by 1000), the amplifier off, or the cart blocked?"
+    ]
+
+
+def _linear_response(plant, ts: float, u) -> np.ndarray:
+    """Positions [m] of the nominal linear cart m y'' + c y' = gamma u from rest under the
+    held input u_k [V] (zero-order hold, exact: :func:`plant_matrices`), for comparing
+    magnitudes only."""
+    ad, bd = plant_matrices(plant, ts)
+    a01, a11, b0, b1 = float(ad[0, 1]), float(ad[1, 1]), float(bd[0]), float(bd[1])
+    y = v = 0.0
+    out = np.empty(len(u))
+    for k, uk in enumerate(np.asarray(u, dtype=float).tolist()):
+        out[k] = y
+        y, v = y + a01 * v + b0 * uk, a11 * v + b1 * uk
+    return out
+
+
+# ---------------------------------------------------------------- before a fit
+
+
+def check_fit_recordings(recordings) -> list:
+    """The recordings of one fit, as a list, once they make sense together: raises
+    :class:`UserError` (one line, naming the recording and the fix) for a recording in which
+    the cart does not move, for the same data given twice (the same file, or identical
+    samples) and for an open loop's input in other units (:func:`check_input_units`); milder
+    doubts are printed once (:func:`warn`). Values the fit returns are checked by the fit."""
+    recordings = list(recordings)
+    for rec in recordings:
+        check_moves(rec)
+        if getattr(rec, "kind", None) == "open_loop":
+            for message in check_input_units(rec):
+                warn(message)
+    check_distinct(recordings)
+    return recordings
+
+
+def check_moves(rec, what: str = "nothing to fit") -> None:
+    """Raises :class:`UserError` when the cart moves fewer than :data:`MIN_MOTION_COUNTS`
+    encoder counts in the whole recording (positions [m])."""
+    y = np.asarray(rec.position, dtype=float)
+    counts = float(np.ptp(y)) / ENCODER_RESOLUTION if y.size else 0.0
+    if counts < MIN_MOTION_COUNTS:
+        raise UserError(
+            f"{_name(rec)}: the cart does not move: y spans {float(np.ptp(y)) * 1e3:.3g} mm "
+            f"({counts:.0f} encoder counts) in the whole recording (amplifier off, motor "
+            f"unplugged, cart blocked?); {what}: record a run in which the cart moves"
+        )
+
+
+def check_distinct(recordings) -> None:
+    """Raises :class:`UserError` when two recordings are the same file or hold identical
+    samples: fitted twice, their standard errors would shrink by sqrt(2) for no new data."""
+    seen: dict = {}
+    for i, rec in enumerate(recordings):
+        path = getattr(rec, "path", None)
+        file = Path(path).resolve() if path is not None and Path(path).is_file() else None
+        y = np.asarray(rec.position, dtype=float)
+        key = (str(getattr(rec, "kind", "")), float(rec.sample_time), y.size)
+        for j, (other_file, other_key, other_y, other_signal) in seen.items():
+            same_file = file is not None and file == other_file
+            same_data = key == other_key and np.array_equal(y, other_y)
+            same_data = same_data and np.array_equal(_signal(rec), other_signal)
+            if same_file or same_data:
+                how = "the same file" if same_file else "identical samples"
+                raise UserError(
+                    f"recordings {j + 1} and {i + 1} are {how} ({_name(recordings[j])}, "
+                    f"{_name(rec)}): the same data counted twice would make the standard "
+                    f"errors sqrt(2) too small; give each recording once"
+                )
+        seen[i] = (file, key, y, _signal(rec))
+
+
+def _signal(rec) -> np.ndarray:
+    if hasattr(rec, "signal64"):
+        return np.asarray(rec.signal64(), dtype=float)
+    return np.asarray(rec.experiment.signal, dtype=float)
+
+
+def _name(rec) -> str:
+    return str(getattr(rec, "path", None) or "recording")
 
 
 def _check_command(where, label, rec) -> list[str]:

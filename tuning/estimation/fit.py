@@ -1166,7 +1166,12 @@ def fit(
     exact simulator before and after; progress: a line per stage on stderr.
     Returns a :class:`FitResult`; a parameter the data do not determine is reported as not
     identifiable and held at its starting value. Runs in float64 whatever jax_enable_x64 says.
+    Refused before any fitting (:func:`jaxcart.plausibility.check_fit_recordings`): a
+    recording without motion, the same data twice, an open-loop input in other units.
     """
+    from jaxcart.plausibility import check_fit_recordings
+
+    recordings = check_fit_recordings(recordings)
     with jax.enable_x64(True):
         return _fit(recordings, params, initial, settings, exact, progress)
 

@@ -24,7 +24,6 @@ built-in example recordings use it; the report prints it and compares the fits w
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -111,13 +110,12 @@ def check_recording(recording):
 def _load_toml(path: Path) -> dict:
     if path.is_dir():
         raise UserError(f"{path}: a folder, not an experiment file; rename or move it away")
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"{path}: not valid TOML ({exc}); fix the file or move it away") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot be read ({exc.strerror or exc}); check it") from None
+    from hw.expfile import ExpFileError, read_toml
+
+    try:  # the experiment files' own reader: UTF-16, a BOM, a workbook said with the fix
+        return read_toml(path)
+    except ExpFileError as exc:
+        raise UserError(f"{exc}; or move it out of the folder") from None
 
 
 def guess_slot(recording) -> tuple[str | None, str]:
