@@ -357,10 +357,10 @@ def _report(result, simulated, meta) -> int:
 
     t = result.timing
     print(f"hw run: {result.status}, {result.n_samples} samples", file=sys.stderr)
-    print(
-        f"hw run: {verdict(t)}; compute median {t.get('compute_median_us', math.nan):.1f} us",
-        file=sys.stderr,
-    )
+    if "compute_median_us" in t:
+        print(
+            f"hw run: {verdict(t)}; compute median {t['compute_median_us']:.1f} us", file=sys.stderr
+        )
     if result.fault is None and result.n_samples >= 2:
         sim = run_metrics(simulated) if simulated is not None else None
         for line in comparison_lines(run_metrics(result), sim, spec_of(meta)):

@@ -470,9 +470,8 @@ def _close(recorder, run: _Run, run_table, timing, device_table, device) -> Path
             recorder.discard()
         except BaseException as exc:  # noqa: BLE001
             run.notes.append(f"removing the recording failed: {_line(exc)}")
-        why = f" ({run.fault})" if run.fault else ""
         run.notes.append(
-            f"no recording kept: the run stopped before {MIN_SAMPLES} samples were saved{why}; "
+            f"no recording kept: the run stopped before {MIN_SAMPLES} samples were saved; "
             f"{recorder.path} is free for the retry"
         )
         if run.fault is None:

@@ -85,6 +85,8 @@ def _why(exc: OSError) -> str:
         return "the disk is full"
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return "the folder is read-only"
+    if exc.errno == errno.ENOENT:
+        return f"no such folder ({exc.filename})" if exc.filename else "no such folder"
     return exc.strerror or type(exc).__name__
 
 
@@ -127,13 +129,8 @@ class RunRecorder:
             self._open()
         except BaseException as exc:
             self._remove_created()
-            if isinstance(exc, FileExistsError):
-                raise ExpFileError(f"{exc.filename} exists; choose another --out") from None
             if isinstance(exc, OSError):
-                raise ExpFileError(
-                    f"cannot write the recording {self.path} ({_why(exc)}: {exc.strerror}); "
-                    "choose another --out (a folder you can write to, with free space)"
-                ) from None
+                raise ExpFileError(self._open_error(exc)) from None
             raise
         self._sync_stop = threading.Event()
         self._sync_errors: list[str] = []
@@ -145,6 +142,18 @@ class RunRecorder:
             self._syncer.start()
 
     # -- start
+
+    def _open_error(self, exc: OSError) -> str:
+        """One line on why the recording cannot be created, and what to do."""
+        name = Path(exc.filename) if exc.filename else self.path
+        if isinstance(exc, FileExistsError) and name in (self.path, self.csv_path):
+            return f"{name} exists; a recording is never overwritten: choose another --out"
+        if isinstance(exc, FileExistsError | NotADirectoryError):
+            return f"cannot make the folder {self.path.parent}: a file is in the way ({name})"
+        return (
+            f"cannot write the recording {self.path}: {_why(exc)}; choose another --out (a "
+            "folder you can write to, with free space)"
+        )
 
     def _open(self) -> None:
         files = self.files

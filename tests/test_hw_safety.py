@@ -132,3 +132,53 @@ def test_never_over_an_existing_recording(tmp_path):
             run_loop(SimCart(), PID_LAB, [0.1] * 20, clock="virtual", out=tmp_path / name)
     assert (tmp_path / "a.csv").read_text() == before
     assert (tmp_path / "b.csv").read_text() == "mine\n" and not (tmp_path / "b.toml").exists()
+
+
+def test_the_csv_is_synced_to_the_disk_every_sync_every_seconds(tmp_path):
+    """A power loss loses at most the rows after the last fsync: a thread beside the loop
+    fsyncs the CSV every sync_every [s] while a real-time run goes on."""
+    import threading
+
+    from hw.recorder import OsFiles
+
+    class Counting(OsFiles):
+        def __init__(self):
+            self.syncs = []
+
+        def fsync(self, fd):
+            self.syncs.append((time.perf_counter(), threading.current_thread().name))
+            super().fsync(fd)
+
+    files = Counting()
+    t0 = time.perf_counter()
+    result = run_loop(
+        SimCart(),
+        PID_LAB,
+        np.full(301, 0.1),
+        limits=Limits(late_max=0.5),
+        clock="perf_counter",
+        out=tmp_path / "sync.toml",
+        sync_every=0.05,
+        files=files,
+    )
+    assert result.status == "completed"
+    beside = [t - t0 for t, name in files.syncs if name != threading.main_thread().name]
+    assert len(beside) >= 3, beside  # 0.3 s at one per 0.05 s (a loaded machine skips some)
+    assert np.all(np.diff(beside) < 0.2), beside
+
+
+def test_a_run_that_never_started_leaves_the_name_free(tmp_path):
+    """A device that cannot start: no file left, and the retry with the same name runs."""
+    out = tmp_path / "retry.toml"
+    failed = run_loop(
+        Injected(_raise(DeviceError("no board")), at=1),
+        PID_LAB,
+        [0.1] * 50,
+        clock="virtual",
+        out=out,
+    )
+    assert failed.status == "fault" and failed.path is None
+    assert not out.exists() and not out.with_suffix(".csv").exists()
+    assert "free for the retry" in failed.notes[-1]
+    again = run_loop(SimCart(), PID_LAB, [0.1] * 50, clock="virtual", out=out)
+    assert again.status == "completed" and read_experiment(out).n_samples == 50

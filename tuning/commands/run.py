@@ -2,7 +2,8 @@
 
 The same command as ``python -m hw run`` (hw/cli.py), which needs numpy only (the lab PC); this
 is its entry in the full install. The recording is an experiment file that ``jaxcart fit``,
-``diagnose`` and ``lab`` read as they are.
+``diagnose`` and ``lab`` read as they are; the run's metrics are printed against the spec and
+the simulation of the same gains (docs/hardware.md).
 
     jaxcart run gains.json --device sim --step 0.5
     jaxcart run gains.json --device q2_usb --slider 0.2,0,-0.2,0.2 --out part5.toml
@@ -20,9 +21,14 @@ def register(subparsers) -> None:
         description=(
             "Run the controller of GAINS.json (every setting as tuned) on a device: the "
             "simulated cart, a Quanser board (q2_usb, q8_usb: needs Quanser's quanser.hardware "
-            "API) or a replay. Safety: track limit, voltage clamp, velocity limit, encoder "
-            "jumps, a watchdog; any fault writes 0 V. The run is recorded as an experiment "
-            "file (never over an existing one). Same as `python -m hw run` (numpy only)."
+            "API) or a replay. The simulated cart and a replay run in virtual time unless "
+            "--real-time. Gains whose simulated loop is unstable or a relay at the voltage "
+            "limit are refused unless --force. Safety: track limit, voltage clamp, velocity "
+            "limit, encoder nan and jumps, a watchdog chosen for the machine; every way out "
+            "(a fault, Ctrl-C, SIGTERM, SIGHUP, an error, a full disk) writes 0 V. The run is "
+            "recorded as an experiment file (never over an existing one) and its metrics "
+            "printed against the spec and the simulation of the same gains. Same as `python "
+            "-m hw run` (numpy only); see docs/hardware.md."
         ),
     )
     add_run_arguments(p)
