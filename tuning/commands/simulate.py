@@ -241,6 +241,8 @@ def _outputs(args, recording):
         else:
             toml_path, csv_path = experiment_paths(out)
         png_path = figure_name(args.plot, args.format) if args.plot else None
+        if png_path is None and args.format:  # --format asks for the figure, beside the data
+            png_path = csv_path.with_suffix("." + args.format)
     else:
         stem = "run" if recording is None else f"{recording.path.stem}-sim"
         data = ".mat" if args.mat_layout or _mat_data(recording) else ".csv"
@@ -343,6 +345,7 @@ def _plot(path, response, recording, controller, plant, source, method):
         path=path,
         voltage=response.kind != "tap",
         v_limit=_voltage_limit(plant, controller),
+        zoom=response.kind == "closed_loop",  # the steady-state error in mm
     )
 
 
