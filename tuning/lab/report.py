@@ -4,8 +4,15 @@ folder of real ones.
     data folder --find_inputs--> which recording is which part (lab.toml or a guess)
         |
         v
-    pre-lab -> Part (i) -> (ii) -> (iii) -> (iv) -> (v) -> summary      (progress on stderr)
-        |          each part: numbers, figures/*.png, its section of the report
+    compute: each part a function of its inputs, returning a frozen result
+        pre-lab ------------------------------------------------ tuned gains --+
+        tap --Part (i)--> model --+--Part (ii)--> B_eq agreement               |
+                                  +--Part (iii)--> model (f_c) --+--Part (iv)  |
+                                                                 +--Part (v) <-+
+        |                                                        (progress on stderr)
+        v
+    render: each result drawn into its section, figures/NAME.png|svg|pdf, summary
+        |
         v
     REPORT_DIR/report.md, report.html (figures embedded), results.json (and .mat), gains.json,
     figures/
@@ -194,7 +201,10 @@ def compute(
     """Every part of the lab from the recordings ``inputs`` and the starting model, in the
     order their data need: the tap's model feeds Parts (ii) and (iii), Part (iii)'s f_c feeds
     Parts (iv) and (v), the pre-lab's tuned gains feed Part (v). ``fit``: the fitter every
-    part uses (:func:`tuning.lab.fits.fit`)."""
+    part uses (:func:`tuning.lab.fits.fit`). Another estimate of the cart (a joint fit over
+    every recording, say) goes in as the ``model`` argument of the parts that simulate with
+    it, and :func:`tuning.lab.part_ii.agreement` is the one place the tap's and the step's
+    B_eq are compared."""
     recordings = inputs.recordings
     pre = prelab.compute(say=say)
     tap = part_i.compute(recordings.get("tap"), start, fit=fit, say=say)
