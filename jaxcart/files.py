@@ -177,10 +177,11 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
     the track raise a UserError, milder doubts are printed once to stderr and kept in
     ``Recording.warnings``.
     """
-    if str(path).lower().endswith(".mat"):  # a raw scope file: recognised, no TOML
-        from jaxcart.matimport import run_of
+    from jaxcart.matimport import run_of, split_source
 
-        return read_imported(run_of(Path(path), experiment), Path(path), check=check)
+    raw = split_source(path)  # "file.mat" or "file.mat:scope[1]": a raw scope file, no TOML
+    if raw is not None:
+        return read_imported(run_of(path, experiment), raw[0], check=check)
     return _recording(
         lambda mat_reader: _expfile.read_experiment_data(path, mat_reader=mat_reader), check
     )

@@ -175,10 +175,32 @@ def _role(names, signal, *, many: bool) -> tuple[str, str]:
         return "t", "increasing values"
     if float(np.max(np.abs(values))) > 1.0:
         return "v", "values beyond 1 (V, not m on the 1 m track)"
-    counts = (values - values[0]) / ENCODER_RESOLUTION
-    if np.ptp(values) > 0 and np.all(np.abs(counts - np.rint(counts)) < 1e-3):
-        return "y", "whole encoder counts"
+    step = _count_of(values)
+    if step is not None:
+        return "y", f"whole encoder counts of {step:.5g} m"
+    if np.unique(values).size <= 10:
+        return "r", "a few constant levels (a reference)"
+    if not many:  # a scope's own signal, smooth: what the software computed
+        return "v", "not whole encoder counts (a voltage)"
     return "?", "no name or content that says what it is"
+
+
+def _count_of(values) -> float | None:
+    """The encoder count [m] when every change of ``values`` is a whole number of one small
+    step within a factor 2 of the lab's encoder (2.27e-5 m) and the values also stand still or
+    change by several counts at a time (a voltage ramp changes by the same step every sample),
+    else None."""
+    steps = np.abs(np.diff(values))
+    moved = steps[steps > 0]
+    if moved.size == 0:
+        return None
+    count = float(moved.min())
+    if not 0.5 * ENCODER_RESOLUTION <= count <= 2 * ENCODER_RESOLUTION:
+        return None
+    ratio = moved / count
+    if not np.all(np.abs(ratio - np.rint(ratio)) < 1e-3):
+        return None
+    return count if moved.size < steps.size or np.ptp(np.rint(ratio)) > 0 else None
 
 
 def _text(value) -> str:
@@ -203,13 +225,17 @@ def run_key(path: Path) -> str:
     return re.sub(r"[\s_\-]+", "", stem).strip(".")
 
 
-def scan(paths, *, named: dict | None = None) -> list[Imported]:
+def scan(paths, *, named: dict | None = None, chosen: dict | None = None) -> list[Imported]:
     """The runs in the .mat files ``paths``, each recognised (``named``: {file name:
-    experiment} the user named, taken as the answer). Files that hold only a voltage or a
-    reference join the run of a file with a position (or error) whose name differs only by the
-    signal and that holds as many samples."""
+    experiment} the user named, taken as the answer; ``chosen``: {file name: variable} the
+    position the user chose, e.g. "scope[1]"). Files that hold only a voltage or a reference
+    join the run of a file with a position (or error) whose name differs only by the signal
+    and that holds as many samples."""
     named = dict(named or {})
     per_file = {Path(p): read_signals(p) for p in paths}
+    for path, variable in (chosen or {}).items():
+        path = next(p for p in per_file if p.name == Path(path).name)
+        per_file[path] = _choose(path, per_file[path], variable)
     anchors, partners, runs = [], [], []
     for path, signals in per_file.items():
         if any(s.role in ("y", "e") for s in signals):
@@ -393,10 +419,54 @@ def write_imported(run: Imported, toml_path, *, force: bool = False) -> Path:
     return toml_path
 
 
+_SOURCE = re.compile(r"(?P<file>.*\.mat)(?::(?P<variable>[^:/\\]+))?\Z", re.IGNORECASE)
+
+
+def split_source(text) -> tuple[Path, str | None]:
+    """(file, variable or None) of "file.mat" or "file.mat:variable" ("scope[1]", "scope[cart
+    position]": one signal of a muxed scope); None when ``text`` names no .mat file."""
+    match = _SOURCE.match(str(text))
+    if match is None:
+        return None
+    return Path(match["file"]), match["variable"]
+
+
+def _choose(path: Path, signals: list[RawSignal], variable: str) -> list[RawSignal]:
+    """``signals`` of ``path`` with ``variable`` (the user's choice) as the position; the
+    signals that looked like positions before no longer do."""
+    import dataclasses
+
+    base, selector = matfile.parse_variable(variable)
+    try:
+        obj = matfile.load_mat(path)[base]
+    except KeyError:
+        names = sorted({s.source.split(":", 1)[1].split("[")[0] for s in signals})
+        raise UserError(
+            f"{path.name}:{variable}: no variable {base!r} in {path.name} (variables with "
+            f"signals: {', '.join(names) or 'none'}); choose one of them"
+        ) from None
+    try:
+        one = matfile.select_signal(
+            matfile.scope_signals(obj, base), selector, f"{path.name}:{base}"
+        )
+    except matfile.LayoutError as exc:
+        raise UserError(str(exc)) from None
+    source = f"{path.name}:{base}" + (f"[{one.index}]" if one.count > 1 else "")
+    out = []
+    for s in signals:
+        if s.source == source:
+            s = dataclasses.replace(s, role="y", why="chosen by the user")
+        elif s.role == "y":
+            s = dataclasses.replace(s, role="?", why="another signal is the position")
+        out.append(s)
+    return out
+
+
 def run_of(path, experiment: str | None = None) -> Imported:
-    """The run that the .mat file ``path`` belongs to, with the files of its folder whose names
-    differ only by the signal (2.1pos.mat brings 2.1volt.mat); ``experiment`` names it."""
-    path = Path(path)
+    """The run that the .mat file ``path`` belongs to ("file.mat", or "file.mat:variable" to
+    choose the position, e.g. "scope[1]" of a muxed scope), with the files of its folder whose
+    names differ only by the signal (2.1pos.mat brings 2.1volt.mat); ``experiment`` names it."""
+    path, variable = split_source(path) or (Path(path), None)
     if path.is_dir():
         raise UserError(f"{path}: a folder; give a .mat file")
     if not path.is_file():
@@ -406,7 +476,7 @@ def run_of(path, experiment: str | None = None) -> Imported:
         p for p in path.parent.glob("*.mat") if p != path and run_key(p) == key and key
     )
     named = {path.name: experiment} if experiment else {}
-    runs = scan([path, *siblings], named=named)
+    runs = scan([path, *siblings], named=named, chosen={path.name: variable} if variable else None)
     for run in runs:
         if path in run.files:
             if experiment and run.guess is not None and not run.guess.named:

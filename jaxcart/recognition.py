@@ -261,46 +261,89 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
 def identify_controller(traces: Traces, ts: float, v_limit: float | None = None):
     """(gains {kp, ki, kd}, R^2, samples used, step r [m] or None) of the PID that made the
     recorded voltage, by least squares over the samples below ``v_limit``; None when there
-    are too few. With an error e (or y and r) the terms are e, int(e) and de/dt (filtered with
-    ``TAU``); with y alone the unknown constant r enters as an intercept and a ramp in t."""
+    are too few. The terms are e, int(e) and de/dt (filtered with ``TAU``) of the error e
+    (recorded, or r - y); with y alone the constant step r is estimated first
+    (:func:`_step_of`)."""
     v = np.asarray(traces.command, dtype=float)
     n = v.size
-    t = np.arange(n) * ts
     free = np.ones(n, dtype=bool) if v_limit is None else np.abs(v) < v_limit * (1 - 1e-6)
     free[0] = False  # the derivative's kick at the step
-    if traces.error is not None:
-        e = np.asarray(traces.error, dtype=float)
-    elif traces.position is not None and traces.reference is not None:
-        e = np.asarray(traces.reference, dtype=float) - np.asarray(traces.position, dtype=float)
-    else:
-        e = None
-    if e is not None:
-        terms = {"kp": e, "ki": np.cumsum(e) * ts, "kd": _filtered_rate(e, ts)}
-        base = {}
-    elif traces.position is not None:
-        y = np.asarray(traces.position, dtype=float)
-        terms = {"kp": -y, "ki": -np.cumsum(y) * ts, "kd": -_filtered_rate(y, ts)}
-        base = {"c0": np.ones(n), "c1": t}
-    else:
-        return None
     if free.sum() < 20:
         return None
-    names = list(terms)
-    for _ in range(3):  # drop terms that add under 2 % of the voltage's spread
-        fit = _least_squares({**base, **{k: terms[k] for k in names}}, v, free)
-        if fit is None:
+    if traces.error is not None:
+        e = np.asarray(traces.error, dtype=float)
+        return (*_fit_pid(e, v, free, ts)[:2], int(free.sum()), None)
+    if traces.position is None:
+        return None
+    y = np.asarray(traces.position, dtype=float)
+    if traces.reference is not None:
+        r = np.asarray(traces.reference, dtype=float)
+        return (*_fit_pid(r - y, v, free, ts)[:2], int(free.sum()), None)
+    steps = _steps_of(y, v, free, ts)
+    if not steps:
+        return None
+    # The step whose PID in e = r - y fits best (the simplest model's among near ties).
+    spread = float(np.std(v[free])) or 1.0
+    scored = [(r, _fit_pid(r - y, v, free, ts, select=False)[2]) for r in steps]
+    floor = min(rms for _, rms in scored)
+    r = next(r for r, rms in scored if rms <= 1.1 * floor + 1e-3 * spread)
+    # r and ki trade off where the integral is small: a step within half a millimetre of
+    # whole centimetres is taken as that (the handout's are 0.2, 0.4, 0.5 m).
+    if abs(r - round(r, 2)) < 5e-4:
+        r = round(r, 2)
+    gains, r2, _ = _fit_pid(r - y, v, free, ts)
+    return gains, r2, int(free.sum()), r
+
+
+def _steps_of(y, v, free, ts: float) -> list[float]:
+    """Candidates for the constant reference r [m] of a PID that made v from y alone, one per
+    model P, PD, PI, PID in y (v = c0 + c1 t - kp y - ki int(y) - kd dy/dt, c0 = kp r,
+    c1 = ki r): r = c0 / kp. An intercept also takes up the integral's settled value, so the
+    simplest model that fits is not always the right r: the caller tries each."""
+    n = y.size
+    columns = {
+        "c0": np.ones(n),
+        "kp": -y,
+        "c1": np.arange(n) * ts,
+        "ki": -np.cumsum(y) * ts,
+        "kd": -_filtered_rate(y, ts),
+    }
+    models = (("c0", "kp"), ("c0", "kp", "kd"), ("c0", "kp", "c1", "ki"), tuple(columns))
+    steps = []
+    for names in models:
+        result = _least_squares({k: columns[k] for k in names}, v, free)
+        if result is not None and abs(result[0]["kp"]) > 1e-9:
+            steps.append(result[0]["c0"] / result[0]["kp"])
+    return steps
+
+
+def _fit_pid(e, v, free, ts: float, *, select: bool = True):
+    """(gains, R^2, RMS residual [V]) of v = kp e + ki int(e) + kd de/dt on the samples
+    ``free``; with ``select`` ki and kd are kept only where they lower the residual (by more
+    than 10 % and 0.1 % of the voltage's spread): a P controller is not read as a PI with a
+    tiny ki."""
+    terms = {"kp": e, "ki": np.cumsum(e) * ts, "kd": _filtered_rate(e, ts)}
+    spread = float(np.std(v[free])) or 1.0
+
+    def fit(names):
+        result = _least_squares({k: terms[k] for k in names}, v, free)
+        if result is None:
             return None
-        coef, r2 = fit
-        spread = float(np.std(v[free])) or 1.0
-        weak = [k for k in names if k != "kp" and np.std(coef[k] * terms[k][free]) < 0.02 * spread]
-        if not weak:
-            break
-        names = [k for k in names if k not in weak]
-    gains = {k: float(coef.get(k, 0.0)) for k in ("kp", "ki", "kd")}
-    step = None
-    if e is None and abs(gains["kp"]) > 1e-9:
-        step = float(coef["c0"]) / gains["kp"]
-    return gains, r2, int(free.sum()), step
+        coef, r2 = result
+        resid = v[free] - sum(coef[k] * terms[k][free] for k in names)
+        return coef, r2, float(np.sqrt(np.mean(resid**2)))
+
+    names = ["kp", "ki", "kd"]
+    full = fit(names)
+    if full is None:
+        return {"kp": 0.0, "ki": 0.0, "kd": 0.0}, 0.0, math.inf
+    for term in ("kd", "ki") if select else ():
+        reduced = fit([k for k in names if k != term])
+        if reduced is not None and reduced[2] <= 1.1 * full[2] + 1e-3 * spread:
+            names.remove(term)
+            full = reduced
+    coef, r2, rms = full
+    return {k: float(coef.get(k, 0.0)) for k in ("kp", "ki", "kd")}, r2, rms
 
 
 def _least_squares(columns: dict, target, mask):
@@ -364,9 +407,10 @@ def _error_features(e, ts: float, settings: dict) -> list[Evidence]:
     tail = e[-max(2, e.size // 10) :]
     final = float(np.mean(tail))
     text = f"the recorded error steps to {r:.4g} m at t = 0 and ends at {final * 1e3:.3g} mm"
+    # Weak: a PI whose cart sticks keeps an error too, and a P 10 with little friction none.
     if abs(final) > 0.002 * abs(r):  # 0.4 mm of a 0.2 m step: P control's steady error
-        return [Evidence(text + ": a steady-state error (P control)", ("p_error",), 2)]
-    return [Evidence(text + ": the error vanishes (integral action)", ("pi",), 2)]
+        return [Evidence(text + ": a steady-state error (P control?)", ("p_error",), 1)]
+    return [Evidence(text + ": the error vanishes (integral action?)", ("pi",), 1)]
 
 
 def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence]:
@@ -400,7 +444,11 @@ def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence
             c, r2 = coast
             text = f"after the push it slows in proportion to its speed (c/M = {c:.3g} 1/s, "
             out.append(Evidence(text + f"R^2 = {r2:.3f}): coasting, no drive", ("tap",), 2))
-    elif start <= 0.1 and traces.command is None:
+    elif start <= 0.1 and traces.command is not None:
+        steps = tuple(k for k, s in EXPERIMENTS.items() if s.step is not None)
+        text = f"the cart moves at t = {start:.3g} s and comes to rest: one step, not slider moves"
+        out.append(Evidence(text, steps, 2))
+    elif start <= 0.1:
         near = [
             k
             for k, spec in EXPERIMENTS.items()
@@ -482,9 +530,11 @@ _WORDS = (
     (r"slider|slide", ("slider",), "slider moves"),
     (r"(?<![a-z])err(or)?(?![a-z])", ("p_error", "pi"), "the error scope (Parts (iii), (iv))"),
 )
+# "part4", "part_iv", "part1.1" (strong: the user wrote the part) or "2.1pos" (the handout's
+# numbering of the experiment steps, moderate).
 _PART = re.compile(
-    r"(?:(?<![a-z0-9])(?:part|lab|p)?[ _-]?(?P<n>[1-5])\.\d)"
-    r"|(?:part[ _-]?(?P<m>[1-5]|iii|ii|iv|v|i)(?![a-z0-9]))"
+    r"(?:part[ _-]?(?P<m>[1-5]|iii|ii|iv|v|i)(?![a-z0-9]))"
+    r"|(?:(?<![a-z0-9])(?:lab|p)?[ _-]?(?P<n>[1-5])\.\d)"
 )
 
 
@@ -505,7 +555,8 @@ def _name_features(names) -> list[Evidence]:
             if (supports, text) not in seen:
                 seen.add((supports, text))
                 roman = [k for k, v in _ROMAN.items() if v == number][0]
-                out.append(Evidence(f"the name {raw!r} numbers Part ({roman})", supports, 2))
+                weight = 3 if match["m"] else 2
+                out.append(Evidence(f"the name {raw!r} numbers Part ({roman})", supports, weight))
     return out
 
 
@@ -517,7 +568,8 @@ def _settings(guess: Guess, found: dict) -> None:
     measurement agrees with it (within 5 %), else the measurement, with a note for each."""
     spec = EXPERIMENTS[guess.experiment]
     if spec.kind == "open_loop":
-        guess.ramp = found.get("ramp", spec.ramp)
+        ramp = found.get("ramp", spec.ramp)
+        guess.ramp = spec.ramp if _near(ramp, spec.ramp) else float(f"{ramp:.4g}")
         return
     if spec.kind != "closed_loop":
         return

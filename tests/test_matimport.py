@@ -6,6 +6,7 @@ evidence is weak."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -157,7 +158,10 @@ def test_v73_hdf5_reads_as_v7(tmp_path):
     np.testing.assert_array_equal(
         matfile.scope_signals(loaded["arr"], "arr")[0].values, y
     )  # N x 2 [t, value], transposed back
-    raw = read_experiment(tmp_path / "run73.mat")  # no TOML: recognised
+    with pytest.raises(UserError, match=r"2 signals look like a position \(run73.mat:arr"):
+        read_experiment(tmp_path / "run73.mat")  # no TOML: y and arr both positions
+    _write_v73(tmp_path / "raw73.mat", {"y": part["y"], "v": part["v"]})
+    raw = read_experiment(tmp_path / "raw73.mat")  # no TOML: recognised
     assert raw.controller.kp == 50.0 and raw.controller.v_limit == 6.0
     np.testing.assert_array_equal(raw.reference, np.full(y.shape, 0.4))
 
@@ -192,3 +196,192 @@ def test_error_stands_for_the_position_through_the_reference(tmp_path):
     toml.write_text('kind = "tap"\nsample_time = 0.001\n[data]\ne = "both.mat:Error"\n')
     with pytest.raises(UserError, match="an error needs a reference"):
         read_experiment(toml)
+
+
+# ---------------------------------------------------------------- recognition
+
+
+@pytest.fixture(scope="module")
+def builtin():
+    """The built-in recordings (synthetic, from a cart unlike the handout's model)."""
+    from tuning.lab.data import builtin_dir
+
+    folder = builtin_dir()
+    stems = ("tap", "p50", "ramp", "p10", "pi", "pid")
+    return {s: read_experiment(folder / f"{s}.toml", check=False) for s in stems}
+
+
+@pytest.mark.parametrize(
+    ("stem", "layout", "want"),
+    [
+        ("tap", "array", "tap"),
+        ("p50", "structure", "p_step"),
+        ("ramp", "structure-with-time", "ramp"),
+        ("p10", "array", "p_error"),
+        ("pi", "structure", "pi"),
+        ("pid", "structure-with-time", "pid"),
+    ],
+)
+def test_each_experiment_recognised_from_content_alone(builtin, tmp_path, stem, layout, want):
+    """Saved as scopes under names that say nothing (run.mat, variables a and b): the content
+    alone tells the experiment, and the settings it implies are the ones that ran."""
+    rec = builtin[stem]
+    t, y = rec.time, rec.position
+    v = rec.command if stem != "ramp" else 0.1 * t  # the built-in ramp keeps no column v
+    pack = {"array": lambda x: np.column_stack([t, x]), "structure": _scope}
+    pack["structure-with-time"] = lambda x: _scope(x, t)
+    variables = {"a": pack[layout](y)}
+    if v is not None:
+        variables["b"] = pack[layout](v)
+    scipy.io.savemat(tmp_path / "run.mat", variables)
+    (found,) = matimport.scan([tmp_path / "run.mat"])
+    assert [s.role for s in found.signals.values()] == ["y", "v"][: len(variables)]
+    guess = found.guess
+    assert guess.experiment == want and guess.confident, guess.lines()
+    got = read_experiment(tmp_path / "run.mat", check=False)
+    np.testing.assert_array_equal(got.position, y)
+    if want == "tap":
+        assert got.kind == "tap" and got.controller is None
+    elif want == "ramp":
+        assert got.kind == "open_loop" and guess.ramp == 0.1
+    else:
+        ran = rec.controller
+        # The gains the voltage shows: exact for P and PI; the PID's ki (0.94 V/(m s), under
+        # 0.2 V over the run) within 5 %, kp and kd within 0.1 %.
+        assert got.controller.kp == pytest.approx(ran.kp, rel=1e-3)
+        assert got.controller.kd == pytest.approx(ran.kd, rel=1e-3)
+        assert got.controller.ki == pytest.approx(ran.ki, rel=0.05, abs=1e-9)
+        assert got.controller.v_limit == ran.v_limit
+        np.testing.assert_array_equal(got.reference, rec.reference)  # the step, exactly
+
+
+def test_error_scope_alone_asks_unless_named(builtin, tmp_path):
+    """Parts (iii) and (iv) save the error e = r - y: without the voltage, P 10 and PI differ
+    only in how the error settles, which friction blurs, so the error alone is weak evidence;
+    a name that says the part settles it, and the position is r - e."""
+    rec = builtin["pi"]
+    e = rec.reference - rec.position
+    scipy.io.savemat(tmp_path / "scope3.mat", {"Error": np.column_stack([rec.time, e])})
+    with pytest.raises(UserError, match=r"scope3\.mat: the evidence is weak .*--as PART"):
+        read_experiment(tmp_path / "scope3.mat")
+    got = read_experiment(tmp_path / "scope3.mat", experiment="pi", check=False)
+    assert got.controller.kp == 10.0 and got.controller.ki == 15.0  # the handout's PI
+    np.testing.assert_allclose(got.position, rec.position, atol=1e-15)
+    shutil.copy(tmp_path / "scope3.mat", tmp_path / "part4_error.mat")
+    named = read_experiment(tmp_path / "part4_error.mat", check=False)  # "part4": Part (iv)
+    assert named.controller.ki == 15.0
+
+
+def test_position_chosen_in_a_muxed_scope_on_the_command_line(tmp_path):
+    t, y, v = _p50(1500)
+    other = np.rint(0.5 * y / Q) * Q  # a second cart's position, also in counts
+    mux = _scope(np.column_stack([other, v, y]), t)
+    scipy.io.savemat(tmp_path / "mux.mat", {"ScopeData": mux})
+    with pytest.raises(UserError, match=r"2 signals look like a position \(mux.mat:ScopeData\[1\]"):
+        read_experiment(tmp_path / "mux.mat")
+    got = read_experiment(f"{tmp_path / 'mux.mat'}:ScopeData[3]", check=False)
+    np.testing.assert_array_equal(got.position, y)
+    assert got.controller.kp == 50.0  # the unlabelled column 2 is the voltage: P 50
+    with pytest.raises(UserError, match=r"choose 1 \.\.\. 3"):
+        read_experiment(f"{tmp_path / 'mux.mat'}:ScopeData[4]")
+
+
+# ---------------------------------------------------------------- the lab's real files
+
+
+@pytest.fixture
+def real_folder(tmp_path):
+    """The lab's real .mat files as QUARC saved them, names included, and nothing else."""
+    if not REAL.is_dir():
+        pytest.skip(f"the lab's real recordings are not at {REAL}")
+    folder = tmp_path / "data"
+    folder.mkdir()
+    for path in [*sorted(REAL.glob("*.mat")), REAL / "repeat" / "p50_repeat.mat"]:
+        shutil.copyfile(path, folder / path.name)
+    return folder
+
+
+def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
+    from tuning.lab.inputs import find_inputs, write_used
+
+    runs = {r.label: r for r in matimport.scan(sorted(real_folder.glob("*.mat")))}
+    assert {k: (r.experiment, r.guess.confident) for k, r in runs.items()} == {
+        "part1.1.mat": ("tap", True),
+        "2.1pos.mat + 2.1volt.mat": ("p_step", True),
+        "p50_repeat.mat": ("p_step", True),
+    }
+    inputs = find_inputs(real_folder)
+    assert {s: Path(r.path).name for s, r in inputs.recordings.items()} == {
+        "tap": "part1.1.mat",
+        "p_step": "2.1pos.mat",
+    }
+    assert [name for name, _ in inputs.unused] == ["p50_repeat.mat"]  # Part (ii) again
+    p50 = inputs.recordings["p_step"]
+    assert p50.controller.kp == 50.0 and p50.controller.v_limit == 6.0
+    assert np.all(p50.reference == 0.4) and p50.sample_time == 0.001
+    assert inputs.recordings["tap"].kind == "tap"
+    report = tmp_path / "report"
+    report.mkdir()
+    written = write_used(inputs, report)
+    assert sorted(p.name for p in written) == ["2.1pos.toml", "lab.toml", "part1.1.toml"]
+    again = find_inputs(report)  # the lab.toml written reproduces the assignment and data
+    assert set(again.recordings) == set(inputs.recordings)
+    for slot, rec in inputs.recordings.items():
+        other = again.recordings[slot]
+        assert other.kind == rec.kind and other.controller == rec.controller
+        assert other.sample_time == rec.sample_time
+        np.testing.assert_array_equal(other.position, rec.position)
+        np.testing.assert_array_equal(other.signal64(), rec.signal64())
+        assert again.how[slot] == "named in lab.toml"
+    # One line corrected: the repeat run instead (the written file offers it, commented).
+    index = report / "lab.toml"
+    lines = index.read_text().splitlines()
+    offer = next(x for x in lines if x.startswith("# p_step = "))
+    lines = [x for x in lines if not x.startswith("p_step = ")]
+    lines[lines.index(offer)] = offer[2:]
+    index.write_text("\n".join(lines) + "\n")
+    swapped = find_inputs(report)
+    assert Path(swapped.recordings["p_step"].path).name == "p50_repeat.mat"
+    assert swapped.recordings["p_step"].n_samples == 3135
+
+
+def test_weak_evidence_is_a_question_in_the_lab(real_folder):
+    from tuning.lab.inputs import find_inputs
+
+    t, y, _ = _p50(2000)
+    scipy.io.savemat(real_folder / "run7.mat", {"a": np.column_stack([t, 0.75 * y])})
+    inputs = find_inputs(real_folder)
+    reason = dict(inputs.unused)["run7.mat"]
+    assert "evidence is weak" in reason
+    assert "name its part in lab.toml, e.g. [recordings] " in reason and '= "run7.mat"' in reason
+    assert "run7.mat" not in [Path(r.path).name for r in inputs.recordings.values()]
+    (real_folder / "lab.toml").write_text('[recordings]\npid = "run7.mat"\n')
+    named = find_inputs(real_folder)
+    assert Path(named.recordings["pid"].path).name == "run7.mat"
+    assert named.how["pid"] == "named in lab.toml"
+    assert named.recordings["pid"].reference[0] == pytest.approx(0.3, abs=0.003)
+    assert Path(named.recordings["tap"].path).name == "part1.1.mat"  # the rest still guessed
+
+
+def test_import_command(real_folder, tmp_path, capsys):
+    from tuning.commands.main import main
+
+    out = tmp_path / "out"
+    files = [str(real_folder / n) for n in ("2.1volt.mat", "2.1pos.mat", "part1.1.mat")]
+    assert main(["--no-cache", "import", *files, "--out", str(out)]) == 0
+    shown = capsys.readouterr().out
+    assert "Part (ii) P control k = 50 V/m, step 0.4 m [p_step] (strong evidence)" in shown
+    assert "R^2 = 1.0000" in shown
+    assert sorted(p.name for p in out.iterdir()) == ["2.1pos.toml", "part1.1.toml"]
+    from_toml = read_experiment(out / "2.1pos.toml")
+    direct = read_experiment(real_folder / "2.1pos.mat")
+    np.testing.assert_array_equal(from_toml.position, direct.position)
+    assert from_toml.controller == direct.controller
+    assert main(["--no-cache", "import", files[1], "--out", str(out)]) == 2  # exists
+    assert "exists" in capsys.readouterr().err
+    t, y, _ = _p50(1000)
+    scipy.io.savemat(tmp_path / "x.mat", {"a": np.column_stack([t, 0.75 * y])})
+    assert main(["--no-cache", "import", str(tmp_path / "x.mat"), "--out", str(out)]) == 2
+    assert "the evidence is weak" in capsys.readouterr().err
+    assert main(["--no-cache", "import", str(tmp_path / "x.mat"), "--as", "pid"]) == 0
+    assert (tmp_path / "x.toml").is_file()

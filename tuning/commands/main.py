@@ -26,6 +26,7 @@ COMMANDS = (
     "tuning.commands.fit",
     "tuning.commands.diagnose",
     "tuning.commands.lab",
+    "tuning.commands.import_mat",
     "tuning.commands.bench",
 )
 

@@ -11,11 +11,21 @@ a *slot* of the lab:
     pi        (iv)   PI control k = 10, k_i = 15                  closed loop, ki > 0, kd = 0
     pid       (v)    PID design, step                             closed loop, kd > 0
 
+The folder may also hold raw .mat files as QUARC/Simulink scopes saved them, without any
+TOML: each run (a file, or files whose names differ only by the signal, "2.1pos.mat" +
+"2.1volt.mat") is recognised from its content and names (:mod:`jaxcart.recognition`), with
+its evidence; a run whose evidence is weak is left out with one line that asks the user to
+name its part. When any recording came from raw .mat files, :func:`write_used` writes the
+lab.toml and the experiment files that were used beside the report, so that a user can correct
+one line and rerun (``jaxcart lab --data REPORT_DIR``).
+
 An optional index ``lab.toml`` in the folder names the files and wins over the guess:
 
     [recordings]
     tap = "tap.toml"
     p_step = "p50.toml"
+    pi = "run7.mat"                            # a raw .mat file: this part, no guess
+    p_error = ["p10pos.mat", "p10err.mat"]     # the .mat files of one run
 
 and may carry a ``[synthetic]`` table: the true parameters that generated synthetic data (the
 built-in example recordings use it; the report prints it and compares the fits with it).
@@ -53,7 +63,10 @@ class Inputs:
     folder: the data folder; recordings: slot -> Recording (jaxcart.files); how: slot -> how
     it was chosen ("lab.toml" or the rule that matched); unused: (file name, reason) of files
     that went to no slot; synthetic: the [synthetic] table of lab.toml (true parameters of
-    synthetic data) or None.
+    synthetic data) or None; imported: slot -> the :class:`jaxcart.matimport.Imported` run of
+    raw .mat files that the slot's recording came from; offers: (slot, run, why) of raw runs
+    not used (a second run of a part, weak evidence), offered in the lab.toml written;
+    written: what :func:`write_used` wrote, one line.
     """
 
     folder: Path | None
@@ -61,6 +74,9 @@ class Inputs:
     how: dict = field(default_factory=dict)
     unused: list = field(default_factory=list)
     synthetic: dict | None = None
+    imported: dict = field(default_factory=dict)
+    offers: list = field(default_factory=list)
+    written: str | None = None
 
     def missing(self) -> list[str]:
         """Slots with no recording (their parts show simulation only)."""
@@ -73,10 +89,16 @@ class Inputs:
             rec = self.recordings.get(slot)
             if rec is None:
                 lines.append(f"Part ({part}) {what}: no recording (simulation only)")
+            elif slot in self.imported:
+                run = self.imported[slot]
+                lines.append(f"Part ({part}) {what}: {run.label} ({self.how[slot]})")
+                lines += [f"    {e.line()}" for e in run.guess.evidence]
             else:
                 lines.append(f"Part ({part}) {what}: {Path(rec.path).name} ({self.how[slot]})")
         for name, reason in self.unused:
             lines.append(f"not used: {name} ({reason})")
+        if self.written:
+            lines.append(self.written)
         return lines
 
 
@@ -162,7 +184,8 @@ def _is_ramp(u) -> bool:
 
 
 def find_inputs(folder) -> Inputs:
-    """Read every experiment file of ``folder`` and give each its slot (lab.toml first)."""
+    """Read every experiment file of ``folder`` and give each its slot (lab.toml first), then
+    recognise the runs of the raw .mat files that no experiment file maps."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise UserError(
@@ -175,46 +198,25 @@ def find_inputs(folder) -> Inputs:
         )
     inputs = Inputs(folder=folder)
     index_path = folder / INDEX_NAME
-    named = {}
-    if index_path.is_file():
-        index = _load_toml(index_path)
-        table = index.get("recordings", {})
-        if not isinstance(table, dict):
-            raise UserError(f'{index_path}: [recordings] must be a table of slot = "file.toml"')
-        for slot, name in table.items():
-            if slot not in SLOTS:
-                raise UserError(
-                    f"{index_path}: [recordings] {slot} is not a slot of the lab; use one of "
-                    f"{', '.join(SLOTS)}"
-                )
-            path = folder / str(name)
-            if path.is_dir():
-                raise UserError(
-                    f"{index_path}: [recordings] {slot} = {name!r} is a folder; name the "
-                    f"experiment file (TOML) inside it"
-                )
-            if not path.is_file():
-                raise UserError(
-                    f"{index_path}: [recordings] {slot} = {name!r}: no such file in {folder}"
-                )
-            named[slot] = path
-        synthetic = index.get("synthetic")
-        inputs.synthetic = dict(synthetic) if isinstance(synthetic, dict) else None
-
+    named, named_raw = _read_index(inputs, index_path)
     for slot, path in named.items():
         inputs.recordings[slot] = _read_experiment(path)
         inputs.how[slot] = f"named in {INDEX_NAME}"
+    for slot, paths in named_raw.items():
+        _use_raw(inputs, slot, paths, index_path)
 
     taken = {p.resolve() for p in named.values()}
+    mats = {p.resolve() for paths in named_raw.values() for p in paths}
     guesses: dict[str, list] = {}
     candidates = sorted(p for p in folder.glob("*.toml") if p.name != INDEX_NAME)
     for path in candidates:
-        if path.resolve() in taken:
-            continue
         if path.is_dir():
             inputs.unused.append((path.name, "a folder, not an experiment file"))
             continue
         meta = _load_toml(path)
+        mats |= _mat_files(meta, folder)
+        if path.resolve() in taken:
+            continue
         if "kind" not in meta:
             inputs.unused.append((path.name, "not an experiment file (no kind)"))
             continue
@@ -238,9 +240,183 @@ def find_inputs(folder) -> Inputs:
         inputs.recordings[slot], reason = found[0]
         inputs.how[slot] = f"guessed: {reason}"
 
+    raw = sorted(p for p in folder.glob("*.mat") if p.is_file() and p.resolve() not in mats)
+    _recognise_raw(inputs, raw)
     if not inputs.recordings:
         raise UserError(
             f'--data {folder}: no experiment files found (TOML files with kind = "tap", '
-            f'"open_loop" or "closed_loop"); see docs/experiment-files.md for the format'
+            f'"open_loop" or "closed_loop", or .mat files saved by the lab\'s scopes); see '
+            f"docs/experiment-files.md for the format"
         )
     return inputs
+
+
+def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:
+    """({slot: experiment file}, {slot: [raw .mat files of one run]}) named in lab.toml (and
+    its [synthetic] table into ``inputs``); ({}, {}) without one."""
+    named, named_raw = {}, {}
+    if not index_path.is_file():
+        return named, named_raw
+    folder = index_path.parent
+    index = _load_toml(index_path)
+    table = index.get("recordings", {})
+    if not isinstance(table, dict):
+        raise UserError(f'{index_path}: [recordings] must be a table of slot = "file.toml"')
+    for slot, name in table.items():
+        if slot not in SLOTS:
+            raise UserError(
+                f"{index_path}: [recordings] {slot} is not a slot of the lab; use one of "
+                f"{', '.join(SLOTS)}"
+            )
+        names = name if isinstance(name, list) else [name]
+        paths = [folder / str(n) for n in names]
+        for n, path in zip(names, paths, strict=True):
+            if path.is_dir():
+                raise UserError(
+                    f"{index_path}: [recordings] {slot} = {n!r} is a folder; name the "
+                    f"experiment file (TOML) inside it"
+                )
+            if not path.is_file():
+                raise UserError(
+                    f"{index_path}: [recordings] {slot} = {n!r}: no such file in {folder}"
+                )
+        if all(p.suffix.lower() == ".mat" for p in paths):
+            named_raw[slot] = paths
+        elif len(paths) == 1:
+            named[slot] = paths[0]
+        else:
+            raise UserError(
+                f"{index_path}: [recordings] {slot} = {name!r}: a list names the .mat files "
+                f'of one run; name an experiment file as {slot} = "file.toml"'
+            )
+    synthetic = index.get("synthetic")
+    inputs.synthetic = dict(synthetic) if isinstance(synthetic, dict) else None
+    return named, named_raw
+
+
+def _mat_files(meta: dict, folder: Path) -> set:
+    """The .mat files (resolved) that an experiment file's [data] maps."""
+    data = meta.get("data")
+    sources = data.values() if isinstance(data, dict) else [data]
+    out = set()
+    for source in sources:
+        file = str(source).rsplit(":", 1)[0] if ":" in str(source) else str(source)
+        if file.lower().endswith(".mat"):
+            out.add((folder / file).resolve())
+    return out
+
+
+def _use_raw(inputs: Inputs, slot: str, paths: list, index_path: Path) -> None:
+    """The raw .mat run ``paths`` named as ``slot`` in lab.toml, read as that experiment."""
+    from jaxcart.files import read_imported
+    from jaxcart.matimport import scan
+
+    runs = [r for r in scan(paths, named={p.name: slot for p in paths}) if paths[0] in r.files]
+    run = runs[0]
+    if run.problem or len(run.files) != len(paths):
+        why = run.problem or f"its files are not one run ({', '.join(p.name for p in paths)})"
+        raise UserError(f"{index_path}: [recordings] {slot}: {why}")
+    inputs.recordings[slot] = check_recording(read_imported(run, quiet=True))
+    inputs.imported[slot] = run
+    inputs.how[slot] = f"named in {INDEX_NAME}"
+
+
+def _recognise_raw(inputs: Inputs, paths: list) -> None:
+    """Give each run of the raw .mat files ``paths`` the part it is recognised as, when the
+    evidence is strong and the part is free; the rest go to ``unused`` (and ``offers``) with
+    the reason, a question where the evidence is weak."""
+    if not paths:
+        return
+    from jaxcart.files import read_imported
+    from jaxcart.matimport import scan
+    from jaxcart.recognition import EXPERIMENTS
+
+    for run in sorted(scan(paths), key=lambda r: r.label):
+        guess = run.guess
+        if run.problem:
+            inputs.unused.append((run.label, run.problem))
+            continue
+        if not run.usable():
+            slot = (guess.candidates() or ["p_step"])[0]
+            how = f'in {INDEX_NAME}, e.g. [recordings] {slot} = "{run.files[0].name}"'
+            inputs.unused.append((run.label, guess.question(run.label, how)))
+            inputs.offers += [(slot, run, "weak evidence") for slot in guess.candidates()]
+            continue
+        slot = guess.experiment
+        if slot not in SLOTS:
+            spec = EXPERIMENTS[slot]
+            inputs.unused.append((run.label, f"{spec.what}: no part of the report uses it"))
+            continue
+        if slot in inputs.recordings:
+            used = inputs.recordings[slot].path
+            inputs.unused.append(
+                (
+                    run.label,
+                    f"also Part ({SLOTS[slot][0]}) {SLOTS[slot][1]}; the report uses "
+                    f"{Path(used).name}; to use this one name it in {INDEX_NAME}: "
+                    f'[recordings] {slot} = "{run.files[0].name}"',
+                )
+            )
+            inputs.offers.append((slot, run, "another run of this part"))
+            continue
+        inputs.recordings[slot] = check_recording(read_imported(run, quiet=True))
+        inputs.imported[slot] = run
+        inputs.how[slot] = "recognised, strong evidence"
+
+
+def write_used(inputs: Inputs, out, final=None) -> list[Path]:
+    """When any recording came from raw .mat files: write ``lab.toml`` naming the recording of
+    every part, and an experiment file for each raw run used, into ``out`` (the report's
+    folder; paths are written relative to ``final``, where it will be, default ``out``), so
+    that ``jaxcart lab --data FINAL`` reruns the same lab and a user can correct one line.
+    Raw runs not used are offered as commented lines. Returns the paths written."""
+    if not inputs.imported:
+        return []
+    from hw.expfile import toml_str, toml_value
+    from jaxcart.matimport import data_prefix
+
+    out, final = Path(out), Path(final or out)
+    written, names = [], {INDEX_NAME, "results.toml", "gains.toml"}
+    lines = [
+        "# The lab's recordings, as jaxcart lab used them for the report in this folder (data",
+        f"# from {Path(inputs.folder).resolve()}). Correct a line and rerun:",
+        f"#     jaxcart lab --data {final} --out NEW_REPORT",
+        "[recordings]",
+    ]
+    for slot, (part, what) in SLOTS.items():
+        if slot in inputs.imported:
+            run = inputs.imported[slot]
+            name = _free_name(run.stem, names)
+            written.append(out / name)
+            (out / name).write_text(run.toml_text(final))
+            lines.append(f"{slot} = {toml_str(name)}   # Part ({part}): {run.label}")
+        elif slot in inputs.recordings:
+            path = Path(inputs.recordings[slot].path)
+            name = data_prefix(final, path.parent) + path.name
+            lines.append(f"{slot} = {toml_str(name)}   # Part ({part})")
+        else:
+            lines.append(f"# {slot} = ...   # Part ({part}) {what}: no recording")
+    for slot, run, why in inputs.offers:
+        files = [data_prefix(final, p.parent) + p.name for p in run.files]
+        value = (
+            toml_str(files[0]) if len(files) == 1 else "[" + ", ".join(map(toml_str, files)) + "]"
+        )
+        lines.append(f"# {slot} = {value}   # {why}: uncomment to use it (and remove the other)")
+    if inputs.synthetic:
+        lines += ["", "[synthetic]"]
+        lines += [f"{k} = {toml_value(v)}" for k, v in inputs.synthetic.items()]
+    (out / INDEX_NAME).write_text("\n".join(lines) + "\n")
+    written.insert(0, out / INDEX_NAME)
+    inputs.written = (
+        f"wrote {final / INDEX_NAME} and {len(written) - 1} experiment file(s) beside the "
+        f"report: correct a line there and rerun with jaxcart lab --data {final}"
+    )
+    return written
+
+
+def _free_name(stem: str, used: set) -> str:
+    name, k = f"{stem}.toml", 2
+    while name in used:
+        name, k = f"{stem}-{k}.toml", k + 1
+    used.add(name)
+    return name

@@ -38,7 +38,7 @@ from tuning.lab import fits, part_i, part_ii, part_iii, part_iv, part_v, prelab
 from tuning.lab.context import Lab, check_format, fmt, relative_error
 from tuning.lab.data import builtin_dir
 from tuning.lab.html import Document
-from tuning.lab.inputs import SLOTS, find_inputs
+from tuning.lab.inputs import SLOTS, find_inputs, write_used
 from tuning.lab.model import CartModel
 
 DEFAULT_OUT = Path("jaxcart-lab")
@@ -168,6 +168,7 @@ def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True, fmt="png")
     inputs = find_inputs(folder)  # every input read and checked before anything is computed
     final = output_dir(out, force=force)
     with staged(final) as tmp:
+        write_used(inputs, tmp, final)  # raw .mat data: the lab.toml and experiment files used
         lab = Lab(
             out=tmp, inputs=inputs, doc=Document(TITLE), stream=stream, started=started, fmt=fmt
         )
