@@ -491,6 +491,7 @@ def _close(recorder, run: _Run, run_table, timing, device_table, device) -> Path
         run.notes.extend(notes)
         return path
     run.notes.append(f"{recorder.path} could not be finished: it may still say running")
+    recorder.close_files()
     return recorder.path
 
 

@@ -128,6 +128,7 @@ class RunRecorder:
         try:
             self._open()
         except BaseException as exc:
+            self.close_files()
             self._remove_created()
             if isinstance(exc, OSError):
                 raise ExpFileError(self._open_error(exc)) from None
@@ -258,7 +259,7 @@ class RunRecorder:
     def discard(self) -> None:
         """The run never started: remove both files, so that the name is free for a retry."""
         self._stop_sync()
-        self._close_fds()
+        self.close_files()
         self._remove_created()
         self.closed = True
 
@@ -281,7 +282,8 @@ class RunRecorder:
             syncer.join()
             self._syncer = None
 
-    def _close_fds(self) -> None:
+    def close_files(self) -> None:
+        """Close both files (the run's end could not be written: nothing more will be)."""
         for name in ("_csv", "_toml_fd"):
             fd = getattr(self, name)
             if fd is not None:
@@ -320,7 +322,7 @@ class RunRecorder:
         except OSError as exc:
             note = self._toml_in_place(text, {"run": tables.get("run", {})}, exc)
             notes.append(note or f"recording: {self.path.name} finished in place ({_why(exc)})")
-        self._close_fds()
+        self.close_files()
         self.closed = True
         return self.path, notes
 
