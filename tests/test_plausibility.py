@@ -1,6 +1,7 @@
 """Physical sense of recordings and controllers (jaxcart.plausibility), outputs checked before a
 run (jaxcart.outputs.check_writable) and long runs (jaxcart.chunked_sim)."""
 
+import dataclasses
 import io
 import shutil
 from pathlib import Path
@@ -343,3 +344,52 @@ def test_slow_derivative_filter_by_fft_is_the_control_law(monkeypatch):
         ref.append(u)
     ours = plausibility.controller_command(pid, r, y)
     np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)
+
+
+# ---------------------------------------------------------------- before a fit (issue 23 item 3)
+
+#: The nominal linear cart of the input-units check against the exact simulator on a plant
+#: without effects: both are the exact zero-order-hold solution, so only rounding differs [m].
+LINEAR_TOL = 1e-12
+
+
+def _open_loop(volts, *, horizon=0.3, seed=0):
+    from jaxcart.synthetic import make_recording
+
+    u = np.full(int(round(horizon / 0.001)) + 1, volts)
+    return make_recording(jc.handout_plant(), None, jc.voltage_sequence(u), seed=seed)
+
+
+def test_the_units_check_models_the_cart_as_the_exact_simulator_does():
+    from jaxcart.exact import simulate_exact
+
+    plant = jc.handout_plant()
+    u = 2.0 * np.sin(np.arange(400) * 0.02)
+    reference = simulate_exact(plant, None, jc.voltage_sequence(u))
+    mine = plausibility._linear_response(plant, 0.001, u)
+    np.testing.assert_allclose(mine, np.asarray(reference.position), rtol=0, atol=LINEAR_TOL)
+
+
+def test_an_open_loop_input_in_mv_is_refused_and_one_in_volts_passes():
+    rec = _open_loop(2.0)
+    assert plausibility.check_input_units(rec) == []  # the cart moves as 2 V move it
+    in_mv = dataclasses.replace(rec, signal=rec.signal64() * 1000)
+    with pytest.raises(UserError, match=r"2000 V.*recorded in mV\? divide by 1000"):
+        plausibility.check_input_units(in_mv)
+    # 20 V (in range) where 0.3 V moved the cart: a warning with the same fix.
+    weak = dataclasses.replace(_open_loop(0.02), signal=np.full(301, 20.0))
+    (message,) = plausibility.check_input_units(weak)
+    assert "v in mV (divide by 1000)" in message
+
+
+def test_fit_refuses_a_still_cart_and_the_same_data_twice_before_fitting():
+    from tuning.estimation.fit import fit
+
+    rec = _open_loop(2.0)
+    still = dataclasses.replace(rec, position=np.zeros_like(rec.position))
+    with pytest.raises(UserError, match="the cart does not move: y spans 0 mm"):
+        fit([still], ("B_eq",), progress=False)
+    with pytest.raises(UserError, match="recordings 1 and 3 are identical samples"):
+        fit([rec, _open_loop(1.0), rec], ("B_eq",), progress=False)
+    # Another seed is other data: both pass (the check alone, no fitting here).
+    assert len(plausibility.check_fit_recordings([rec, _open_loop(2.0, seed=1)])) == 2
