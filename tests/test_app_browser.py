@@ -76,18 +76,18 @@ def test_pressing_the_sliders_changes_the_plot_and_the_metrics(url):
 
         # ki moves the feasible region (its image and the title's count).
         image = browser.model_value(page, "region", "data")["image"]
-        assert _title(page, "region_figure").startswith("Feasible region at ki = 5,")
+        assert _title(page, "region_figure").startswith("Feasible at ki = 5,")
         browser.timed_moves(page, "ki", ["PageUp"] * 4)
         assert browser.model_value(page, "ki") == 7.0
-        assert _title(page, "region_figure").startswith("Feasible region at ki = 7,")
+        assert _title(page, "region_figure").startswith("Feasible at ki = 7,")
         assert browser.model_value(page, "region", "data")["image"] != image
 
-        # kd and the setpoint, down to a step of -0.5 m: the reference follows.
+        # kd and the setpoint, down to its end (-0.8 m): the reference follows.
         browser.timed_moves(page, "kd", ["ArrowRight"] * 3)
         assert browser.model_value(page, "kd") == pytest.approx(5.3)
         browser.timed_moves(page, "setpoint", ["Home"])
         data = browser.response_data(page)
-        assert data["r"][-1] == -0.5 and data["y"][-1] < -0.4
+        assert data["r"][-1] == -0.8 and data["y"][-1] < -0.7
 
 
 def test_a_recording_and_a_fitted_plant_are_drawn(tmp_path):
@@ -104,8 +104,9 @@ def test_a_recording_and_a_fitted_plant_are_drawn(tmp_path):
             nominal = browser.model_value(page, "nominal", "data")
             assert len(nominal["y"]) == 3001
             labels = page.evaluate(
-                "() => Bokeh.documents[0].get_model_by_name('position_figure').center"
-                ".find((m) => m.items !== undefined).items.map((item) => item.label.value)"
+                "() => { const f = Bokeh.documents[0].get_model_by_name('position_figure');"
+                " return [...f.center, ...f.right].find((m) => m.items !== undefined)"
+                ".items.map((item) => item.label.value); }"
             )
             assert "fitted plant" in labels and "handout plant" in labels
             assert "recorded (pid.toml)" in labels

@@ -35,6 +35,7 @@ def test_sliders_in_the_handouts_order_with_its_start(page):
 def test_moving_kp_redraws_the_response_and_metrics(page):
     before_y = np.array(page.response.data["y"])
     before = page.metrics.text
+    assert "misses: settling time" in before and "not settled" in before  # kp 40, ki 5, kd 5
     region = page.region.data["image"][0]
     page.sliders["kp"].value = 150.0
     page.sliders["kd"].value = 10.0

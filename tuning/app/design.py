@@ -45,13 +45,14 @@ SPEC = Spec()
 V_LIMIT = LAB_VOLTAGE
 #: The sliders in the handout's order (kp, ki, kd), then the derivative filter tau [s] and the
 #: setpoint [m]: (low, high, step). kp to 250 V/m and ki to 30 V/(m s) as the tuner's and the
-#: grid's boxes; the setpoint within the cart's travel (0.814 m) around the middle.
+#: grid's boxes; the setpoint within the cart's travel (0.814 m), so that a recorded step of
+#: any size the track allows can be matched.
 RANGES = {
     "kp": (0.0, 250.0, 1.0),
     "ki": (0.0, 30.0, 0.1),
     "kd": (0.0, 20.0, 0.1),
     "tau": (0.0, 0.05, 0.0005),
-    "setpoint": (-0.5, 0.5, 0.01),
+    "setpoint": (-0.8, 0.8, 0.01),
 }
 UNITS = {"kp": "V/m", "ki": "V/(m s)", "kd": "V s/m", "tau": "s", "setpoint": "m"}
 #: Points per axis of the feasible region: 32 x 32 runs of 3 s take about 10 ms (float32,

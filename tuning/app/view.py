@@ -55,7 +55,7 @@ SCALE = {"tau": 1e3}
 #: bound missed, grey both, black diverged.
 REGION_COLOURS = ("#4daf4a", "#ff7f00", "#984ea3", "#bdbdbd", "#252525")
 #: The poles plot's window [1/s]: the dominant poles of the lab's gains; faster ones are counted.
-POLE_WINDOW = (-300.0, 50.0, -200.0, 200.0)
+POLE_WINDOW = (-150.0, 20.0, -100.0, 100.0)
 SIM_COLOUR, REC_COLOUR, NOMINAL_COLOUR = "#1f77b4", "#d62728", "#7f7f7f"
 
 
@@ -89,15 +89,16 @@ class DesignPage:
         self.poles = ColumnDataSource(_empty("re", "im"), name="poles")
         self.spec = ColumnDataSource(_empty("t", "lo", "hi"), name="spec")
         self.bounds = ColumnDataSource(dict(xs=[], ys=[]), name="bounds")
-        self.metrics = Div(name="metrics", width=330)
+        self.metrics = Div(name="metrics", width=310)
+        self.pole_list = Div(name="pole_list", width=420)
         self.figures = _Figures(self)
         for slider in self.sliders.values():
             slider.on_change("value", self._moved)
         self.figures.region.on_event(Tap, self._tapped)
-        note = Div(text=_note(problem), width=330)
-        controls = column(*self.sliders.values(), self.metrics, note, width=340)
+        note = Div(text=_note(problem), width=310)
+        controls = column(*self.sliders.values(), self.metrics, note, width=320)
         middle = column(self.figures.position, self.figures.voltage)
-        right = column(self.figures.region, self.figures.poles)
+        right = column(self.figures.region, self.figures.poles, self.pole_list)
         self.layout = row(controls, middle, right)
         self.update()
 
@@ -173,7 +174,7 @@ class _Figures:
             title="Step response (exact simulator, 6 V limit)",
             x_axis_label="time [s]",
             y_axis_label="position [m]",
-            width=620,
+            width=660,
             height=330,
             tools=tools,
             x_range=Range1d(0.0, horizon),
@@ -208,15 +209,6 @@ class _Figures:
             line_dash="dashed",
             legend_label="reference",
         )
-        if problem.fitted:
-            p.line(
-                "t",
-                "y",
-                source=page.nominal,
-                color=NOMINAL_COLOUR,
-                line_dash="dashdot",
-                legend_label="handout plant",
-            )
         p.line(
             "t",
             "y",
@@ -225,9 +217,18 @@ class _Figures:
             line_width=2,
             legend_label="fitted plant" if problem.fitted else "simulated",
         )
+        if problem.fitted:
+            p.line(
+                "t",
+                "y",
+                source=page.nominal,
+                color=NOMINAL_COLOUR,
+                line_dash="dashed",
+                line_width=1.5,
+                legend_label="handout plant",
+            )
         _recording(page, p, "position")
-        p.legend.location = "bottom_right"
-        p.legend.click_policy = "hide"
+        _legend_outside(p)
         self.voltage = self._voltage_figure(page, tools, horizon)
         self.region = self._region_figure(page)
         self.poles = self._poles_figure(page)
@@ -237,7 +238,7 @@ class _Figures:
             title="Voltage",
             x_axis_label="time [s]",
             y_axis_label="voltage [V]",
-            width=620,
+            width=660,
             height=250,
             tools=tools,
             x_range=self.position.x_range,
@@ -261,7 +262,7 @@ class _Figures:
             legend_label="simulated",
         )
         _recording(page, v, "command")
-        v.legend.location = "top_right"
+        _legend_outside(v)
         return v
 
     def _region_figure(self, page):
@@ -332,8 +333,8 @@ class _Figures:
             dh=[kd[-1] - kd[0] + dkd],
         )
         self.region.title.text = (
-            f"Feasible region at ki = {region.ki:g}, tau = {1e3 * region.tau:g} ms: "
-            f"{region.n_feasible} of {region.status.size} points"
+            f"Feasible at ki = {region.ki:g}, tau = {1e3 * region.tau:g} ms: "
+            f"{region.n_feasible}/{region.status.size} points"
         )
 
     def show(self, design: Design, region: Region) -> None:
@@ -343,10 +344,6 @@ class _Figures:
         if s.setpoint != self._setpoint:
             self._setpoint = s.setpoint
             page.spec.data, page.bounds.data = spec_lines(page.problem.spec, s.setpoint)
-            # Legends where the run is not: below the curve for a step up, above for a step down.
-            up = s.setpoint >= 0
-            self.position.legend.location = "bottom_right" if up else "top_right"
-            self.voltage.legend.location = "bottom_right" if up else "top_right"
         if region is not self._region:  # moving kp or kd keeps the region: send nothing
             self._region = region
             self.show_region(region)
@@ -354,8 +351,30 @@ class _Figures:
         p = design.poles
         outside = int(np.count_nonzero((p.real < x0) | (p.real > x1) | (abs(p.imag) > y1)))
         verdict = "stable" if design.stable else "UNSTABLE"
-        beyond = f", {outside} faster beyond the window" if outside else ""
+        beyond = f", {outside} beyond the window" if outside else ""
         self.poles.title.text = f"Closed-loop poles, linear loop: {verdict}{beyond}"
+        page.pole_list.text = pole_text(p)
+
+
+def pole_text(poles: np.ndarray) -> str:
+    """The poles [1/s] as a line of text, slowest first (a pole near 0 is the slow creep the
+    plot cannot show apart from the others)."""
+    order = np.argsort(np.abs(poles))
+    parts = []
+    for s in poles[order]:
+        if abs(s.imag) < 1e-9 * max(1.0, abs(s.real)):
+            parts.append(f"{s.real:.3g}")
+        elif s.imag > 0:
+            parts.append(f"{s.real:.3g} &plusmn; {s.imag:.3g}j")
+    return "<p style='font-size:90%'>poles [1/s], slowest first: " + ", ".join(parts) + "</p>"
+
+
+def _legend_outside(fig) -> None:
+    """The legend right of the plot, off the data; a click on an entry hides its line."""
+    legend = fig.legend[0]
+    legend.click_policy = "hide"
+    legend.label_text_font_size = "9pt"
+    fig.add_layout(legend, "right")
 
 
 def spec_lines(spec, setpoint: float) -> tuple[dict, dict]:
@@ -385,7 +404,7 @@ def _slider(name: str, value: float) -> Slider:
         name=name,
         css_classes=[f"slider-{name}"],
         format=fmt,
-        width=320,
+        width=300,
     )
 
 
@@ -412,9 +431,13 @@ def _recording(page: DesignPage, fig, what: str) -> None:
     )
 
 
-def _number(value: float, unit: str) -> str:
+#: What an infinite metric means, by row (step_info's inf).
+NOT_REACHED = {"settling time": "not settled", "rise time": "never at 90 %"}
+
+
+def _number(value: float, unit: str, name: str = "") -> str:
     if not math.isfinite(value):
-        return "not within the run" if value > 0 else "-"
+        return NOT_REACHED.get(name, "diverged") if value > 0 else "-"
     if unit == "m":
         return f"{1e3 * value:.2f} mm"
     if unit == "s":
@@ -435,11 +458,12 @@ def metrics_html(design: Design, problem: DesignProblem) -> str:
     for check in design.checks:
         bound = f"&lt; {check.bound:g} {check.unit}" if check.bound is not None else ""
         colour = {True: "#1a7f37", False: "#cf222e", None: "inherit"}[check.ok]
-        cell = html.escape(_number(check.value, check.unit))
+        cell = html.escape(_number(check.value, check.unit, check.name))
         line = f"<tr><td>{html.escape(check.name)}</td><td>{bound}</td>"
         line += f'<td style="color:{colour};font-weight:bold">{cell}</td>'
         if rec is not None:
-            line += f"<td>{html.escape(_number(recorded[check.name].value, check.unit))}</td>"
+            mine = recorded[check.name]
+            line += f"<td>{html.escape(_number(mine.value, check.unit, check.name))}</td>"
         rows.append(line + "</tr>")
     missing = [c.name for c in design.checks if c.ok is False]
     verdict = (
@@ -448,11 +472,14 @@ def metrics_html(design: Design, problem: DesignProblem) -> str:
         else f'<b style="color:#cf222e">misses: {", ".join(missing) or "the run diverged"}</b>'
     )
     spec = problem.spec
+    step = design.settings.setpoint
+    other = "" if step == spec.step else f"; the handout's step is {spec.step:g} m"
     title = (
-        f"<p>{verdict} (step {spec.step:g} m, settling &lt; {spec.settling_time:g} s, "
-        f"overshoot &lt; {spec.overshoot:g} %, {V_LIMIT:g} V)</p>"
+        f"<p>{verdict} (step {step:.2f} m, settling &lt; {spec.settling_time:g} s, "
+        f"overshoot &lt; {spec.overshoot:g} %, {V_LIMIT:g} V{other})</p>"
     )
-    return title + '<table style="border-spacing:8px 2px">' + "".join(rows) + "</table>"
+    table = '<table style="border-spacing:6px 2px;font-size:90%;white-space:nowrap">'
+    return title + table + "".join(rows) + "</table>"
 
 
 def _note(problem: DesignProblem) -> str:

@@ -1,4 +1,5 @@
-"""``jaxcart app``: the interactive design page in the browser (tuning/app).
+"""``jaxcart app``: the interactive design page in the browser (tuning/app), served from this
+machine until Ctrl-C.
 
     jaxcart app                                   # the handout's plant, its gains to start
     jaxcart app --data pid.toml --plant P.toml    # your recording and your fitted plant
