@@ -27,7 +27,7 @@ class HILError(Exception):
         return self.message
 
 
-def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=None):
+def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=None, hook=None):
     """A stand-in for ``quanser.hardware``; ``api.calls`` lists every call (name, args)."""
     calls = []
     cart = cart or SimCart(CartParams(quantization=0.0))
@@ -50,6 +50,8 @@ def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=Non
                     cart.write(float(args[2][0]))
                 if name == "task_read_encoder":
                     self.reads += 1
+                    if hook is not None:
+                        hook(self.reads)
                     args[2][0] = math.floor(cart.read() / ENCODER_RESOLUTION)
                 if name == "task_create_encoder_reader":
                     return "task-1"
@@ -147,6 +149,29 @@ def test_an_expired_board_watchdog_stops_the_run(tmp_path):
     names = _names(api)
     assert names[-3:] == ["watchdog_clear", "write_analog", "close"] and _last_write(api) == 0.0
     assert read_experiment(result.path).meta["run"]["fault"] == result.fault
+
+
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP", "SIGINT"])
+def test_a_signal_during_a_board_run_leaves_the_board_safe(tmp_path, name):
+    """A signal while the board's encoder task runs: 0 V, then the task, the watchdog and the
+    board closed, in that order, and the recording names the signal."""
+    import signal
+
+    def hook(reads):
+        if reads == 250:
+            signal.raise_signal(getattr(signal, name))
+
+    api = fake_api(hook=hook)
+    board = QuanserBoard("q2_usb", "0", api=api)
+    result = run_loop(board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "s.toml")
+    assert result.status == "fault" and result.signals == (name,)
+    names = _names(api)
+    tail = names[names.index("task_stop") - 1 :]
+    assert tail[0] == "write_analog" and _last_write(api) == 0.0 and tail[-1] == "close"
+    assert {"task_delete", "watchdog_stop", "watchdog_clear"} <= set(tail)
+    meta = read_experiment(result.path).meta
+    assert ({"SIGINT": "Ctrl-C"}.get(name, name)) in meta["run"]["fault"]
+    assert meta["run"]["samples"] == 249
 
 
 def test_board_without_watchdog_states_still_runs():
