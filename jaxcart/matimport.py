@@ -356,6 +356,11 @@ def _meta(run: Imported, toml_folder) -> dict:
         if guess.controller is not None:
             meta["controller"] = dict(guess.controller)
         if "r" not in data and not ("e" in data and "y" in data):
+            if guess.experiment == "slider":
+                raise UserError(
+                    f"{where}: slider moves, but the reference (the slider's setpoint) is not "
+                    "recorded; save it with the scope and map it as r (or the error as e)"
+                )
             step = guess.step
             if step is None and "e" in data:
                 step = float(run.signals["e"].values[0])  # e(0) = r - y(0), the cart at 0

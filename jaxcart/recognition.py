@@ -230,7 +230,6 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
     if ident is None:
         return out
     gains, r2, used, step = ident
-    settings.update(gains=gains, step=step, r2=r2)
     law = ", ".join(f"{k} = {gains[k]:.4g}" for k in ("kp", "ki", "kd"))
     text = f"the voltage is a PID of the position, {law} (R^2 = {r2:.4f} over {used} samples)"
     weight = 3 if r2 > 0.99 else 2 if r2 > 0.95 else 0
@@ -242,6 +241,7 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
         )
         out.append(Evidence(text, ("slider",), 2 if moves >= 2 else 1))
         return out
+    settings.update(gains=gains, step=step, r2=r2)  # only what a fitting PID shows
     kp, ki, kd = gains["kp"], gains["ki"], gains["kd"]
     if kd > 0:
         out.append(Evidence(text + ": a PID", ("pid", "slider"), weight))

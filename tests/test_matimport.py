@@ -385,3 +385,41 @@ def test_import_command(real_folder, tmp_path, capsys):
     assert "the evidence is weak" in capsys.readouterr().err
     assert main(["--no-cache", "import", str(tmp_path / "x.mat"), "--as", "pid"]) == 0
     assert (tmp_path / "x.toml").is_file()
+
+
+def test_slider_moves_recognised(tmp_path):
+    """Part (v)'s slider: the designed PID sends the cart to several setpoints. With the
+    reference recorded it reads as an experiment file; without, the reader says what to save;
+    the lab's report has no part for it and says so."""
+    import jax
+
+    import jaxcart as jc
+    from jaxcart.synthetic import make_recording
+    from tuning.lab.data import PID_DESIGN, true_plant
+    from tuning.lab.inputs import find_inputs
+
+    levels = (0.2, -0.1, 0.15, -0.2)
+    r = np.repeat(levels, 1200)
+    with jax.enable_x64(True):
+        exp = jc.Experiment(jax.numpy.asarray(r), kind="closed_loop", sample_time=0.001)
+        rec = make_recording(true_plant(), jc.PID(**PID_DESIGN, v_limit=6.0), exp, seed=3)
+    t = np.arange(r.size) * 0.001
+    y, v = np.asarray(rec.position), np.asarray(rec.command)
+    scipy.io.savemat(tmp_path / "s.mat", {"pos": _scope(y, t), "volt": _scope(v, t)})
+    with pytest.raises(UserError, match="slider moves, but the reference .* map it as r"):
+        read_experiment(tmp_path / "s.mat")
+    scipy.io.savemat(tmp_path / "s.mat", {"pos": _scope(y, t), "volt": _scope(v, t), "ref": r})
+    got = read_experiment(tmp_path / "s.mat", check=False)
+    assert got.meta["notes"]["recognised_as"] == "slider"
+    np.testing.assert_array_equal(got.reference, r)
+    assert got.controller.kp == pytest.approx(PID_DESIGN["kp"], rel=1e-3)
+    assert got.controller.kd == pytest.approx(PID_DESIGN["kd"], rel=1e-3)
+    (tmp_path / "tap.toml").write_text(
+        'kind = "tap"\nsample_time = 0.001\ndata = "tap.csv"\n'
+    )  # the lab needs one recording it uses
+    (tmp_path / "tap.csv").write_text("t,y\n" + "".join(f"{k / 1000},0.0\n" for k in range(50)))
+    inputs = find_inputs(tmp_path)
+    assert (
+        dict(inputs.unused)["s.mat"]
+        == "the designed PID, slider moves: no part of the report uses it"
+    )
