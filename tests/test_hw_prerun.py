@@ -130,3 +130,32 @@ def test_the_watchdog_is_chosen_for_the_machine():
     assert busy == pytest.approx(0.02)
     swamped, how = choose_watchdog(1e-3, probe=lambda ts: 0.03)
     assert swamped == WATCHDOG_MAX and "too busy" in how and "--watchdog S" in how
+
+
+def test_ctrl_c_during_the_check_drives_nothing(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the gains are simulated before the run: exit 130, nothing started, no file."""
+    import hw.cli
+    import hw.prerun
+    from hw.devices.sim import SimCart
+
+    class Interrupted(SimCart):
+        def read(self):
+            if getattr(self, "reads", 0) == 10:
+                raise KeyboardInterrupt
+            self.reads = getattr(self, "reads", 0) + 1
+            return super().read()
+
+    started = []
+
+    class Device(SimCart):
+        def start(self, sample_time):
+            started.append(sample_time)
+            super().start(sample_time)
+
+    monkeypatch.setattr(hw.prerun, "SimCart", Interrupted)
+    monkeypatch.setattr(hw.cli, "make_device", lambda args: Device())
+    gains = str(write_gains(tmp_path / "g.json", LAB))
+    out = tmp_path / "never.toml"
+    assert main(["run", gains, "--duration", "0.5", "--out", str(out)]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert started == [] and not out.exists() and not out.with_suffix(".csv").exists()
