@@ -1,9 +1,16 @@
 """``python -m hw``: run tuned gains on the cart, and measure the loop. Numpy only.
 
     python -m hw run GAINS.json --device sim --step 0.5 [--duration 3] [--out RUN.toml]
+    python -m hw run GAINS.json --device sim --step 0.5 --real-time     # paced at 1/Ts
     python -m hw run GAINS.json --device q2_usb --slider 0.2,0,-0.2,0.2 [--hold 2]
-    python -m hw run GAINS.json --device replay --replay OLD.toml --virtual
+    python -m hw run GAINS.json --device replay --replay OLD.toml
     python -m hw bench [--samples 10000]
+
+Before the run the gains are simulated (hw.prerun: refused when unstable or a relay, unless
+--force); after it, the metrics of the run are printed against the spec and that simulation,
+with the pacing's verdict (hw.pacing). Exit status: 0 completed, 1 a fault or an error, 2 bad
+options or an output that cannot be written (nothing moved), 128 + the signal's number when a
+signal stopped the run (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP).
 
 ``jaxcart run`` (tuning/commands/run.py) is the same command from the full install.
 """
