@@ -346,7 +346,7 @@ def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
 
 
 def test_weak_evidence_is_a_question_in_the_lab(real_folder):
-    from tuning.lab.inputs import find_inputs
+    from tuning.lab.inputs import find_inputs, write_used
 
     t, y, _ = _p50(2000)
     scipy.io.savemat(real_folder / "run7.mat", {"a": np.column_stack([t, 0.75 * y])})
@@ -355,6 +355,12 @@ def test_weak_evidence_is_a_question_in_the_lab(real_folder):
     assert "evidence is weak" in reason
     assert "name its part in lab.toml, e.g. [recordings] " in reason and '= "run7.mat"' in reason
     assert "run7.mat" not in [Path(r.path).name for r in inputs.recordings.values()]
+    report = real_folder.parent / "report"
+    report.mkdir()
+    write_used(inputs, report)
+    offers = [x for x in (report / "lab.toml").read_text().splitlines() if "run7.mat" in x]
+    assert offers and all(x.startswith("# ") and "weak evidence" in x for x in offers)
+    assert all('= "../data/run7.mat"' in x for x in offers)
     (real_folder / "lab.toml").write_text('[recordings]\npid = "run7.mat"\n')
     named = find_inputs(real_folder)
     assert Path(named.recordings["pid"].path).name == "run7.mat"

@@ -337,10 +337,11 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
             inputs.unused.append((run.label, run.problem))
             continue
         if not run.usable():
-            slot = (guess.candidates() or ["p_step"])[0]
-            how = f'in {INDEX_NAME}, e.g. [recordings] {slot} = "{run.files[0].name}"'
+            offered = [s for s in guess.candidates() if s in SLOTS]
+            example = (offered or ["p_step"])[0]
+            how = f'in {INDEX_NAME}, e.g. [recordings] {example} = "{run.files[0].name}"'
             inputs.unused.append((run.label, guess.question(run.label, how)))
-            inputs.offers += [(slot, run, "weak evidence") for slot in guess.candidates()]
+            inputs.offers += [(s, run, "weak evidence") for s in offered]
             continue
         slot = guess.experiment
         if slot not in SLOTS:
