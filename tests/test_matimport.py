@@ -429,3 +429,38 @@ def test_slider_moves_recognised(tmp_path):
         dict(inputs.unused)["s.mat"]
         == "the designed PID, slider moves: no part of the report uses it"
     )
+
+
+def test_v73_scope_with_several_inputs(tmp_path):
+    """In a v7.3 file a struct array keeps each field as HDF5 object references into #refs#
+    (MATLAB's layout): read as the same labelled signals as a v7 file's."""
+    import h5py
+
+    t, y, v = _p50(300)
+    with h5py.File(tmp_path / "sa.mat", "w", userblock_size=512) as f:
+        refs = f.create_group("#refs#")
+        scope = f.create_group("ScopeData")
+        scope.attrs["MATLAB_class"] = np.bytes_("struct")
+        scope.create_dataset("time", data=t[None, :]).attrs["MATLAB_class"] = np.bytes_("double")
+        signals = scope.create_group("signals")
+        signals.attrs["MATLAB_class"] = np.bytes_("struct")
+        values, labels = [], []
+        for i, (x, label) in enumerate(((y, "cart position"), (v, "voltage out"))):
+            ds = refs.create_dataset(f"v{i}", data=x[None, :])
+            ds.attrs["MATLAB_class"] = np.bytes_("double")
+            values.append(ds.ref)
+            ds = refs.create_dataset(f"l{i}", data=np.array([[ord(c)] for c in label], np.uint16))
+            ds.attrs["MATLAB_class"] = np.bytes_("char")
+            labels.append(ds.ref)
+        for name, items in (("values", values), ("label", labels)):
+            signals.create_dataset(name, data=np.array(items, dtype=h5py.ref_dtype)[:, None])
+    header = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: test HDF5 schema 1.00 ."
+    with open(tmp_path / "sa.mat", "r+b") as f:
+        f.write(header.ljust(116) + b"\0" * 8 + b"\x00\x02IM")
+    found = matimport.read_signals(tmp_path / "sa.mat")
+    assert [(s.source, s.role, s.names[1]) for s in found] == [
+        ("sa.mat:ScopeData[1]", "y", "cart position"),
+        ("sa.mat:ScopeData[2]", "v", "voltage out"),
+    ]
+    np.testing.assert_array_equal(found[0].values, y)
+    np.testing.assert_array_equal(found[1].time, t)
