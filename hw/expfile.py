@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -149,7 +150,7 @@ def read_toml(path) -> dict:
         fix = "fix the syntax"
         if given_data:
             raise ExpFileError(f"{path} is a data file, not an experiment file{also}") from None
-        if "Unescaped '\\'" in message:
+        if _backslash_at(raw.decode("utf-8-sig"), message):
             fix = (
                 'a backslash in a "..." string starts an escape: write paths with forward '
                 "slashes (data = \"runs/run.csv\") or in single quotes (data = 'runs\\run.csv')"
@@ -572,6 +573,17 @@ _LONG = {
     "r": "reference [m]",
     "e": "error [m]",
 }
+
+
+def _backslash_at(text: str, message: str) -> bool:
+    """Whether the line a TOML error names holds a backslash in a "..." string: a Windows
+    path ("C:\\Users" is an invalid \\U escape, "runs\\data" an unknown \\d)."""
+    found = re.search(r"at line (\d+)", message)
+    lines = text.splitlines()
+    if not found or not 0 < int(found.group(1)) <= len(lines):
+        return False
+    line = lines[int(found.group(1)) - 1]
+    return '"' in line and "\\" in line
 
 
 def _portable_data(meta: dict) -> dict:
