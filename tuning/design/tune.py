@@ -81,10 +81,6 @@ DEFAULT_BOUNDS = {
 ZERO_START = {"kp": 1.0, "kd": 0.1, "ki": 0.1, "tau": 1e-3, "kb": 1.0, "v_limit": 6.0}
 #: Robust tuning's default plant set: intervals of parameters (M as a fraction of nominal).
 DEFAULT_ROBUST = {"B_eq": (3.0, 7.0), "f_c": (0.0, 1.0), "M": (0.9, 1.1)}
-#: Sub-steps per sample of the smooth simulator where friction acts, in tuning: measured on the
-#: handout plant with f_c = 0.5 to 1 N, 2 sub-steps give the same settling time (to 1 ms) and
-#: overshoot (to 0.01 %) as the simulator's default 10, at 2.5x the speed.
-FRICTION_SUBSTEPS = 2
 #: Continuation: the smoothing widths are multiplied by these factors, stage by stage.
 SCALES = continuation(0.125, 4)  # 1, 0.5, 0.25, 0.125
 
@@ -400,8 +396,8 @@ def tune(
         smooth runs, which pick the candidates).
     bounds: {name: (lo, hi)} limits (default :data:`DEFAULT_BOUNDS`).
     settings: :class:`tuning.design.losses.LossSettings` (weights, margins, widths).
-    substeps: sub-steps per sample of the smooth simulator (default 1 without friction,
-        :data:`FRICTION_SUBSTEPS` with it).
+    substeps: sub-steps per sample of the smooth simulator (default
+        :func:`jaxcart.substeps.substeps_per_sample`: 1 without force effects, 2 with).
     progress: True for a status line on stderr, or a callable receiving each history dict.
     processes: a :class:`tuning.design.tunerun.StartShare` for a jax.distributed run: this process
         iterates its share of the starts and every process sees the whole batch, so the result
@@ -503,7 +499,7 @@ def _problem(
         box=box,
         experiment=experiment,
         plants_arg=plants_arg,
-        substeps=FRICTION_SUBSTEPS if substeps is None and friction else substeps,
+        substeps=substeps,
         check_plants=check_plants,
         check_values=check_values,
     )

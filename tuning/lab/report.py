@@ -44,8 +44,6 @@ from tuning.lab.model import CartModel
 DEFAULT_OUT = Path("jaxcart-lab")
 #: Prefix of the hidden staging folder the report is written into before it is renamed.
 STAGING_PREFIX = "."
-#: Files the report writes (besides figures/*.png): never replaced without ``force``.
-OUTPUTS = ("report.md", "report.html", "results.json", "results.mat", "gains.json")
 TITLE = "Position control of the IP02 cart: pre-lab and lab report"
 
 

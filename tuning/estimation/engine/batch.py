@@ -113,6 +113,7 @@ class BatchFitter:
         from jaxcart.plantspec import build_plant
         from jaxcart.smooth_sim import simulate_smooth
         from jaxcart.smoothing import Smoothing
+        from jaxcart.substeps import substeps_per_sample
 
         self.segments = segments
         self.layout = layout = Layout(segments, per_recording)
@@ -177,7 +178,8 @@ class BatchFitter:
                     # exact re-check reads whole counts.
                     sm = dataclasses.replace(smoothing, position=seg.quantization)
                     shift = seg.quantization / 2
-                res = simulate_smooth(plant, seg.controller, exp, smoothing=sm, substeps=substeps)
+                n_sub = substeps_per_sample(plant, screening=True) if substeps is None else substeps
+                res = simulate_smooth(plant, seg.controller, exp, smoothing=sm, substeps=n_sub)
                 pos = jnp.where(jnp.isfinite(res.position), res.position + shift, 1.0)
                 out.append(pos - tgt)
             return jnp.concatenate(out) * scale
