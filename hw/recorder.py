@@ -83,7 +83,9 @@ class OsFiles:
 def _why(exc: OSError) -> str:
     if exc.errno == errno.ENOSPC:
         return "the disk is full"
-    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+    if exc.errno == errno.EROFS:
+        return "the file system is read-only"
+    if exc.errno in (errno.EACCES, errno.EPERM):
         return "the folder is read-only"
     if exc.errno == errno.ENOENT:
         return f"no such folder ({exc.filename})" if exc.filename else "no such folder"
@@ -304,13 +306,11 @@ class RunRecorder:
         self._stop_sync()
         if self._sync_errors:
             notes.append(f"recording: fsync failed: {self._sync_errors[0]}")
-        if self.error is None:
+        if self.error is None:  # else the loop has the error as its reason already
             try:
                 self.flush()
             except RecorderError as exc:
                 notes.append(str(exc))
-        elif self.error not in notes:
-            notes.append(self.error)
         try:
             if self._csv is not None:
                 self.files.fsync(self._csv)

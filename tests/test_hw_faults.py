@@ -7,7 +7,9 @@ anywhere (the device, the control law, the timing summary, the recorder), a full
 read-only folder, device errors, nan and jumps from the encoder, stalls. Every run must end
 with the last write 0 V, stop() called, a non-zero exit status, and either a recording that
 jaxcart's own reader reads, whose [run] fault names the fault and holds no nan, or (a run
-stopped before 2 samples were saved) no file at all, so that a retry finds the name free.
+stopped before 2 samples were saved) no file at all, so that a retry finds the name free. A
+file system that turns read-only is the documented limit: the CSV reads, the TOML cannot be
+finished (it says running), the reason is printed.
 Virtual time and 0.3 s runs keep it fast (stalls: real time, 0.08 s)."""
 
 import errno
@@ -449,6 +451,56 @@ def test_a_read_only_folder(monkeypatch, tmp_path, gains, capsys):
         # The temporary file can be neither renamed nor removed in a read-only folder; it is
         # hidden and blocks nothing.
         assert len(list(folder.glob(".run.toml*"))) == (after == 4)
+
+
+class ReadOnlyFileSystem(hw.recorder.OsFiles):
+    """A file system that turns read-only (EROFS on every operation) after ``after`` writes
+    of the CSV's chunks: a USB stick pulled out, an error remount."""
+
+    def __init__(self, after):
+        self.after, self.ops = after, 0
+
+    def _check(self):
+        if self.ops >= self.after:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    def write(self, fd, data):
+        self._check()
+        self.ops += 1
+        return super().write(fd, data)
+
+    def create(self, path):
+        self._check()
+        return super().create(path)
+
+    def replace(self, src, dst):
+        self._check()
+        super().replace(src, dst)
+
+    def truncate(self, fd, size):
+        self._check()
+        super().truncate(fd, size)
+
+    def fsync(self, fd):
+        self._check()
+        super().fsync(fd)
+
+
+def test_a_file_system_that_turns_read_only(monkeypatch, tmp_path, gains, capsys):
+    """The documented limit: nothing more can be written, so the TOML still says running; the
+    CSV keeps its whole lines and reads, the run stops at 0 V and the reason is printed."""
+    rng = _rng("erofs")
+    for i in range(RUNS):
+        after = int(rng.integers(3, 6))  # the header and the TOML, then 1-3 chunks of 100
+        rig = Rig()
+        status, out = _run(monkeypatch, tmp_path, gains, rig, files=ReadOnlyFileSystem(after), i=i)
+        err = capsys.readouterr().err
+        COUNTS["file system turns read-only"] += 1
+        assert rig.writes[-1] == 0.0 and rig.stops >= 1 and status == 1
+        assert "the file system is read-only" in err and "still says running" in err
+        OUTCOMES["file system turns read-only", "CSV reads, TOML running"] += 1
+        rec = read_experiment(out)
+        assert rec.meta["run"]["status"] == "running" and rec.n_samples == 100 * (after - 2)
 
 
 # ---------------------------------------------------------------- the device
