@@ -7,7 +7,7 @@
 DIR holds experiment files (TOML + CSV or .mat); each goes to its part from its kind,
 controller and input, or from an index DIR/lab.toml ([recordings] tap = "tap.toml", ...).
 Parts without a recording show simulations only. Writes report.md, report.html (figures
-embedded), results.json, gains.json and figures/*.png.
+embedded), results.json, gains.json and figures/*.png (*.svg or *.pdf with --format).
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ def register(subparsers) -> None:
         description="Write the pre-lab and the lab report, Parts (i) to (v): appendix "
         "constants, the PI bound on k_i (Routh and root locus), a tuned PID design, B_eq and "
         "f_c fitted to the recordings, every experiment against simulations, a summary table; "
-        "Markdown + self-contained HTML + results.json + PNG figures. Without --data the "
+        "Markdown + self-contained HTML + results.json + figures (PNG; SVG or PDF with "
+        "--format). Without --data the "
         "built-in (synthetic) example recordings are used.",
     )
     p.add_argument(
