@@ -2,11 +2,14 @@
 
 Modules: :mod:`~tuning.lab.report` (the run and its outputs), :mod:`~tuning.lab.inputs` (which
 recording is which part), :mod:`~tuning.lab.prelab` (appendix constants, the k_i bound),
-:mod:`~tuning.lab.parts` (Parts (i) to (v)), :mod:`~tuning.lab.deadband` (the Coulomb dead
-band of Part (iii) as a finite, encoder-read run meets it), :mod:`~tuning.lab.data` (the built-in
-example recordings), :mod:`~tuning.lab.figures` and :mod:`~tuning.lab.html` (figures,
-Markdown/HTML). The report is written into a hidden staging folder and renamed into place when
-complete (:func:`~tuning.lab.report.staged`).
+:mod:`~tuning.lab.part_i` to :mod:`~tuning.lab.part_v` (Parts (i) to (v): each a ``compute``
+returning a frozen result from explicit inputs, and a ``render`` that writes its section from
+it), :mod:`~tuning.lab.model` (the cart model passed between parts, the one call of the plant
+builder), :mod:`~tuning.lab.fits` (the swappable fitter), :mod:`~tuning.lab.deadband` (the
+Coulomb dead band of Part (iii) as a finite, encoder-read run meets it), :mod:`~tuning.lab.data`
+(the built-in example recordings), :mod:`~tuning.lab.figures` and :mod:`~tuning.lab.html`
+(figures, Markdown/HTML). The report is written into a hidden staging folder and renamed into
+place when complete (:func:`~tuning.lab.report.staged`).
 """
 
 from tuning.lab.data import TRUE, builtin_dir, generate
