@@ -380,6 +380,11 @@ class Reader:
                     f"{', '.join(header)}); map one of them"
                 )
             return Signal(columns[variable], None, source, _line_of(lines))
+        if file.lower().endswith((".xlsx", ".xls")):
+            self.fail(
+                f"{field} = {source!r}: {file} is an Excel workbook; in Excel use File > Save As "
+                f'> CSV UTF-8 and map its column ("{file.rsplit(".", 1)[0]}.csv:{variable}")'
+            )
         self.fail(f"{field} = {source!r}: the file must be .mat or .csv")
 
     def data_path(self, name, field) -> Path:
