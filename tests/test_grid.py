@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import jaxcart as jc
+from hw.atomicio import OutputError
 from jaxcart.errors import UserError
 from tuning.commands import grid as grid_cmd
 from tuning.design import grid, gridrun
@@ -187,7 +188,7 @@ def test_plot_marks_best_and_labels_units(grids, tmp_path):
     stars = [line for ax in axes for line in ax.get_lines() if line.get_marker() == "*"]
     assert len(stars) == 1
     assert tuple(stars[0].get_xydata()[0]) == result.best_gains[:2]
-    with pytest.raises(UserError, match="exists"):
+    with pytest.raises(OutputError, match="exists"):  # written atomically (hw.atomicio)
         grid.plot_slices(result, path)
 
 

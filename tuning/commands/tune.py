@@ -632,9 +632,9 @@ def _plot(path, result, experiment):
             range(len(result.plant_set)), key=lambda i: _sort_key(result.plant_set[i]["exact"])
         )
         values = result.plant_set[worst]["params"]
-        from tuning.design.tune import _with_params
+        from jaxcart.plantspec import build_plant
 
-        worst_plant = _with_params(result.plant, values)
+        worst_plant = build_plant(values, base=result.plant, check=False, where="robust set")
         run = simulate_exact(worst_plant, g, experiment)
         label = ", ".join(f"{k} {v:.3g}" for k, v in values.items())
         runs.append(run_from_response(run, f"worst plant of the set ({label})"))
