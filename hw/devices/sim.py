@@ -29,9 +29,9 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from hw.devices.base import DeviceError
+from hw.handout import APPENDIX
+from hw.handout import ENCODER_RESOLUTION as ENCODER_RESOLUTION
 
-#: Encoder resolution of the IP02 [m/count] (handout appendix).
-ENCODER_RESOLUTION = 2.275e-5
 _SERIES_BELOW = 0.5
 _PHI2_SERIES = tuple((-1.0) ** n / math.factorial(n + 2) for n in range(16))
 _MAX_EVENTS = 8
@@ -49,22 +49,22 @@ class CartParams:
     motor_connected: false for a tap (no back-EMF, no drive).
     """
 
-    M: float = 0.94
-    B_eq: float = 5.4
+    M: float = APPENDIX["M"]
+    B_eq: float = APPENDIX["B_eq"]
     f_c: float = 0.0
     f_s: float | None = None
     v_sat: float = 6.0
     delay: float = 0.0
     quantization: float = ENCODER_RESOLUTION
-    gamma_scale: float = 1.0
-    Rm: float = 2.6
-    Kt: float = 0.00767
-    Km: float = 0.00767
-    Jm: float = 3.9e-7
-    Kg: float = 3.71
-    r_mp: float = 6.35e-3
-    eta_g: float = 1.0
-    eta_m: float = 1.0
+    gamma_scale: float = APPENDIX["gamma_scale"]
+    Rm: float = APPENDIX["Rm"]
+    Kt: float = APPENDIX["Kt"]
+    Km: float = APPENDIX["Km"]
+    Jm: float = APPENDIX["Jm"]
+    Kg: float = APPENDIX["Kg"]
+    r_mp: float = APPENDIX["r_mp"]
+    eta_g: float = APPENDIX["eta_g"]
+    eta_m: float = APPENDIX["eta_m"]
     motor_connected: bool = True
 
     def __post_init__(self):
