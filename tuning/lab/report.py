@@ -74,6 +74,8 @@ def staged(final: Path):
     to ``final`` when the block completes; on any error or interrupt it is removed, so an
     interrupted lab leaves nothing that blocks a rerun. Into an existing, non-empty ``final``
     (``--force``) only the report's own files and figures/ are replaced; other files stay."""
+    from hw.atomicio import OutputError, describe
+
     final = Path(final)
     parent = final.parent
     try:
@@ -97,9 +99,9 @@ def staged(final: Path):
         yield tmp
         _publish(tmp, final)
     except OSError as exc:  # a full disk, a folder made read-only meanwhile: one line
-        from hw.atomicio import describe
-
         raise UserError(describe(final, exc)) from None
+    except OutputError as exc:  # an atomic write inside: name the report's folder, not ours
+        raise UserError(str(exc).replace(str(tmp), str(final))) from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
