@@ -33,7 +33,6 @@ import dataclasses
 import datetime as _dt
 import json
 import math
-import os
 from pathlib import Path
 
 from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID
@@ -103,23 +102,12 @@ def write_gains(path, pid: PID, *, force: bool = False, **metadata) -> Path:
     text = json.dumps(document, indent=2, allow_nan=False) + "\n"
     if path.exists() and not force:
         raise GainsFileError("the file exists; pass force=True (--force) to replace it", path=path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        if force:
-            # Write beside the target, then rename: a crash never leaves half a gains file.
-            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-            tmp.write_text(text, encoding="utf-8")
-            os.replace(tmp, path)
-        else:
-            with open(path, "x", encoding="utf-8") as handle:  # "x": never overwrite
-                handle.write(text)
-    except FileExistsError:
-        raise GainsFileError(
-            "the file exists; pass force=True (--force) to replace it", path=path
-        ) from None
-    except OSError as exc:
-        raise GainsFileError(f"cannot write it ({exc.strerror})", path=path) from None
-    return path
+    from hw.atomicio import OutputError, write_text
+
+    try:  # beside the target, then renamed: a crash or a full disk never leaves half a file
+        return write_text(path, text, force=force)
+    except OutputError as exc:
+        raise GainsFileError(str(exc)) from None  # the message names the file
 
 
 def read_gains(path) -> PID:

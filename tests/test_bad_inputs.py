@@ -337,7 +337,9 @@ def test_the_lab_report_folder_is_never_left_half_written(tmp_path, monkeypatch)
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
-def test_grid_and_tune_outputs_are_atomic(tmp_path, monkeypatch):
+def test_grid_and_tune_outputs_and_gains_files_are_atomic(tmp_path, monkeypatch):
+    from hw.control_law import PID
+    from hw.gains import GainsFileError, write_gains
     from hw.jsonio import write_json
     from tuning.design.grid import _open
 
@@ -348,6 +350,8 @@ def test_grid_and_tune_outputs_are_atomic(tmp_path, monkeypatch):
                 f.write(b"x" * 1000)
         with pytest.raises(OutputError, match="tune.json: the disk is full"):
             write_json(tmp_path / "tune.json", {"kp": np.arange(100)})
+        with pytest.raises(GainsFileError, match="gains.json: the disk is full"):
+            write_gains(tmp_path / "gains.json", PID(kp=50.0))
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "grid.npz").write_bytes(b"mine")
     with pytest.raises(OutputError, match="grid.npz exists; choose another name or pass --force"):
