@@ -27,6 +27,7 @@ COMMANDS = (
     "tuning.commands.diagnose",
     "tuning.commands.lab",
     "tuning.commands.import_mat",
+    "tuning.commands.classroom",
     "tuning.commands.bench",
 )
 
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands that write a figure by default (matplotlib is imported while they compute).
-PLOTTING = {"tune", "lab", "simulate", "diagnose", "grid"}
+PLOTTING = {"tune", "lab", "class", "simulate", "diagnose", "grid"}
 
 
 def main(argv=None) -> int:

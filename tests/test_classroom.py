@@ -1,0 +1,197 @@
+"""`jaxcart class` (tuning/lab/classroom.py, tuning/commands/classroom.py): the lab over a class
+of synthetic students made by the repository's generator (tuning/lab/classdata.py), one of
+them broken, one missing a part, one with a stray file; the table, page, figures and links;
+outliers against the class's median; a worker process that dies takes no one else with it.
+"""
+
+import csv
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from tuning.lab import classdata, classroom
+from tuning.lab.classroom import Column, Student
+
+N_STUDENTS = 8
+BROKEN, MISSING, STRAY = "student-08", "student-05", "student-03"
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory):
+    """A class of 8 (short horizons), run once through the command: (class dir, out, carts,
+    exit status, stdout, seconds)."""
+    from tuning.commands.main import main
+
+    root = tmp_path_factory.mktemp("class")
+    folder = root / "class"
+    carts = classdata.generate_class(folder, N_STUDENTS, seed=3, horizons=classdata.SHORT)
+    # Broken: a position that is not a number. Missing: no ramp (Part (iii)). Stray: notes.
+    tap = folder / BROKEN / "tap.csv"
+    lines = tap.read_text().splitlines()
+    lines[4] = lines[4].split(",")[0] + ",abc"
+    tap.write_text("\n".join(lines) + "\n")
+    for suffix in (".toml", ".csv"):
+        (folder / MISSING / f"ramp{suffix}").unlink()
+    index = folder / MISSING / "lab.toml"
+    index.write_text("".join(x for x in index.read_text().splitlines(True) if "ramp" not in x))
+    (folder / STRAY / "notes.txt").write_text("cart 7, track dusty\n")
+    (folder / "roster.csv").write_text("name\n")
+    out = root / "report"
+    started = time.perf_counter()
+    import contextlib
+    import io
+
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        status = main(["class", str(folder), "--out", str(out), "--workers", "2"])
+    seconds = time.perf_counter() - started
+    print(f"class of {N_STUDENTS} in {seconds:.1f} s")  # the class run's time (pytest -s)
+    return folder, out, carts, status, buffer.getvalue(), seconds
+
+
+def _rows(out):
+    with open(out / "class.csv", newline="") as f:
+        return {row["student"]: row for row in csv.DictReader(f)}
+
+
+def test_the_table_has_every_student_with_failures_isolated(ran):
+    folder, out, carts, status, stdout, _ = ran
+    assert status == 0
+    rows = _rows(out)
+    assert sorted(rows) == sorted(carts)
+    assert rows[BROKEN]["status"] == "failed"
+    assert "tap.csv line 5" in rows[BROKEN]["error"] and "abc" in rows[BROKEN]["error"]
+    complete = [n for n, r in rows.items() if r["status"] == "complete"]
+    assert len(complete) == N_STUDENTS - 1
+    assert f"{N_STUDENTS} students: {N_STUDENTS - 1} complete, 1 failed" in stdout
+    for name in complete:  # each complete student's own report, linked
+        assert rows[name]["report"] == f"students/{name}/report.html"
+        assert (out / rows[name]["report"]).is_file()
+    assert "roster.csv" in json.loads((out / "class.json").read_text())["not_student_folders"]
+
+
+def test_missing_part_and_stray_file_are_flagged(ran):
+    _, out, _, _, stdout, _ = ran
+    rows = _rows(out)
+    assert "missing Part (iii): open-loop voltage ramp" in rows[MISSING]["flags"]
+    assert rows[MISSING]["f_c_ramp_fit [N]"] == ""
+    assert "unrecognised file notes.txt" in rows[STRAY]["flags"]
+    assert "the lab failed" in rows[BROKEN]["flags"]
+    for name, row in rows.items():
+        if name not in (MISSING, STRAY, BROKEN):
+            assert row["flags"] == "", (name, row["flags"])
+    assert f"{MISSING}: missing Part (iii)" in stdout
+
+
+def test_each_students_numbers_recover_its_own_cart(ran):
+    """Against the generator's truth (an independent reference): B_eq from the tap within
+    1 %, f_c from the ramp within 2 % (the built-in lab recovers both to 1e-4)."""
+    _, out, carts, _, _, _ = ran
+    rows = _rows(out)
+    for name, cart in carts.items():
+        if name == BROKEN:
+            continue
+        assert float(rows[name]["B_eq_tap_fit [kg/s]"]) == pytest.approx(cart["B_eq"], rel=0.01)
+        if name != MISSING:
+            assert float(rows[name]["f_c_ramp_fit [N]"]) == pytest.approx(cart["f_c"], rel=0.02)
+    spread = [cart["B_eq"] for cart in carts.values()]
+    assert max(spread) - min(spread) > 0.5  # different carts
+
+
+def test_the_spec_verdict_follows_part_v(ran):
+    _, out, _, _, _, _ = ran
+    for name, row in _rows(out).items():
+        if row["status"] != "complete":
+            assert row["spec"] == "n/a"
+            continue
+        settling = float(row["pid_measured_settling_time [s]"])
+        overshoot = float(row["pid_measured_overshoot [%]"])
+        expected = "pass" if settling < 1.0 and overshoot < 5.0 else "fail"
+        assert row["spec"] == expected, name
+
+
+def test_the_page_is_self_contained_with_figures_and_links(ran):
+    _, out, _, _, _, _ = ran
+    page = (out / "class.html").read_text()
+    assert page.count("data:image/png;base64,") == 2
+    assert "http://" not in page and "https://" not in page
+    assert 'href="students/student-01/report.html"' in page
+    assert f'{BROKEN}</td><td class="bad">failed:' in page
+    for name in ("distributions.png", "overlays.png"):
+        assert (out / "figures" / name).stat().st_size > 10_000
+    assert (out / "logs" / f"{BROKEN}.log").read_text().startswith("failed:")
+
+
+# ---------------------------------------------------------------- outliers, without a lab
+
+
+def _student(name, b_eq, *, missing=()):
+    s = Student(name, Path(name), status="complete")
+    s.results = {
+        "values": {
+            "B_eq_tap_fit": {"value": b_eq, "unit": "kg/s", "label": "B_eq, fit", "part": "i"},
+            "pid_kp": {"value": 250.0, "unit": "V/m", "label": "tuned kp", "part": "pre-lab"},
+        },
+        "data": {"missing": list(missing)},
+    }
+    return s
+
+
+def test_a_b_eq_ten_times_the_median_is_flagged_and_two_times_is_not():
+    students = [_student(f"s{k}", b) for k, b in enumerate((4.0, 4.5, 5.0, 9.0, 50.0))]
+    columns = classroom.columns_of(students)
+    classroom.flag(students, columns)
+    assert [bool(s.flags) for s in students] == [False, False, False, False, True]
+    assert "10 x the class median 5 kg/s" in students[-1].flags[0]
+    assert students[-1].marked == {"B_eq_tap_fit"}
+    assert classroom.constant_columns(students, columns) == {"pid_kp": 250.0}
+    low = Column("B_eq_tap_fit", "B_eq", "kg/s", "i")
+    assert classroom.outlier(0.5, 5.0, low) is not None  # a tenth of it too
+    assert classroom.outlier(0.51, 5.0, low) is None
+
+
+def test_too_few_students_for_a_median_flag_no_outlier():
+    students = [_student("a", 4.0), _student("b", 400.0)]
+    classroom.flag(students, classroom.columns_of(students))
+    assert not any(s.flags for s in students)
+
+
+def test_a_class_folder_without_sub_folders_is_one_clear_error(tmp_path):
+    from jaxcart.errors import UserError
+
+    (tmp_path / "tap.toml").write_text("kind = 'tap'\n")
+    with pytest.raises(UserError, match="no sub-folders; put each student"):
+        classroom.find_students(tmp_path)
+    with pytest.raises(UserError, match="no such folder"):
+        classroom.find_students(tmp_path / "nope")
+
+
+# ---------------------------------------------------------------- a worker that dies
+
+
+def _crash_or_complete(folder, out, log, *, diagnosis=False):
+    """A stand-in for the lab in the worker: the folder named "crasher" kills its process."""
+    if Path(folder).name == "crasher":
+        os._exit(3)
+    return {"status": "complete", "error": None, "seconds": 0.0, "runs": {}}
+
+
+def test_a_worker_process_that_dies_fails_only_its_student(tmp_path):
+    students = [Student(n, tmp_path / n) for n in ("alice", "crasher", "bob")]
+    said = []
+    classroom.run_all(
+        students,
+        tmp_path,
+        workers=2,
+        diagnosis=False,
+        cache=False,
+        say=said.append,
+        job=_crash_or_complete,
+    )
+    status = {s.name: s.status for s in students}
+    assert status == {"alice": "complete", "crasher": "failed", "bob": "complete"}
+    assert "process died" in students[1].error
+    assert len(said) == 3
