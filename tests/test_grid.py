@@ -274,7 +274,7 @@ def test_bad_ranges_name_the_option(option, text):
     [
         ("kp,kd\n1,2\n", "column ki missing"),
         ("kp,kd,ki\n1,x,3\n", "line 2, column kd"),
-        ("1,2,-3\n", "line 1, column ki"),
+        ("1,2,-3\n", "line 1, column kd"),  # no header: kp, ki, kd, the handout's order
         ("kp,kd,ki\n", "no rows"),
     ],
 )

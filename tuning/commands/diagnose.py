@@ -34,7 +34,7 @@ def register(subparsers) -> None:
     add_format_option(p)
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
     p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
-    from tuning.commands.tune import add_cluster_options
+    from tuning.commands.options import add_cluster_options
 
     add_cluster_options(p)
     p.set_defaults(func=run)

@@ -70,7 +70,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    from tuning.commands.tune import add_cluster_options
+    from tuning.commands.options import add_cluster_options
 
     # With --cross, each process fits its share of the recordings alone; process 0 alone runs
     # the joint fit and writes the outputs.

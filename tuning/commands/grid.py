@@ -1,8 +1,8 @@
-"""``jaxcart grid``: evaluate a kp x kd x ki grid (or a list) of PID gains in batched calls.
+"""``jaxcart grid``: evaluate a kp x ki x kd grid (or a list) of PID gains in batched calls.
 
     jaxcart grid                              # 64 x 64 x 64 over the default ranges
     jaxcart grid --kp 20:120:32 --ki 0:5:8    # ranges as lo:hi:n (n evenly spaced, both ends)
-    jaxcart grid --gains-file list.csv        # any list: CSV columns kp, kd, ki
+    jaxcart grid --gains-file list.csv        # any list: CSV columns kp, ki, kd
     jaxcart grid --robust                     # worst case over a plant set (as tune --robust)
     jaxcart grid --coordinator node0:12345 --num-processes 4 --process-id 0   # on 4 hosts
 
@@ -22,9 +22,18 @@ from pathlib import Path
 
 from jaxcart.errors import UserError
 from jaxcart.outputs import OUT_DIR, free_names
-from tuning.commands.tune import add_cluster_options
+from tuning.commands.options import (
+    GAIN_UNITS,
+    GAINS,
+    NOT_SETTLED,
+    add_cluster_options,
+    add_robust_options,
+    robust_ranges,
+)
 
-DEFAULT_RANGES = {"kp": "10:150:64", "kd": "0:15:64", "ki": "0:30:64"}
+DEFAULT_RANGES = {"kp": "10:150:64", "ki": "0:30:64", "kd": "0:15:64"}
+#: The gains' order in the design library's grid (its axes, its rows): kp, kd, ki.
+LIBRARY_ORDER = ("kp", "kd", "ki")
 DEFAULT_DIR = OUT_DIR
 #: Bytes per point of the result arrays (6 float64 metrics, diverged, feasible, temporaries).
 _BYTES_PER_POINT = 80
@@ -34,11 +43,11 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "grid",
         help="evaluate a grid (or list) of PID gains: step metrics, feasible region, best point",
-        description="Evaluate a kp x kd x ki grid (or a list) of PID gains on a step of the "
+        description="Evaluate a kp x ki x kd grid (or a list) of PID gains on a step of the "
         "reference with the 6 V saturation: step metrics of every point, the feasible region, "
         "the best point re-checked on the exact simulator; writes an .npz and a PNG of heat maps.",
     )
-    for name, unit in (("kp", "V/m"), ("kd", "V s/m"), ("ki", "V/(m s)")):
+    for name, unit in GAIN_UNITS.items():
         p.add_argument(
             f"--{name}",
             metavar="LO:HI:N",
@@ -47,7 +56,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--gains-file",
         metavar="CSV",
-        help="evaluate the rows of this CSV (columns kp, kd, ki) instead of a grid",
+        help="evaluate the rows of this CSV instead of a grid: a header naming kp, ki, kd "
+        "(any order), or three columns in the handout's order kp, ki, kd",
     )
     p.add_argument("--step", type=float, default=0.5, help="step of the reference [m] (0.5)")
     p.add_argument("--horizon", type=float, default=3.0, help="simulated time [s] (3)")
@@ -77,21 +87,12 @@ def register(subparsers) -> None:
         help="design model: a plant file (fit --out, diagnose) or an experiment file whose "
         "[plant] applies; default the handout's nominal plant",
     )
-    p.add_argument(
-        "--robust",
-        action="store_true",
-        help="every metric the worst over a plant set: B_eq in [3, 7] kg/s, f_c in [0, 1] N, "
-        "M within +/-10 %% (corners and centre, as tune --robust; change with --range)",
+    add_robust_options(
+        p,
+        robust_help="every metric the worst over a plant set: B_eq in [3, 7] kg/s, f_c in "
+        "[0, 1] N, M within +/-10 %% (corners and centre, as tune --robust; change with --range)",
     )
-    p.add_argument(
-        "--range",
-        dest="ranges",
-        action="append",
-        default=[],
-        metavar="NAME=LO,HI",
-        help="robust interval, e.g. B_eq=3,7 (as tune --range); repeatable",
-    )
-    run_ = p.add_argument_group("long and distributed runs")
+    run_ = p.add_argument_group("long runs")
     run_.add_argument(
         "--checkpoint",
         metavar="DIR",
@@ -110,8 +111,8 @@ def register(subparsers) -> None:
         metavar="N",
         help="points per block: the unit of checkpoints, processes and progress (65536)",
     )
-    add_cluster_options(run_)
     p.add_argument("--json", metavar="OUT", help="also write a summary JSON (best point, notes)")
+    add_cluster_options(p)
     p.set_defaults(func=run)
 
 
@@ -148,8 +149,9 @@ def parse_range(option: str, text: str):
 
 
 def read_gains_file(path) -> list[tuple[float, float, float]]:
-    """Rows (kp, kd, ki) of a CSV: a header naming kp, kd and ki (any order, other columns
-    ignored) or no header and the three columns in that order. '#' starts a comment line."""
+    """Rows (kp, kd, ki) (the design library's order) of a CSV: a header naming kp, ki and kd
+    (any order, other columns ignored) or no header and three columns in the handout's order
+    kp, ki, kd. '#' starts a comment line."""
     import numpy as np
 
     path = Path(path)
@@ -165,18 +167,18 @@ def read_gains_file(path) -> list[tuple[float, float, float]]:
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"--gains-file {path}: cannot read it ({exc})") from None
     if not lines:
-        raise UserError(f"--gains-file {path}: no rows; give one gain triple kp, kd, ki per line")
+        raise UserError(f"--gains-file {path}: no rows; give one gain triple kp, ki, kd per line")
     header = [c.strip().lower() for c in lines[0][1]]
     if all(_is_number(c) for c in header):
-        columns = {"kp": 0, "kd": 1, "ki": 2}
+        columns = {"kp": 0, "kd": 2, "ki": 1}  # read kp, ki, kd; rows in the library's order
     else:
-        missing = [n for n in ("kp", "kd", "ki") if n not in header]
+        missing = [n for n in GAINS if n not in header]
         if missing:
             raise UserError(
                 f"--gains-file {path}: column {', '.join(missing)} missing (columns: "
-                f"{', '.join(header)}); name the columns kp, kd, ki"
+                f"{', '.join(header)}); name the columns kp, ki, kd"
             )
-        columns = {n: header.index(n) for n in ("kp", "kd", "ki")}
+        columns = {n: header.index(n) for n in LIBRARY_ORDER}
         lines = lines[1:]
     rows = []
     for line, row in lines:
@@ -283,10 +285,9 @@ def _check_memory(n_points: int) -> None:
 
 def _plants(args, plant):
     """The plant, or the robust plant set of --robust / --range (as tune builds it)."""
-    from tuning.commands.tune import _robust
     from tuning.design.tune import robust_plants
 
-    robust = _robust(args)
+    robust = robust_ranges(args)
     if robust is False:
         return plant
     plants, _values = robust_plants(plant, None if robust is True else robust)
@@ -310,38 +311,70 @@ def run(args) -> int:
             _json_path(args.json, args.force),
         )
     distributed = parallel.init_distributed(settings)
-
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    import jaxcart as jc
-    from tuning.design import grid, gridrun
-
-    if args.gains_file is not None:
-        given = [f"--{n}" for n in DEFAULT_RANGES if getattr(args, n) is not None]
-        if given:
-            raise UserError(f"{', '.join(given)} and --gains-file: give a grid or a list, not both")
-        gains = np.asarray(read_gains_file(args.gains_file), dtype=float)
-        n_points = gains.shape[0]
-    else:
-        axes = [
-            parse_range(f"--{n}", getattr(args, n) or DEFAULT_RANGES[n]) for n in DEFAULT_RANGES
-        ]
-        n_points = math.prod(a.size for a in axes)
-    if args.gains_file is not None or n_points <= gridrun.FULL_LIMIT:
-        _check_memory(n_points)  # a larger grid streams: summaries only, bounded memory
+    points = _points(args)
     me = parallel.process_index()
+    paths = None
     if me == 0:
-        out_path, plot_path, json_path = early or (
+        paths = early or (
             *output_paths(args.out, args.plot, args.force, args.format),
             _json_path(args.json, args.force),
         )
-        folder = out_path.parent
+        folder = paths[0].parent
     else:
         folder = Path(args.out).parent if args.out else DEFAULT_DIR
     checkpoint = Path(args.checkpoint) if args.checkpoint else folder / "grid-blocks"
+    problem = _problem(args)
+    result = _evaluate(args, points, problem, checkpoint, distributed)
+    if result is None:  # another process of a distributed run: process 0 writes the outputs
+        print(f"process {me}: its blocks are computed and sent to process 0")
+        return 0
+    from tuning.design import grid
 
+    exact, label = grid.recheck_set(
+        problem["plants"], problem["controller"], problem["experiment"], result.best_gains
+    )
+    _write(args, result, exact, paths)
+    _report(args, result, (exact, label), points["shape"], len(problem["plants"]))
+    for path in paths:
+        if path is not None:
+            print(f"wrote {path}")
+    if args.keep_blocks:
+        print(f"kept the blocks in {result.store.dir}")
+    return 0
+
+
+def _points(args) -> dict:
+    """The gains to evaluate: {"gains": rows (kp, kd, ki) of --gains-file, or "axes": the
+    kp, kd, ki axes of the grid (the design library's order); "n": points; "shape": text}."""
+    import numpy as np
+
+    from tuning.design import gridrun
+
+    if args.gains_file is not None:
+        given = [f"--{n}" for n in GAINS if getattr(args, n) is not None]
+        if given:
+            raise UserError(f"{', '.join(given)} and --gains-file: give a grid or a list, not both")
+        gains = np.asarray(read_gains_file(args.gains_file), dtype=float)
+        n = gains.shape[0]
+        points = {"gains": gains, "shape": f"{n} gain triples from {args.gains_file}"}
+    else:
+        axes = [parse_range(f"--{g}", getattr(args, g) or DEFAULT_RANGES[g]) for g in LIBRARY_ORDER]
+        n = math.prod(a.size for a in axes)
+        # Said in the handout's order, kp x ki x kd.
+        sizes = dict(zip(LIBRARY_ORDER, (a.size for a in axes), strict=True))
+        shape = " x ".join(f"{sizes[g]} {g}" for g in GAINS) + f" = {n} points"
+        points = {"axes": axes, "shape": shape}
+    if args.gains_file is not None or n <= gridrun.FULL_LIMIT:
+        _check_memory(n)  # a larger grid streams: summaries only, bounded memory
+    points["n"] = n
+    return points
+
+
+def _problem(args) -> dict:
+    """The plant (or robust set), its smoothing, the controller template and the step."""
+    import jax
+
+    import jaxcart as jc
     from jaxcart.plantsource import load_plant
     from jaxcart.plantspec import describe_plant
 
@@ -354,62 +387,78 @@ def run(args) -> int:
     print(f"plant: {describe_plant(plant)}", file=sys.stderr)
     if len(plants) > 1:
         print(f"plant set: worst case over {len(plants)} plants", file=sys.stderr)
-    controller = jc.PID(v_limit=6.0)
     with jax.enable_x64(True):  # the reference in float64; the grid casts it to its dtype
         experiment = jc.step(args.step, horizon=args.horizon)
+    return {
+        "where": where,
+        "plants": plants,
+        "smoothing": smoothing,
+        "controller": jc.PID(v_limit=6.0),
+        "experiment": experiment,
+    }
+
+
+def _evaluate(args, points, problem, checkpoint, distributed):
+    """Every point's metrics (a :class:`tuning.design.grid.GridResult`; None on a process
+    other than 0 of a distributed run)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxcart import parallel
+    from tuning.design import grid, gridrun
+
     dtype = jnp.float64 if args.float64 else jnp.float32
-    block = args.block or gridrun.BLOCK
-    spec = dict(settling_time=args.settling, overshoot=args.overshoot)
-    n_dev = len(parallel.devices())
-    where_run = f"{n_dev} device(s)"
+    where_run = f"{len(parallel.devices())} device(s)"
     if distributed:
-        where_run += f" in process {me} of {parallel.process_count()}"
-    progress = grid.progress_line("grid", devices=where_run)
+        where_run += f" in process {parallel.process_index()} of {parallel.process_count()}"
     common = dict(
         dtype=dtype,
-        progress=progress,
-        smoothing=smoothing,
+        progress=grid.progress_line("grid", devices=where_run),
+        smoothing=problem["smoothing"],
         checkpoint=checkpoint,
-        block=block,
+        block=args.block or gridrun.BLOCK,
         say=lambda text: print(text, file=sys.stderr),
-        **spec,
+        settling_time=args.settling,
+        overshoot=args.overshoot,
     )
-    if args.gains_file is not None:
-        shape = f"{n_points} gain triples from {args.gains_file}"
-    else:
-        shape = " x ".join(str(a.size) for a in axes) + f" = {n_points} points"
-    print(f"evaluating {shape}, {np.dtype(dtype).name}, {where_run}", file=sys.stderr)
-    if args.gains_file is not None:
-        result = grid.evaluate_list(where, controller, experiment, gains, **common)
-    else:
-        result = grid.grid_search(where, controller, experiment, *axes, **common)
-    if result is None:  # another process of a distributed run: process 0 writes the outputs
-        print(f"process {me}: its blocks are computed and sent to process 0")
-        return 0
-    exact, label = grid.recheck_set(plants, controller, experiment, result.best_gains)
+    print(f"evaluating {points['shape']}, {np.dtype(dtype).name}, {where_run}", file=sys.stderr)
+    design = (problem["where"], problem["controller"], problem["experiment"])
+    if "gains" in points:
+        return grid.evaluate_list(*design, points["gains"], **common)
+    return grid.grid_search(*design, *points["axes"], **common)
 
+
+def _write(args, result, exact, paths) -> None:
+    from tuning.design import grid
+
+    out_path, plot_path, json_path = paths
     for path in (out_path, plot_path):
         path.parent.mkdir(parents=True, exist_ok=True)
     grid.save_npz(result, out_path, exact=exact, force=args.force)
     grid.plot_slices(result, plot_path, force=args.force)
-    notes = grid.edge_notes(result)
     if json_path is not None:
         grid.save_json(result, json_path, exact=exact, force=args.force)
     if not args.keep_blocks:
         result.store.remove()
 
+
+def _report(args, result, checked, shape: str, n_plants: int) -> None:
+    """The printed summary: feasible points, the best gains, grid against exact, speed."""
+    from tuning.design import grid
+
+    exact, label = checked
     print(f"grid: {shape}, {result.dtype}, step {args.step:g} m, horizon {args.horizon:g} s")
-    if len(plants) > 1:
-        print(f"metrics: the worst over {len(plants)} plants of the robust set")
+    if n_plants > 1:
+        print(f"metrics: the worst over {n_plants} plants of the robust set")
     print(
         f"feasible: {result.n_feasible} of {result.n_points} points "
         f"(settling < {args.settling:g} s, overshoot < {args.overshoot:g} %)"
     )
     head = "best gains" if result.best_feasible else "no feasible point; closest to the spec"
     print(f"{head}: {grid.describe_gains(result.best_gains)}")
-    for note in notes:
+    for note in grid.edge_notes(result):
         print(f"  on a bound: {note}")
-    print(grid.comparison(result, exact, label))
+    print(_not_settled_in_words(grid.comparison(result, exact, label)))
     others = result.n_points - result.n_computed
     if result.n_computed:
         print(
@@ -419,12 +468,17 @@ def run(args) -> int:
         )
     else:
         print(f"all {others} points from the checkpoint {result.store.dir}")
-    for path in (out_path, plot_path, json_path):
-        if path is not None:
-            print(f"wrote {path}")
-    if args.keep_blocks:
-        print(f"kept the blocks in {result.store.dir}")
-    return 0
+
+
+def _not_settled_in_words(table: str) -> str:
+    """The comparison table with a settling time of inf said in words (the design library
+    writes the number)."""
+    lines = []
+    for line in table.splitlines():
+        if line.lstrip().startswith("settling time") and " inf" in line:
+            line = line.replace(" inf", f" {NOT_SETTLED}")
+        lines.append(line)
+    return "\n".join(lines)
 
 
 def _json_path(json, force):

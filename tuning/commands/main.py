@@ -32,6 +32,17 @@ COMMANDS = (
 )
 
 
+def version() -> str:
+    """The installed jaxcart's version (from its package metadata; imports nothing)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as installed
+
+    try:
+        return installed("jaxcart")
+    except PackageNotFoundError:
+        return "unknown (not installed; pip install -e . gives it)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The whole ``jaxcart`` parser, every subcommand registered; imports neither jax nor
     jaxcart."""
@@ -39,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxcart",
         description="Differentiable simulator and auto-tuner for the cart-on-a-track servo lab.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     parser.add_argument(
         "--no-cache",
         action="store_true",

@@ -1,9 +1,9 @@
 """``jaxcart simulate``: simulate an experiment file (or the lab's design problem) and write the
 result as an experiment file, so that the output of one command is the input of the next.
 
-    jaxcart simulate                               # lab default: step 0.5 m, kp 40, kd 5, ki 5
+    jaxcart simulate                               # lab default: step 0.5 m, kp 40, ki 5, kd 5
     jaxcart simulate p50.toml --out p50-sim.csv --plot p50-sim.png
-    jaxcart simulate run.toml --kp 60 --kd 6 --exact
+    jaxcart simulate run.toml --kp 60 --ki 2 --kd 6 --exact
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 #: The lab's design problem (docs/design.md, "The design problem"): step 0.5 m, handout plant,
 #: 6 V, the handout's gains.
 DEFAULT_STEP = 0.5
-DEFAULT_GAINS = {"kp": 40.0, "kd": 5.0, "ki": 5.0}
+DEFAULT_GAINS = {"kp": 40.0, "ki": 5.0, "kd": 5.0}
 DEFAULT_V_LIMIT = 6.0
 DEFAULT_HORIZON = 3.0
 GAIN_OPTIONS = ("kp", "ki", "kd", "tau", "v_limit")
@@ -36,7 +36,7 @@ def register(subparsers) -> None:
         help="simulate an experiment file (default: the lab's PID design problem)",
         description=(
             "Simulate EXPERIMENT.toml (or, without it, the lab's design problem: step 0.5 m, "
-            "kp=40, kd=5, ki=5, 6 V limit, handout plant, 3 s) and write the run as an "
+            "kp=40, ki=5, kd=5, 6 V limit, handout plant, 3 s) and write the run as an "
             "experiment file (CSV or MATLAB .mat, + TOML), with a figure. Without --out, files "
             "go to ./jaxcart-out/ under names that never overwrite; a recording whose data are "
             ".mat files is written back as .mat in the Simulink layout it came in."
@@ -379,13 +379,12 @@ def _is_step(response) -> bool:
 
 
 def _metrics_line(info) -> str:
-    def ms(x):
-        return "inf" if not math.isfinite(x) else f"{x:.3f} s"
+    from tuning.commands.options import NOT_RISEN, timed
 
     return (
-        f"rise {ms(info.rise_time)}, settling {ms(info.settling_time)}, overshoot "
-        f"{info.overshoot:.2f} %, steady-state error {1e3 * info.steady_state_error:.2f} mm, "
-        f"peak {info.peak_voltage:.2f} V"
+        f"{timed('rise', info.rise_time, NOT_RISEN)}, {timed('settling', info.settling_time)}, "
+        f"overshoot {info.overshoot:.2f} %, steady-state error "
+        f"{1e3 * info.steady_state_error:.2f} mm, peak {info.peak_voltage:.2f} V"
     )
 
 

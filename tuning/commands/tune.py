@@ -3,6 +3,7 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
 
     jaxcart tune                                   # the lab's design problem
     jaxcart tune --free kp,kd --settling 0.9       # a PD controller, tighter settling bound
+    jaxcart tune --start 60,1,4                    # from kp = 60, ki = 1, kd = 4 (handout order)
     jaxcart tune --robust --out robust.json        # meet the spec for a whole set of plants
     jaxcart tune --plant fitted.toml --f-c 0.4
     jaxcart tune --compare                         # benchmark against Nelder-Mead and a grid
@@ -11,17 +12,25 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
 
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 
 from jaxcart.errors import UserError
 from jaxcart.outputs import OUT_DIR, check_writable, free_names
+from tuning.commands.options import (
+    GAINS,
+    add_cluster_options,
+    add_robust_options,
+    parse_gains,
+    robust_ranges,
+    seconds_text,
+    timed,
+)
 
-GAINS = ("kp", "kd", "ki")
-#: What --free may name (tuning.design.losses.PARAM_NAMES, without importing jax for --help).
+#: What --free may name (tuning.design.losses.PARAM_NAMES, without importing jax for --help),
+#: the gains in the handout's order.
 PARAMS = GAINS + ("tau", "kb", "v_limit")
-UNITS = {"kp": "V/m", "kd": "V s/m", "ki": "V/(m s)", "tau": "s", "kb": "1/s", "v_limit": "V"}
+UNITS = {"kp": "V/m", "ki": "V/(m s)", "kd": "V s/m", "tau": "s", "kb": "1/s", "v_limit": "V"}
 
 
 def register(subparsers) -> None:
@@ -33,12 +42,27 @@ def register(subparsers) -> None:
             "simulator: first meet the specification (settling time in the 2 % band, "
             "overshoot), then drive the settling time down; every result is re-checked on "
             "the exact simulator. Default: step 0.5 m, settling < 1 s, overshoot < 5 %, 6 V, "
-            "handout plant, from kp=40, kd=5, ki=5. Writes the gains file (every controller "
+            "handout plant, from kp=40, ki=5, kd=5. Writes the gains file (every controller "
             "setting), a step-response figure with voltage, and prints the smooth and exact "
             "metrics. Without --out, files go to ./jaxcart-out/ under names that never "
-            "overwrite."
+            "overwrite. Gains are written in the handout's order: kp, ki, kd."
         ),
     )
+    _output_options(p)
+    _spec_options(p.add_argument_group("specification"))
+    _controller_options(p.add_argument_group("controller"))
+    _plant_options(p.add_argument_group("plant (design model)"))
+    add_robust_options(
+        p.add_argument_group("robust tuning"),
+        robust_help="meet the spec on a set of plants: B_eq in [3, 7] kg/s, f_c in [0, 1] N, "
+        "M within +/-10 %% (change with --range)",
+    )
+    _run_options(p.add_argument_group("run"))
+    add_cluster_options(p)
+    p.set_defaults(func=run)
+
+
+def _output_options(p) -> None:
     p.add_argument(
         "--out",
         metavar="GAINS.json",
@@ -55,7 +79,9 @@ def register(subparsers) -> None:
         help="step-response figure (default: beside the gains file, .png)",
     )
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    spec = p.add_argument_group("specification")
+
+
+def _spec_options(spec) -> None:
     spec.add_argument(
         "--step", type=float, default=0.5, metavar="M", help="reference step [m] (default 0.5)"
     )
@@ -79,19 +105,21 @@ def register(subparsers) -> None:
         metavar="S",
         help="simulated time [s] (default max(3, 3 x settling))",
     )
-    ctl = p.add_argument_group("controller")
+
+
+def _controller_options(ctl) -> None:
     ctl.add_argument(
         "--start",
-        metavar="KP,KD,KI",
-        help="starting gains [V/m, V s/m, V/(m s)] (default 40,5,5; gains that "
-        "are not free start, and stay, at 0)",
+        metavar="KP,KI,KD",
+        help="starting gains in the handout's order [V/m, V/(m s), V s/m] (default 40,5,5; "
+        "gains that are not free start, and stay, at 0)",
     )
     ctl.add_argument(
         "--free",
-        default="kp,kd,ki",
+        default="kp,ki,kd",
         metavar="NAMES",
-        help="parameters to tune among kp,kd,ki,tau,kb,v_limit, e.g. kp,kd for a PD "
-        "controller (default kp,kd,ki); the others keep their --start / option value",
+        help="parameters to tune among kp,ki,kd,tau,kb,v_limit, e.g. kp,kd for a PD "
+        "controller (default kp,ki,kd); the others keep their --start / option value",
     )
     ctl.add_argument(
         "--bound",
@@ -99,8 +127,8 @@ def register(subparsers) -> None:
         action="append",
         default=[],
         metavar="NAME=LO,HI",
-        help="search box of a parameter, e.g. kp=0.01,1000 (defaults: kp 0.01..250 V/m, kd "
-        "0.001..50 V s/m, ki 0.001..200 V/(m s), tau 1e-4..0.1 s, kb 0.01..1000 1/s, "
+        help="search box of a parameter, e.g. kp=0.01,1000 (defaults: kp 0.01..250 V/m, ki "
+        "0.001..200 V/(m s), kd 0.001..50 V s/m, tau 1e-4..0.1 s, kb 0.01..1000 1/s, "
         "v_limit 0.5..6 V); repeatable",
     )
     ctl.add_argument(
@@ -147,7 +175,9 @@ def register(subparsers) -> None:
         metavar="V",
         help="software voltage limit [V] (default 6)",
     )
-    plant = p.add_argument_group("plant (design model)")
+
+
+def _plant_options(plant) -> None:
     plant.add_argument(
         "--plant",
         dest="plant_file",
@@ -172,23 +202,9 @@ def register(subparsers) -> None:
     plant.add_argument(
         "--M", dest="M", type=float, metavar="KG", help="cart mass M [kg] (handout: 0.94)"
     )
-    rob = p.add_argument_group("robust tuning")
-    rob.add_argument(
-        "--robust",
-        action="store_true",
-        help="meet the spec on a set of plants: B_eq in [3, 7] kg/s, f_c in "
-        "[0, 1] N, M within +/-10 %% (change with --range)",
-    )
-    rob.add_argument(
-        "--range",
-        dest="ranges",
-        action="append",
-        default=[],
-        metavar="NAME=LO,HI",
-        help="robust interval, e.g. B_eq=3,7 or f_c=0,0.5 or M=0.9,1.1 (M as a "
-        "fraction of nominal); repeatable; replaces the default set",
-    )
-    run_ = p.add_argument_group("run")
+
+
+def _run_options(run_) -> None:
     run_.add_argument(
         "--starts",
         type=int,
@@ -212,39 +228,10 @@ def register(subparsers) -> None:
         "--problem",
         default="lab",
         choices=("lab", "robust", "wide", "all"),
-        help="with --compare: lab (kp, kd, ki, nominal plant; default), robust (25 plants), "
+        help="with --compare: lab (kp, ki, kd, nominal plant; default), robust (25 plants), "
         "wide (all six PID numbers, robust over 9 plants; minutes) or all",
     )
     run_.add_argument("--quiet", action="store_true", help="no progress line")
-    add_cluster_options(p)
-    p.set_defaults(func=run)
-
-
-def add_cluster_options(parser) -> None:
-    """--coordinator, --num-processes, --process-id (tune, diagnose, grid, fit): a jax.distributed
-    run. ``parser``: a parser (the options get a group of their own) or an argument group."""
-    group = (
-        parser.add_argument_group("distributed runs (jax.distributed)")
-        if isinstance(parser, argparse.ArgumentParser)
-        else parser
-    )
-    group.add_argument(
-        "--coordinator",
-        metavar="HOST:PORT",
-        help="jax.distributed: address of process 0 (or JAXCART_COORDINATOR; under SLURM or "
-        "Open MPI none of these is needed)",
-    )
-    group.add_argument(
-        "--num-processes",
-        metavar="N",
-        help="jax.distributed: number of processes (or JAXCART_NUM_PROCESSES)",
-    )
-    group.add_argument(
-        "--process-id",
-        metavar="I",
-        help="jax.distributed: this process, 0 to N-1; 0 writes the outputs (or "
-        "JAXCART_PROCESS_ID)",
-    )
 
 
 def run(args) -> int:
@@ -278,71 +265,91 @@ def _run(args, share, outputs) -> int:
     from jaxcart import parallel
 
     jax.config.update("jax_enable_x64", True)
-    from jaxcart.experiments import step
-    from tuning.design.tune import compare_tuners, tune
+    from tuning.design.tune import tune
 
-    spec = _spec(args)
-    free = _free(args.free)
-    start = _start(args.start)
-    controller = _controller(args)
-    plant = _plant(args)
-    robust = _robust(args)
-    if args.starts < 1 or args.iterations < 1:
-        raise UserError("--starts and --iterations must be at least 1")
-
-    bounds = _bounds(args.bounds)
+    problem = _problem(args)
     if args.compare:
-        if robust is not False:
-            raise UserError(
-                "--compare sets its own plant sets; drop --robust/--range and use --problem"
-            )
-        json_path = _json_path(args)
-        problems = ("lab", "robust", "wide") if args.problem == "all" else (args.problem,)
-        docs = {}
-        for problem in problems:
-            report = compare_tuners(
-                plant,
-                problem=problem,
-                spec=spec,
-                start=start,
-                free=free if args.free != "kp,kd,ki" else None,
-                controller=controller if problem != "wide" else None,
-                seed=args.seed,
-                bounds=bounds,
-                progress=not args.quiet,
-            )
-            print(report["table"], flush=True)
-            docs[problem] = {k: v for k, v in report.items() if k != "table"}
-        if json_path is not None:
-            _write_json(json_path, docs if len(docs) > 1 else docs[problems[0]])
-        return 0
-
+        return _compare(args, problem)
     me = parallel.process_index()
     if me == 0:
         gains_path, png_path, json_path = outputs or (*_outputs(args), _json_path(args))
     if share is not None:
         share.sync()  # every process has its inputs: an error reading them stops all now
     result = tune(
-        plant,
-        spec=spec,
-        start=start,
-        free=free,
-        controller=controller,
-        robust=robust,
+        problem["plant"],
+        spec=problem["spec"],
+        start=problem["start"],
+        free=problem["free"],
+        controller=problem["controller"],
+        robust=problem["robust"],
         n_starts=args.starts,
         max_iterations=args.iterations,
         seed=args.seed,
-        bounds=bounds,
+        bounds=problem["bounds"],
         progress=not args.quiet and me == 0,
         processes=share,
     )
     if result is None:  # another process of a distributed run: process 0 reports
         print(f"process {me} of {parallel.process_count()}: done, results sent to process 0")
         return 0
-    _print_summary(result, robust is not False, parallel.process_count())
+    _print_summary(result, problem["robust"] is not False, parallel.process_count())
+    _write_outputs(args, result, problem, (gains_path, png_path, json_path))
+    return 0 if result.meets else 1
 
+
+def _problem(args) -> dict:
+    """The design problem from the options, every one checked before anything is computed:
+    spec, free, start ({kp, ki, kd} or None), controller, plant, robust, bounds."""
+    if args.starts < 1 or args.iterations < 1:
+        raise UserError("--starts and --iterations must be at least 1")
+    return {
+        "spec": _spec(args),
+        "free": _free(args.free),
+        "start": _start(args.start),
+        "controller": _controller(args),
+        "plant": _plant(args),
+        "robust": robust_ranges(args),
+        "bounds": _bounds(args.bounds),
+    }
+
+
+def _compare(args, problem) -> int:
+    """--compare: this tuner against Nelder-Mead (and a grid) on each problem; prints tables."""
+    from tuning.design.tune import compare_tuners
+
+    if problem["robust"] is not False:
+        raise UserError(
+            "--compare sets its own plant sets; drop --robust/--range and use --problem"
+        )
+    json_path = _json_path(args)
+    problems = ("lab", "robust", "wide") if args.problem == "all" else (args.problem,)
+    docs = {}
+    for name in problems:
+        report = compare_tuners(
+            problem["plant"],
+            problem=name,
+            spec=problem["spec"],
+            start=problem["start"],
+            free=problem["free"] if set(problem["free"]) != set(GAINS) else None,
+            controller=problem["controller"] if name != "wide" else None,
+            seed=args.seed,
+            bounds=problem["bounds"],
+            progress=not args.quiet,
+        )
+        print(report["table"], flush=True)
+        docs[name] = {k: v for k, v in report.items() if k != "table"}
+    if json_path is not None:
+        _write_json(json_path, docs if len(docs) > 1 else docs[problems[0]])
+    return 0
+
+
+def _write_outputs(args, result, problem, paths) -> None:
+    """The gains file (with the run's metadata), the figure and the JSON summary."""
     from hw.gains import GainsFileError, write_gains
+    from jaxcart.experiments import step
 
+    gains_path, png_path, json_path = paths
+    start = problem["start"]
     metadata = {
         "created_by": "jaxcart tune",
         "meets": result.meets,
@@ -351,10 +358,10 @@ def _run(args, share, outputs) -> int:
         "exact": result.exact.as_dict(),
         "smooth": result.smooth.as_dict(),
         "plant": _plant_values(result.plant),
-        "start": dict(zip(GAINS, start, strict=True))
+        "start": dict(start)
         if start is not None
-        else "handout: kp 40, kd 5, ki 5 for the free gains, 0 for the others",
-        "free": list(free),
+        else "handout: kp 40, ki 5, kd 5 for the free gains, 0 for the others",
+        "free": list(problem["free"]),
         "bounds": {n: list(b) for n, b in result.bounds.items()},
         "on_bound": {n: {"side": side, "bound": b} for n, (side, b) in result.on_bound.items()},
         "seconds": result.seconds,
@@ -366,15 +373,15 @@ def _run(args, share, outputs) -> int:
         write_gains(gains_path, result.gains, force=args.force, **metadata)
     except GainsFileError as exc:
         raise UserError(str(exc)) from None
-    experiment = step(spec.step, horizon=spec.horizon, sample_time=controller.sample_time)
-    _plot(png_path, result, experiment)
+    spec = problem["spec"]
+    sample_time = problem["controller"].sample_time
+    _plot(png_path, result, step(spec.step, horizon=spec.horizon, sample_time=sample_time))
     if json_path is not None:
         _write_json(json_path, result.as_json())
     written = ", ".join(
         str(p) for p in (gains_path, png_path, json_path) if p is not None and str(p) != "-"
     )
     print(f"wrote {written}")
-    return 0 if result.meets else 1
 
 
 # ---------------------------------------------------------------- arguments
@@ -442,16 +449,8 @@ def _bounds(texts):
 
 
 def _start(text):
-    if text is None:
-        return None
-    parts = [s.strip() for s in text.split(",")]
-    try:
-        values = [float(s) for s in parts]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
-        raise UserError(f"--start {text}: give three gains kp,kd,ki >= 0, e.g. --start 40,5,5")
-    return tuple(values)
+    """--start KP,KI,KD (the handout's order) as {kp, ki, kd}, or None."""
+    return None if text is None else parse_gains(text, "--start")
 
 
 def _controller(args):
@@ -485,33 +484,6 @@ def _plant(args):
             _finite(value, flag, positive=name == "M", nonnegative=True)
             overrides[name] = value
     return build_plant(overrides, base=plant, where="--B-eq / --f-c / --M")
-
-
-def _robust(args):
-    if not args.robust:
-        if args.ranges:
-            raise UserError("--range needs --robust")
-        return False
-    if not args.ranges:
-        return True
-    ranges = {}
-    for text in args.ranges:
-        name, _, rest = text.partition("=")
-        name = name.strip()
-        try:
-            lo, hi = (float(s) for s in rest.split(","))
-        except ValueError:
-            raise UserError(f"--range {text}: write NAME=LO,HI, e.g. --range B_eq=3,7") from None
-        if name not in ("B_eq", "f_c", "M", "gamma_scale", "v_sat"):
-            raise UserError(
-                f"--range {text}: {name!r} cannot vary; use B_eq, f_c, M, gamma_scale or v_sat"
-            )
-        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
-            raise UserError(f"--range {text}: need finite 0 <= LO <= HI")
-        if name == "M" and lo <= 0:
-            raise UserError(f"--range {text}: M is a fraction of the nominal mass, > 0")
-        ranges[name] = (lo, hi)
-    return ranges
 
 
 def _outputs(args):
@@ -562,20 +534,19 @@ def _fmt(value, unit="", digits=3):
 def _print_summary(result, robust, n_processes=1):
     g = result.gains
     print(
-        f"tuned gains: kp = {g.kp:.4g} V/m, kd = {g.kd:.4g} V s/m, ki = {g.ki:.4g} V/(m s)"
+        f"tuned gains: kp = {g.kp:.4g} V/m, ki = {g.ki:.4g} V/(m s), kd = {g.kd:.4g} V s/m"
         f"  (tau {g.tau:g} s, derivative on {g.derivative_on}, anti-windup "
         f"{g.anti_windup}, v_limit {g.v_limit:g} V, Ts {g.sample_time:g} s)"
     )
-    print(
-        f"{'':24s}{'settling [s]':>14s}{'overshoot [%]':>15s}{'rise [s]':>10s}{'ss error [m]':>14s}"
-    )
+    # Settling last: a run that never settles says so in words, past the aligned columns.
+    print(f"{'':24s}{'rise [s]':>10s}{'overshoot [%]':>15s}{'ss error [m]':>14s}  settling")
     rows = [("smooth simulator", result.smooth), ("exact simulator", result.exact)]
     if robust and result.worst is not None:
         rows.append((f"worst of {len(result.plant_set)} plants", result.worst))
     for label, info in rows:
         print(
-            f"{label:24s}{_fmt(info.settling_time):>14s}{_fmt(info.overshoot, digits=2):>15s}"
-            f"{_fmt(info.rise_time):>10s}{_fmt(info.steady_state_error, digits=5):>14s}"
+            f"{label:24s}{_fmt(info.rise_time):>10s}{_fmt(info.overshoot, digits=2):>15s}"
+            f"{_fmt(info.steady_state_error, digits=5):>14s}  {seconds_text(info.settling_time)}"
         )
     print(result.message)
     note = result.bound_note(widen=_bound_flags(result))
@@ -623,8 +594,8 @@ def _plot(path, result, experiment):
         Run("_band", t, np.full(t.shape, r - band), role="reference"),
         run_from_response(
             exact,
-            f"exact simulator (settling {_fmt(result.exact.settling_time)}"
-            f" s, overshoot {_fmt(result.exact.overshoot, digits=2)} %)",
+            f"exact simulator ({timed('settling', result.exact.settling_time)}, "
+            f"overshoot {_fmt(result.exact.overshoot, digits=2)} %)",
         ),
     ]
     if result.plant_set:
@@ -639,7 +610,7 @@ def _plot(path, result, experiment):
         label = ", ".join(f"{k} {v:.3g}" for k, v in values.items())
         runs.append(run_from_response(run, f"worst plant of the set ({label})"))
     title = (
-        f"jaxcart tune: kp {g.kp:.4g}, kd {g.kd:.4g}, ki {g.ki:.4g} "
+        f"jaxcart tune: kp {g.kp:.4g}, ki {g.ki:.4g}, kd {g.kd:.4g} "
         f"(spec: settling < {spec.settling_time:g} s, overshoot < {spec.overshoot:g} %)"
     )
     plot_runs(runs, title=title, path=path, voltage=True, v_limit=float(g.v_limit))

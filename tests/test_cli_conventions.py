@@ -1,0 +1,108 @@
+"""Command-line conventions (tuning/commands/options.py, main.py): --version, one gain order
+(kp, ki, kd, as the handout writes the PID) in every option that takes gains, the distributed
+options defined once in an advanced help group of their own, and a settling time that never
+comes said in words."""
+
+import math
+import re
+from pathlib import Path
+
+import pytest
+
+from tuning.commands import options
+from tuning.commands.main import build_parser, main
+
+COMMANDS = Path(__file__).resolve().parents[1] / "tuning" / "commands"
+
+
+def _help(capsys, *argv) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        main([*argv, "--help"])
+    assert exit_.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxcart {version('jaxcart')}"
+
+
+@pytest.mark.parametrize("command", ["tune", "grid", "fit", "diagnose"])
+def test_distributed_options_are_listed_last_under_advanced(capsys, command):
+    text = _help(capsys, command)
+    body = text[text.index("\noptions:") :]  # past the usage line
+    heading = body.index(options.ADVANCED.split("(")[0])
+    for flag in ("--coordinator HOST:PORT", "--num-processes N", "--process-id I"):
+        assert body.index(flag) > heading, (command, flag)
+    assert not re.search(r"\n\S.*:\n", body[heading + len(options.ADVANCED) :])  # the last group
+
+
+def test_student_commands_show_no_distributed_options(capsys):
+    for command in ("lab", "simulate", "class"):
+        assert "--coordinator" not in _help(capsys, command)
+
+
+def test_the_distributed_options_are_defined_once():
+    defined = [p.name for p in COMMANDS.glob("*.py") if '"--coordinator"' in p.read_text()]
+    assert defined == ["options.py"]
+    # The commands import shared options from options.py, not from one another.
+    for path in COMMANDS.glob("*.py"):
+        assert "from tuning.commands.tune import" not in path.read_text(), path.name
+
+
+def test_tune_start_is_kp_ki_kd():
+    """--start 60,1,4 is kp = 60, ki = 1, kd = 4, as the design library receives it."""
+    from tuning.commands.tune import _start
+    from tuning.design.losses import PARAM_NAMES
+    from tuning.design.tune import _start_and_template
+
+    start = _start("60,1,4")
+    assert start == {"kp": 60.0, "ki": 1.0, "kd": 4.0}
+    params, _ = _start_and_template(start, None, ("kp", "ki", "kd"))
+    got = dict(zip(PARAM_NAMES, params, strict=True))
+    assert (got["kp"], got["ki"], got["kd"]) == (60.0, 1.0, 4.0)
+    args = build_parser().parse_args(["tune", "--start", "60,1,4"])
+    assert args.start == "60,1,4" and args.free == "kp,ki,kd"
+
+
+def test_tune_start_errors_name_the_order():
+    from jaxcart.errors import UserError
+
+    with pytest.raises(UserError, match=r"kp,ki,kd >= 0 in the handout's order"):
+        options.parse_gains("40,5", "--start")
+
+
+def test_grid_gains_file_without_header_is_kp_ki_kd(tmp_path):
+    from tuning.commands.grid import read_gains_file
+
+    path = tmp_path / "list.csv"
+    path.write_text("60,1,4\n")
+    assert read_gains_file(path) == [(60.0, 4.0, 1.0)]  # the library's rows: kp, kd, ki
+    path.write_text("ki,kd,kp\n1,4,60\n")
+    assert read_gains_file(path) == [(60.0, 4.0, 1.0)]
+
+
+def test_gain_options_are_listed_in_the_handout_order(capsys):
+    for command in ("grid", "simulate"):
+        text = _help(capsys, command)
+        body = text[text.index("\noptions:") :]
+        assert body.index("--kp") < body.index("--ki") < body.index("--kd"), command
+
+
+def test_a_time_never_reached_is_said_in_words():
+    assert options.seconds_text(math.inf) == "does not settle within the horizon"
+    assert options.seconds_text(0.7091) == "0.709 s"
+    assert options.timed("settling", math.inf) == options.NOT_SETTLED
+    assert options.timed("settling", 0.5) == "settling 0.500 s"
+
+
+def test_simulate_prints_a_run_that_never_settles_in_words(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    argv = ["simulate", "--kp", "2", "--ki", "0", "--kd", "0", "--horizon", "0.5"]
+    assert main([*argv, "--out", "slow.csv", "--plot", "slow.png"]) == 0
+    out = capsys.readouterr().out
+    assert "does not settle within the horizon" in out and " inf" not in out
