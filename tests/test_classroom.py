@@ -195,3 +195,27 @@ def test_a_worker_process_that_dies_fails_only_its_student(tmp_path):
     assert status == {"alice": "complete", "crasher": "failed", "bob": "complete"}
     assert "process died" in students[1].error
     assert len(said) == 3
+
+
+def test_the_files_the_lab_used_and_those_it_did_not(tmp_path):
+    """used_files follows the lab's own reading of the folder: each experiment file, the data
+    it maps and lab.toml are used; a stray file and a file the lab read but gave no part are
+    not; a sub-folder is not a file."""
+    import shutil
+
+    from tuning.lab import data
+    from tuning.lab.inputs import find_inputs
+
+    for stem in ("tap", "p50"):
+        for suffix in (".toml", ".csv"):
+            shutil.copy(data.builtin_dir() / f"{stem}{suffix}", tmp_path / f"{stem}{suffix}")
+    (tmp_path / "notes.txt").write_text("cart 7\n")
+    (tmp_path / "old.toml").write_text('description = "no kind"\n')
+    (tmp_path / "photos").mkdir()
+    used = classroom.used_files(find_inputs(tmp_path))
+    assert set(used) >= {"tap.toml", "tap.csv", "p50.toml", "p50.csv"}
+    results = {"data": {"unused": [{"file": "old.toml", "reason": "not an experiment file"}]}}
+    assert classroom.unrecognised_files(tmp_path, results, used) == [
+        ("notes.txt", "not read by the lab"),
+        ("old.toml", "not an experiment file"),
+    ]

@@ -16,17 +16,19 @@ import argparse
 import importlib
 import sys
 
-#: Subcommand modules, in the order ``jaxcart --help`` lists them.
+#: Subcommand modules, in the order ``jaxcart --help`` lists them: a student's first (the lab
+#: report, raw files in, trying and designing gains, fitting), then the cart, the instructor's
+#: class and the benchmark.
 COMMANDS = (
-    "tuning.commands.simulate",
-    "tuning.commands.run",
-    "tuning.commands.tune",
-    "tuning.commands.grid",
-    "tuning.commands.app",
-    "tuning.commands.fit",
-    "tuning.commands.diagnose",
     "tuning.commands.lab",
     "tuning.commands.import_mat",
+    "tuning.commands.simulate",
+    "tuning.commands.app",
+    "tuning.commands.tune",
+    "tuning.commands.grid",
+    "tuning.commands.fit",
+    "tuning.commands.diagnose",
+    "tuning.commands.run",
     "tuning.commands.classroom",
     "tuning.commands.bench",
 )

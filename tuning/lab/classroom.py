@@ -60,7 +60,8 @@ class Student:
     name: the sub-folder's name; folder: it; status: "complete" or "failed"; error: the
     one-line reason of a failure; seconds: the lab's wall time [s]; results: its results.json
     (None when failed); runs: {slot: (time [s], position [m], reference [m] or None)}, thinned,
-    for the overlays; unrecognised: files of the folder the lab did not use, (name, why);
+    for the overlays; used: the files of the folder the lab used; unrecognised: the files it
+    did not use, (name, why);
     flags: what the class table flags; checks: {check: True/False/None (not measured)};
     marked: keys of the numbers flagged as outliers or failing the spec.
     """
@@ -72,6 +73,7 @@ class Student:
     seconds: float = 0.0
     results: dict | None = None
     runs: dict = field(default_factory=dict)
+    used: list = field(default_factory=list)
     unrecognised: list = field(default_factory=list)
     flags: list = field(default_factory=list)
     checks: dict = field(default_factory=dict)
@@ -166,28 +168,46 @@ def find_students(folder) -> tuple[list[Student], list[str]]:
     return students, [p.name for p in entries if not p.is_dir()]
 
 
-def unrecognised_files(folder: Path, results: dict) -> list[tuple[str, str]]:
-    """Files of a student's folder that the lab used for no part, with the reason: the
-    lab's own (a file it read and gave no part) or "not read by the lab"."""
+def unrecognised_files(folder: Path, results: dict, used) -> list[tuple[str, str]]:
+    """Files at the top of a student's folder that the lab used for no part, with the reason:
+    the lab's own (a file it read and gave no part) or "not read by the lab". used: the names
+    of the files the lab used (:func:`used_files`)."""
     data = results.get("data") or {}
-    used = {"lab.toml"}
-    for name in (data.get("recordings") or {}).values():
-        if name:
-            used.add(str(name))
-            used.update(_data_files(folder / str(name)))
-    reasons = {u.get("file"): u.get("reason") for u in data.get("unused") or ()}
+    reasons = {str(u.get("file")): u.get("reason") for u in data.get("unused") or ()}
     out = []
     for path in sorted(folder.iterdir()):
-        if path.name.startswith(".") or path.name in used:
+        if path.name.startswith(".") or path.is_dir() or path.name in used:
             continue
         out.append((path.name, reasons.get(path.name) or "not read by the lab"))
+    listed = {name for name, _ in out}
+    # What the lab read and left that is no top-level file: a run of several .mat files
+    # ("a.mat + b.mat"), a file in a sub-folder.
+    out += [(name, why) for name, why in reasons.items() if name not in listed | set(used)]
     return out
+
+
+def used_files(inputs) -> list[str]:
+    """Names of the files the lab's inputs (:func:`tuning.lab.inputs.find_inputs`) used: its
+    lab.toml, each recording's experiment file and the data files it maps, the raw .mat files
+    of imported runs, and the further runs of a part."""
+    from tuning.lab.inputs import INDEX_NAME
+
+    used = {INDEX_NAME}
+    recordings = list(inputs.recordings.values())
+    recordings += [r for runs in inputs.repeats.values() for r in runs]
+    for rec in recordings:
+        path = Path(rec.path)
+        used.add(path.name)
+        used.update(_data_files(path))
+    for run in inputs.imported.values():
+        used.update(Path(f).name for f in run.files)
+    return sorted(used)
 
 
 def _data_files(toml: Path) -> set[str]:
     """The data files an experiment file names (data = "x.csv" or a [data] table of
-    "file:variable" entries); a .mat recording is its own data."""
-    if toml.suffix != ".toml":
+    "file:variable" entries)."""
+    if toml.suffix != ".toml" or not toml.is_file():
         return set()
     try:
         meta = tomllib.loads(toml.read_text())
@@ -203,19 +223,20 @@ def _data_files(toml: Path) -> set[str]:
 
 def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
     """Run the lab on one student's folder into ``out``, its progress into the file ``log``;
-    returns {"status", "error", "seconds", "runs"}. Never raises for the student's data: a
+    returns {"status", "error", "seconds", "runs", "used"}. Never raises for the student's data: a
     refused folder or a failure of the lab is the returned status and its one-line reason
     (a traceback, for an internal error, goes to the log). Runs in a worker process."""
     from tuning.lab.inputs import find_inputs
     from tuning.lab.report import run_lab
 
     started = time.perf_counter()
-    outcome = {"status": "failed", "error": None, "runs": {}}
+    outcome = {"status": "failed", "error": None, "runs": {}, "used": []}
     with open(log, "w") as stream, contextlib.redirect_stderr(stream):
         try:
             with contextlib.redirect_stdout(stream):
                 run_lab(folder, out, stream=stream, diagnosis=diagnosis)
-                outcome["runs"] = _runs(find_inputs(folder))
+                inputs = find_inputs(folder)
+                outcome["runs"], outcome["used"] = _runs(inputs), used_files(inputs)
             outcome["status"] = "complete"
         except UserError as exc:
             outcome["error"] = str(exc)
@@ -271,6 +292,7 @@ def run_all(
     def finish(student, outcome):
         student.status, student.error = outcome["status"], outcome["error"]
         student.seconds, student.runs = outcome["seconds"], outcome.get("runs") or {}
+        student.used = outcome.get("used") or []
         done[0] += 1
         how = f"complete in {student.seconds:.1f} s" if student.complete else student.error
         say(f"[{done[0]}/{len(jobs)}] {student.name}: {how}")
@@ -350,7 +372,7 @@ def read_results(students, out: Path) -> None:
         except (OSError, ValueError) as exc:
             s.status, s.error = "failed", f"its report's {path.name} cannot be read ({exc})"
             continue
-        s.unrecognised = unrecognised_files(s.folder, s.results)
+        s.unrecognised = unrecognised_files(s.folder, s.results, s.used)
 
 
 def columns_of(students) -> list[Column]:
