@@ -42,6 +42,14 @@ def register(subparsers) -> None:
         "its effect); default B_eq,f_c",
     )
     p.add_argument(
+        "--per-recording",
+        default="",
+        metavar="NAMES",
+        help="of the --params, those free in each recording (a drive that differs from run to "
+        "run: v_sat, i_max, gamma_scale); the others are one value for the cart; e.g. "
+        "--params B_eq,f_c,v_sat --per-recording v_sat",
+    )
+    p.add_argument(
         "--plant",
         dest="plant_file",
         metavar="FILE",
@@ -115,7 +123,13 @@ def run(args) -> int:
             initial = _initial(args.plant_file)
             # The joint fit is one problem: process 0 alone computes it (the others fit their
             # rows of --cross meanwhile) and reports it.
-            result = F.fit(recordings, params, initial=initial, progress=progress)
+            result = F.fit(
+                recordings,
+                params,
+                per_recording=args.per_recording,
+                initial=initial,
+                progress=progress,
+            )
         if result is not None:
             print(format_result(result))
             report = result.to_json()
@@ -169,7 +183,6 @@ def _write_outputs(args, report, result, F) -> None:
     if args.plot:
         F.plot_fit(result, args.plot)
         print(f"plot: {args.plot}")
-    return 0
 
 
 def _initial(plant_file) -> dict:
@@ -249,8 +262,11 @@ def format_result(result) -> str:
         )
         lines.append(f"    model fitted: {describe_plant(s.plant)}")
     lines.append(f"{'parameter':<14}{'value':>14}{'stderr':>12}{'naive':>12}  unit")
-    for name, e in result.params.items():
-        unit = UNITS.get(name, "")
+    names = [s.name for s in result.segments]
+    for key, e in result.params.items():
+        base, _, k = key.partition("@")
+        unit = UNITS.get(base, "")
+        name = f"{base} ({names[int(k)]})" if k else key
         if not e.identifiable:
             held = f"held at {e.held_at:.6g} {unit}; " if e.held_at is not None else ""
             lines.append(f"{name:<14}{held}{e.note}")

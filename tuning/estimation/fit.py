@@ -319,8 +319,7 @@ class FitResult:
         out = [self.misfit] if self.misfit else []
         held = {n: e for n, e in self.params.items() if not e.identifiable}
         for n, e in held.items():
-            at = f" at {e.held_at:.4g} {UNITS.get(n, '')}".rstrip() if e.held_at is not None else ""
-            out.append(f"{n} held{at} ({e.note}); the other errors are conditional on that value")
+            out.append(f"{n}: {e.note}; the other errors are conditional on that value")
         for s in self.stages:
             if not s["converged"] and not s.get("superseded"):
                 out.append(
@@ -353,6 +352,24 @@ class FitResult:
     def rms_after_exact(self) -> float | None:
         """RMS position error [m] of the exact simulator with the fitted values."""
         return self._total("rms_after_exact")
+
+    def per_recording_json(self) -> dict:
+        """{recording name: {parameter: {"value", "stderr"}, "rms_before", "rms_after"}} of the
+        parameters fitted per recording (``name@k``), with each recording's exact RMS [m]."""
+        out = {}
+        for k, seg in enumerate(self.segments):
+            own = {
+                n.split("@")[0]: e.to_json() for n, e in self.params.items() if n.endswith(f"@{k}")
+            }
+            if own:
+                names = [s.name for s in self.segments]
+                key = seg.name if names.count(seg.name) == 1 else f"{seg.name} #{k + 1}"
+                out[key] = {
+                    "parameters": own,
+                    "rms_before": seg.rms_before_exact,
+                    "rms_after": seg.rms_after_exact,
+                }
+        return out
 
     def plant(self, base: Plant | None = None) -> Plant:
         """The fitted plant for closed-loop use: ``base`` (default: the first closed- or
@@ -396,6 +413,7 @@ class FitResult:
             "optimizer": list(self.stages),
             "converged": self.converged,
             "held": {n: e.held_at for n, e in self.params.items() if not e.identifiable},
+            "per_recording": self.per_recording_json(),
             "warnings": self.warnings,
         }
 
@@ -540,10 +558,14 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
     time = np.asarray(recording.time, dtype=float)
     plant = with_values(recording.plant(), values)
     canon = [canonical(p) for p in params]
-    for p in canon:  # a fitted effect the plant lacks starts from DEFAULT_START
+    peaks = _peaks(recording, plant)
+    for p in canon:  # a fitted effect the plant lacks starts where it acts on these data
         b = base_name(p)
         if b in DEFAULT_START and b not in plant.param_names() and not _drives_nothing(b, plant):
-            plant = with_values(plant, {b: DEFAULT_START[b]})
+            start = (
+                DEFAULT_START[b] if plantspec.param(b).size else P.start_for(b, peaks, raw.mean())
+            )
+            plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
     exp = recording.experiment
     if recording.kind == "tap":
@@ -598,6 +620,15 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
         acting,
         q,
     )
+
+
+def _peaks(recording, plant) -> dict:
+    """The largest command [V] a driven recording sent, and the armature current it could
+    drive at rest [A] (None for a tap): where a limit's fit starts."""
+    if recording.command is None or recording.kind == "tap":
+        return {}
+    top = float(np.max(np.abs(np.asarray(recording.command, dtype=float))))
+    return {"command": top, "current": top / float(plant.Rm)}
 
 
 def _name(recording) -> str:
@@ -682,8 +713,10 @@ class _Problem:
         index = len(self.params)
         layout = []
         theta = [to_theta(p, self._start_value(p)) for p in self.params]
-        for seg in segments:
-            ps = tuple((p, self.params.index(p)) for p in seg.params)
+        for k, seg in enumerate(segments):
+            # A parameter free per recording maps to this recording's own copy (``v_sat@k``).
+            own = [f"{p}@{k}" if f"{p}@{k}" in self.params else p for p in seg.params]
+            ps = tuple((p, self.params.index(q)) for p, q in zip(seg.params, own, strict=True))
             nu = []
             for v in seg.nuisance:
                 nu.append((v._replace(base=0.0), index))
@@ -736,16 +769,32 @@ class _Problem:
         )
 
     def _start_value(self, p) -> float:
-        i = _element(p)
+        k, base = P.recording_of(p), base_name(p)
+        segs = self.segments if k is None else [self.segments[k]]
+        i = _element(p.split("@")[0])
         values = [
-            float(s.plant.get(p) if i is None else s.plant.get(base_name(p))[i])
-            for s in self.segments
-            if p in s.params
+            float(s.plant.get(base) if i is None else s.plant.get(base)[i])
+            for s in segs
+            if base in s.params or p in s.params
         ]
-        value = values[0] if values else _default_start(p)
+        value = values[0] if values else _default_start(p.split("@")[0])
         if _log_scaled(p) and not value > 0:
-            value = DEFAULT_START.get(p, 1.0)
+            value = _default_start(p.split("@")[0])
         return value
+
+    def start_source(self, p) -> str:
+        """Where parameter ``p``'s start value comes from, in words (for a value held)."""
+        base = base_name(p)
+        declared = DEFAULT_START.get(base)
+        if base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
+            where = "the recordings' plant (the handout's appendix, a plant file or [plant])"
+        elif declared is not None and math.isclose(
+            self._start_value(p), declared if not isinstance(declared, tuple) else declared[0]
+        ):
+            where = "the effect's declared typical value"
+        else:
+            where = "the recordings' plant (a plant file, [plant] or --initial)"
+        return f"its start value from {where}; give another with --initial {base}=VALUE"
 
     def smoothing(self, width) -> Smoothing:
         return Smoothing(voltage=self.settings.voltage_width, velocity=width, position=1e-6)
@@ -1152,6 +1201,7 @@ def fit(
     recordings,
     params=("B_eq", "f_c"),
     *,
+    per_recording=(),
     initial: dict | None = None,
     settings: FitSettings | None = None,
     exact: bool = True,
@@ -1161,9 +1211,12 @@ def fit(
 
     recordings: :class:`jaxcart.files.Recording` objects (or synthetic ones); params: names to
     fit (``B_eq``, ``f_c``, ``M``, ``gamma_scale``, ``v_sat`` alias ``v_limit``, or any plant
-    parameter), all positive (fitted as logs); initial: starting (and, for names not fitted,
-    fixed) values {name: value} [SI] applied to every recording's plant; exact: also run the
-    exact simulator before and after; progress: a line per stage on stderr.
+    parameter), all positive (fitted as logs); per_recording: those of ``params`` free in each
+    recording they act in (a drive that differs from run to run: ``v_sat``, ``i_max``), fitted
+    as ``name@k`` for recording ``k`` (:attr:`FitResult.per_recording`); the others are one
+    value for every recording (the cart's mechanics); initial: starting (and, for names not
+    fitted, fixed) values {name: value} [SI] applied to every recording's plant; exact: also
+    run the exact simulator before and after; progress: a line per stage on stderr.
     Returns a :class:`FitResult`; a parameter the data do not determine is reported as not
     identifiable and held at its starting value. Runs in float64 whatever jax_enable_x64 says.
     Refused before any fitting (:func:`jaxcart.plausibility.check_fit_recordings`): a
@@ -1173,7 +1226,7 @@ def fit(
 
     recordings = check_fit_recordings(recordings)
     with jax.enable_x64(True):
-        return _fit(recordings, params, initial, settings, exact, progress)
+        return _fit(recordings, params, per_recording, initial, settings, exact, progress)
 
 
 #: Most Levenberg-Marquardt iterations of the direct start at the narrowest width (the
@@ -1181,7 +1234,36 @@ def fit(
 DIRECT_ITERATIONS = 10
 
 
-def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
+class _Run:
+    """A fit's progress lines and the record of its optimizer runs."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+        self.stages: list = []
+        self.history: list = []
+
+    def say(self, text: str) -> None:
+        if self.progress:
+            print(f"fit: {text}", file=sys.stderr, flush=True)
+
+    def stage(self, name, iterations, cap, converged) -> None:
+        # Every optimizer run, so that one stopped at its iteration cap is reported.
+        self.stages.append(
+            {"stage": name, "iterations": iterations, "cap": cap, "converged": bool(converged)}
+        )
+
+    def lm(self, label, problem, theta, active, width, cap, tol=LM_TOLERANCE):
+        """One Levenberg-Marquardt run, recorded and said; returns (theta, r, J)."""
+        theta, r, jac, n_it, ok = _lm(problem, theta, active, width, cap, tol)
+        self.stage(label, n_it, cap, ok)
+        self.say(
+            f"{label}: {n_it} iterations{'' if ok else ' (stopped at its cap)'}, "
+            f"RMS {_rms(r) * 1e3:.4g} mm"
+        )
+        return theta, r, jac
+
+
+def _fit(recordings, params, per_recording, initial, settings, exact, progress) -> FitResult:
     settings = settings or FitSettings()
     t_start = _time.perf_counter()
     params = parse_params(params)
@@ -1190,82 +1272,17 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         raise UserError("no recordings to fit; give at least one experiment file")
     values0 = {canonical(k): _initial_value(k, v) for k, v in (initial or {}).items()}
     segments = [prepare(rec, params, values0, settings) for rec in recordings]
+    params = _expand(params, per_recording, segments)
     problem = _Problem(segments, params, settings)
-    p = len(problem.params)
-    theta = problem.theta0.copy()
-    active = np.ones(theta.size, dtype=bool)
-    notes: dict[str, str] = {}
-    for i, name in enumerate(problem.params):
-        if not any(name in s.params for s in segments):
-            active[i] = False
-            notes[name] = "not identifiable: it does not act on these recordings"
-
-    def say(text):
-        if progress:
-            print(f"fit: {text}", file=sys.stderr, flush=True)
-
-    widths = tuple(settings.widths)
-    narrow = widths[-1]
-    r0, _ = problem.evaluate(theta, narrow)
-    before = problem.split(r0 + problem.observed)
-    say(
+    run = _Run(progress)
+    active, notes = _acting(problem)
+    r0, _ = problem.evaluate(problem.theta0, settings.widths[-1])
+    run.say(
         f"{len(segments)} recording(s), {r0.size} samples, fitting "
-        f"{', '.join(params) or 'nothing'} (+{theta.size - p} nuisance); "
-        f"RMS before {_rms(r0) * 1e3:.4g} mm"
+        f"{', '.join(params) or 'nothing'} (+{problem.theta0.size - problem.n_params} "
+        f"nuisance); RMS before {_rms(r0) * 1e3:.4g} mm"
     )
-    history, stages = [], []
-
-    def stage(name, iterations, cap, converged):
-        # Every optimizer run, so that one stopped at its iteration cap is reported.
-        stages.append(
-            {"stage": name, "iterations": iterations, "cap": cap, "converged": bool(converged)}
-        )
-
-    first_stage = len(stages)
-    for k, width in enumerate(widths):
-        # Gradient descent where the model is smoothest, to leave a poor start; from there
-        # Levenberg-Marquardt converges in a few iterations at each narrower width.
-        steps = settings.adam_steps if k == 0 else 0
-        theta, cost = _adam(problem, theta, active, width, steps, settings.learning_rate)
-        if cost is not None:
-            say(
-                f"width {width:g} m/s: adam {steps} steps, RMS "
-                f"{math.sqrt(cost / r0.size) * 1e3:.4g} mm"
-            )
-        tol = LM_TOLERANCE if width == narrow else LM_TOLERANCE_WIDE
-        theta, r, jac, n_it, ok = _lm(problem, theta, active, width, settings.lm_iterations, tol)
-        history.append((width, n_it, _rms(r)))
-        stage(f"Levenberg-Marquardt at width {width:g} m/s", n_it, settings.lm_iterations, ok)
-        say(
-            f"width {width:g} m/s: Levenberg-Marquardt {n_it} iterations"
-            f"{'' if ok else ' (stopped at its cap)'}, RMS {_rms(r) * 1e3:.4g} mm"
-        )
-
-    if len(widths) > 1:
-        # The continuation can lead astray where the wide widths change the physics: a
-        # closed loop whose cart ends stuck short of the target creeps on under wide friction
-        # smoothing, and B_eq takes up the friction (the built-in P 50 step, from f_c = 0.3 N,
-        # ended at 1.5 mm RMS, 232 times the encoder floor, with B_eq 6 % high; straight
-        # from the start at the narrowest width, 0.0043 mm and the truth). So the narrowest
-        # width is also fitted straight from the start (at most DIRECT_ITERATIONS: 0.5-1 s
-        # more for the built-in recordings), and the lower cost there wins.
-        cap = min(settings.lm_iterations, DIRECT_ITERATIONS)
-        direct = _lm(problem, problem.theta0.copy(), active, narrow, cap, LM_TOLERANCE)
-        # Lower by more than 1 %: where both find the same minimum, the continuation's stays.
-        d, c = _rms(direct[1]), _rms(r)
-        if math.isfinite(d) and (not math.isfinite(c) or d < 0.99 * c):
-            theta, r, jac, n_it, ok = direct
-            # The continuation's result is discarded: its stages no longer judge the fit.
-            for entry in stages[first_stage:]:
-                entry["superseded"] = True
-            history[-1] = (narrow, n_it, _rms(r))
-            stage(f"Levenberg-Marquardt at width {narrow:g} m/s from the start", n_it, cap, ok)
-            say(
-                f"width {narrow:g} m/s from the start: Levenberg-Marquardt {n_it} iterations"
-                f"{'' if ok else ' (stopped at its cap)'}, RMS {_rms(r) * 1e3:.4g} mm: "
-                "lower than the continuation's, kept"
-            )
-
+    theta, r, jac = _optimize(problem, active, settings, run)
     exact = exact and problem.exact_available()
 
     def polish(theta, r, jac):
@@ -1273,15 +1290,127 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
             return theta, r, jac
         cap = settings.exact_iterations
         theta, r, jac, n_it, ok = _exact_polish(problem, theta, active, jac, cap)
-        stage("Gauss-Newton on the exact simulator", n_it, cap, ok)
-        say(
+        run.stage("Gauss-Newton on the exact simulator", n_it, cap, ok)
+        run.say(
             f"exact simulator: {n_it} Gauss-Newton iterations"
             f"{'' if ok else ' (stopped at its cap)'}, RMS {_rms(r) * 1e3:.4g} mm"
         )
         return theta, r, jac
 
     theta, r, jac = polish(theta, r, jac)
-    # Identifiability: drop the worst determined parameter, re-polish, until all are fine.
+    theta, r, jac, cov = _identify(problem, theta, r, jac, active, notes, settings, run, polish)
+    result = _result(problem, params, values0, theta, r, cov, active, notes, run, exact)
+    result = dataclasses.replace(result, seconds=_time.perf_counter() - t_start)
+    # The warnings travel with the result (printed once, by whoever shows it).
+    if exact:
+        run.say(
+            f"RMS after {result.rms_after * 1e3:.4g} mm (smooth), "
+            f"{result.rms_after_exact * 1e3:.4g} mm (exact); {result.seconds:.1f} s"
+        )
+    return result
+
+
+def _expand(params, per_recording, segments) -> tuple:
+    """The fitted names: each parameter of ``per_recording`` as one copy per recording it acts
+    in (``v_sat@1``), the others as given."""
+    per = {canonical(n) for n in parse_params(per_recording)} if per_recording else set()
+    missing = per - {canonical(p) for p in params}
+    if missing:
+        raise UserError(
+            f"--per-recording {', '.join(sorted(missing))}: not among the fitted parameters; "
+            "name it in --params too"
+        )
+    out = []
+    for p in params:
+        if canonical(p) in per:
+            out += [
+                f"{canonical(p)}@{k}" for k, s in enumerate(segments) if canonical(p) in s.params
+            ]
+        else:
+            out.append(p)
+    return tuple(out)
+
+
+def _acting(problem) -> tuple[np.ndarray, dict]:
+    """(active mask over theta, notes): a parameter that acts on no recording is held."""
+    active = np.ones(problem.theta0.size, dtype=bool)
+    notes: dict[str, str] = {}
+    for i, name in enumerate(problem.params):
+        k = P.recording_of(name)
+        segs = problem.segments if k is None else [problem.segments[k]]
+        if not any(base_name(name) in s.params for s in segs):
+            active[i] = False
+            notes[name] = "not identifiable: it does not act on these recordings"
+    return active, notes
+
+
+def _optimize(problem, active, settings, run):
+    """The smooth fit: adam at the widest width, then Levenberg-Marquardt at each narrower
+    width (the continuation), and the narrowest width straight from the start; the lower
+    cost wins. Returns (theta, r, J)."""
+    widths = tuple(settings.widths)
+    narrow = widths[-1]
+    theta = problem.theta0.copy()
+    first = len(run.stages)
+    r = jac = None
+    for k, width in enumerate(widths):
+        # Gradient descent where the model is smoothest, to leave a poor start; from there
+        # Levenberg-Marquardt converges in a few iterations at each narrower width.
+        steps = settings.adam_steps if k == 0 else 0
+        theta, cost = _adam(problem, theta, active, width, steps, settings.learning_rate)
+        if cost is not None:
+            rms = math.sqrt(cost / problem.observed.size)
+            run.say(f"width {width:g} m/s: adam {steps} steps, RMS {rms * 1e3:.4g} mm")
+        tol = LM_TOLERANCE if width == narrow else LM_TOLERANCE_WIDE
+        label = f"Levenberg-Marquardt at width {width:g} m/s"
+        theta, r, jac = run.lm(label, problem, theta, active, width, settings.lm_iterations, tol)
+        run.history.append((width, run.stages[-1]["iterations"], _rms(r)))
+    if len(widths) == 1:
+        return theta, r, jac
+    # The continuation can lead astray where the wide widths change the physics: a closed
+    # loop whose cart ends stuck short of the target creeps on under wide friction smoothing,
+    # and B_eq takes up the friction (the built-in P 50 step, from f_c = 0.3 N, ended at
+    # 1.5 mm RMS, 232 times the encoder floor, with B_eq 6 % high; straight from the start at
+    # the narrowest width, 0.0043 mm and the truth). So the narrowest width is also fitted
+    # straight from the start (at most DIRECT_ITERATIONS), and the lower cost there wins.
+    cap = min(settings.lm_iterations, DIRECT_ITERATIONS)
+    direct = _lm(problem, problem.theta0.copy(), active, narrow, cap, LM_TOLERANCE)
+    # Lower by more than 1 %: where both find the same minimum, the continuation's stays.
+    d, c = _rms(direct[1]), _rms(r)
+    if not (math.isfinite(d) and (not math.isfinite(c) or d < 0.99 * c)):
+        return theta, r, jac
+    theta, r, jac, n_it, ok = direct
+    # The continuation's result is discarded: its stages no longer judge the fit.
+    for entry in run.stages[first:]:
+        entry["superseded"] = True
+    run.history[-1] = (narrow, n_it, _rms(r))
+    run.stage(f"Levenberg-Marquardt at width {narrow:g} m/s from the start", n_it, cap, ok)
+    run.say(
+        f"width {narrow:g} m/s from the start: Levenberg-Marquardt {n_it} iterations"
+        f"{'' if ok else ' (stopped at its cap)'}, RMS {_rms(r) * 1e3:.4g} mm: "
+        "lower than the continuation's, kept"
+    )
+    return theta, r, jac
+
+
+class _Covariance(NamedTuple):
+    """The covariances of the final fit over the active entries ``idx`` of theta (internal
+    units): robust (HAC, widened for model error where the model misfits), naive."""
+
+    idx: np.ndarray
+    hac: np.ndarray
+    naive: np.ndarray
+    se: np.ndarray  # robust standard errors (widened where the model misfits)
+    floor: float
+    n_eff: float
+    misfit: str
+
+
+def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
+    """Identifiability: the worst determined parameter held at its start value and the rest
+    refitted, until every relative standard error is within ``max_rel_stderr``. Returns
+    (theta, r, J, :class:`_Covariance`)."""
+    p = problem.n_params
     while True:
         idx = np.flatnonzero(active)
         hac, naive, singular = _covariances(problem, r, jac, idx)
@@ -1309,62 +1438,80 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
         name = problem.params[i]
         notes[name] = _why(name, worst, idx, hac, singular, zero, problem, theta)
         held_at = float(to_value(name, problem.theta0[i]))
-        say(f"{name}: {notes[name]}; holding it at {held_at:.4g}")
+        run.say(f"{name}: {notes[name]}; holding it at {held_at:.4g}, {problem.start_source(name)}")
         active[i] = False
         theta[i] = problem.theta0[i]
-        theta, r, jac, n_it, ok = _lm(problem, theta, active, narrow, settings.lm_iterations)
-        stage(f"Levenberg-Marquardt without {name}", n_it, settings.lm_iterations, ok)
+        label = f"Levenberg-Marquardt without {name}"
+        narrow = settings.widths[-1]
+        theta, r, jac = run.lm(label, problem, theta, active, narrow, settings.lm_iterations)
         theta, r, jac = polish(theta, r, jac)
+    return theta, r, jac, _final_covariance(problem, r, idx, hac, naive, run)
 
-    floor = noise_floor(segments)
+
+def _final_covariance(problem, r, idx, hac, naive, run) -> _Covariance:
+    """The standard errors of the final fit, widened where the model misfits."""
+    floor = noise_floor(problem.segments)
     n_eff = effective_samples(problem.split(r))
-    se_hac = np.sqrt(np.diag(hac))
+    se = np.sqrt(np.diag(hac))
     misfit = ""
     if misfits(_rms(r), floor):
-        se_hac = widened_for_model_error(se_hac, np.diag(naive), r.size, n_eff)
+        se = widened_for_model_error(se, np.diag(naive), r.size, n_eff)
         misfit = (
             f"the model does not explain the data: RMS {_rms(r) * 1e3:.3g} mm is "
             f"{_rms(r) / floor:.0f} times the encoder/noise level {floor * 1e3:.2g} mm; the "
             f"residual is worth {n_eff:.0f} independent samples of {r.size}, and the standard "
             "errors are widened to that; an effect may be missing (jaxcart diagnose)"
         )
-        say(misfit)
-    se_internal = dict(zip(idx.tolist(), se_hac, strict=True))
-    se_naive = dict(zip(idx.tolist(), np.sqrt(np.diag(naive)), strict=True))
-    estimates = {}
+    return _Covariance(idx, hac, naive, se, floor, n_eff, misfit)
+
+
+def _estimates(problem, params, theta, cov, active, notes) -> dict:
+    """{name as asked: :class:`Estimate`} of every fitted parameter."""
+    se_internal = dict(zip(cov.idx.tolist(), cov.se, strict=True))
+    se_naive = dict(zip(cov.idx.tolist(), np.sqrt(np.diag(cov.naive)), strict=True))
+    out = {}
     for asked, name in zip(params, problem.params, strict=True):
         i = problem.params.index(name)
         if active[i]:
             value = float(to_value(name, theta[i]))
             slope = P.value_slope(name, value)
-            estimates[asked] = Estimate(
+            out[asked] = Estimate(
                 asked, value, slope * float(se_internal[i]), stderr_naive=slope * float(se_naive[i])
             )
         else:
-            estimates[asked] = Estimate(
-                asked,
-                None,
-                None,
-                identifiable=False,
-                note=notes[name],
-                held_at=float(to_value(name, problem.theta0[i])),
-            )
-    correlation = {}
-    ident = [j for j, i in enumerate(idx) if i < p]
+            held = float(to_value(name, problem.theta0[i]))
+            note = f"{notes[name]}; held at {held:.4g}, {problem.start_source(name)}"
+            out[asked] = Estimate(asked, None, None, identifiable=False, note=note, held_at=held)
+    return out
+
+
+def _correlation(problem, cov) -> dict:
+    """{(a, b): correlation} of the identified plant parameters."""
+    out = {}
+    hac, idx = cov.hac, cov.idx
+    ident = [j for j, i in enumerate(idx) if i < problem.n_params]
     for a in ident:
         for b in ident:
             if a < b:
                 c = hac[a, b] / math.sqrt(hac[a, a] * hac[b, b])
-                correlation[(problem.params[idx[a]], problem.params[idx[b]])] = float(c)
+                out[(problem.params[idx[a]], problem.params[idx[b]])] = float(c)
+    return out
 
+
+def _segment_fits(problem, theta, cov, exact, narrow) -> list:
+    """A :class:`SegmentFit` per recording: before and after, smooth and exact, nuisances."""
+    se_internal = dict(zip(cov.idx.tolist(), cov.se, strict=True))
+    se_naive = dict(zip(cov.idx.tolist(), np.sqrt(np.diag(cov.naive)), strict=True))
+    r0, _ = problem.evaluate(problem.theta0, narrow)
+    before = problem.split(r0 + problem.observed)
     r_smooth, _ = problem.evaluate(theta, narrow)
     after = problem.split(r_smooth + problem.observed)
-    before_exact = after_exact = [None] * len(segments)
+    before_exact = after_exact = [None] * len(problem.segments)
     if exact:
         before_exact = problem.simulate_exact(problem.theta0)
         after_exact = problem.simulate_exact(theta)
-    seg_fits = []
-    for k, seg in enumerate(segments):
+    out = []
+    for k, seg in enumerate(problem.segments):
         pv, nv = problem.segment_values(theta, k)
         nuis = {}
         for v, i in problem.nuisance_index(k):
@@ -1375,48 +1522,44 @@ def _fit(recordings, params, initial, settings, exact, progress) -> FitResult:
                 float(se_internal.get(i, math.nan)) * slope,
                 stderr_naive=float(se_naive.get(i, math.nan)) * slope,
             )
-        seg_fits.append(
-            SegmentFit(
-                seg.name,
-                seg.recording.kind,
-                seg.time,
-                seg.measured,
-                before[k],
-                after[k],
-                before_exact[k],
-                after_exact[k],
-                nuis,
-                seg.plant.replace(**assemble(seg.plant, pv)),
-            )
+        plant = seg.plant.replace(**assemble(seg.plant, pv))
+        fits = (before[k], after[k], before_exact[k], after_exact[k])
+        out.append(
+            SegmentFit(seg.name, seg.recording.kind, seg.time, seg.measured, *fits, nuis, plant)
         )
+    return out
+
+
+def _result(problem, params, values0, theta, r, cov, active, notes, run, exact) -> FitResult:
+    """The :class:`FitResult` of a finished fit (``seconds`` filled in by the caller)."""
+    estimates = _estimates(problem, params, theta, cov, active, notes)
     values = {**values0}
-    for seg in segments:
-        values.update(plant_values(seg.plant, problem.params))
+    for seg in problem.segments:
+        values.update(plant_values(seg.plant, [n for n in problem.params if "@" not in n]))
+    per_run: dict = {}
     for i, name in enumerate(problem.params):
-        values[name] = float(to_value(name, theta[i]))
-    result = FitResult(
+        if "@" in name:
+            per_run.setdefault(base_name(name), []).append(float(to_value(name, theta[i])))
+        else:
+            values[name] = float(to_value(name, theta[i]))
+    # The cart's plant holds a parameter free per recording at the median of its runs.
+    values.update({n: float(np.median(v)) for n, v in per_run.items()})
+    narrow = problem.settings.widths[-1]
+    return FitResult(
         estimates,
         values,
-        seg_fits,
-        correlation,
+        _segment_fits(problem, theta, cov, exact, narrow),
+        _correlation(problem, cov),
         int(r.size),
-        _time.perf_counter() - t_start,
+        0.0,
         problem.smoothing(narrow),
-        history,
+        run.history,
         exact,
-        stages,
-        floor,
-        n_eff,
-        misfit,
+        run.stages,
+        cov.floor,
+        cov.n_eff,
+        cov.misfit,
     )
-    for line in result.warnings[1 if misfit else 0 :]:
-        say(f"warning: {line}")
-    if exact:
-        say(
-            f"RMS after {result.rms_after * 1e3:.4g} mm (smooth), "
-            f"{result.rms_after_exact * 1e3:.4g} mm (exact); {result.seconds:.1f} s"
-        )
-    return result
 
 
 def noise_floor(segments) -> float:

@@ -208,5 +208,5 @@ def describe_residual(residual, sample_time: float) -> str:
     k = int(np.argmax(spec[1:])) + 1
     share = float(spec[max(k - 1, 1) : k + 2].sum() / spec[1:].sum())
     if freq[k] < 1.0:
-        return f"a slow drift ({share:.0%} of its energy below 1 Hz)"
+        return f"a slow drift (strongest at {freq[k]:.2g} Hz, {share:.0%} of its energy)"
     return f"a ripple at {freq[k]:.3g} Hz ({share:.0%} of its energy)"

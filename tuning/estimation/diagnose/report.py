@@ -28,7 +28,14 @@ def render_markdown(d, figure: str | None = None) -> str:
         lines.append("")
     if d.status != "diagnosed":
         return "\n".join(lines + [f"- {m}" for m in d.messages]) + "\n"
-    ratio = d.rms_before / d.rms_after if d.rms_after > 0 else math.inf
+    lines += _caveats(d) + _fit_section(d) + _per_recording_section(d) + _where_section(d)
+    lines += _candidates_section(d, figure)
+    return "\n".join(lines) + "\n"
+
+
+def _caveats(d) -> list:
+    """Not explained, M and gamma_scale not told apart, implausible values."""
+    lines = []
     if not d.explained:
         lines += ["## Not explained", "", d.misfit[:1].upper() + d.misfit[1:] + ".", ""]
         if d.suggestions:
@@ -49,7 +56,13 @@ def render_markdown(d, figure: str | None = None) -> str:
         lines.append("")
     if d.implausible:
         lines += ["## Implausible values", ""] + [f"- {x}" for x in d.implausible] + [""]
-    lines += [
+    return lines
+
+
+def _fit_section(d) -> list:
+    """The fit on the exact simulator and the fitted parameters."""
+    ratio = d.rms_before / d.rms_after if d.rms_after > 0 else math.inf
+    lines = [
         "## Fit on the exact simulator",
         "",
         "| | RMS position error |",
@@ -57,9 +70,14 @@ def render_markdown(d, figure: str | None = None) -> str:
         f"| baseline (handout model, B_eq fitted) | {_mm(d.rms_before)} |",
         f"| corrected ({d.chosen}) | {_mm(d.rms_after)} |",
         f"| encoder floor q/sqrt(12) | {_mm(d.floor)} |",
+    ]
+    if d.repeat is not None:
+        lines.append(f"| what the cart repeats (repeated runs) | {_mm(d.repeat)} |")
+    lines += [
         "",
         f"Improvement: {ratio:.1f}x. Baseline B_eq = {_num(d.baseline['B_eq']['value'])} +/- "
-        f"{_num(d.baseline['B_eq']['stderr'])} kg/s.",
+        f"{_num(d.baseline['B_eq']['stderr'])} kg/s."
+        + (f" What is left: {d.remainder}." if d.remainder else ""),
         "",
         "## Fitted parameters",
         "",
@@ -89,7 +107,35 @@ def render_markdown(d, figure: str | None = None) -> str:
             "",
         ]
         lines += [f"- {x['effect']} of {x['structure']}: {x['why']}" for x in d.not_significant]
-    lines += ["", "## Where the recording and the baseline part", ""]
+    return lines
+
+
+def _per_recording_section(d) -> list:
+    """Each recording's own drive values and RMS (a joint diagnosis)."""
+    if len(d.per_recording) < 2:
+        return []
+    lines = [
+        "",
+        "## Each recording",
+        "",
+        "| recording | kind | own values | RMS before | RMS after |",
+        "|---|---|---|---|---|",
+    ]
+    for name, rec in d.per_recording.items():
+        own = ", ".join(
+            f"{n} = {_num(p['value'])} +/- {_num(p['stderr'])} {p['unit']}"
+            for n, p in rec["parameters"].items()
+        )
+        lines.append(
+            f"| {name} | {rec['kind']} | {own or '-'} | {_mm(rec['rms_before'])} | "
+            f"{_mm(rec['rms_after'])} |"
+        )
+    return lines
+
+
+def _where_section(d) -> list:
+    """Where the recording and the baseline part, and the baseline's residual tests."""
+    lines = ["", "## Where the recording and the baseline part", ""]
     if d.windows:
         lines += [
             "| recording | start [s] | end [s] | regime | share | RMS |",
@@ -117,7 +163,12 @@ def render_markdown(d, figure: str | None = None) -> str:
                 f"- correlation with {k.replace('_', ' ')}: {x['correlation']:+.3f} (z = "
                 f"{x['z']:+.1f}, {sig}; can explain: {', '.join(x['points_to'])})"
             )
-    lines += [
+    return lines
+
+
+def _candidates_section(d, figure) -> list:
+    """Every candidate tried, the figure and the corrected plant."""
+    lines = [
         "",
         "## Candidates (fitted through the smoothed simulator, scored on the exact one)",
         "",
@@ -142,7 +193,7 @@ def render_markdown(d, figure: str | None = None) -> str:
             "No corrected plant file is written: a value above is outside what a cart of this "
             "lab has, and other commands would use it.",
         ]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 #: The significance item of a strength parameter (the Markdown's z column): the effect that

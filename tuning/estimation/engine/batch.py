@@ -102,6 +102,34 @@ class Layout:
         return P.base_name(name)
 
 
+def _superset(plant):
+    """``plant`` with every SHARED parameter it lacks at its neutral stand-in (a drive
+    effect is not added to a plant without its motor: a tap)."""
+    from jaxcart.plantspec import build_plant
+
+    have = plant.param_names()
+    missing = {k: P.stand_in(k) for k in SHARED if k not in have}
+    if not plant.motor_connected:
+        missing = {k: v for k, v in missing.items() if not P.is_drive(k)}
+    return build_plant(missing, base=plant, check=False)
+
+
+def _theta_arrays(layout):
+    """(log mask, linear scale, lower and upper bounds in internal units) of every slot."""
+    names = layout.names
+    log_mask = np.array([n != "_dummy" and P.is_log(n) for n in names])
+    ranges = [P.bounds(n) if n != "_dummy" else (-1e9, 1e9) for n in names]
+    lo = np.array([P.to_theta(n, r[0]) for n, r in zip(names, ranges, strict=True)])
+    hi = np.array([P.to_theta(n, r[1]) for n, r in zip(names, ranges, strict=True)])
+    scale = np.array(
+        [
+            1.0 if m or n == "_dummy" else P.value_slope(n, 1.0)
+            for n, m in zip(names, log_mask, strict=True)
+        ]
+    )
+    return log_mask, scale, lo, hi
+
+
 class BatchFitter:
     """The compiled, vmapped LM step for a set of segments (built once per diagnosis)."""
 
@@ -110,37 +138,18 @@ class BatchFitter:
         import jax.numpy as jnp
 
         from jaxcart.parallel import sharded_map
-        from jaxcart.plantspec import build_plant
         from jaxcart.smooth_sim import simulate_smooth
         from jaxcart.smoothing import Smoothing
         from jaxcart.substeps import substeps_per_sample
 
         self.segments = segments
         self.layout = layout = Layout(segments, per_recording)
-        supers = []
-        for plant in start_plants:
-            have = plant.param_names()
-            missing = {k: P.stand_in(k) for k in SHARED if k not in have}
-            # A drive effect cannot be added to a plant without its motor (a tap).
-            if not plant.motor_connected:
-                missing = {k: v for k, v in missing.items() if not P.is_drive(k)}
-            supers.append(build_plant(missing, base=plant, check=False))
-        self.supers = supers
+        self.supers = supers = [_superset(plant) for plant in start_plants]
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
         slots = [layout.slots_of(i) for i in range(len(segments))]
-        log_mask = np.array([n != "_dummy" and P.is_log(n) for n in layout.names])
-        ranges = [P.bounds(n) if n != "_dummy" else (-1e9, 1e9) for n in layout.names]
-        lo = np.array([P.to_theta(n, r[0]) for n, r in zip(layout.names, ranges, strict=True)])
-        hi = np.array([P.to_theta(n, r[1]) for n, r in zip(layout.names, ranges, strict=True)])
-        scale_v = np.array(
-            [
-                1.0 if m or n == "_dummy" else P.value_slope(n, 1.0)
-                for n, m in zip(layout.names, log_mask, strict=True)
-            ]
-        )
-        self.log_mask = log_mask
-        log_mask_j, scale_j = jnp.asarray(log_mask), jnp.asarray(scale_v)
+        self.log_mask, scale_v, lo, hi = _theta_arrays(layout)
+        log_mask_j, scale_j = jnp.asarray(self.log_mask), jnp.asarray(scale_v)
         lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
         base_smoothing = Smoothing()
 
@@ -219,8 +228,10 @@ class BatchFitter:
             elif k in values and k in SHARED:
                 base[j] = values[k]
             elif k in SHARED:
-                sup = next((p for p in self.supers if k in p.param_names()), self.supers[0])
-                base[j] = float(np.asarray(sup.get(k)))
+                # A drive parameter on recordings without their motor (taps only) acts
+                # nowhere: its stand-in value.
+                sup = next((p for p in self.supers if k in p.param_names()), None)
+                base[j] = P.stand_in(k) if sup is None else float(np.asarray(sup.get(k)))
         for i, (a, b) in self.layout.nuisance.items():
             exp = self.segments[i].experiment
             base[a], base[b] = values.get(f"y0@{i}", exp.y0), values.get(f"yd0@{i}", exp.yd0)

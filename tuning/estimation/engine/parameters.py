@@ -176,3 +176,18 @@ def encoder() -> tuple[str, str]:
             if p.role == "sensor":
                 return name, p.name
     raise LookupError("no sensor effect is registered")
+
+
+def start_for(name: str, peaks: dict | None = None, y_mean: float = 0.0) -> float:
+    """A fit's start value of a parameter [SI] from the data where its declared start would
+    not act: a limit below the run's largest command (current), ``peaks`` {"command" [V],
+    "current" [A]} (from its declared start a limit above them never acts and its gradient is
+    zero); a position (a spring's rest) where the cart was, ``y_mean`` [m]; else declared."""
+    decl = spec(name)
+    cls = plantspec.effect_of_param(base_name(name))
+    top = (peaks or {}).get(cls.limits) if cls is not None and cls.limits else None
+    if top:
+        return 0.7 * float(top)
+    if decl.neutral is None and decl.unit == "m" and cls is not None:
+        return float(y_mean)
+    return decl.start

@@ -1,0 +1,647 @@
+"""The diagnosis: a search over structures on the estimation engine, and its verdict.
+
+    recordings --checks--> segments --round 1: every single structure, one batch--> scores
+        --pairs, forward selection, backward step (batches)--> exact polish of the best
+        --significance, ties, swapped corrections--> :class:`~.core.Diagnosis`
+
+Each round fits its candidate structures in one batch (:class:`~tuning.estimation.engine.
+batch.BatchFitter`), re-checks them on the exact simulator and scores them
+(:func:`~.core.score`); the structure named is the best-scoring one whose every effect is
+significant and physically sized (:func:`~.core.significance`). The helpers it calls (the
+exact re-check and polish, the covariances, the scores) live in :mod:`.core`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time as _time
+
+import numpy as np
+
+from jaxcart import plantspec
+from tuning.estimation.diagnose import core as C
+from tuning.estimation.diagnose import locate
+from tuning.estimation.diagnose.core import (
+    EFFECT_PARAMS,
+    FLOOR_FACTOR,
+    ITERATIONS,
+    K_MAX,
+    NESTED,
+    PARAM_ERRORS,
+    PER_RUN,
+    PER_RUN_PARAMS,
+    POLISH,
+    SEEDS,
+    TIE,
+    WIDTHS,
+    Diagnosis,
+)
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.batch import SHARED, BatchFitter, Layout
+from tuning.estimation.engine.noise import MISFIT_RATIO
+
+
+def diagnose(
+    recordings, *, start=None, progress=True, pairs: bool = True, processes=None
+) -> Diagnosis:
+    """Diagnose one recording or several of one cart jointly.
+
+    recordings: :class:`jaxcart.files.Recording` (or a list); start: a start plant (a plant
+    file's :class:`jaxcart.Plant`; default the handout's); progress: True (print to stderr),
+    False or a callable taking one line. Returns a :class:`Diagnosis`.
+
+    Several driven runs of one cart share the mechanics; each may have its own drive limits
+    (the structures with PER_RUN free v_sat, i_max per run).
+
+    processes: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: the candidates'
+    batch fits, exact re-checks and exact polishes are split over the processes and every
+    result gathered on every one, which then all hold the same diagnosis (process 0 reports).
+    Inside ``processes.carry()`` (as ``jaxcart diagnose`` calls it), an exception one process
+    meets is raised on every process at its next exchange, none waiting for another.
+    """
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    say = C._progress_printer(progress)
+    t_start = _time.perf_counter()
+    if not isinstance(recordings, list | tuple):
+        recordings = [recordings]
+    names = [C._name(r) for r in recordings]
+    messages, checks, controllers, read_counts = _checks(recordings, say)
+    if messages:
+        for m in messages:
+            say(m)
+        return Diagnosis(names, "not diagnosed", messages, checks, seconds=C._elapsed(t_start))
+    search = Search(recordings, controllers, read_counts, start, say, processes)
+    search.run(pairs)
+    d = search.diagnosis(names, checks, t_start)
+    say(
+        f"{d.verdict}; RMS {d.rms_before * 1e3:.4f} mm -> {d.rms_after * 1e3:.4f} mm "
+        f"(encoder floor {d.floor * 1e3:.4f} mm), {d.seconds:.1f} s"
+    )
+    return d
+
+
+def _checks(recordings, say):
+    """(messages refusing the recordings, controller checks, controllers inferred, whether
+    each controller read whole encoder counts)."""
+    from tuning.estimation.diagnose import controller as ctl
+    from tuning.estimation.engine.noise import encoder_count
+
+    messages = []
+    for rec in recordings:
+        problem = C._excitation(rec, encoder_count(np.asarray(rec.position, dtype=float)))
+        if problem:
+            messages.append(problem)
+    checks, controllers, read_counts = [], [], []
+    for rec in recordings:
+        chk = ctl.check(rec)
+        read_counts.append(bool(chk and chk["reads_counts"]))
+        inferred = None
+        if chk is not None:
+            checks.append({k: v for k, v in chk.items() if k != "inferred"})
+            say(chk["message"])
+            inferred = chk["inferred"]
+            if inferred is not None:
+                keys = ("kp", "ki", "kd", "tau", "derivative_on", "v_limit")
+                checks[-1]["inferred"] = {k: getattr(inferred, k) for k in keys}
+        controllers.append(inferred)
+    return messages, checks, controllers, read_counts
+
+
+class Search:
+    """One diagnosis's search: the segments, the batch fitter, the candidates tried."""
+
+    def __init__(self, recordings, controllers, read_counts, start, say, processes):
+        from jaxcart.cache import enable_persistent_cache
+        from jaxcart.plantspec import handout_plant
+        from tuning.estimation.engine.noise import floor_of
+
+        self.recordings, self.say, self.processes = recordings, say, processes
+        segments = [C.prepare(r, c) for r, c in zip(recordings, controllers, strict=True)]
+        start_plant = start if start is not None else handout_plant()
+        base_plants = []
+        for rec in recordings:
+            p = start_plant
+            if rec.kind == "tap" and not rec.meta.get("tap", {}).get("motor_connected", False):
+                p = dataclasses.replace(p, motor_connected=False)
+            base_plants.append(rec.plant(p) if rec.plant_overrides else p)
+        self.base_plants, self.segments = C._counts_in_loop(base_plants, segments, read_counts)
+        segments = self.segments
+        # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data
+        # that are not whole counts (jaxcart fit's floor).
+        self.floor = floor_of((s.target, s.quantization) for s in segments)
+        self.floor2 = (FLOOR_FACTOR * self.floor) ** 2
+        self.widen_above = FLOOR_FACTOR * self.floor  # above it the residual is model error
+        self.n_eff = C._n_eff(segments)
+        self.repeat = C._repeat_levels(segments)
+        say(
+            f"diagnose {', '.join(s.name for s in segments)}: "
+            f"{sum(s.target.size for s in segments)} samples fitted"
+        )
+        enable_persistent_cache()  # compiled batches kept on disk: a second one starts warm
+        # Several driven runs of one cart: each may have its own drive limits (PER_RUN).
+        runs = tuple(i for i, s in enumerate(segments) if s.motor)
+        self.runs = runs if len(runs) >= 2 else ()
+        self.extra = max(0, 2 * len(self.runs) - 2)  # a PER_RUN structure's extra slots
+        per = PER_RUN_PARAMS if self.runs else ()
+        self.fitter = BatchFitter(segments, self.base_plants, per_recording=per)
+        self.layout = self.fitter.layout
+        self.memo = C.ExactMemo()
+        self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
+        self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
+        self.starts_all = C._start_values(segments, recordings, self.base_plants, SHARED)
+        motor = [p for p, s in zip(self.base_plants, segments, strict=True) if s.motor]
+        self.ref_plant = motor[0] if motor else self.base_plants[0]
+        # A parameter correction is measured from the start plant's value.
+        self.neutral = {n: float(self.ref_plant.get(n)) for p in PARAM_ERRORS.values() for n in p}
+        self.cands = []
+
+    # ------------------------------------------------------------ fitting and judging
+
+    def exact(self, c, values):
+        """(exact residuals per segment, commands) of ``c`` at ``values`` (memoized)."""
+        return C.exact_residuals(c, self.segments, self.base_plants, values, self.layout, self.memo)
+
+    def run_round(self, cands, starts, number):
+        """Fit ``cands`` in one batch, re-check each on the exact simulator and score it."""
+        say = self.say
+        say(
+            f"fitting {len(cands)} candidate structures in one batch: "
+            + ", ".join(c.name for c in cands)
+        )
+        problems = [
+            (tuple(c.free) + tuple(self.nuis), s, {}) for c, s in zip(cands, starts, strict=True)
+        ]
+        n_pad = max(len(self.round1), len(cands))
+        problems = problems + [problems[0]] * (n_pad - len(problems))
+        t_fit = _time.perf_counter()
+        results = self.fitter.fit(
+            problems,
+            WIDTHS,
+            ITERATIONS,
+            kmax=K_MAX + self.extra + len(self.nuis),
+            progress=lambda w, c: say(f"  width x{w:g}: smooth RMS {C._fmt_list(c, self.fitter)}"),
+            share=self.processes,
+        )
+        say(f"  batch fit: {_time.perf_counter() - t_fit:.1f} s")
+        for c, (vals, cost, jac, _r) in zip(cands, results, strict=False):
+            c.values, c.rms_smooth, c.jac, c.round = vals, math.sqrt(cost), jac, number
+        rechecked = C._spread(self.processes, cands, lambda c: ({}, self.exact(c, c.values)[0]))
+        for c, (_, res) in zip(cands, rechecked, strict=True):
+            c.residuals = res
+            c.rms_exact = C._rms(res)
+            c.score = C.score(c, c.rms_exact**2, self.floor2, self.n_eff)
+            say(
+                f"  candidate {c.name:<24} smooth {c.rms_smooth * 1e3:8.4f} mm   exact "
+                f"{c.rms_exact * 1e3:8.4f} mm   score {c.score:10.1f}"
+            )
+
+    def peaks(self, c) -> dict:
+        """The largest command and armature current of ``c``'s own runs (motor segments): over
+        all of them, and of each (``command@i``) for a limit free per run."""
+        by_run = {}
+        limits = {
+            C.REGISTRY[e].limits for p in c.parts if p in EFFECT_PARAMS for e in P.named_by(p)
+        }
+        if "command" in limits:
+            _, cmds = self.exact(c, c.values)
+            by_run["command"] = {
+                i: float(np.nanmax(np.abs(u))) for i, u in enumerate(cmds) if u is not None
+            }
+        if "current" in limits:
+            by_run["current"] = C._current_peaks(
+                c, self.segments, self.base_plants, c.values, self.layout
+            )
+        out = {}
+        for k, each in by_run.items():
+            out[k] = max(each.values(), default=0.0)
+            out.update({f"{k}@{i}": v for i, v in each.items()})
+        return out
+
+    def cov_of(self, c) -> C.Covariance:
+        """``c``'s parameter covariances at its values (free slots and nuisances)."""
+        jac = c.jac / C.fitter_scale(self.segments)
+        names = list(c.free) + self.nuis
+        return C.covariance(self.segments, names, c.values, jac, c.residuals, self.widen_above)
+
+    def eligible(self, c) -> bool:
+        """Every effect and correction of ``c`` significant (:func:`~.core.significance`), at
+        its current values (assessed once per set of values), and needed: a baseline within the
+        misfit level already explains the recording, and nothing is named."""
+        base = self.round1[0]
+        key = (tuple(sorted(c.values.items())), base.rms_exact)
+        if c.assessed != key:
+            c.z, c.why = {}, {}
+            if c.parts and not C._misfits(base.rms_exact, self.floor):
+                c.why = {
+                    p: f"not needed: the baseline explains the recording (RMS "
+                    f"{base.rms_exact / self.floor:.1f} times the encoder floor)"
+                    for p in c.parts
+                }
+            elif c.parts:
+                stderr = self.cov_of(c).stderr
+                sig = C.significance(c.parts, c.values, stderr, self.peaks(c), self.neutral)
+                c.z = {k: v["z"] for k, v in sig.items()}
+                c.why = {k: v["why"] for k, v in sig.items()}
+            c.assessed = key
+        return not c.why_not
+
+    def choose(self, cs):
+        """The best-scoring eligible structure (the baseline always is)."""
+        return next((c for c in sorted(cs, key=lambda c: c.score) if self.eligible(c)), None)
+
+    @staticmethod
+    def promising(cs, than):
+        """The structures of ``cs`` that score better than ``than``, best first: the search
+        goes on from these. Significance decides what is named, not where to search: a
+        structure that is not named can lead the fits to the right basin (on the built-in
+        P 50 step Coulomb + a spring with its rest point at the bound of its range does, and
+        Coulomb alone reaches the floor from there), and standard errors widened for model
+        error would stop the search on the recordings it matters most for."""
+        return sorted((c for c in cs if c.score < than - 1.0), key=lambda c: c.score)
+
+    def polished(self, c, start):
+        """(values, [exact residuals per segment..., the Jacobian in the batch fit's form])."""
+        seg, plants, lay = self.segments, self.base_plants, self.layout
+        values, jac, order = C._polish(c, seg, plants, start, lay, memo=self.memo)
+        res = self.exact(c, values)[0]
+        return values, [*res, C._theta_jacobian(c, jac, order, values, self.nuis, seg)]
+
+    def polish_all(self, todo):
+        """Exact re-fits of (candidate, start) pairs, each kept only where it lowers the exact
+        residual; independent, so split over the processes of a distributed run."""
+        done = C._spread(self.processes, todo, lambda item: self.polished(*item))
+        for (c, _start), (values, arrays) in zip(todo, done, strict=True):
+            self.keep(c, values, arrays[:-1], arrays[-1])
+
+    def keep(self, c, values, res, jac):
+        if C._rms(res) < c.rms_exact:
+            c.values, c.residuals, c.rms_exact = values, res, C._rms(res)
+            c.score = C.score(c, c.rms_exact**2, self.floor2, self.n_eff)
+            # The significance test's standard errors at these values: the exact re-fit's
+            # Jacobian, not the smooth fit's at the values it started from.
+            if jac.size:
+                c.jac = jac
+            self.say(
+                f"  exact polish {c.name:<20} exact {c.rms_exact * 1e3:8.4f} mm"
+                f"   score {c.score:10.1f}"
+            )
+
+    def fit_round(self, grown, number, what):
+        """Fit the (candidate, seed, addition) triples of one round and keep them."""
+        t1 = _time.perf_counter()
+        self.run_round([c for c, _, _ in grown], C._pair_starts(grown, self.starts_all), number)
+        self.say(f"round {number} ({what}): {_time.perf_counter() - t1:.1f} s")
+        self.cands += [c for c, _, _ in grown]
+        return [c for c, _, _ in grown]
+
+    # ------------------------------------------------------------ the search
+
+    def run(self, pairs: bool):
+        """Round 1, then (where nothing explains the recordings yet) pairs, forward selection
+        and a backward step, then the exact polish of the most promising structures."""
+        t0 = _time.perf_counter()
+        starts1 = [{k: self.starts_all[Layout.kind(k)] for k in c.free} for c in self.round1]
+        self.run_round(self.round1, starts1, 1)
+        self.say(f"round 1 (compile + fit + exact checks): {_time.perf_counter() - t0:.1f} s")
+        self.cands = list(self.round1)
+        self.locate()
+        # A single structure that already explains the data to the encoder's own error leaves
+        # nothing for a pair to explain: round 2 is skipped (it costs a second batch).
+        first = sorted(self.round1[1:], key=lambda c: c.score)[:2]  # a smooth fit may stall
+        self.polish_all([(c, dict(c.values)) for c in first])
+        base = self.round1[0]
+        explained = min(c.rms_exact for c in self.round1) <= FLOOR_FACTOR * self.floor
+        if explained:
+            self.say("round 2 skipped: a single structure reaches the encoder floor")
+        elif not C._misfits(base.rms_exact, self.floor):
+            explained = True
+            self.say("round 2 skipped: the baseline explains the recording")
+        if pairs and not explained:
+            seen, additions, level = self.pairs_round()
+            number = self.forward(seen, additions, level)
+            self.backward(seen, number)
+        self.final_polish()
+
+    def locate(self):
+        """Where the baseline's exact residual lies: windows and regressor tests."""
+        base = self.round1[0]
+        _, commands = self.exact(base, base.values)
+        commands = list(commands)  # the memo's list is shared: replaced entries go in a copy
+        for i, rec in enumerate(self.recordings):
+            if rec.command is not None and self.segments[i].motor:
+                commands[i] = np.asarray(rec.command, dtype=float)[self.segments[i].start :]
+        self.commands = commands
+        limits = [float(getattr(s.controller, "v_limit", math.inf)) for s in self.segments]
+        self.wins = locate.windows(self.segments, base.residuals, commands, limits, self.floor)
+        self.tests = locate.residual_tests(self.segments, base.residuals, commands, self.n_eff)
+
+    def pairs_round(self):
+        """Round 2: the singles that helped in pairs, each with the concealing friction, and
+        (several runs of one cart) each drive limit free per run with it. Returns (structures
+        seen, the additions of the forward selection, round 2's candidates)."""
+        round1, base = self.round1, self.round1[0]
+        friction = P.concealing_friction()
+        good = self.promising([c for c in round1[1:] if c.parts[0] in EFFECT_PARAMS], base.score)
+        by_name = {c.name: c for c in round1}
+        mass = by_name.get("mass")
+        mass_helped = mass is not None and bool(self.promising([mass], base.score))
+        new = []
+        top = good[:3]
+        for i, a in enumerate(top):
+            new += [(a, b) for b in top[i + 1 :]]
+            if friction in by_name and not P.friction_family(a.name):
+                new.append((a, by_name[friction]))
+            if mass_helped:
+                new.append((a, mass))
+        # The batch is padded to round 1's size anyway: the other effects fill it, each with
+        # Coulomb friction where it helped (Coulomb conceals them: a delay, a current limit
+        # under Coulomb friction help little or nothing alone), those that helped first.
+        coulomb = by_name.get(friction)
+        if coulomb is not None and self.runs:
+            # Several runs of one cart: each drive limit free per run, under the friction
+            # (with the limits shared the runs disagree, and friction alone fits neither).
+            new = [(c, coulomb) for c in round1 if PER_RUN in c.parts] + new
+        if coulomb is not None and self.promising([coulomb], base.score):
+            helped = {id(c) for c in good}
+            rest = good[3:] + [
+                c for c in round1[1:] if c.parts[0] in EFFECT_PARAMS and id(c) not in helped
+            ]
+            new += [(a, coulomb) for a in rest if not P.friction_family(a.name)]
+        seen, round2 = set(), []
+        for a, b in new:
+            c = C.pair(a, b)
+            if set(c.parts) in seen or P.redundant(c.parts):
+                continue
+            seen.add(frozenset(c.parts))
+            round2.append((c, a, b))
+        round2 = round2[: len(round1)]
+        level = self.fit_round(round2, 2, "pairs") if round2 else []
+        # The forward selection extends by the singles that helped (Coulomb always among
+        # them, as in the pairs: other effects conceal it).
+        additions = good + ([mass] if mass_helped else [])
+        if friction in by_name and all(a.name != friction for a in additions):
+            additions.append(by_name[friction])
+        additions.sort(key=lambda c: c.score)
+        return {frozenset(c.parts) for c in self.cands}, additions, level
+
+    def forward(self, seen, additions, level) -> int:
+        """Forward selection: while the best structure of the last round is still above the
+        misfit level and better than every structure before it, extend the best of that round
+        by one more addition, as many free slots as one batch has. Returns the next round's
+        number."""
+        number, kmax = 3, K_MAX + self.extra
+        while level:
+            seeds = self.seeds(level)
+            if not seeds:
+                self.say(f"round {number} skipped: round {number - 1} did not improve the score")
+                break
+            if not C.extend(seeds, additions, set(seen), kmax=kmax):
+                self.say(f"round {number} skipped: no structure left within {kmax} slots")
+                break
+            # The lead polished on the exact simulator and the structures nested in it
+            # re-fitted from its values (as after the search): a smooth fit stalled where the
+            # exact cart sticks can hide that a simpler structure already explains it.
+            lead = seeds[0]
+            self.polish_all(
+                [(lead, dict(lead.values))]
+                + [
+                    (c, {k: lead.values.get(k, c.values[k]) for k in c.values})
+                    for c in self.cands
+                    if c.parts and set(c.parts) < set(lead.parts)
+                ]
+            )
+            if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
+                self.say(f"round {number} skipped: a structure explains the recording")
+                break
+            seeds = self.seeds(level)  # the polish may have improved earlier structures too
+            grown = C.extend(seeds, additions, seen, kmax=kmax) if seeds else []
+            if not grown:
+                break
+            level = self.fit_round(grown, number, "forward selection")
+            number += 1
+        return number
+
+    def seeds(self, level):
+        """The structures of the last round that beat every structure before it."""
+        this = {id(c) for c in level}
+        before = min(c.score for c in self.cands if id(c) not in this)
+        return self.promising(level, before)[:SEEDS]
+
+    def backward(self, seen, number):
+        """Backward step: the best structure with a part that is not significant (a delay gone
+        to 0 while M took over) tried without that part, from its values, in one batch."""
+        lead = min(self.cands, key=lambda c: c.score)
+        if len(lead.parts) < 3 or self.eligible(lead):
+            return
+        pruned = []
+        for part in lead.parts:
+            if any(lead.why.get(item) for item in C._items(part)):
+                c = C._structure(tuple(x for x in lead.parts if x != part), lead.runs)
+                if frozenset(c.parts) not in seen:
+                    seen.add(frozenset(c.parts))
+                    pruned.append((c, lead, lead))
+        if pruned:
+            self.fit_round(pruned, number, "without what is not significant")
+
+    def final_polish(self):
+        """The exact polish of the most promising structures, then every structure no richer
+        than the best-scoring one re-fitted from its values: a smooth fit that stalled in
+        another basin (Coulomb friction creeps where the exact cart sticks) gets a fair exact
+        re-fit, so that a simpler structure does not lose to a richer one and near-ties are
+        found (Coulomb and deadzone on a P step). Of the forward selection's structures (three
+        parts and more) only those nested in the best; of the others the NESTED best-scoring
+        (each re-fit is a few dozen exact runs)."""
+        base = self.round1[0]
+        self.masks = C._window_masks(self.segments, self.wins)
+        C._window_evidence(self.cands, base, self.masks)
+        t2 = _time.perf_counter()
+        ranked = [x for x in sorted(self.cands, key=lambda c: c.score) if x is not base]
+        self.polish_all([(c, dict(c.values)) for c in ranked[:POLISH] + [base]])
+        self.say(f"exact polish: {_time.perf_counter() - t2:.1f} s")
+        done, previous = {id(base)}, None
+        for _ in range(2):
+            lead = min(self.cands, key=lambda c: c.score)
+            if lead is previous:  # a second pass only from a new best-scoring structure
+                break
+            previous = lead
+            nested = sorted(
+                (
+                    c
+                    for c in self.cands
+                    if id(c) not in done
+                    and c is not lead
+                    and c.parts
+                    and len(c.free) <= len(lead.free)
+                    and (len(c.parts) <= 2 or set(c.parts) < set(lead.parts))
+                ),
+                key=lambda c: c.score,
+            )
+            inside = [c for c in nested if set(c.parts) < set(lead.parts)]
+            others = [c for c in nested if not set(c.parts) < set(lead.parts)][:NESTED]
+            nested = inside + others
+            if not nested:
+                break
+            done.update(id(c) for c in nested)
+            todo = [(c, {k: lead.values.get(k, c.values[k]) for k in c.values}) for c in nested]
+            self.polish_all(todo)
+
+    # ------------------------------------------------------------ the verdict
+
+    def best(self):
+        """(the structure named, near-ties, effects of better-scoring structures not named,
+        M/gamma_scale not told apart)."""
+        cands = self.cands
+        best = self.choose(cands)
+        C._window_evidence(cands, self.round1[0], self.masks)
+        for c in cands:
+            self.eligible(c)  # every candidate's significance at its final values
+        ties = [
+            c
+            for c in cands
+            if c is not best
+            and self.eligible(c)
+            and c.score <= best.score + TIE
+            and best.parts
+            and c.parts
+            and len(c.parts) <= len(best.parts)
+            and set(c.parts) != set(best.parts)
+            and (set(c.effects) != set(best.effects) or not best.effects)
+            and not (set(best.parts) < set(c.parts))
+        ]
+        dropped = [
+            {"structure": c.name, "effect": k, "z": c.z.get(k, math.nan), "why": why}
+            for c in sorted(cands, key=lambda c: c.score)
+            if c.score < best.score
+            for k, why in c.why.items()
+            if why
+        ]
+        for item in dropped:
+            self.say(f"  not named: {item['effect']} of {item['structure']} ({item['why']})")
+        # M or gamma_scale corrected: the other may fit as well (only ratios are identifiable).
+        unident, swapped = C._swap_tie(
+            best, cands, self.ref_plant, self.segments, self.base_plants, self.layout,
+            self.memo, self.floor2, self.n_eff,
+        )  # fmt: skip
+        if swapped is not None:
+            ties = [c for c in ties if set(c.parts) != set(swapped.parts)]
+            best = self.plausible_of(best, swapped)
+        return best, ties, dropped, unident
+
+    def plausible_of(self, best, swapped):
+        """Of two structures that fit equally well, the one whose values a cart of this lab
+        has (a heavier cart with a plausible B_eq rather than a weaker motor with B_eq near 0)."""
+        if not C.implausible(best.values, best.free) or C.implausible(swapped.values, swapped.free):
+            return best
+        if swapped.jac is None:  # values mapped from best's: an exact re-fit gives its own
+            values, arrays = self.polished(swapped, dict(swapped.values))
+            swapped.jac = arrays[-1]
+            if C._rms(arrays[:-1]) < swapped.rms_exact:
+                swapped.values, swapped.residuals = values, arrays[:-1]
+                swapped.rms_exact = C._rms(swapped.residuals)
+                swapped.score = C.score(swapped, swapped.rms_exact**2, self.floor2, self.n_eff)
+        return swapped if swapped.jac.size and self.eligible(swapped) else best
+
+    def parameters(self, best, cov, unident) -> tuple[dict, dict]:
+        """(the named structure's shared values with standard errors, the baseline's B_eq)."""
+        params = {}
+        for n in best.free:
+            if "@" in n:
+                continue  # per recording: in the per-recording results
+            params[n] = {
+                "value": best.values[n],
+                "stderr": cov.stderr({n: 1.0}),
+                "unit": plantspec.unit(n),
+                "stderr_widened": cov.widened,
+            }
+        if unident:
+            params["B_eq"]["settled"] = False
+            params["B_eq"]["range"] = unident["B_eq"]
+        base = self.round1[0]
+        base_cov = self.cov_of(base)
+        baseline = {
+            "B_eq": {
+                "value": base.values["B_eq"],
+                "stderr": base_cov.stderr({"B_eq": 1.0}),
+                "unit": "kg/s",
+                "stderr_widened": base_cov.widened,
+            },
+            "rms": base.rms_exact,
+        }
+        return params, baseline
+
+    def misfit(self, best, explained) -> tuple[list, str]:
+        """(what may be missing, why the best structure does not explain the recordings)."""
+        if explained:
+            return [], ""
+        left = locate.residual_tests(self.segments, best.residuals, self.commands, self.n_eff)
+        text = (
+            f"the best structure ({best.name}) ends at RMS {best.rms_exact * 1e3:.4g} mm, "
+            f"{C._times(best.rms_exact / self.floor)} times the encoder floor "
+            f"{self.floor * 1e3:.2g} mm (above {MISFIT_RATIO:g} times it the residual is model "
+            "error): no candidate explains the recording, and the standard errors are widened "
+            "for model error"
+        )
+        self.say(text)
+        return C._suggestions(left, best), text
+
+    def diagnosis(self, names, checks, t_start) -> Diagnosis:
+        """The :class:`Diagnosis` of the finished search."""
+        best, ties, dropped, unident = self.best()
+        base, segments = self.round1[0], self.segments
+        cov = self.cov_of(best)
+        params, baseline = self.parameters(best, cov, unident)
+        traces = [
+            {
+                "name": seg.name,
+                "time": seg.time,
+                "measured": seg.target,
+                "baseline": seg.target + rb,
+                "after": seg.target + ra,
+            }
+            for seg, rb, ra in zip(segments, base.residuals, best.residuals, strict=True)
+        ]
+        level = max(self.repeat.values()) if self.repeat else None
+        # A real cart does not repeat itself to its encoder: within what it repeats, a model
+        # that names significant physics has explained what can be explained.
+        explained = not C._misfits(best.rms_exact, self.floor) or (
+            level is not None and best.rms_exact <= level
+        )
+        suggestions, misfit = self.misfit(best, explained)
+        corrections = [PARAM_ERRORS[p][0] for p in best.corrections]
+        return Diagnosis(
+            names,
+            "diagnosed",
+            [],
+            checks,
+            left_out=list(best.effects),
+            corrected_parameters=corrections,
+            equivalent=[
+                list(c.effects) or [PARAM_ERRORS[p][0] for p in c.corrections] for c in ties
+            ],
+            rms_before=base.rms_exact,
+            rms_after=best.rms_exact,
+            floor=self.floor,
+            parameters=params,
+            baseline=baseline,
+            windows=self.wins,
+            tests=self.tests,
+            candidates=sorted(self.cands, key=lambda c: c.score),
+            chosen=best.name,
+            plant=C._cart_plant(best, self.base_plants, segments),
+            seconds=C._elapsed(t_start),
+            traces=traces,
+            explained=explained,
+            misfit=misfit,
+            suggestions=suggestions,
+            implausible=C.implausible(best.values, best.free),
+            not_significant=dropped,
+            significance=dict(best.z),
+            unidentifiable=unident,
+            start_values={n: self.neutral[n] for n in corrections},
+            per_recording=C._per_recording(best, names, segments, base, cov),
+            repeat=level,
+            remainder=C._remainder(best, segments),
+        )
