@@ -106,3 +106,20 @@ def test_simulate_prints_a_run_that_never_settles_in_words(tmp_path, capsys, mon
     assert main([*argv, "--out", "slow.csv", "--plot", "slow.png"]) == 0
     out = capsys.readouterr().out
     assert "does not settle within the horizon" in out and " inf" not in out
+
+
+def test_library_messages_with_inf_are_said_in_words():
+    """tune prints the design library's message through in_words, grid its comparison table
+    through _not_settled_in_words."""
+    from tuning.commands.grid import _not_settled_in_words
+
+    message = (
+        "cannot meet the specification (exact simulator): settling time inf s is not under "
+        "1 s. Best found: settling inf s, overshoot 0.00 %"
+    )
+    said = options.in_words(message)
+    assert " inf" not in said and said.count(options.NOT_SETTLED) == 2
+    assert options.in_words("settling 0.709 s") == "settling 0.709 s"
+    table = "  settling time [s]              inf            0.709\n  overshoot [%]   1   2"
+    lines = _not_settled_in_words(table).splitlines()
+    assert options.NOT_SETTLED in lines[0] and "0.709" in lines[0] and lines[1].endswith("2")

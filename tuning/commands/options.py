@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 
 from jaxcart.errors import UserError
 
@@ -128,3 +129,10 @@ def timed(name: str, value, never: str = NOT_SETTLED) -> str:
     """'settling 0.709 s', or the whole phrase ``never`` when the time is infinite."""
     text = seconds_text(value, never=never)
     return text if text == never else f"{name} {text}"
+
+
+def in_words(text: str) -> str:
+    """A library's message with a settling time of inf said in words ("settling inf s",
+    "settling time inf s is not under 1 s" -> :data:`NOT_SETTLED`)."""
+    text = re.sub(r"settling time inf s is not under \S+ s", NOT_SETTLED, text)
+    return re.sub(r"settling( time)? inf s", NOT_SETTLED, text)

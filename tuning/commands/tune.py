@@ -21,6 +21,7 @@ from tuning.commands.options import (
     GAINS,
     add_cluster_options,
     add_robust_options,
+    in_words,
     parse_gains,
     robust_ranges,
     seconds_text,
@@ -548,7 +549,7 @@ def _print_summary(result, robust, n_processes=1):
             f"{label:24s}{_fmt(info.rise_time):>10s}{_fmt(info.overshoot, digits=2):>15s}"
             f"{_fmt(info.steady_state_error, digits=5):>14s}  {seconds_text(info.settling_time)}"
         )
-    print(result.message)
+    print(in_words(result.message))
     note = result.bound_note(widen=_bound_flags(result))
     if note is not None:
         print(note)

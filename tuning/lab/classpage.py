@@ -22,7 +22,8 @@ th, td { border: 1px solid #bbb; padding: .2em .5em; vertical-align: top; }
 th { background: #f0f0f0; font-weight: normal; font-size: .9em; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
 td.bad, span.bad { background: #fbd5d5; } td.ok { background: #dff3df; }
-th:first-child, td:first-child { position: sticky; left: 0; background: #fafafa; }
+th:first-child, td:first-child { position: sticky; left: 0; background: #fafafa;
+                                 white-space: nowrap; }
 figure img { max-width: 100%; border: 1px solid #ddd; } figcaption { color: #444; }
 .note { background: #fff8e0; border-left: 4px solid #e0b000; padding: .4em .8em; }
 """
