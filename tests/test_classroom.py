@@ -167,6 +167,12 @@ def test_a_class_folder_without_sub_folders_is_one_clear_error(tmp_path):
         classroom.find_students(tmp_path)
     with pytest.raises(UserError, match="no such folder"):
         classroom.find_students(tmp_path / "nope")
+    (tmp_path / "alice").mkdir()
+    (tmp_path / "report").mkdir()
+    (tmp_path / "report" / "class.csv").write_text("student\n")
+    students, stray = classroom.find_students(tmp_path)
+    assert [s.name for s in students] == ["alice"]
+    assert stray == ["tap.toml", "report/ (a class report)"]
 
 
 # ---------------------------------------------------------------- a worker that dies

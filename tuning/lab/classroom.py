@@ -150,8 +150,9 @@ class ClassResult:
 
 
 def find_students(folder) -> tuple[list[Student], list[str]]:
-    """(the students: one per sub-folder, sorted by name; files at the top of the class
-    folder, which belong to no student). Hidden entries are skipped."""
+    """(the students: one per sub-folder, sorted by name; what belongs to no student: files
+    at the top of the class folder, a class report written there). Hidden entries are
+    skipped."""
     folder = Path(folder)
     if not folder.is_dir():
         what = "a file, not a folder" if folder.exists() else "no such folder"
@@ -159,13 +160,17 @@ def find_students(folder) -> tuple[list[Student], list[str]]:
             f"{folder}: {what}; give the class folder that holds one sub-folder per student"
         )
     entries = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+    # A class report written inside the class folder (--out class/report) is no student.
+    reports = [p for p in entries if p.is_dir() and (p / "class.csv").is_file()]
+    entries = [p for p in entries if p not in reports]
     students = [Student(p.name, p) for p in entries if p.is_dir()]
     if not students:
         raise UserError(
             f"{folder}: no sub-folders; put each student's (or group's) recordings in a "
             f"sub-folder of its own, e.g. {folder}/alice/"
         )
-    return students, [p.name for p in entries if not p.is_dir()]
+    stray = [p.name for p in entries if not p.is_dir()]
+    return students, stray + [f"{p.name}/ (a class report)" for p in reports]
 
 
 def unrecognised_files(folder: Path, results: dict, used) -> list[tuple[str, str]]:
