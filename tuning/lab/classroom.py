@@ -247,7 +247,8 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
             outcome["error"] = str(exc)
         except Exception as exc:  # noqa: BLE001 - isolated: one student's failure, reported
             traceback.print_exc(file=stream)
-            outcome["error"] = f"internal error ({type(exc).__name__}: {exc}); see {log}"
+            where = f"logs/{Path(log).name}"  # in the class report (written elsewhere first)
+            outcome["error"] = f"internal error ({type(exc).__name__}: {exc}); see {where}"
         if outcome["error"]:
             print(f"failed: {outcome['error']}", file=stream)
     outcome["seconds"] = time.perf_counter() - started
