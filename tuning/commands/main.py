@@ -93,6 +93,10 @@ def main(argv=None) -> int:
     from jaxcart.errors import UserError
 
     try:
+        if args.command in INTERRUPTIBLE and not getattr(args, "coordinator", None):
+            from tuning.commands import interruptible
+
+            return int(interruptible.run(args.func, args) or 0)
         return int(args.func(args) or 0)
     except (UserError, GainsFileError, OutputError) as exc:
         print(f"jaxcart {args.command}: error: {exc}", file=sys.stderr)
@@ -100,6 +104,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+#: Commands that spend minutes inside compiled programs: run so that Ctrl-C stops them at
+#: once (tuning.commands.interruptible); a distributed run keeps its main thread.
+INTERRUPTIBLE = {"fit", "diagnose", "lab"}
 
 
 if __name__ == "__main__":

@@ -1,0 +1,43 @@
+"""Long commands that stop at Ctrl-C within a second.
+
+A fit or a diagnosis spends most of its time inside compiled XLA programs, where Python's
+SIGINT handler does not run until the program returns (a 10-million-sample fit ignored Ctrl-C
+for over a minute). Such a command runs in a worker thread; the main thread waits in short
+slices, so Ctrl-C reaches it at once. The worker cannot be stopped inside XLA, so the process
+then exits without waiting for it: outputs are written atomically (hw.atomicio), so nothing
+half-written is left under a user's name.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+
+#: How often the waiting main thread looks up [s].
+SLICE = 0.1
+
+
+def run(func, *args):
+    """``func(*args)`` in a worker thread; its result, or its exception re-raised here. A
+    KeyboardInterrupt while waiting ends the process at once with status 130."""
+    box: dict = {}
+
+    def work():
+        try:
+            box["result"] = func(*args)
+        except BaseException as exc:  # handed to the main thread as it is
+            box["error"] = exc
+
+    worker = threading.Thread(target=work, name="jaxcart-command", daemon=True)
+    worker.start()
+    try:
+        while worker.is_alive():
+            worker.join(SLICE)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(130)
+    if "error" in box:
+        raise box["error"]
+    return box.get("result")
