@@ -22,11 +22,13 @@ import argparse
 import json
 import os
 import re
+import resource
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 CASES = ("import", "tune", "fit-tap", "fit-p50")
@@ -39,7 +41,8 @@ _REPORTED = {
 
 
 def _data(name: str) -> str:
-    return str(Path(__file__).resolve().parent.parent / "jaxcart" / "data" / f"{name}.toml")
+    """The built-in recording ``name`` (jaxcart/data/NAME.toml, beside tuning/)."""
+    return str(Path(__file__).resolve().parents[2] / "jaxcart" / "data" / f"{name}.toml")
 
 
 def _command(case: str, out: Path) -> list[str]:
@@ -52,13 +55,35 @@ def _command(case: str, out: Path) -> list[str]:
     raise ValueError(case)
 
 
-def _run(cmd: list[str], env: dict) -> tuple[float, str]:
+@dataclass(frozen=True)
+class Timing:
+    """One command run in a new process: wall time [s], CPU time [s] (user + sys of it and
+    the processes it waited for), its output (stdout then stderr) and exit status."""
+
+    wall: float
+    cpu: float
+    text: str
+    returncode: int
+
+
+def timed(cmd: list[str], env: dict, *, ok=(0,), timeout: float = 900) -> Timing:
+    """Run ``cmd`` in a new process; RuntimeError (with its stderr's tail) unless its exit
+    status is one of ``ok``. Commands are run one at a time (the CPU time is the growth of
+    this process's waited-for children's)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
     seconds = time.perf_counter() - t0
-    if proc.returncode != 0:
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode not in ok:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
-    return seconds, proc.stdout + proc.stderr
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return Timing(seconds, cpu, proc.stdout + proc.stderr, proc.returncode)
+
+
+def _run(cmd: list[str], env: dict) -> tuple[float, str]:
+    t = timed(cmd, env)
+    return t.wall, t.text
 
 
 def _reported(case: str, text: str) -> float | None:
