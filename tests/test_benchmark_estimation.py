@@ -51,7 +51,8 @@ def test_check_joint_compares_named_effects_and_per_run_limits_with_the_truth():
     diagnosis = {
         "status": "diagnosed",
         "verdict": "explained",
-        "left_out": [Coulomb.name, PER_RUN],
+        "left_out": [Coulomb.name],
+        "chosen": f"{PER_RUN}+{Coulomb.name}",
         "parameters": {"B_eq": {"value": 3.8}},
         "per_recording": per_recording,
     }

@@ -108,7 +108,8 @@ def check_joint(diagnosis: dict) -> dict:
     from jaxcart.effects import Coulomb, Saturation
     from tuning.estimation.diagnose.core import PER_RUN
 
-    named = set(diagnosis.get("left_out") or [])
+    # The effects named are in left_out; a limit free per run is a part of the chosen structure.
+    named = set(diagnosis.get("left_out") or []) | set((diagnosis.get("chosen") or "").split("+"))
     limit = Saturation.params[0].name
     found = {}
     for name, rec in (diagnosis.get("per_recording") or {}).items():
@@ -119,7 +120,7 @@ def check_joint(diagnosis: dict) -> dict:
         "status": diagnosis.get("status"),
         "verdict": diagnosis.get("verdict"),
         "named": {n: n in named for n in (Coulomb.name, Saturation.name, PER_RUN)},
-        "left_out": sorted(named),
+        "chosen": diagnosis.get("chosen"),
         "shared": {n: (params.get(n, {}).get("value"), CART.get(n)) for n in ("B_eq", "f_c")},
         "limit": limit,
         "per_run": {run.stem: (found.get(run.stem), run.v_sat) for run in RUNS},
@@ -282,7 +283,7 @@ def _joint_lines(check: dict) -> list[str]:
     names = ", ".join(f"{n} {'yes' if ok else 'NO'}" for n, ok in check["named"].items())
     lines = [
         f"joint diagnosis ({check['status']}): {check['verdict']}",
-        f"named: {names} (left out: {', '.join(check['left_out']) or 'nothing'})",
+        f"named: {names} (structure chosen: {check['chosen']})",
     ]
     for n, (got, true) in check["shared"].items():
         lines.append(f"  {n} = {_value(got)} (true {true:g})")
@@ -292,7 +293,7 @@ def _joint_lines(check: dict) -> list[str]:
 
 
 def _value(x) -> str:
-    return "not fitted" if x is None else f"{x:.4g}"
+    return "not fitted" if x is None else f"{x:.5g}"
 
 
 def main(argv=None) -> int:
