@@ -97,3 +97,29 @@ def test_overlays_appear_with_a_recording_and_a_plant(tmp_path):
     assert "<th>recorded</th>" in page.metrics.text
     # The sliders start at the recording's gains, so the fitted plant's run is its truth's.
     np.testing.assert_allclose(page.response.data["y"][-1], rec.position[-1], atol=2e-4)
+
+
+def test_narrow_layout_puts_region_and_poles_underneath(problem):
+    page = build(Document(), problem, narrow=True)
+    top, bottom = page.layout.children
+    assert page.figures.position in top.children[1].children
+    assert page.figures.region in bottom.children
+
+
+def test_notebook_gets_bokehjs_inline_not_from_a_cdn(monkeypatch):
+    """show_in_notebook: BokehJS from the installed package (offline), the narrow page."""
+    import bokeh.io
+
+    from tuning.app import server
+
+    seen = {}
+    monkeypatch.setattr(bokeh.io, "output_notebook", lambda **kw: seen.update(kw))
+    monkeypatch.setattr(
+        bokeh.io, "show", lambda app, notebook_url: seen.update(app=app, url=notebook_url)
+    )
+    monkeypatch.setattr(server, "warm", lambda problem: None)
+    server.show_in_notebook(notebook_url="localhost:8890")
+    assert seen["resources"].mode == "inline" and seen["url"] == "localhost:8890"
+    doc = Document()
+    seen["app"](doc)
+    assert doc.get_model_by_name("kp") is not None and len(doc.roots[0].children) == 2

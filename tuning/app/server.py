@@ -7,10 +7,14 @@ feasible regions are shared through its memo.
     jaxcart app                                  # the handout's plant
     jaxcart app --data pid.toml --plant P.toml   # a recording and a fitted plant overlaid
 
-In a notebook (classic Jupyter or JupyterLab with the jupyter_bokeh extension)::
+In a Jupyter notebook (Notebook 7 and JupyterLab render Bokeh through the jupyter_bokeh
+extension: ``pip install -e '.[notebook]'``), with the notebook's own address::
 
     from tuning.app.server import show_in_notebook
-    show_in_notebook(data="pid.toml", plant="P.toml")
+    show_in_notebook(data="pid.toml", plant="P.toml", notebook_url="localhost:8888")
+
+The kernel runs a Bokeh server of its own for the page (its callbacks run the simulator); the
+notebook gets BokehJS inline from the installed package, not from a CDN.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ def make_server(problem: DesignProblem, *, port: int = DEFAULT_PORT, address="12
 
 def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", browser=True):
     """Serve the page until Ctrl-C (or SIGTERM); prints its address first. Returns 0."""
+    print("jaxcart app: preparing the page (the region's batch compiles once)...", flush=True)
     warm(problem)
     try:
         server = make_server(problem, port=port, address=address)
@@ -84,13 +89,16 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
 
 
 def show_in_notebook(data=None, plant=None, *, notebook_url="localhost:8888"):
-    """Show the page in the running Jupyter notebook (a Bokeh server inside the kernel)."""
+    """Show the page in the running Jupyter notebook (a Bokeh server inside the kernel);
+    ``notebook_url``: the host:port the notebook's page was opened at."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     from bokeh.io import output_notebook, show
+    from bokeh.resources import INLINE
 
     problem = problem_from_files(data, plant)
     warm(problem)
-    output_notebook(hide_banner=True)
-    show(lambda doc: build(doc, problem), notebook_url=notebook_url)
+    # INLINE: BokehJS from the installed package into the notebook (the default is a CDN).
+    output_notebook(resources=INLINE, hide_banner=True)
+    show(lambda doc: build(doc, problem, narrow=True), notebook_url=notebook_url)

@@ -59,10 +59,11 @@ POLE_WINDOW = (-150.0, 20.0, -100.0, 100.0)
 SIM_COLOUR, REC_COLOUR, NOMINAL_COLOUR = "#1f77b4", "#d62728", "#7f7f7f"
 
 
-def build(doc, problem: DesignProblem) -> DesignPage:
+def build(doc, problem: DesignProblem, *, narrow: bool = False) -> DesignPage:
     """Fill ``doc`` with the design page of ``problem``; returns the page (its models and
-    :meth:`DesignPage.update`)."""
-    page = DesignPage(problem)
+    :meth:`DesignPage.update`). ``narrow``: the region and the poles under the response
+    instead of beside it (a notebook cell is about 1000 px wide)."""
+    page = DesignPage(problem, narrow=narrow)
     doc.add_root(page.layout)
     doc.title = "jaxcart design page"
     page.doc = doc
@@ -72,7 +73,7 @@ def build(doc, problem: DesignProblem) -> DesignPage:
 class DesignPage:
     """The page's models and the one update that redraws them from the sliders."""
 
-    def __init__(self, problem: DesignProblem):
+    def __init__(self, problem: DesignProblem, *, narrow: bool = False):
         self.problem = problem
         self.doc = None
         self._pending = False
@@ -98,8 +99,12 @@ class DesignPage:
         note = Div(text=_note(problem), width=310)
         controls = column(*self.sliders.values(), self.metrics, note, width=320)
         middle = column(self.figures.position, self.figures.voltage)
-        right = column(self.figures.region, self.figures.poles, self.pole_list)
-        self.layout = row(controls, middle, right)
+        if narrow:
+            poles = column(self.figures.poles, self.pole_list)
+            self.layout = column(row(controls, middle), row(self.figures.region, poles))
+        else:
+            right = column(self.figures.region, self.figures.poles, self.pole_list)
+            self.layout = row(controls, middle, right)
         self.update()
 
     def settings(self) -> Settings:
