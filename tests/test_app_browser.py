@@ -56,7 +56,8 @@ def _title(page, figure: str) -> str:
 
 
 def test_pressing_the_sliders_changes_the_plot_and_the_metrics(url):
-    with browser.page_at(url) as page:
+    requests = []
+    with browser.page_at(url, requests=requests) as page:
         assert browser.model_value(page, "kp") == 40.0
         first = browser.response_data(page)
         overshoot = _metric(page, "overshoot")
@@ -88,6 +89,8 @@ def test_pressing_the_sliders_changes_the_plot_and_the_metrics(url):
         browser.timed_moves(page, "setpoint", ["Home"])
         data = browser.response_data(page)
         assert data["r"][-1] == -0.8 and data["y"][-1] < -0.7
+    # Offline: BokehJS and everything else came from the app's own server (no CDN).
+    assert requests and all(r.startswith((url, "data:", "blob:")) for r in requests), requests
 
 
 def test_a_recording_and_a_fitted_plant_are_drawn(tmp_path):

@@ -123,9 +123,12 @@ def _pump(stream, lines: queue.Queue) -> None:
 
 
 @contextlib.contextmanager
-def page_at(url: str, *, width: int = 1420, height: int = 900, timeout: float = 120.0):
+def page_at(
+    url: str, *, width: int = 1420, height: int = 900, timeout: float = 120.0, requests=None
+):
     """A Playwright page of Chromium (fresh profile, off the network) showing ``url``, once the
-    design page is built."""
+    design page is built; ``requests``: a list that gets the URL of every request the page
+    makes."""
     from playwright.sync_api import sync_playwright
 
     profile = tempfile.mkdtemp(prefix="jaxcart-chromium-")
@@ -139,6 +142,8 @@ def page_at(url: str, *, width: int = 1420, height: int = 900, timeout: float = 
                 viewport={"width": width, "height": height},
             )
             try:
+                if requests is not None:
+                    context.on("request", lambda request: requests.append(request.url))
                 page = context.new_page()
                 page.goto(url, timeout=timeout * 1e3)
                 page.wait_for_function(READY, timeout=timeout * 1e3)

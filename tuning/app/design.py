@@ -3,7 +3,7 @@ response, its metrics against the handout's specification, the closed-loop poles
 region of the (kp, kd) plane out.
 
     sliders (kp, ki, kd, tau, setpoint) --> Settings --> DesignProblem.design --> Design
-                                                     |    exact run (jaxcart.exact), StepInfo,
+                                                     |    exact run (solver=Exact()), StepInfo,
                                                      |    checks against the spec, poles
                                                      '--> DesignProblem.region --> Region
                                                           batched grid (jaxcart.batch_metrics) at ki
@@ -33,12 +33,13 @@ from hw.control_law import PID
 from jaxcart import control_systems
 from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
-from jaxcart.exact import simulate_exact
 from jaxcart.plausibility import LAB_VOLTAGE
 from tuning.design.gridrun import feasible_mask
 from tuning.design.losses import Spec
 from tuning.design.tune import HANDOUT_START
 
+#: The page's simulator: the exact one (event-exact friction, hard clip at the 6 V limit).
+EXACT = jc.Exact()
 #: The lab's design problem (the tuner's).
 SPEC = Spec()
 #: The software voltage limit of the lab's controller [V] (the amplifier's range).
@@ -265,7 +266,7 @@ class DesignProblem:
         """The exact run, metrics, checks and poles at one slider position."""
         pid = settings.controller()
         experiment = self.experiment(settings.setpoint)
-        response = simulate_exact(self.plant, pid, experiment)
+        response = jc.simulate(self.plant, pid, experiment, solver=EXACT)
         info = None
         if settings.setpoint != 0:
             info = jc.step_info(response, v_limit=V_LIMIT, band=self.spec.band)
@@ -274,7 +275,7 @@ class DesignProblem:
         z = loop_poles(self.plant, pid, self._plant_ss(pid.sample_time))
         nominal = None
         if self.nominal_plant is not None:
-            nominal = simulate_exact(self.nominal_plant, pid, experiment)
+            nominal = jc.simulate(self.nominal_plant, pid, experiment, solver=EXACT)
         return Design(
             settings=settings,
             response=response,
