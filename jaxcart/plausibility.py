@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from hw.control_law import float_pid, pid_init, pid_update
+from jaxcart.effects import Delay
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL, voltage_limit
 
@@ -419,9 +420,9 @@ def plant_matrices(plant, ts):
 
 
 def plant_delay(plant) -> float:
-    """The transport delay of ``plant``'s ``delay`` effect [s] as the simulators apply it
-    (clipped to [0, max_delay]); 0 without one. NaN stays NaN."""
-    effect = plant.effect("delay") if hasattr(plant, "effect") else None
+    """The transport delay of ``plant``'s :class:`~jaxcart.effects.Delay` effect [s] as the
+    simulators apply it (clipped to [0, max_delay]); 0 without one. NaN stays NaN."""
+    effect = plant.effect(Delay) if hasattr(plant, "effect") else None
     if effect is None:
         return 0.0
     d = float(effect.delay)

@@ -266,15 +266,6 @@ def test_the_circle_finder_sees_function_level_imports(tmp_path):
     assert _circles(_import_graph(tmp_path, ["pkg"])) == []
 
 
-#: Circles whose owners are taking them apart now (the lab's parts and their rendering, issue
-#: 20 item 5); any other circle fails. Remove an entry when its circle is gone.
-KNOWN_CIRCLES = [
-    {"tuning.lab.part_iii", "tuning.lab.part_iii_render"},
-    {"tuning.lab.part_v", "tuning.lab.part_v_render"},
-]
-
-
 def test_jaxcart_and_tuning_have_no_import_circle():
-    circles = _circles(_import_graph(ROOT, ["jaxcart", "tuning"]))
-    new = [sorted(c) for c in circles if c not in KNOWN_CIRCLES]
-    assert not new, f"import circles (imports inside functions count): {new}"
+    circles = [sorted(c) for c in _circles(_import_graph(ROOT, ["jaxcart", "tuning"]))]
+    assert not circles, f"import circles (imports inside functions count): {circles}"

@@ -156,24 +156,33 @@ def load_cart_params(path) -> CartParams:
     return cart_params(values, str(path))
 
 
-#: Effects of a jaxcart plant file that the simulated cart models.
-PLANT_FILE_EFFECTS = ("saturation", "coulomb", "stiction", "delay", "quantization")
+#: The cart's effect parameters (the names of their fields in CartParams and in a jaxcart plant
+#: file's [effects.NAME] tables) at the values where each does nothing: a plant file that names
+#: no table holding one leaves it there (no amplifier limit, no friction, no delay, an exact
+#: encoder). Written as keywords because hw never imports jaxcart's effects registry.
+ABSENT_EFFECT = dict(v_sat=math.inf, f_c=0.0, f_s=None, delay=0.0, quantization=0.0)
 
 
 def _from_plant_file(doc: dict, path) -> CartParams:
     """Cart parameters from a plant file (``jaxcart fit --out``, ``diagnose``): its [plant]
     table and its [effects.NAME] tables; an effect it names is in the cart, one it does not
-    name is absent (no amplifier limit, no friction, exact encoder)."""
+    name is absent (no amplifier limit, no friction, exact encoder). The cart models an
+    effect whose table holds only parameters of :data:`ABSENT_EFFECT`."""
     values = dict(doc.get("plant", {}))
     effects = doc.get("effects", {})
-    other = sorted(set(effects) - set(PLANT_FILE_EFFECTS))
+    other = sorted(
+        name
+        for name, table in effects.items()
+        if not isinstance(table, dict) or set(table) - set(ABSENT_EFFECT)
+    )
     if other:
         raise DeviceError(
-            f"{path}: the simulated cart does not model {', '.join(other)}; it models "
-            f"{', '.join(PLANT_FILE_EFFECTS)}"
+            f"{path}: the simulated cart does not model {', '.join(other)}; it models the "
+            f"effects whose parameters are among {', '.join(ABSENT_EFFECT)}"
         )
-    values.setdefault("v_sat", math.inf)
-    values.setdefault("quantization", 0.0)
+    for name, neutral in ABSENT_EFFECT.items():
+        if neutral is not None:  # f_s None: the cart's own default (equal to f_c)
+            values.setdefault(name, neutral)
     for table in effects.values():
         values.update(table)
     values.setdefault("motor_connected", doc.get("motor_connected", True))

@@ -95,7 +95,7 @@ def _make(spec, truth: dict, seed: int):
     from jaxcart.synthetic import make_recording, make_tap_recording
 
     values = {name: truth[name] for name in ("M", "B_eq", "f_c")}
-    q = truth["quantization"]
+    q = truth[data.ENCODER_PARAM]
     if spec.kind == "tap":
         cart = build_plant(values, motor_connected=False, where="a synthetic student's tap")
         tap = {k: v for k, v in data.TAP.items() if k != "horizon"}
@@ -119,7 +119,7 @@ def _index(truth: dict, seed: int) -> str:
     lines.append('made_by = "tuning.lab.classdata (exact simulator + encoder quantization)"')
     lines.append(f"seed = {seed}")
     lines += [f"{name} = {float(truth[name])!r}" for name in ("M", "B_eq", "f_c", "v_sat")]
-    lines.append(f"quantization = {float(truth['quantization'])!r}")
+    lines.append(f"{data.ENCODER_PARAM} = {float(truth[data.ENCODER_PARAM])!r}")
     lines += [f"pid_{k} = {float(v)!r}" for k, v in data.PID_DESIGN.items()]
     return "\n".join(lines) + "\n"
 

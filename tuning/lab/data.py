@@ -44,11 +44,15 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcart.effects import Quantization
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
 
+#: The name of the encoder's count size [m/count] (the encoder effect's parameter): its key in
+#: TRUE, in lab.toml's [synthetic] table and in results.json.
+ENCODER_PARAM = Quantization.params[0].name
 #: The true cart of the built-in recordings (SI units: kg, kg/s, N, V, m).
-TRUE = {"M": 0.94, "B_eq": 4.6, "f_c": 0.45, "v_sat": 6.0, "quantization": ENCODER_RESOLUTION}
+TRUE = {"M": 0.94, "B_eq": 4.6, "f_c": 0.45, "v_sat": 6.0, ENCODER_PARAM: ENCODER_RESOLUTION}
 #: Seed of the encoder phase (the only random draw; there is no added noise).
 SEED = 364
 #: Part (v)'s gains, the pre-lab's tuned PID (frozen): kp [V/m], kd [V s/m], ki [V/(m s)].
@@ -142,7 +146,7 @@ def make(spec: Spec, *, seed: int = SEED):
     import jaxcart as jc
     from jaxcart.synthetic import make_recording, make_tap_recording
 
-    q = TRUE["quantization"]
+    q = TRUE[ENCODER_PARAM]
     if spec.kind == "tap":
         return make_tap_recording(
             true_plant(tap=True),
@@ -200,8 +204,8 @@ def generate(folder, *, force: bool = False, seed: int = SEED) -> list[Path]:
 
 def _csv(spec: Spec, rec) -> str:
     y = np.asarray(rec.position, dtype=float)
-    counts = np.rint(y / TRUE["quantization"])
-    if np.max(np.abs(counts * TRUE["quantization"] - y)) > 1e-12:
+    counts = np.rint(y / TRUE[ENCODER_PARAM])
+    if np.max(np.abs(counts * TRUE[ENCODER_PARAM] - y)) > 1e-12:
         raise AssertionError("positions are not whole encoder counts")
     t = np.arange(y.size) * float(rec.sample_time)
     columns = [("t", [f"{x:.3f}" for x in t]), ("y", [_count(c) for c in counts])]
@@ -231,7 +235,7 @@ def _toml(spec: Spec, rec) -> str:
         f"# {spec.description}.",
         "# Synthetic: exact simulator + encoder (jaxcart built-in example; tuning/lab/data.py).",
         f'description = "{spec.description} (synthetic; truth: {truth}, encoder '
-        f'{TRUE["quantization"]:g} m)"',
+        f'{TRUE[ENCODER_PARAM]:g} m)"',
         f'kind = "{spec.kind}"',
         f"sample_time = {float(rec.sample_time)!r}",
         f'data = "{spec.stem}.csv"   # columns t [s], y [m]'
@@ -267,7 +271,7 @@ def _index() -> str:
         f"B_eq = {TRUE['B_eq']!r}           # [kg/s]",
         f"f_c = {TRUE['f_c']!r}           # Coulomb friction [N]",
         f"v_sat = {TRUE['v_sat']!r}          # amplifier saturation [V]",
-        f"quantization = {TRUE['quantization']!r}  # encoder [m/count]",
+        f"{ENCODER_PARAM} = {TRUE[ENCODER_PARAM]!r}  # encoder [m/count]",
         f"pid_kp = {PID_DESIGN['kp']!r}       # Part (v)'s gains (the pre-lab's tuned PID) [V/m]",
         f"pid_kd = {PID_DESIGN['kd']!r}         # [V s/m]",
         f"pid_ki = {PID_DESIGN['ki']!r}         # [V/(m s)]",

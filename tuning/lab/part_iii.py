@@ -2,7 +2,8 @@
 steady-state error of P control k = 10 V/m against the dead band f_c / (k γ).
 
 :func:`ramp` (which improves the model's f_c), :func:`p_bounds` and :func:`steady_state` each
-return a frozen result; :func:`render` writes the section from the three.
+return a frozen result; :func:`tuning.lab.part_iii_render.render` writes the section from the
+three.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from jaxcart.errors import UserError
 from tuning.lab import deadband, fits
 from tuning.lab.context import value
+from tuning.lab.data import ENCODER_PARAM
 from tuning.lab.model import (
     FINAL_WINDOW,
     HORIZON,
@@ -315,7 +317,7 @@ def as_json(p: Part3) -> dict:
         **out,
         "bound_checks": s.checks(),
         "creep": s.creep,
-        "quantization": s.q,
+        ENCODER_PARAM: s.q,  # [m/count]; the key is the encoder parameter's name, as in lab.toml
         "recording": source_name(s.recording),
         "k": s.k,
         "f_c": model.f_c,
@@ -323,13 +325,3 @@ def as_json(p: Part3) -> dict:
         "bound": s.bound,
         "e_inf_simulated": s.e_sim,
     }
-
-
-def render(lab, p: Part3) -> None:
-    """Part (iii)'s section."""
-    from tuning.lab import part_iii_render
-
-    lab.doc.heading("Part (iii): Coulomb friction and the steady-state error")
-    part_iii_render.ramp(lab, p.ramp, p.model)
-    part_iii_render.bounds(lab, p.bounds, p.model)
-    part_iii_render.steady_state(lab, p.steady)

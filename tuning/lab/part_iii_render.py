@@ -1,5 +1,7 @@
 """Part (iii) of the report drawn from its results (:mod:`tuning.lab.part_iii`): the ramp, the
-P-control bounds on f_c and the steady-state error against the dead band."""
+P-control bounds on f_c and the steady-state error against the dead band. Drawing reads the
+results; the computing module never imports this one.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +10,15 @@ import numpy as np
 from tuning.lab import deadband, fits
 from tuning.lab.context import fmt, mm
 from tuning.lab.model import FINAL_WINDOW, render_source, source_name
+from tuning.lab.part_iii import BOUND_SLACK, Part3
+
+
+def render(lab, p: Part3) -> None:
+    """Part (iii)'s section."""
+    lab.doc.heading("Part (iii): Coulomb friction and the steady-state error")
+    ramp(lab, p.ramp, p.model)
+    bounds(lab, p.bounds, p.model)
+    steady_state(lab, p.steady)
 
 
 def ramp(lab, r, model) -> None:
@@ -124,8 +135,6 @@ def bounds(lab, found, model) -> None:
     )
     outside = [b.name for b in found if b.outside(model.f_c)]
     if outside:
-        from tuning.lab.part_iii import BOUND_SLACK
-
         lab.doc.note(
             f"The f_c used ({model.f_c:.3f} N, {model.f_c_source}) is more than "
             f"{BOUND_SLACK:.0%} outside the bounds of {', '.join(outside)}: the friction "

@@ -2,7 +2,7 @@
 handout's slider moves simulated with the tuned gains.
 
 :func:`compute` returns a :class:`PIDResult` from the recording, the model and the pre-lab's
-tuned gains; :func:`render` (in :mod:`tuning.lab.part_v_render`) writes the section.
+tuned gains; :func:`tuning.lab.part_v_render.render` writes the section.
 """
 
 from __future__ import annotations
@@ -157,9 +157,3 @@ def as_json(r: PIDResult) -> dict:
     out["slider"] = [{"from": a, "to": b, **info.as_dict()} for a, b, info in r.moves]
     out["slider_failing_moves"] = [i for i, _ in r.failing]
     return out
-
-
-def render(lab, r: PIDResult) -> None:
-    from tuning.lab import part_v_render
-
-    part_v_render.render(lab, r)

@@ -10,10 +10,10 @@ import numpy as np
 from jaxcart.metrics import SETTLING_BAND
 from tuning.lab.context import HANDOUT_B_EQ, V_SAT
 from tuning.lab.model import render_source, run, seconds
-from tuning.lab.part_v import OVERSHOOT_SPEC, SETTLING_SPEC
+from tuning.lab.part_v import OVERSHOOT_SPEC, SETTLING_SPEC, PIDResult
 
 
-def render(lab, r) -> None:
+def render(lab, r: PIDResult) -> None:
     """Part (v)'s section."""
     lab.doc.heading("Part (v): the PID design")
     render_source(lab.doc, r.recording, "pid")
