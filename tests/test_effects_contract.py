@@ -1,8 +1,8 @@
 """One contract over every registered effect (the way optax tests every optimizer): the smooth
 form converges to the exact one, gradients match central differences for each parameter, no
-recompilation when values change, vmap over each parameter. A new effect joins by registering
-and adding its case to CASES (a test fails until it does). Independent references for each
-exact form are in tests/test_effects_reference.py."""
+recompilation when values change, vmap over each parameter. A new effect joins by registering:
+without a case of its own in CASES it gets :func:`default_case`, derived from its declarations.
+Independent references for each exact form are in tests/test_effects_reference.py."""
 
 from __future__ import annotations
 
@@ -21,8 +21,11 @@ from jaxcart.plantspec import build_plant
 HORIZON = 0.6  # [s]: every case acts within it (short keeps the suite fast)
 PID_STEP = jc.PID(kp=40.0, kd=3.0, ki=5.0, v_limit=6.0)
 
-#: For each effect: plant values where it acts plainly, the controller (None: open loop) and
-#: the experiment.
+#: A closed-loop PD step on the handout plant [V/m, V s/m, V]: the default case's run.
+PD_STEP = jc.PID(kp=40.0, kd=3.0, v_limit=6.0)
+
+#: For effects whose default case does not show them plainly: plant values where the effect
+#: acts plainly, the controller (None: open loop) and the experiment.
 CASES = {
     "saturation": ({"v_sat": 4.0}, PID_STEP, jc.step(0.3, horizon=HORIZON)),
     "coulomb": ({"f_c": 0.6}, jc.PID(kp=20.0), jc.step(0.1, horizon=HORIZON)),
@@ -49,21 +52,51 @@ NAMES = sorted(REGISTRY)
 SCALES = (1.0, 0.1, 0.01, 0.001)
 
 
+def default_case(name):
+    """The case an effect gets from its declarations alone: its parameters and those of the
+    effects it requires at their declared start values (a vector parameter: start in every
+    entry), and a closed-loop PD step of 0.3 m on the handout plant."""
+    cls = REGISTRY[name]
+    values = {}
+    for owner in (*(REGISTRY[r] for r in cls.requires), cls):
+        for p in owner.params:
+            values[p.name] = [p.start] * p.size if p.size else p.start
+    return values, PD_STEP, jc.step(0.3, horizon=HORIZON)
+
+
+def case(name):
+    """The effect's explicit case, else its default case."""
+    return CASES[name] if name in CASES else default_case(name)
+
+
 def _run(plant, pid, exp, scale=1.0, substeps=8):
     return jc.simulate(plant, pid, exp, smoothing=jc.Smoothing().scaled(scale), substeps=substeps)
 
 
 @pytest.fixture(scope="module")
 def exact_runs():
-    return {n: simulate_exact(build_plant(CASES[n][0]), CASES[n][1], CASES[n][2]) for n in CASES}
+    return {n: simulate_exact(build_plant(case(n)[0]), *case(n)[1:]) for n in NAMES}
 
 
 def _uses_width(name):
     return any(p.width is not None for p in REGISTRY[name].params)
 
 
-def test_every_registered_effect_has_a_case():
-    assert sorted(CASES) == NAMES
+def test_explicit_cases_name_registered_effects():
+    assert set(CASES) <= set(NAMES)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_default_case_holds_the_effect_at_its_start_values(name):
+    """The default case an effect without its own would get: a valid plant holding it (and
+    what it requires), each parameter at its declared start value."""
+    values, controller, experiment = default_case(name)
+    plant = build_plant(values)
+    assert name in plant.structure and set(REGISTRY[name].requires) <= set(plant.structure)
+    for p in REGISTRY[name].params:
+        start = [p.start] * p.size if p.size else p.start
+        np.testing.assert_array_equal(np.asarray(plant.get(p.name)), np.asarray(start))
+    assert controller is PD_STEP and controller.ki == 0.0 and experiment.kind == "closed_loop"
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -72,7 +105,7 @@ def test_declared_parameters(name):
     assert cls.params and cls.stage in ("voltage", "force", "sensor") and cls.summary
     for p in cls.params:
         assert p.low <= p.start <= p.high and p.unit is not None and p.doc
-    plant = build_plant(CASES[name][0])
+    plant = build_plant(case(name)[0])
     assert plant.structure == (name,) or name in plant.structure
 
 
@@ -81,7 +114,7 @@ def test_smooth_converges_to_exact(name, exact_runs):
     """Max position error falls >= 10x over a 1000x narrower width (effects that smooth); an
     effect with no smoothing of its own agrees to a micrometre once the controller's clip is
     narrow."""
-    values, pid, exp = CASES[name]
+    values, pid, exp = case(name)
     plant = build_plant(values)
     ref = exact_runs[name].position
     # A staircase's error at a count edge is q/2 at any width; what converges for a sensor
@@ -108,7 +141,7 @@ def _scalar_params(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_gradients_match_central_differences(name):
-    values, pid, exp = CASES[name]
+    values, pid, exp = case(name)
     plant = build_plant(values)
     smoothing = jc.Smoothing()
     w = jnp.linspace(0.0, 1.0, exp.n_samples)
@@ -136,7 +169,7 @@ def test_gradients_match_central_differences(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_no_recompile_and_vmap(name):
-    values, pid, exp = CASES[name]
+    values, pid, exp = case(name)
     plant = build_plant(values)
     traces = []
 
@@ -201,7 +234,7 @@ def test_bound_exact_force_is_exact_force(name):
     positions, velocities and voltages that reach every branch (a limit, a sign change)."""
     from jaxcart.exact import _as_floats, _Drive
 
-    plant = jc.handout_plant(**CASES[name][0])
+    plant = jc.handout_plant(**case(name)[0])
     effect = _as_floats(plant.effect(name))
     drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
     bound = effect.exact_force_for(drive)
