@@ -237,7 +237,9 @@ def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):
 
 def test_every_registered_effect_is_a_candidate_or_says_why_not():
     from jaxcart.effects import REGISTRY
-    from tuning.estimation.diagnose.core import EFFECT_PARAMS, NOT_CANDIDATES
+    from tuning.estimation.diagnose.core import effect_params, not_candidates
+
+    EFFECT_PARAMS, NOT_CANDIDATES = effect_params(), not_candidates()
 
     for name in REGISTRY:
         assert (name in EFFECT_PARAMS) != (name in NOT_CANDIDATES), name

@@ -14,6 +14,7 @@ import pytest
 
 from jaxcart.errors import UserError
 from jaxcart.params import Plant
+from jaxcart.plantspec import read_plant_file
 from tuning.lab import data, inputs, prelab
 from tuning.lab.html import Document
 from tuning.lab.report import output_dir, run_lab
@@ -144,8 +145,10 @@ def test_parts_are_guessed_without_an_index(tmp_path):
 def test_index_wins_over_the_guess(tmp_path):
     folder = _copy_builtin(tmp_path / "d")
     shutil.copy(folder / "p50.toml", folder / "p50_copy.toml")
-    with pytest.raises(UserError, match="2 recordings fit Part \\(ii\\).*lab.toml"):
-        inputs.find_inputs(folder)
+    # Two files of one part: the first by name is the part's; a copy is not a second run.
+    found = inputs.find_inputs(folder)
+    assert found.recordings["p_step"].path.name == "p50.toml" and not found.repeats
+    assert ("p50_copy.toml", "the same samples as p50.toml: not a second run") in found.unused
     (folder / "lab.toml").write_text('[recordings]\np_step = "p50_copy.toml"\n')
     found = inputs.find_inputs(folder)
     assert found.recordings["p_step"].path.name == "p50_copy.toml"
@@ -251,20 +254,34 @@ def test_builtin_report_has_every_output(builtin_report):
 
 def test_builtin_report_diagnoses_every_recording(builtin_report):
     """The built-in cart has Coulomb friction the handout's model leaves out (its 6 V amplifier
-    limit equals the files' software limit, so it leaves out nothing else there): the
-    diagnosis of the tap, the P 50 step and the PI run names it, and every fit reaches the
-    encoder floor with the true friction."""
+    limit equals the files' software limit, so it leaves out nothing else there): the joint
+    diagnosis of its six recordings, one cart, names it, brings every recording to the
+    encoder floor and finds the true friction and B_eq."""
     out, results = builtin_report
     md = (out / "report.md").read_text()
     assert "## Diagnosis" in md
-    diagnosis = results["diagnosis"]
-    assert set(diagnosis) == {"tap", "p_step", "ramp", "p_error", "pi", "pid"}
-    for slot in ("tap", "p_step", "pi"):
-        d = diagnosis[slot]
-        assert "coulomb" in d["left_out"], (slot, d["left_out"])
-        assert d["rms_after"] < 0.02e-3 < d["rms_before"], slot
-        assert d["parameters"]["f_c"]["value"] == pytest.approx(data.TRUE["f_c"], rel=0.02)
-        assert d["parameters"]["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=0.02)
+    d = results["diagnosis"]
+    assert "coulomb" in d["left_out"], d["verdict"]
+    assert len(d["per_recording"]) == 6
+    for name, rec in d["per_recording"].items():
+        assert rec["rms_after"] < 0.02e-3 < rec["rms_before"], name
+    assert d["parameters"]["f_c"]["value"] == pytest.approx(data.TRUE["f_c"], rel=0.02)
+    assert d["parameters"]["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=0.02)
+
+
+def test_builtin_report_fits_the_cart_once_and_writes_it(builtin_report):
+    """The joint fit of every recording recovers the true cart, is written as the report's
+    plant file, and Part (v)'s gains are re-tuned on it (and meet the spec there)."""
+    out, results = builtin_report
+    cart = results["cart"]
+    params = cart["fit"]["params"]
+    assert params["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=TOL_B_EQ)
+    assert params["f_c"]["value"] == pytest.approx(data.TRUE["f_c"], rel=0.03)
+    plant, _ = read_plant_file(out / cart["plant_file"])
+    assert float(plant.B_eq) == pytest.approx(params["B_eq"]["value"], rel=1e-9)
+    assert cart["retuned"]["meets"]
+    gains = json.loads((out / "gains.json").read_text())
+    assert gains["controller"]["kp"] == pytest.approx(cart["retuned"]["kp"])
 
 
 def test_builtin_report_recovers_the_true_cart(builtin_report):
@@ -326,10 +343,10 @@ def test_builtin_report_numbers_are_consistent(builtin_report):
     assert values["pid_settling_time"] < 1.0 and values["pid_overshoot"] < 5.0
     from hw.gains import read_gains
 
+    # gains.json holds the PID re-tuned on the cart fitted from the recordings.
     g = read_gains(builtin_report[0] / "gains.json")
-    assert (g.kp, g.kd, g.ki) == pytest.approx(
-        (values["pid_kp"], values["pid_kd"], values["pid_ki"])
-    )
+    retuned = results["cart"]["retuned"]
+    assert (g.kp, g.kd, g.ki) == pytest.approx((retuned["kp"], retuned["kd"], retuned["ki"]))
 
 
 def test_builtin_report_reads_as_a_grader_expects(builtin_report):

@@ -17,7 +17,7 @@ import pytest
 
 from jaxcart.errors import UserError
 from jaxcart.plots import Run, figure_name, plot_runs, reference_run, runs_figure
-from tuning.lab import fits, inputs, part_i, part_ii, part_iii, report
+from tuning.lab import cart, fits, inputs, part_i, part_ii, part_iii, report
 from tuning.lab.context import Lab, check_format
 from tuning.lab.data import builtin_dir
 from tuning.lab.html import Document
@@ -61,11 +61,18 @@ def test_parts_use_the_fitter_they_are_given(computed):
     fitted = [(names, params) for names, params, _ in calls]
     # Part (i) the tap, Part (ii) the step twice (without and with f_c held), Part (iii) the
     # ramp: every fit of the report went through the fitter passed in.
-    assert fitted == [
+    # Then the cart once from every recording, and its driven runs alone (B_eq beside the
+    # tap's): without a diagnosis, B_eq, f_c and v_sat, shared (no part was run twice).
+    everything = sorted(Path(r.path).name for r in computed[0].runs())
+    assert fitted[:4] == [
         (["tap.toml"], ("B_eq", "f_c")),
         (["p50.toml"], ("B_eq",)),
         (["p50.toml"], ("B_eq",)),
         (["ramp.toml"], ("f_c",)),
+    ]
+    assert [(sorted(n), p) for n, p in fitted[4:]] == [
+        (everything, ("B_eq", "f_c", "v_sat")),
+        ([n for n in everything if n != "tap.toml"], ("B_eq", "f_c", "v_sat")),
     ]
 
 
@@ -80,7 +87,10 @@ def test_results_are_frozen_and_the_model_travels_explicitly(computed):
     tap_model = r.part_i.model
     assert r.part_ii.model is tap_model and r.part_iii.steady.model is not tap_model
     assert r.part_iii.ramp.model.B_eq == tap_model.B_eq
-    assert r.part_iv.model is r.part_iii.model and r.part_v.model is r.part_iii.model
+    assert r.part_iv.model is r.part_iii.model
+    # Part (v) runs on the cart fitted once from every recording.
+    assert r.part_v.model == cart.model_of(r.cart, r.part_iii.model)
+    assert r.part_v.model.B_eq == r.cart.fit.params["B_eq"].value
     assert r.part_iii.model.f_c == r.part_iii.ramp.f_fit.value != tap_model.f_c
     assert r.part_v.tuned is r.prelab.gains
 

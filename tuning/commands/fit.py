@@ -267,9 +267,8 @@ def format_result(result) -> str:
         base, _, k = key.partition("@")
         unit = UNITS.get(base, "")
         name = f"{base} ({names[int(k)]})" if k else key
-        if not e.identifiable:
-            held = f"held at {e.held_at:.6g} {unit}; " if e.held_at is not None else ""
-            lines.append(f"{name:<14}{held}{e.note}")
+        if not e.identifiable:  # the note says why, and where the value held comes from
+            lines.append(f"{name:<14}{e.note}")
             continue
         lines.append(f"{name:<14}{e.value:>14.6g}{e.stderr:>12.3g}{e.stderr_naive:>12.3g}  {unit}")
     for s in result.segments:

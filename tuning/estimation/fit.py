@@ -310,7 +310,11 @@ class FitResult:
     @property
     def converged(self) -> bool:
         """False when an optimizer stopped at its iteration cap (the fit may be unfinished)."""
-        return all(s["converged"] for s in self.stages if not s.get("superseded"))
+        return all(
+            s["converged"]
+            for s in self.stages
+            if not s.get("superseded") and not s.get("intermediate")
+        )
 
     @property
     def warnings(self) -> list[str]:
@@ -321,7 +325,7 @@ class FitResult:
         for n, e in held.items():
             out.append(f"{n}: {e.note}; the other errors are conditional on that value")
         for s in self.stages:
-            if not s["converged"] and not s.get("superseded"):
+            if not s["converged"] and not s.get("superseded") and not s.get("intermediate"):
                 out.append(
                     f"{s['stage']} stopped at its iteration cap ({s['cap']}) before converging; "
                     "the values may not be the best fit"
@@ -1364,6 +1368,9 @@ def _optimize(problem, active, settings, run):
         tol = LM_TOLERANCE if width == narrow else LM_TOLERANCE_WIDE
         label = f"Levenberg-Marquardt at width {width:g} m/s"
         theta, r, jac = run.lm(label, problem, theta, active, width, settings.lm_iterations, tol)
+        if width != narrow:
+            # A wider width only leads the way to the narrowest: its cap is no warning.
+            run.stages[-1]["intermediate"] = True
         run.history.append((width, run.stages[-1]["iterations"], _rms(r)))
     if len(widths) == 1:
         return theta, r, jac

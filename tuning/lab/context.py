@@ -96,6 +96,7 @@ class Lab:
     results: dict = field(default_factory=dict)
     gains: object = None
     gains_metrics: dict = field(default_factory=dict)
+    gains_source: str = "jaxcart lab: pre-lab design (handout model)"
     figures: list = field(default_factory=list)
 
     def say(self, text: str) -> None:

@@ -22,14 +22,22 @@ QUICK_FIT = {"widths": (1e-3, 1e-4), "adam_steps": 0, "lm_iterations": 15}
 FitFunction = Callable[..., object]
 
 
-def fit(recordings, params, *, initial=None, quick=False):
+def fit(recordings, params, *, initial=None, quick=False, per_recording=()):
     """Fit ``params`` (names) to ``recordings`` from ``initial`` (name -> value) with the
-    estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close."""
+    estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close;
+    ``per_recording``: those of ``params`` free in each recording (the cart's joint fit)."""
     from tuning.estimation.fit import FitSettings
     from tuning.estimation.fit import fit as engine_fit
 
     settings = FitSettings(**QUICK_FIT) if quick else FitSettings()
-    return engine_fit(recordings, params, initial=initial, settings=settings, progress=False)
+    return engine_fit(
+        recordings,
+        params,
+        per_recording=per_recording,
+        initial=initial,
+        settings=settings,
+        progress=False,
+    )
 
 
 def estimate(result, name):

@@ -66,7 +66,9 @@ class Inputs:
     synthetic data) or None; imported: slot -> the :class:`jaxcart.matimport.Imported` run of
     raw .mat files that the slot's recording came from; offers: (slot, run, why) of raw runs
     not used (a second run of a part, weak evidence), offered in the lab.toml written;
-    written: what :func:`write_used` wrote, one line.
+    written: what :func:`write_used` wrote, one line; repeats: slot -> further runs of that
+    part (more files of it, or files in a sub-folder such as ``repeat/``): the cart's joint
+    fit uses them, and the report shows them.
     """
 
     folder: Path | None
@@ -77,6 +79,11 @@ class Inputs:
     imported: dict = field(default_factory=dict)
     offers: list = field(default_factory=list)
     written: str | None = None
+    repeats: dict = field(default_factory=dict)
+
+    def runs(self) -> list:
+        """Every recording of the lab: each part's, then the repeats (the joint fit's input)."""
+        return list(self.recordings.values()) + [r for rs in self.repeats.values() for r in rs]
 
     def missing(self) -> list[str]:
         """Slots with no recording (their parts show simulation only)."""
@@ -95,6 +102,8 @@ class Inputs:
                 lines += [f"    {e.line()}" for e in run.guess.evidence]
             else:
                 lines.append(f"Part ({part}) {what}: {Path(rec.path).name} ({self.how[slot]})")
+            for again in self.repeats.get(slot, []):
+                lines.append(f"    and a repeat: {_shown(again, self.folder)}")
         for name, reason in self.unused:
             lines.append(f"not used: {name} ({reason})")
         if self.written:
@@ -230,15 +239,15 @@ def find_inputs(folder) -> Inputs:
             guesses.setdefault(slot, []).append((recording, reason))
 
     for slot, found in guesses.items():
-        if len(found) > 1:
-            names = ", ".join(Path(r.path).name for r, _ in found)
-            raise UserError(
-                f"{folder}: {len(found)} recordings fit Part ({SLOTS[slot][0]}) "
-                f"{SLOTS[slot][1]} ({names}); name the one to use in {index_path} as "
-                f'[recordings] {slot} = "file.toml"'
-            )
+        # Several runs of one part: the first (by name) is the part's, the others repeats.
         inputs.recordings[slot], reason = found[0]
         inputs.how[slot] = f"guessed: {reason}"
+        if len(found) > 1:
+            inputs.how[slot] += f"; the first of {len(found)} runs of it (name one in {INDEX_NAME})"
+        for rec, _ in found[1:]:
+            _add_repeat(inputs, slot, rec)
+    if inputs.recordings:
+        _repeats_in_subfolders(inputs, folder)
 
     raw = sorted(p for p in folder.glob("*.mat") if p.is_file() and p.resolve() not in mats)
     _recognise_raw(inputs, raw)
@@ -249,6 +258,53 @@ def find_inputs(folder) -> Inputs:
             f"docs/experiment-files.md for the format"
         )
     return inputs
+
+
+def _shown(recording, folder) -> str:
+    """A recording's file, relative to the data folder where it is inside it."""
+    path = Path(recording.path)
+    try:
+        return str(path.relative_to(folder)) if folder is not None else path.name
+    except ValueError:
+        return path.name
+
+
+def _same_samples(a, b) -> bool:
+    """The same recorded positions (a file given twice, or a copy of it)."""
+    ya, yb = np.asarray(a.position, dtype=float), np.asarray(b.position, dtype=float)
+    return ya.shape == yb.shape and bool(np.array_equal(ya, yb))
+
+
+def _add_repeat(inputs: Inputs, slot: str, recording) -> None:
+    """A further run of ``slot``; a copy of a run already used is not a repeat."""
+    for other in [inputs.recordings[slot], *inputs.repeats.get(slot, [])]:
+        if _same_samples(recording, other):
+            name = _shown(recording, inputs.folder)
+            same = _shown(other, inputs.folder)
+            inputs.unused.append((name, f"the same samples as {same}: not a second run"))
+            return
+    inputs.repeats.setdefault(slot, []).append(recording)
+
+
+def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
+    """Experiment files one folder down (``repeat/p50_repeat.toml``) that are further runs of
+    a part this folder has: the cart's joint fit and the report use them too. (A folder of
+    student sub-folders holds no experiment file itself: that is ``jaxcart class``.)"""
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        for path in sorted(sub.glob("*.toml")):
+            try:
+                meta = _load_toml(path)
+            except UserError:
+                continue
+            if "kind" not in meta:
+                continue
+            recording = _read_experiment(path)
+            slot, _reason = guess_slot(recording)
+            if slot in inputs.recordings:
+                _add_repeat(inputs, slot, recording)
+            else:
+                where = str(path.relative_to(folder))
+                inputs.unused.append((where, "in a sub-folder: name it in lab.toml to use it"))
 
 
 def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:

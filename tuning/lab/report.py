@@ -33,10 +33,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from jaxcart.errors import UserError
+from tuning.lab import (
+    cart,
+    fits,
+    part_i,
+    part_ii,
+    part_iii,
+    part_iii_render,
+    part_iv,
+    part_v,
+    part_v_render,
+    prelab,
+)
 from tuning.lab import diagnosis as diagnosis_section
-from tuning.lab import fits, part_i, part_ii, part_iii, part_iv, part_v, prelab
 from tuning.lab.context import Lab, check_format, fmt, relative_error
-from tuning.lab.data import builtin_dir
+from tuning.lab.data import ENCODER_PARAM, builtin_dir
 from tuning.lab.html import Document
 from tuning.lab.inputs import SLOTS, find_inputs, write_used
 from tuning.lab.model import CartModel
@@ -193,7 +204,8 @@ class LabResults:
     part_iii: part_iii.Part3
     part_iv: part_iv.PIResult
     part_v: part_v.PIDResult
-    diagnosis: dict | None = None
+    diagnosis: object = None
+    cart: object = None
 
 
 def compute(
@@ -212,9 +224,14 @@ def compute(
     step = part_ii.compute(recordings.get("p_step"), tap.model, fit=fit, say=say)
     friction = part_iii.compute(recordings, tap.model, fit=fit, say=say)
     pi = part_iv.compute(recordings.get("pi"), friction.model, say=say)
-    pid = part_v.compute(recordings.get("pid"), friction.model, pre.gains, say=say)
-    found = diagnosis_section.compute(recordings, say=say) if diagnosis else None
-    return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found)
+    found = diagnosis_section.compute(inputs, say=say) if diagnosis else None
+    # The cart once, from every recording (repeats too), in the diagnosis's structure; Part
+    # (v) simulates the measured run on it (the gains re-tuned on it go to gains.json).
+    tap_b = None if tap.fit is None else (tap.model.B_eq, tap.model.B_eq_stderr)
+    joint = cart.compute(inputs, tap_b, found, fit=fit, say=say)
+    model = cart.model_of(joint, friction.model)
+    pid = part_v.compute(recordings.get("pid"), model, pre.gains, say=say)
+    return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found, joint)
 
 
 def values(r: LabResults) -> list:
@@ -255,9 +272,9 @@ def render(lab: Lab, r: LabResults) -> None:
     prelab.render(lab, r.prelab)
     part_i.render(lab, r.part_i)
     part_ii.render(lab, r.part_ii, r.agreement)
-    part_iii.render(lab, r.part_iii)
+    part_iii_render.render(lab, r.part_iii)
     part_iv.render(lab, r.part_iv)
-    part_v.render(lab, r.part_v)
+    part_v_render.render(lab, r.part_v)
     lab.results.update(
         {
             "prelab": prelab.as_json(r.prelab),
@@ -271,8 +288,13 @@ def render(lab: Lab, r: LabResults) -> None:
     if r.diagnosis is not None:
         diagnosis_section.render(lab, r.diagnosis, r.agreement)
         lab.results["diagnosis"] = diagnosis_section.as_json(r.diagnosis)
+    cart.render(lab, r.cart)
+    lab.results["cart"] = cart.as_json(r.cart)
     lab.gains = r.prelab.gains
     lab.gains_metrics = lab.results["prelab"]["pid"]["metrics"]
+    if r.cart is not None:  # the gains to run on this cart: re-tuned on it
+        lab.gains, lab.gains_metrics = r.cart.tuned.gains, r.cart.tuned.exact.as_dict()
+        lab.gains_source = "jaxcart lab: PID re-tuned on the cart fitted from the recordings"
 
 
 # ---------------------------------------------------------------- sections
@@ -305,7 +327,7 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
             "B_eq": ("viscous friction B_eq", "kg/s"),
             "f_c": ("Coulomb friction f_c", "N"),
             "v_sat": ("amplifier saturation", "V"),
-            "quantization": ("encoder resolution", "m/count"),
+            ENCODER_PARAM: ("encoder resolution", "m/count"),
             "pid_kp": ("Part (v) recording's kp (the pre-lab's tuned PID)", "V/m"),
             "pid_kd": ("Part (v) recording's kd", "V s/m"),
             "pid_ki": ("Part (v) recording's ki", "V/(m s)"),
@@ -405,6 +427,6 @@ def _write(lab: Lab) -> None:
             out / "gains.json",
             lab.gains,
             force=True,
-            source="jaxcart lab: pre-lab design (handout model)",
+            source=lab.gains_source,
             metrics=lab.gains_metrics,
         )

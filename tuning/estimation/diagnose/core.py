@@ -37,27 +37,39 @@ from jaxcart.effects import REGISTRY
 from jaxcart.errors import UserError
 from jaxcart.files import signal64
 from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.batch import SHARED, Layout, Segment
+from tuning.estimation.engine.batch import Layout, Segment
 from tuning.estimation.engine.lm import gauss_newton_step
 from tuning.estimation.engine.noise import MISFIT_RATIO, repeatability
 
-#: Effects a candidate adds, and the parameters it frees (B_eq is always free): every
-#: registered effect that is a candidate (jaxcart.effects: ``Effect.not_candidate``).
-EFFECT_PARAMS = P.candidates()
-#: Registered effects that are not candidates, and why (each effect declares it).
-NOT_CANDIDATES = {n: cls.not_candidate for n, cls in REGISTRY.items() if cls.not_candidate}
 PARAM_ERRORS = {"mass": ("M",), "gain": ("gamma_scale",)}
 #: The part that frees the drive's limits per recording: on several runs of one cart each run
 #: has its own amplifier limit (the motor warms, the supply sags); the mechanics are shared.
 PER_RUN = "per_run"
-#: The parameters a PER_RUN structure frees per recording: those of the effects that limit
-#: the drive (``Effect.limits``).
-PER_RUN_PARAMS = tuple(
-    p.name for n in EFFECT_PARAMS if REGISTRY[n].limits for p in REGISTRY[n].params
-)
-#: Parts that act only with the motor connected: effects of the drive alone, and the
-#: parameter corrections (a tap cannot tell M from B_eq).
-MOTOR_ONLY = {n for n in EFFECT_PARAMS if REGISTRY[n].drive_only()} | set(PARAM_ERRORS)
+
+
+def effect_params() -> dict:
+    """Effects a candidate adds, and the parameters it frees (B_eq is always free): every
+    registered effect that is a candidate (``Effect.not_candidate``), as registered now."""
+    return P.candidates()
+
+
+def not_candidates() -> dict:
+    """Registered effects that are not candidates, and why (each effect declares it)."""
+    return {n: cls.not_candidate for n, cls in REGISTRY.items() if cls.not_candidate}
+
+
+def per_run_params() -> tuple:
+    """The parameters a PER_RUN structure frees per recording: those of the effects that
+    limit the drive (``Effect.limits``)."""
+    return tuple(p.name for n in effect_params() if REGISTRY[n].limits for p in REGISTRY[n].params)
+
+
+def motor_only() -> set:
+    """Parts that act only with the motor connected: effects of the drive alone, and the
+    parameter corrections (a tap cannot tell M from B_eq)."""
+    return {n for n in effect_params() if REGISTRY[n].drive_only()} | set(PARAM_ERRORS)
+
+
 #: Information criterion: penalty per free parameter (times log n_eff) and per added effect.
 PENALTY_PER_PARAM = 1.0
 PENALTY_PER_EFFECT = 12.0
@@ -129,7 +141,7 @@ class Candidate:
     def effects(self) -> tuple:
         out = []
         for p in self.parts:
-            if p in EFFECT_PARAMS:
+            if p in effect_params():
                 out += list(P.named_by(p))
         return tuple(dict.fromkeys(out))
 
@@ -155,7 +167,7 @@ class Candidate:
             "per_recording": {
                 k: v
                 for k, v in self.values.items()
-                if Layout.kind(k) in PER_RUN_PARAMS and "@" in k
+                if Layout.kind(k) in per_run_params() and "@" in k
             },
         }
 
@@ -441,13 +453,13 @@ def candidate_list(motor: bool, runs=()) -> list[Candidate]:
     """Round 1: the baseline, each correction and effect alone, and with two runs or more of
     a driven cart (``runs``: their recording indices) each drive limit free per run."""
     out = [Candidate("baseline", (), ("B_eq",))]
-    names = list(PARAM_ERRORS) + list(EFFECT_PARAMS)
+    names = list(PARAM_ERRORS) + list(effect_params())
     for n in names:
-        if n in MOTOR_ONLY and not motor:
+        if n in motor_only() and not motor:
             continue
         out.append(_structure((n,), runs))
     if len(runs) >= 2:
-        out += [_structure((n, PER_RUN), runs) for n in EFFECT_PARAMS if REGISTRY[n].limits]
+        out += [_structure((n, PER_RUN), runs) for n in effect_params() if REGISTRY[n].limits]
     return out
 
 
@@ -491,10 +503,10 @@ def exact_plants(cand: Candidate, base_plants, values):
     plants = []
     for i, p in enumerate(base_plants):
         own = {Layout.kind(k): v for k, v in values.items() if k.endswith(f"@{i}")}
-        own = {k: v for k, v in own.items() if k in PER_RUN_PARAMS}
+        own = {k: v for k, v in own.items() if k in per_run_params()}
         if PER_RUN in cand.parts and not own:
             # A run without its own copy (a tap): the drive limits do not act there.
-            own = {n: P.stand_in(n) for n in PER_RUN_PARAMS if n in _params_of(cand)}
+            own = {n: P.stand_in(n) for n in per_run_params() if n in _params_of(cand)}
         plants.append(build_plant(P.consistent({**named, **own}), base=p, check=False))
     return plants
 
@@ -753,7 +765,7 @@ def at_bound(name: str, value: float) -> str:
     """Which bound ("lower", "upper") ``value`` sits at, of :data:`~batch.BOUNDS` (within
     :data:`AT_BOUND`: relative for a parameter fitted as a logarithm, else a tenth of it as a
     share of the range); "" for none."""
-    if Layout.kind(name) not in SHARED and Layout.kind(name) not in P.NUISANCE:
+    if Layout.kind(name) not in P.superset() and Layout.kind(name) not in P.NUISANCE:
         return ""
     lo, hi = P.bounds(name)
     if P.is_log(name):
@@ -776,7 +788,7 @@ def _strengths(part, values, peaks, start):
     distance from the values where the item does nothing, positive when it acts: each effect
     declares its own (``Effect.strengths``); a correction is its distance from the start
     plant's value beyond :data:`CORRECTION_MARGIN`."""
-    if part in EFFECT_PARAMS:
+    if part in effect_params():
         for effect in P.named_by(part):
             yield from REGISTRY[effect].strengths(values, peaks)
     for name in PARAM_ERRORS.get(part, ()):
@@ -814,7 +826,7 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
         if part == PER_RUN:
             out[PER_RUN] = _per_run_significance(values, stderr)
             continue
-        params = EFFECT_PARAMS.get(part) or PARAM_ERRORS.get(part, ())
+        params = effect_params().get(part) or PARAM_ERRORS.get(part, ())
         views = []
         for vals, pk, run in _views(params, values, peaks):
             bound = _bound_text(params, vals, per_run=run is not None)
@@ -896,7 +908,7 @@ def _per_run_significance(values, stderr) -> dict:
     """Do the drive limits differ between runs? The largest difference between two runs' own
     values of a limit, as a Wald test (and beyond the limit's least size worth naming)."""
     best = {"z": math.nan, "why": "no drive limit is free per run"}
-    for n in PER_RUN_PARAMS:
+    for n in per_run_params():
         own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
         if len(own) < 2:
             continue
@@ -1107,7 +1119,7 @@ def _cart_plant(best, base_plants, segments):
     """The cart's plant of ``best`` (the first driven run's); a drive limit free per run at
     the median of the runs' values (each run's own is in the per-recording results)."""
     values = dict(best.values)
-    for n in PER_RUN_PARAMS:
+    for n in per_run_params():
         own = [v for k, v in best.values.items() if "@" in k and Layout.kind(k) == n]
         if own:
             values[n] = float(np.median(own))
@@ -1177,10 +1189,10 @@ def _structure(parts, runs=()) -> Candidate:
     among them, each drive limit's value free per run of ``runs`` instead of shared."""
     free = ["B_eq"]
     for p in parts:
-        free += list(EFFECT_PARAMS.get(p) or PARAM_ERRORS.get(p, ()))
+        free += list(effect_params().get(p) or PARAM_ERRORS.get(p, ()))
     if PER_RUN in parts:
         free = [
-            x for n in free for x in ([f"{n}@{i}" for i in runs] if n in PER_RUN_PARAMS else [n])
+            x for n in free for x in ([f"{n}@{i}" for i in runs] if n in per_run_params() else [n])
         ]
     return Candidate("+".join(parts), tuple(parts), tuple(dict.fromkeys(free)), runs=tuple(runs))
 

@@ -23,14 +23,12 @@ from jaxcart import plantspec
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import locate
 from tuning.estimation.diagnose.core import (
-    EFFECT_PARAMS,
     FLOOR_FACTOR,
     ITERATIONS,
     K_MAX,
     NESTED,
     PARAM_ERRORS,
     PER_RUN,
-    PER_RUN_PARAMS,
     POLISH,
     SEEDS,
     TIE,
@@ -38,7 +36,7 @@ from tuning.estimation.diagnose.core import (
     Diagnosis,
 )
 from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.batch import SHARED, BatchFitter, Layout
+from tuning.estimation.engine.batch import BatchFitter, Layout
 from tuning.estimation.engine.noise import MISFIT_RATIO
 
 
@@ -145,13 +143,13 @@ class Search:
         runs = tuple(i for i, s in enumerate(segments) if s.motor)
         self.runs = runs if len(runs) >= 2 else ()
         self.extra = max(0, 2 * len(self.runs) - 2)  # a PER_RUN structure's extra slots
-        per = PER_RUN_PARAMS if self.runs else ()
+        per = C.per_run_params() if self.runs else ()
         self.fitter = BatchFitter(segments, self.base_plants, per_recording=per)
         self.layout = self.fitter.layout
         self.memo = C.ExactMemo()
         self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
         self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
-        self.starts_all = C._start_values(segments, recordings, self.base_plants, SHARED)
+        self.starts_all = C._start_values(segments, recordings, self.base_plants, P.superset())
         motor = [p for p, s in zip(self.base_plants, segments, strict=True) if s.motor]
         self.ref_plant = motor[0] if motor else self.base_plants[0]
         # A parameter correction is measured from the start plant's value.
@@ -203,7 +201,7 @@ class Search:
         all of them, and of each (``command@i``) for a limit free per run."""
         by_run = {}
         limits = {
-            C.REGISTRY[e].limits for p in c.parts if p in EFFECT_PARAMS for e in P.named_by(p)
+            C.REGISTRY[e].limits for p in c.parts if p in C.effect_params() for e in P.named_by(p)
         }
         if "command" in limits:
             _, cmds = self.exact(c, c.values)
@@ -344,7 +342,9 @@ class Search:
         seen, the additions of the forward selection, round 2's candidates)."""
         round1, base = self.round1, self.round1[0]
         friction = P.concealing_friction()
-        good = self.promising([c for c in round1[1:] if c.parts[0] in EFFECT_PARAMS], base.score)
+        good = self.promising(
+            [c for c in round1[1:] if c.parts[0] in C.effect_params()], base.score
+        )
         by_name = {c.name: c for c in round1}
         mass = by_name.get("mass")
         mass_helped = mass is not None and bool(self.promising([mass], base.score))
@@ -367,7 +367,7 @@ class Search:
         if coulomb is not None and self.promising([coulomb], base.score):
             helped = {id(c) for c in good}
             rest = good[3:] + [
-                c for c in round1[1:] if c.parts[0] in EFFECT_PARAMS and id(c) not in helped
+                c for c in round1[1:] if c.parts[0] in C.effect_params() and id(c) not in helped
             ]
             new += [(a, coulomb) for a in rest if not P.friction_family(a.name)]
         seen, round2 = set(), []

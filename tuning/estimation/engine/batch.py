@@ -22,10 +22,6 @@ import numpy as np
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.lm import marquardt_step
 
-#: The plant parameters of the superset, in slot order (derived from the effects registry).
-SHARED = P.superset()
-
-
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
 VOLTAGE_WIDTH = 4e-3
 
@@ -55,13 +51,16 @@ class Segment:
 
 
 class Layout:
-    """Slots of the full parameter vector: SHARED; then, for each name of ``per_recording``, a
-    copy per recording it acts in (``v_sat@2``: the drive's value in recording 2 alone; a
-    drive parameter has none in a tap with the motor unplugged); then (y0, yd0) of each tap;
-    then a dummy."""
+    """Slots of the full parameter vector: the superset (:func:`~.parameters.superset`); then,
+    for each name of ``per_recording``, a copy per recording it acts in (``v_sat@2``: the
+    drive's value in recording 2 alone; a drive parameter has none in a tap with the motor
+    unplugged); then (y0, yd0) of each tap; then a dummy."""
 
     def __init__(self, segments, per_recording=()):
-        self.names = list(SHARED)
+        # The superset's parameters, from the registry as it is now (an effect registered
+        # later is in the next fitter's).
+        self.shared = P.superset()
+        self.names = list(self.shared)
         self.per_recording = tuple(per_recording)
         self.copies = {}  # recording -> {name: slot}
         for i, seg in enumerate(segments):
@@ -93,22 +92,22 @@ class Layout:
         return tuple(out)
 
     def slots_of(self, i: int) -> list:
-        """The slot of each SHARED name in recording ``i``: its own copy where it has one."""
+        """The slot of each superset name in recording ``i``: its own copy where it has one."""
         own = self.copies.get(i, {})
-        return [own.get(n, j) for j, n in enumerate(SHARED)]
+        return [own.get(n, j) for j, n in enumerate(self.shared)]
 
     @staticmethod
     def kind(name: str) -> str:
         return P.base_name(name)
 
 
-def _superset(plant):
-    """``plant`` with every SHARED parameter it lacks at its neutral stand-in (a drive
+def _superset(plant, shared):
+    """``plant`` with every ``shared`` parameter it lacks at its neutral stand-in (a drive
     effect is not added to a plant without its motor: a tap)."""
     from jaxcart.plantspec import build_plant
 
     have = plant.param_names()
-    missing = {k: P.stand_in(k) for k in SHARED if k not in have}
+    missing = {k: P.stand_in(k) for k in shared if k not in have}
     if not plant.motor_connected:
         missing = {k: v for k, v in missing.items() if not P.is_drive(k)}
     return build_plant(missing, base=plant, check=False)
@@ -144,7 +143,7 @@ class BatchFitter:
 
         self.segments = segments
         self.layout = layout = Layout(segments, per_recording)
-        self.supers = supers = [_superset(plant) for plant in start_plants]
+        self.supers = supers = [_superset(plant, layout.shared) for plant in start_plants]
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
         slots = [layout.slots_of(i) for i in range(len(segments))]
@@ -171,7 +170,7 @@ class BatchFitter:
                 # the shared value (one compiled step serves both kinds of candidate).
                 values = {
                     n: jnp.where(own[i, k] > 0, full[j], full[k])
-                    for k, (n, j) in enumerate(zip(SHARED, slots[i], strict=True))
+                    for k, (n, j) in enumerate(zip(layout.shared, slots[i], strict=True))
                     if n in have
                 }
                 plant = sup.replace(**values)
@@ -225,9 +224,9 @@ class BatchFitter:
             k = Layout.kind(n)
             if n in values:
                 base[j] = values[n]
-            elif k in values and k in SHARED:
+            elif k in values and k in self.layout.shared:
                 base[j] = values[k]
-            elif k in SHARED:
+            elif k in self.layout.shared:
                 # A drive parameter on recordings without their motor (taps only) acts
                 # nowhere: its stand-in value.
                 sup = next((p for p in self.supers if k in p.param_names()), None)
@@ -251,10 +250,11 @@ class BatchFitter:
         free = np.zeros((len(problems), kmax))
         theta = np.zeros((len(problems), kmax))
         base = np.zeros((len(problems), lay.size))
-        own = np.zeros((len(problems), len(self.segments), len(SHARED)))
+        shared = lay.shared
+        own = np.zeros((len(problems), len(self.segments), len(shared)))
         for c, (names, start, base_vals) in enumerate(problems):
             for i in range(len(self.segments)):
-                own[c, i] = [f"{n}@{i}" in names for n in SHARED]
+                own[c, i] = [f"{n}@{i}" in names for n in shared]
             base[c] = self.base_vector({**base_vals, **start})
             for s, n in enumerate(names):
                 j = lay.index(n)
