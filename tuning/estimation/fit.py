@@ -154,8 +154,6 @@ LM_TOLERANCE_WIDE = 0.1
 BOUNDED_LIMIT = 6.0
 #: Segments are padded to a multiple of this many samples (fewer recompilations).
 PAD = 256
-#: Format tag of a fitted-plant file (``--out fitted.json``).
-FITTED_FORMAT = "jaxcart.fitted_plant"
 
 
 @dataclass(frozen=True)

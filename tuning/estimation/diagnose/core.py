@@ -751,16 +751,6 @@ def covariance(segments, names, values, jac, residuals, widen_above=None) -> Cov
     return Covariance(list(names), robust, naive, int(r.size), n_eff, bool(widened))
 
 
-def standard_errors(segments, names, values, jac, residuals, widen_above=None):
-    """Robust (run-clustered sandwich, encoder floor) standard errors in natural units, widened
-    for model error where the RMS residual is above ``widen_above`` (see :func:`covariance`)."""
-    cov = covariance(segments, names, values, jac, residuals, widen_above)
-    return {n: cov.stderr({n: 1.0}) for n in names}
-
-
-# ---------------------------------------------------------------- significance, plausibility
-
-
 def at_bound(name: str, value: float) -> str:
     """Which bound ("lower", "upper") ``value`` sits at, of :data:`~batch.BOUNDS` (within
     :data:`AT_BOUND`: relative for a parameter fitted as a logarithm, else a tenth of it as a
