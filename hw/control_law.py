@@ -64,8 +64,12 @@ class PID:
             raise ValueError(
                 f"anti_windup = {self.anti_windup!r}: use one of {', '.join(ANTI_WINDUP_MODES)}"
             )
-        if not (isinstance(self.sample_time, float | int) and self.sample_time > 0):
-            raise ValueError(f"sample_time = {self.sample_time!r} s: it must be a positive number")
+        for name in (*PID_DATA_FIELDS, "sample_time"):
+            value = getattr(self, name)
+            if name == "sample_time" or _is_number(value):  # a JAX array is the tuner's
+                problem = setting_problem(name, value, allow_negative_gains=True)
+                if problem:
+                    raise ValueError(f"{name} = {problem}")
         if (
             self.anti_windup != "none"
             and isinstance(self.v_limit, float | int)
@@ -75,10 +79,6 @@ class PID:
                 f"anti_windup = {self.anti_windup!r} acts on the software limit, but v_limit is "
                 "infinite; give v_limit (e.g. 6 V, the amplifier's range) or anti_windup='none'"
             )
-        for name in ("tau", "v_limit", "kb"):
-            value = getattr(self, name)
-            if isinstance(value, float | int) and not value >= 0:
-                raise ValueError(f"{name} = {value!r}: it must be >= 0")
 
     def to_dict(self) -> dict:
         """Every setting as plain Python numbers and strings (the gains-file form)."""
@@ -88,6 +88,70 @@ class PID:
 #: Field names that are numbers (array leaves in JAX); the rest are static configuration.
 PID_DATA_FIELDS = ("kp", "ki", "kd", "tau", "v_limit", "kb")
 PID_META_FIELDS = ("sample_time", "derivative_on", "anti_windup")
+#: Each setting's default (what a file or a command line that omits it gets).
+DEFAULTS = {f.name: f.default for f in fields(PID)}
+
+
+#: Each number's unit (the gains file writes them beside the settings).
+UNITS = {
+    "kp": "V/m",
+    "ki": "V/(m s)",
+    "kd": "V s/m",
+    "tau": "s",
+    "v_limit": "V",
+    "kb": "1/s",
+    "sample_time": "s",
+}
+GAINS = ("kp", "ki", "kd")
+#: The rule of each number other than a gain: (the rule, the fix). A gain is any finite number
+#: >= 0 (see :func:`setting_problem`); every setting is finite except v_limit, whose inf is
+#: "no software limit".
+_RULES = {
+    "tau": ("it must be >= 0", "0 is a pure difference, the lab's 0.01 s a filtered one"),
+    "kb": ("it must be >= 0", "the back-calculation gain, e.g. 1"),
+    "v_limit": ("it must be positive", "give the limit, e.g. 6 (the amplifier), or inf for none"),
+    "sample_time": ("it must be positive", "the lab's controller runs at 0.001 s"),
+}
+
+
+def setting_problem(name: str, value, *, allow_negative_gains: bool = False) -> str | None:
+    """What is wrong with ``value`` as the PID setting ``name`` (one of :data:`UNITS`), as one
+    line "VALUE UNIT: the rule; the fix" for the caller to put after its own field name, or
+    None when it is fine. The one validation of a PID's numbers: PID(...), the experiment
+    file's [controller], the gains file and the command line all call it.
+
+    The rule of the gains kp, ki, kd: the lab's gains are >= 0, since v = kp e + ki I + kd d
+    with e = r - y, so a negative gain pushes the cart away from the reference (positive
+    feedback): a sign error. Settings chosen for the cart (a gains file, ``tune``'s --start) are
+    refused one. ``allow_negative_gains`` is for what records or represents a run: :class:`PID`
+    itself and the experiment file's [controller], so that a sign error can be simulated and
+    flagged as unstable before a run (jaxcart.plausibility, hw's pre-run check; issue 11), a run
+    ``simulate`` wrote can be read back, and a controller identified from a recording may come
+    out with a small negative gain. Every other rule is the same at every entry point.
+    """
+    unit = UNITS[name]
+    if isinstance(value, bool) or not _is_number(value):
+        hint = " (inf for no limit)" if name == "v_limit" else ""
+        return f"{value!r}: give a number in {unit}{hint}"
+    value = float(value)
+    shown = f"{value!r} {unit}"
+    if math.isnan(value) or (math.isinf(value) and not (name == "v_limit" and value > 0)):
+        return f"{shown}: give a finite number" + (" (inf for no limit)" * (name == "v_limit"))
+    if name in GAINS:
+        if value < 0 and not allow_negative_gains:
+            return (
+                f"{shown}: a negative gain is positive feedback (a sign error: the error is "
+                f"e = r - y); the lab's gains are >= 0, so drop the minus sign"
+            )
+        return None
+    rule, fix = _RULES[name]
+    ok = value > 0 if "positive" in rule else value >= 0
+    return None if ok else f"{shown}: {rule}; {fix}"
+
+
+def _is_number(value) -> bool:
+    # Python and numpy numbers (np.float64 is a float; np.float32 and ints are np.number).
+    return isinstance(value, int | float | np.number)
 
 
 def float_pid(pid: PID) -> PID:

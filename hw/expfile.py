@@ -43,7 +43,14 @@ from pathlib import Path
 import numpy as np
 
 from hw.atomicio import OutputError, atomic_paths, open_output
-from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, PID_DATA_FIELDS
+from hw.control_law import (
+    ANTI_WINDUP_MODES,
+    DEFAULTS,
+    DERIVATIVE_MODES,
+    PID,
+    PID_DATA_FIELDS,
+    setting_problem,
+)
 from hw.csvio import CSVError, read_numeric_csv, write_numeric_csv
 from hw.textfiles import HEAD, check_decodes, not_text, portable_path
 
@@ -496,13 +503,14 @@ class Reader:
         table = self.table("controller", CONTROLLER_KEYS)
         field = "[controller] {}".format
         values = {}
-        for key in ("kp", "ki", "kd"):
-            values[key] = self.number(table.get(key, 0.0), field(key))
-        values["tau"] = self.number(table.get("tau", 0.01), field("tau"), nonnegative=True)
-        values["kb"] = self.number(table.get("kb", 1.0), field("kb"), nonnegative=True)
-        values["v_limit"] = self.number(
-            table.get("v_limit", math.inf), field("v_limit"), positive=True, allow_inf=True
-        )
+        for key in PID_DATA_FIELDS:  # the one rule of each number (hw.control_law)
+            value = table.get(key, DEFAULTS[key])
+            # A file records a run, which may have had a sign error (simulate writes what it
+            # ran); the plausibility check flags such a loop as unstable before simulating.
+            problem = setting_problem(key, value, allow_negative_gains=True)
+            if problem:
+                self.fail(f"{field(key)} = {problem}")
+            values[key] = float(value)
         values["derivative_on"] = self.choice(
             table.get("derivative_on", "error"), field("derivative_on"), DERIVATIVE_MODES
         )

@@ -35,21 +35,14 @@ import json
 import math
 from pathlib import Path
 
-from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID
+from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, setting_problem
+from hw.control_law import UNITS as CONTROLLER_UNITS
 from hw.jsonio import to_jsonable
 
 FORMAT = "jaxcart-gains"
 VERSION = 1
 #: Units of the controller fields (written into the file for the reader's benefit).
-UNITS = {
-    "kp": "V/m",
-    "ki": "V/(m s)",
-    "kd": "V s/m",
-    "tau": "s",
-    "v_limit": "V",
-    "kb": "1/s",
-    "sample_time": "s",
-}
+UNITS = dict(CONTROLLER_UNITS)
 CONTROLLER_FIELDS = tuple(f.name for f in dataclasses.fields(PID))
 _CHOICES = {"derivative_on": DERIVATIVE_MODES, "anti_windup": ANTI_WINDUP_MODES}
 _RESERVED = ("format", "version", "controller", "units")
@@ -185,21 +178,11 @@ def _field(path, name, value):
         return value
     if name == "v_limit" and (value is None or value == "inf" or value == math.inf):
         return math.inf
-    if isinstance(value, bool) or not isinstance(value, int | float):
+    problem = setting_problem(name, value)  # the one rule of a PID setting (hw.control_law)
+    if problem:
         hint = ' (null or "inf" for no limit)' if name == "v_limit" else ""
-        raise GainsFileError(
-            f"{value!r}: give a number in {UNITS[name]}{hint}", path=path, field=field
-        )
-    value = float(value)
-    if not math.isfinite(value):
-        raise GainsFileError(f"{value!r}: give a finite number", path=path, field=field)
-    if name == "sample_time" and not value > 0:
-        raise GainsFileError(
-            f"{value!r} s: the sample time must be positive", path=path, field=field
-        )
-    if not value >= 0:
-        raise GainsFileError(f"{value!r}: it must be >= 0 {UNITS[name]}", path=path, field=field)
-    return value
+        raise GainsFileError(problem.replace(" (inf for no limit)", hint), path=path, field=field)
+    return float(value)
 
 
 def _reject_constant(name):
