@@ -171,8 +171,10 @@ def test_bad_input_is_one_clear_error():
         cs.controller_tf(jc.PID(kp=1.0, kd=1.0, tau=0.0), discrete=False)
     with pytest.raises(UserError, match="batch"):
         cs.plant_ss(PLANT.replace(B_eq=np.array([4.0, 5.0])))
-    with pytest.raises(UserError, match="finite"):
-        cs.closed_loop(PLANT, jc.PID(kp=math.nan))
+    with pytest.raises(ValueError, match="kp = nan V/m: give a finite number"):
+        jc.PID(kp=math.nan)  # the one rule of a PID setting (hw.control_law)
+    with pytest.raises(UserError, match="finite"):  # an array leaf is not checked by PID
+        cs.closed_loop(PLANT, jc.PID(kp=np.array(math.nan)))
 
 
 @pytest.mark.parametrize("name", PIDS)

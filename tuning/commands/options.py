@@ -99,18 +99,25 @@ def robust_ranges(args):
 
 
 def parse_gains(text: str, option: str) -> dict:
-    """'KP,KI,KD' (the handout's order) -> {"kp", "ki", "kd"} [V/m, V/(m s), V s/m], each a
-    finite number >= 0."""
+    """'KP,KI,KD' (the handout's order) -> {"kp", "ki", "kd"} [V/m, V/(m s), V s/m], each
+    checked by the one rule of a PID setting (:func:`hw.control_law.setting_problem`: finite,
+    >= 0)."""
+    from hw.control_law import setting_problem
+
     parts = [s.strip() for s in text.split(",")]
     try:
         values = [float(s) for s in parts]
     except ValueError:
         values = []
-    if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
+    if len(values) != 3:
         raise UserError(
             f"{option} {text}: give three gains kp,ki,kd >= 0 in the handout's order, e.g. "
             f"{option} 40,5,5"
         )
+    for name, value in zip(GAINS, values, strict=True):
+        problem = setting_problem(name, value)
+        if problem:
+            raise UserError(f"{option} {text}: {name} = {problem}")
     return dict(zip(GAINS, values, strict=True))
 
 

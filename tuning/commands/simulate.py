@@ -207,16 +207,15 @@ def _with_options(args, controller, experiment, source):
             f"{source} has no [controller]; add one or give the gains with --kp/--ki/--kd"
         )
     import jaxcart as jc
+    from hw.control_law import setting_problem
 
     base = controller or jc.PID(sample_time=experiment.sample_time)
     for name, value in given.items():
-        flag = "--" + name.replace("_", "-")
-        if math.isnan(value) or (math.isinf(value) and name != "v_limit"):
-            raise UserError(f"{flag} {value!r}: give a finite number")
-        if name == "tau" and value < 0:
-            raise UserError(f"{flag} {value!r}: the filter time constant must be >= 0 s")
-        if name == "v_limit" and not value > 0:
-            raise UserError(f"{flag} {value!r}: give a positive limit [V] (inf for none)")
+        # The one rule of a PID setting; a negative gain is allowed here as in the experiment
+        # file that simulate writes (a what-if of a sign error, flagged unstable before the run).
+        problem = setting_problem(name, value, allow_negative_gains=True)
+        if problem:
+            raise UserError(f"--{name.replace('_', '-')} {value!r}: {name} = {problem}")
     return dataclasses.replace(base, **given)
 
 

@@ -455,13 +455,13 @@ def _start(text):
 
 
 def _controller(args):
-    from hw.control_law import PID
+    from hw.control_law import PID, setting_problem
 
-    _finite(args.sample_time, "--sample-time", positive=True)
-    _finite(args.tau, "--tau", nonnegative=True)
-    if not args.v_limit > 0:
-        raise UserError(f"--v-limit {args.v_limit}: give a positive limit [V] (inf for none)")
-    _finite(args.kb, "--kb", nonnegative=True)
+    for name in ("sample_time", "tau", "kb", "v_limit"):  # the one rule (hw.control_law)
+        value = getattr(args, name)
+        problem = setting_problem(name, value)
+        if problem:
+            raise UserError(f"--{name.replace('_', '-')} {value}: {name} = {problem}")
     return PID(
         tau=args.tau,
         kb=args.kb,
