@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import jaxcart as jc
-from hw.control_law import PID
+from hw.control_law import PID, setting_problem
 from jaxcart import control_systems
 from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
@@ -79,10 +79,12 @@ class Settings:
     def __post_init__(self):
         for name in RANGES:
             value = getattr(self, name)
-            if not (isinstance(value, float | int) and math.isfinite(value)):
+            if name != "setpoint":  # the one rule of a PID setting (gains >= 0, tau >= 0)
+                problem = setting_problem(name, value)
+                if problem:
+                    raise UserError(f"{name} = {problem}")
+            elif not (isinstance(value, float | int) and math.isfinite(value)):
                 raise UserError(f"{name} = {value!r} {UNITS[name]}: give a finite number")
-            if name != "setpoint" and value < 0:
-                raise UserError(f"{name} = {value!r} {UNITS[name]}: it must be >= 0")
 
     def controller(self) -> PID:
         """The lab's PID with these gains and the 6 V software limit."""
