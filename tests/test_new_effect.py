@@ -1,9 +1,8 @@
 """Adding an effect is one module (issue 20 item 2): a throwaway effect defined here, and only
 here, registered with :func:`jaxcart.effects.register`, is simulated by both simulators, fitted
 by :func:`tuning.estimation.fit.fit` and named by :func:`tuning.estimation.diagnose.diagnose`,
-with nothing spelled for it anywhere else. Where the library still derives a table from the
-registry at import time the test is a strict xfail naming the file and line: it passes (and
-then fails as XPASS, to drop the mark) once the table is derived at call time.
+with nothing spelled for it anywhere else: every table the library derives from the registry
+is derived at call time, so an effect registered after ``tuning`` is imported is found.
 
 The effect is a tilted track: gravity's component along the track is a constant force
 f_tilt = M g sin(theta) [N] on the cart (0.5 N is a 3.1 degree tilt under the 0.94 kg cart).
@@ -125,12 +124,6 @@ def test_simulated_by_both_simulators(tilt):
     assert gaps[0] < 2e-5 and gaps[1] < 1e-9, gaps
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="tuning/estimation/fit.py builds NOT_FITTED, FITTABLE and DEFAULT_START from the "
-    "registry at import (lines 88-107); prepare() (line 568) adds an effect only when "
-    "DEFAULT_START holds its parameter, so a later effect's parameter is silently not fitted",
-)
 def test_fitted(tilt, recording):
     """fit() recovers f_tilt with B_eq free from the handout's start."""
     result = fit([recording], ("B_eq", "f_tilt"), progress=False)
@@ -155,15 +148,9 @@ def test_diagnosed(diagnosis):
     assert d.rms_after < 1.3 * d.floor and d.rms_before > 100 * d.floor
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="tables derived from the registry at import: tuning/estimation/diagnose/report.py "
-    "_ITEM (line 201, the Markdown's z column) and tuning/estimation/diagnose/locate.py "
-    "POINTS_TO (line 27, what a residual's correlation can explain)",
-)
 def test_diagnosis_report_names_it_where_the_builtin_effects_are(diagnosis):
     """The Markdown gives the tilt's significance beside its value, and the position test
     lists it among what a residual correlated with position can explain."""
     row = next(line for line in render_markdown(diagnosis).splitlines() if "| f_tilt |" in line)
     assert "z = " in row, row
-    assert NAME in locate.POINTS_TO["position"]
+    assert NAME in locate.points_to()["position"]

@@ -251,7 +251,7 @@ def _mm(x) -> str:
 def format_result(result) -> str:
     """The parameter table and the RMS errors, as printed by the command."""
     from jaxcart.plantspec import describe_plant
-    from tuning.estimation.fit import UNITS
+    from tuning.estimation.fit import unit_of
 
     lines = ["recordings:"]
     for s in result.segments:
@@ -265,7 +265,7 @@ def format_result(result) -> str:
     names = [s.name for s in result.segments]
     for key, e in result.params.items():
         base, _, k = key.partition("@")
-        unit = UNITS.get(base, "")
+        unit = unit_of(base)
         name = f"{base} ({names[int(k)]})" if k else key
         if not e.identifiable:  # the note says why, and where the value held comes from
             lines.append(f"{name:<14}{e.note}")
@@ -315,11 +315,11 @@ def classic_estimates(recordings, result=None) -> list:
 
 
 def format_classic(classic) -> str:
-    from tuning.estimation.fit import UNITS
+    from tuning.estimation.fit import unit_of
 
     lines = ["classic estimates:"]
     for name, c in classic:
-        unit = UNITS.get(c.name, "")
+        unit = unit_of(c.name)
         if c.value is not None:
             se = f" +/- {c.stderr:.3g}" if c.stderr is not None else ""
             text = f"{c.name} = {c.value:.4g}{se} {unit}"

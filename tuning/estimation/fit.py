@@ -82,29 +82,50 @@ from tuning.estimation.engine.noise import (
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.engine.segments import coasting_segment, initial_state
 
-#: Parameters a fit offers: the plant's corrections and every registered effect's parameters
-#: (naming one adds its effect; a vector such as f_track is fitted element by element, as
-#: f_track[0], f_track[1], ...). The encoder count is read from each recording, not fitted.
-NOT_FITTED = {
-    p.name: f"the sensor's {p.doc} is read from each recording (every position is a whole "
-    "number of them); it is not fitted"
-    for cls in plantspec.REGISTRY.values()
-    for p in cls.params
-    if p.role == "sensor"
-}
-FITTABLE = P.CORRECTABLE + tuple(
-    p.name for cls in plantspec.REGISTRY.values() for p in cls.params if p.name not in NOT_FITTED
-)
 #: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
 ALIASES = {"v_limit": "v_sat"}
-#: Starting values for parameters a plant does not have yet [SI]: each effect's declared start.
-DEFAULT_START = {
-    n: (plantspec.param(n).start,) * plantspec.param(n).size
-    if plantspec.param(n).size
-    else plantspec.param(n).start
-    for n in FITTABLE
-    if n not in ("B_eq", "M")
-}
+
+
+def not_fitted() -> dict:
+    """{parameter: why} of the parameters a fit does not offer: a sensor's, read from the data."""
+    return {
+        p.name: f"the sensor's {p.doc} is read from each recording (every position is a whole "
+        "number of them); it is not fitted"
+        for cls in plantspec.REGISTRY.values()
+        for p in cls.params
+        if p.role == "sensor"
+    }
+
+
+def fittable() -> tuple:
+    """Parameters a fit offers: the plant's corrections and every registered effect's (naming
+    one adds its effect; a vector such as f_track is fitted element by element, as f_track[0],
+    f_track[1], ...), from the registry as it is now."""
+    skip = not_fitted()
+    effects = [p.name for c in plantspec.REGISTRY.values() for p in c.params if p.name not in skip]
+    return P.CORRECTABLE + tuple(effects)
+
+
+def default_start() -> dict:
+    """Starting values [SI] for parameters a plant does not have yet: each one's declared start
+    (a vector's, element by element)."""
+    out = {}
+    for n in fittable():
+        if n in ("B_eq", "M"):
+            continue
+        decl = plantspec.param(n)
+        out[n] = (decl.start,) * decl.size if decl.size else decl.start
+    return out
+
+
+def unit_of(name: str) -> str:
+    """The SI unit of a fitted name (``v_sat@2``, ``f_track[1]``, the alias ``v_limit``)."""
+    try:
+        return plantspec.unit(canonical(base_name(name)))
+    except KeyError:
+        return ""
+
+
 #: Nuisance values and their internal units (the optimizer's unit step): y0, the initial
 #: position [m]; yd0, the initial velocity [m/s].
 NUISANCE_SCALE = {"y0": 1e-3, "yd0": 0.1}
@@ -435,8 +456,9 @@ def parse_params(text) -> tuple[str, ...]:
     known = _known_names()
     expanded = []
     for n in names:
-        if canonical(n) in NOT_FITTED:
-            raise UserError(f"--params: {n}: {NOT_FITTED[canonical(n)]}")
+        skip = not_fitted()
+        if canonical(n) in skip:
+            raise UserError(f"--params: {n}: {skip[canonical(n)]}")
         if base_name(n) in known and "[" in n:
             expanded.append(n)  # one element of a vector, as returned by the fit
             continue
@@ -448,7 +470,7 @@ def parse_params(text) -> tuple[str, ...]:
         if canonical(n) not in known:
             raise UserError(
                 f"--params: unknown parameter {n!r}; fit any of "
-                f"{', '.join(FITTABLE)} (v_limit = v_sat), or another plant "
+                f"{', '.join(fittable())} (v_limit = v_sat), or another plant "
                 f"parameter: {', '.join(sorted(known))}"
             )
     if len({canonical(n) for n in expanded}) != len(expanded):
@@ -471,7 +493,7 @@ def assemble(plant: Plant, values: dict, xp=np) -> dict:
             continue
         base = base_name(name)
         if base not in vectors:
-            have = plant.get(base) if base in plant.param_names() else DEFAULT_START[base]
+            have = plant.get(base) if base in plant.param_names() else default_start()[base]
             vectors[base] = list(have) if isinstance(have, tuple) else list(xp.asarray(have))
         vectors[base][i] = value
     for base, items in vectors.items():
@@ -484,7 +506,7 @@ def assemble(plant: Plant, values: dict, xp=np) -> dict:
 
 
 def _known_names() -> set:
-    return set(FITTABLE) | set(plantspec.parameter_names())
+    return set(fittable()) | set(plantspec.parameter_names())
 
 
 def _drives_nothing(name: str, plant: Plant) -> bool:
@@ -518,8 +540,9 @@ def to_theta(name: str, value: float) -> float:
     return P.to_theta(name, value)
 
 
-def plant_values(plant: Plant, names=FITTABLE) -> dict:
-    """{name: float} of those ``names`` the plant has."""
+def plant_values(plant: Plant, names=None) -> dict:
+    """{name: float} of those ``names`` (default: every fittable one) the plant has."""
+    names = fittable() if names is None else names
     have = set(plant.param_names())
     return {n: float(plant.get(n)) for n in names if n in have}
 
@@ -528,7 +551,7 @@ def plant_values(plant: Plant, names=FITTABLE) -> dict:
 
 
 def _default_start(name: str) -> float:
-    start = DEFAULT_START.get(base_name(name), 1.0)
+    start = default_start().get(base_name(name), 1.0)
     return float(start[_element(name)] if isinstance(start, tuple) else start)
 
 
@@ -561,12 +584,11 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
     plant = with_values(recording.plant(), values)
     canon = [canonical(p) for p in params]
     peaks = _peaks(recording, plant)
+    starts = default_start()
     for p in canon:  # a fitted effect the plant lacks starts where it acts on these data
         b = base_name(p)
-        if b in DEFAULT_START and b not in plant.param_names() and not _drives_nothing(b, plant):
-            start = (
-                DEFAULT_START[b] if plantspec.param(b).size else P.start_for(b, peaks, raw.mean())
-            )
+        if b in starts and b not in plant.param_names() and not _drives_nothing(b, plant):
+            start = starts[b] if plantspec.param(b).size else P.start_for(b, peaks, raw.mean())
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
     exp = recording.experiment
@@ -787,7 +809,7 @@ class _Problem:
     def start_source(self, p) -> str:
         """Where parameter ``p``'s start value comes from, in words (for a value held)."""
         base = base_name(p)
-        declared = DEFAULT_START.get(base)
+        declared = default_start().get(base)
         if base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
             where = "the recordings' plant (the handout's appendix, a plant file or [plant])"
         elif declared is not None and math.isclose(
@@ -1467,6 +1489,12 @@ def _final_covariance(problem, r, idx, hac, naive, run) -> _Covariance:
             f"residual is worth {n_eff:.0f} independent samples of {r.size}, and the standard "
             "errors are widened to that; an effect may be missing (jaxcart diagnose)"
         )
+        driven = sum(s.recording.kind != "tap" for s in problem.segments)
+        if driven >= 2 and not any("@" in n for n in problem.params):
+            misfit += (
+                ", or the drive differs from run to run (--per-recording v_sat with v_sat in "
+                "--params)"
+            )
     return _Covariance(idx, hac, naive, se, floor, n_eff, misfit)
 
 
@@ -1670,9 +1698,6 @@ def load_fitted_plant(path) -> Plant:
 
 # ---------------------------------------------------------------- overlay plot
 
-#: Units of the fittable parameters (for tables and plots).
-UNITS = {n: plantspec.unit(n) for n in plantspec.parameter_names()} | {"v_limit": "V"}
-
 
 def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:
     """Overlay of each recording and the model before and after the fit (exact simulator solid,
@@ -1719,13 +1744,13 @@ def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:
         ax_r.grid(alpha=0.3)
         ax_r.legend(fontsize=8, loc="best")
     fitted = ", ".join(
-        f"{n} = {e.value:.4g} ± {e.stderr:.2g} {UNITS.get(n, '')}".rstrip()
+        f"{n} = {e.value:.4g} ± {e.stderr:.2g} {unit_of(n)}".rstrip()
         if e.identifiable
         else f"{n}: not identifiable"
         for n, e in result.params.items()
     )
     if not fitted:  # a prediction (cross_predict): show the values it ran with
-        held = ", ".join(f"{n} = {v:.4g}" for n, v in result.values.items() if n in FITTABLE)
+        held = ", ".join(f"{n} = {v:.4g}" for n, v in result.values.items() if n in fittable())
         fitted = f"prediction with {held or 'the nominal plant'}"
     fig.suptitle(f"jaxcart fit: {fitted}", fontsize=11)
     from hw.atomicio import save_figure

@@ -9,7 +9,7 @@ the loop's regime there (the majority over its samples) and its share of the res
 Residual tests (on the whole residual): whiteness (lag-1 autocorrelation and a Ljung-Box
 statistic over 20 lags of the residual decimated to 10 ms), and correlations with the command,
 with sign(velocity) and with position, each with a z value rho sqrt(n_eff). What each points to
-is :data:`POINTS_TO`.
+is :func:`points_to`.
 """
 
 from __future__ import annotations
@@ -22,13 +22,19 @@ from jaxcart.effects import REGISTRY
 
 #: The parameter corrections a residual correlated with a signal can point to.
 _CORRECTIONS = {"command": ("gain (gamma_scale)",), "acceleration": ("mass (M)",)}
-#: Which kinds of physics a residual correlated with each signal can explain: every effect
-#: that declares the signal (``Effect.shows_in``), then the corrections.
-POINTS_TO = {
-    signal: tuple(n for n, cls in REGISTRY.items() if signal in cls.shows_in)
-    + _CORRECTIONS.get(signal, ())
-    for signal in ("command", "sign_velocity", "position", "acceleration")
-}
+
+
+def points_to() -> dict:
+    """Which kinds of physics a residual correlated with each signal can explain: every effect
+    that declares the signal (``Effect.shows_in``, the registry as it is now), then the
+    corrections."""
+    return {
+        signal: tuple(n for n, cls in REGISTRY.items() if signal in cls.shows_in)
+        + _CORRECTIONS.get(signal, ())
+        for signal in ("command", "sign_velocity", "position", "acceleration")
+    }
+
+
 REGIMES = ("command at its limit", "reversing", "stuck", "accelerating", "settling", "coasting")
 
 
@@ -183,7 +189,7 @@ def residual_tests(segments, residuals, commands, n_eff):
             "correlation": round(rho, 4),
             "z": round(z, 2),
             "significant": bool(abs(z) > 3.0),
-            "points_to": list(POINTS_TO[name]),
+            "points_to": list(points_to()[name]),
         }
     return out
 

@@ -93,7 +93,7 @@ def _fit_section(d) -> list:
             note.append("widened for model error")
         z = d.significance.get(n)
         if z is None:  # a parameter of an effect: the effect's z (0.0 is a value)
-            z = d.significance.get(_ITEM.get(n, ""))
+            z = d.significance.get(_item_of(n))
         if z is not None:
             note.append(f"z = {z:.3g}")
         lines.append(
@@ -196,14 +196,14 @@ def _candidates_section(d, figure) -> list:
     return lines
 
 
-#: The significance item of a strength parameter (the Markdown's z column): the effect that
-#: declares it, for every parameter that has a neutral value.
-_ITEM = {
-    p.name: name
-    for name, cls in REGISTRY.items()
-    for p in cls.params
-    if p.neutral is not None and not p.size
-}
+def _item_of(name: str) -> str:
+    """The significance item of a strength parameter (the Markdown's z column): the effect that
+    declares it, for a parameter that has a neutral value."""
+    for effect, cls in REGISTRY.items():
+        for p in cls.params:
+            if p.name == name and p.neutral is not None and not p.size:
+                return effect
+    return ""
 
 
 def _significance() -> str:
