@@ -246,10 +246,6 @@ def test_the_verdict_says_effects_and_corrections_and_what_it_does_not_know():
     assert title.startswith("NOT EXPLAINED") and "implausible: B_eq = 0.38 kg/s" in title
     md = render_markdown(d)
     assert "## Not explained" in md and "## Implausible values" in md
-    from tuning.lab.diagnosis import _row
-
-    row = _row("(ii) P 50 step", "p50.toml", d)
-    assert row[2].startswith("not explained") and "implausible" in row[2] and "M" in row[2]
 
 
 # ---------------------------------------------------------------- diagnoses

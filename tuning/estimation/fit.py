@@ -1362,7 +1362,7 @@ def _acting(problem) -> tuple[np.ndarray, dict]:
     for i, name in enumerate(problem.params):
         k = P.recording_of(name)
         segs = problem.segments if k is None else [problem.segments[k]]
-        if not any(base_name(name) in s.params for s in segs):
+        if not any(name in s.params or base_name(name) in s.params for s in segs):
             active[i] = False
             notes[name] = "not identifiable: it does not act on these recordings"
     return active, notes
