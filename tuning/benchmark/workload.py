@@ -808,41 +808,8 @@ def format_table(result: dict) -> str:
         f"{'implementation':<24}{'runs':>8}  {'dtype':<9}{'sims/s':>11}{'per CPU-s':>11}"
         f"{'jaxcart/peer':>14}{'of c-kernel':>13}{'max |dy| [m]':>14}",
     ]
-    for row in result["rows"]:
-        if "skipped" in row:
-            lines.append(f"{row['name']:<24}  skipped: {row['skipped']}")
-            continue
-        dy = result["checks"].get(row["name"], {}).get("max_position_diff_m")
-        cpu = row.get("sims_per_cpu_s")
-        ceiling = row.get("ceiling_ratio")
-        lines.append(
-            f"{row['name']:<24}{row['runs']:>8}  {row['dtype']:<9}{_fmt(row['sims_per_s']):>11}"
-            f"{'' if cpu is None else _fmt(cpu):>11}{_fmt(row['jaxcart_ratio']) + 'x':>14}"
-            f"{'' if ceiling is None else f'{ceiling:.0%}':>13}"
-            f"{'' if dy is None else f'{dy:>14.2g}'}"
-        )
-    grad, grid = result["grad"], result["grid"]
-    grad_cpu = grad.get("sims_per_cpu_s")
-    grad_ratio = result.get("grad_ratio")
-    lines.append(
-        f"{'grad (sim + d/d gains)':<24}{grad['runs']:>8}  {'float32':<9}"
-        f"{_fmt(result['grad_sims_per_s']):>11}{'' if grad_cpu is None else _fmt(grad_cpu):>11}"
-        + (
-            ""
-            if grad_ratio is None
-            else f"   {grad_ratio['sims_per_s']:.3f} of jaxcart's sims/s "
-            f"({grad_ratio['sims_per_cpu_s']:.3f} per CPU-s)"
-        )
-    )
-    lines.append(
-        f"{'grid ' + str(grid['points']) + '^3':<24}{grid['runs']:>8}  {'float32':<9}"
-        f"{_fmt(result['grid_sims_per_s']):>11}"
-    )
-    lines.append(
-        f"jit compile: {result['compile_s']:.2f} s (step_metrics_batch), "
-        f"{grad['compile_s']:.2f} s (grad). max |dy|: positions against float64 "
-        f"jaxcart.simulate (tolerance {result['tolerance_m']:g} m)."
-    )
+    lines += [_row_line(row, result["checks"]) for row in result["rows"]]
+    lines += _grad_and_grid_lines(result)
     c_row = next((r for r in result["rows"] if r["name"] == "c-kernel"), None)
     if c_row is not None and "skipped" not in c_row:
         scalar = c_row["scalar_loop"]["sims_per_cpu_s"]
@@ -853,7 +820,57 @@ def format_table(result: dict) -> str:
             f"float64 {_fmt(c_row['by_dtype']['float64']['sims_per_cpu_s'])} per CPU-s, "
             f"scalar loop {_fmt(scalar)}. 'of c-kernel': per CPU-second, same precision."
         )
+    lines.append(_targets_line(result))
+    load = result.get("load_average") or {}
+    if load.get("before") is not None:
+        lines.append(
+            f"load average (1 min) before/after: {load['before']:.2f} / "
+            f"{load['after']:.2f} on {result['cpu_count']} CPUs"
+        )
+    return "\n".join(lines)
+
+
+def _row_line(row: dict, checks: dict) -> str:
+    """One implementation's line of :func:`format_table`."""
+    if "skipped" in row:
+        return f"{row['name']:<24}  skipped: {row['skipped']}"
+    dy = checks.get(row["name"], {}).get("max_position_diff_m")
+    cpu = row.get("sims_per_cpu_s")
+    ceiling = row.get("ceiling_ratio")
+    return (
+        f"{row['name']:<24}{row['runs']:>8}  {row['dtype']:<9}{_fmt(row['sims_per_s']):>11}"
+        f"{'' if cpu is None else _fmt(cpu):>11}{_fmt(row['jaxcart_ratio']) + 'x':>14}"
+        f"{'' if ceiling is None else f'{ceiling:.0%}':>13}"
+        f"{'' if dy is None else f'{dy:>14.2g}'}"
+    )
+
+
+def _grad_and_grid_lines(result: dict) -> list[str]:
+    """The gradient's and the grid's lines of :func:`format_table`, and the compile times."""
+    grad, grid = result["grad"], result["grid"]
+    grad_cpu = grad.get("sims_per_cpu_s")
+    grad_ratio = result.get("grad_ratio")
+    return [
+        f"{'grad (sim + d/d gains)':<24}{grad['runs']:>8}  {'float32':<9}"
+        f"{_fmt(result['grad_sims_per_s']):>11}{'' if grad_cpu is None else _fmt(grad_cpu):>11}"
+        + (
+            ""
+            if grad_ratio is None
+            else f"   {grad_ratio['sims_per_s']:.3f} of jaxcart's sims/s "
+            f"({grad_ratio['sims_per_cpu_s']:.3f} per CPU-s)"
+        ),
+        f"{'grid ' + str(grid['points']) + '^3':<24}{grid['runs']:>8}  {'float32':<9}"
+        f"{_fmt(result['grid_sims_per_s']):>11}",
+        f"jit compile: {result['compile_s']:.2f} s (step_metrics_batch), "
+        f"{grad['compile_s']:.2f} s (grad). max |dy|: positions against float64 "
+        f"jaxcart.simulate (tolerance {result['tolerance_m']:g} m).",
+    ]
+
+
+def _targets_line(result: dict) -> str:
+    """Which targets the run met, each with its figure."""
     ratios = result["ratios"]
+    grad_ratio = result.get("grad_ratio")
     jax_row, jax64_row = result["rows"][0], result["rows"][1]
     shown = {
         "jaxcart_sims_per_s >= 100000": _fmt(jax_row["sims_per_s"]),
@@ -869,22 +886,12 @@ def format_table(result: dict) -> str:
             "" if grad_ratio is None else f"{grad_ratio['sims_per_s']:.3f}"
         ),
     }
-    lines.append(
-        "targets: "
-        + "; ".join(
-            f"{name} "
-            + {True: "met", False: "NOT met", None: "not measured"}[ok]
-            + f" ({shown.get(name, '')})"
-            for name, ok in result["targets"].items()
-        )
+    return "targets: " + "; ".join(
+        f"{name} "
+        + {True: "met", False: "NOT met", None: "not measured"}[ok]
+        + f" ({shown.get(name, '')})"
+        for name, ok in result["targets"].items()
     )
-    load = result.get("load_average") or {}
-    if load.get("before") is not None:
-        lines.append(
-            f"load average (1 min) before/after: {load['before']:.2f} / "
-            f"{load['after']:.2f} on {result['cpu_count']} CPUs"
-        )
-    return "\n".join(lines)
 
 
 def to_json(value):

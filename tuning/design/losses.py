@@ -27,10 +27,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxcart.accumulators import accumulate, value_and_jacfwd_rows
 from jaxcart.errors import UserError
 from jaxcart.metrics import RISE_LIMITS, SETTLING_BAND, StepInfo, info_from_accumulated
 from jaxcart.params import voltage_limit
-from jaxcart.accumulators import accumulate, value_and_jacfwd_rows
 from jaxcart.smooth_sim import DIVERGED_POSITION, loop, simulate_smooth
 from jaxcart.smoothing import Smoothing
 from jaxcart.surrogates import (
@@ -306,19 +306,6 @@ def make_loss(
     return worst
 
 
-def batched_value_and_grad(loss):
-    """Loss and gradient w.r.t. theta for a batch of starts theta (S, 3): one vmapped call,
-    ``(theta, fixed, free_mask, plants, scale) -> ((sum, (losses (S,), aux)), grad (S, 3))``."""
-
-    def total(theta, fixed, free_mask, plants, scale):
-        values, aux = jax.vmap(loss, in_axes=(0, None, None, None, None))(
-            theta, fixed, free_mask, plants, scale
-        )
-        return jnp.sum(values), (values, aux)
-
-    return jax.value_and_grad(total, has_aux=True)
-
-
 def batched_value_and_jacfwd(loss):
     """Loss and gradient w.r.t. the free entries of theta for a batch of starts, by forward
     mode (one tangent per free parameter, the loss summed inside the loop: a few forward runs'
@@ -352,5 +339,4 @@ __all__ = [
     "controller_with",
     "plant_loss",
     "make_loss",
-    "batched_value_and_grad",
 ]
