@@ -78,6 +78,11 @@ FLOOR_FACTOR = 1.5
 #: Near-ties: another structure within this many criterion units of the best is named too.
 TIE = 6.0
 WIDTHS = (4.0, 1.0, 0.3, 0.1)
+#: Round 1 is also fitted straight from the start at narrow widths: the continuation can lead
+#: astray where a wide width changes the physics (static friction smoothed wide is a larger
+#: Coulomb friction, and a ramp that breaks away late fits B_eq at its bound with f_c = 0;
+#: from the start at these widths it finds the truth).
+DIRECT_WIDTHS = (0.01, 0.001)
 ITERATIONS = (8, 8, 8, 8)
 MIN_SAMPLES = 200
 #: Free slots of every candidate (B_eq + two effects' parameters), so one compile serves all.

@@ -23,6 +23,7 @@ from jaxcart import plantspec
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import locate
 from tuning.estimation.diagnose.core import (
+    DIRECT_WIDTHS,
     FLOOR_FACTOR,
     ITERATIONS,
     K_MAX,
@@ -196,6 +197,32 @@ class Search:
                 f"{c.rms_exact * 1e3:8.4f} mm   score {c.score:10.1f}"
             )
 
+    def direct(self, cands, starts):
+        """``cands`` fitted again straight from ``starts`` at the narrow DIRECT_WIDTHS, in one
+        batch (the width is an argument of the compiled step: nothing compiles); a candidate
+        keeps these values where they lower its exact residual."""
+        problems = [
+            (tuple(c.free) + tuple(self.nuis), s, {}) for c, s in zip(cands, starts, strict=True)
+        ]
+        results = self.fitter.fit(
+            problems,
+            DIRECT_WIDTHS,
+            (ITERATIONS[-1],) * len(DIRECT_WIDTHS),
+            kmax=K_MAX + self.extra + len(self.nuis),
+            share=self.processes,
+        )
+        values = [vals for vals, _cost, _jac, _r in results]
+        rechecked = C._spread(
+            self.processes,
+            list(zip(cands, values, strict=True)),
+            lambda cv: ({}, self.exact(*cv)[0]),
+        )
+        for c, vals, (_, res), (_, _, jac, _) in zip(
+            cands, values, rechecked, results, strict=True
+        ):
+            if C._rms(res) < c.rms_exact:
+                self.keep(c, vals, res, jac)
+
     def peaks(self, c) -> dict:
         """The largest command and armature current of ``c``'s own runs (motor segments): over
         all of them, and of each (``command@i``) for a limit free per run."""
@@ -303,6 +330,7 @@ class Search:
         t0 = _time.perf_counter()
         starts1 = [{k: self.starts_all[Layout.kind(k)] for k in c.free} for c in self.round1]
         self.run_round(self.round1, starts1, 1)
+        self.direct(self.round1, starts1)
         self.say(f"round 1 (compile + fit + exact checks): {_time.perf_counter() - t0:.1f} s")
         self.cands = list(self.round1)
         self.locate()
