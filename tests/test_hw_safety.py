@@ -88,12 +88,11 @@ def test_fault_writes_zero_volts_and_records_why(tmp_path, case):
 
 
 def test_nan_from_the_controller_is_a_fault():
-    """A controller whose arithmetic gives nan (PID(...) refuses a nan gain, so one is set
-    behind its check) stops the loop at 0 V."""
+    """A controller whose arithmetic gives nan (PID(...) refuses a nan gain, so the nan
+    comes in through the reference) stops the loop at 0 V."""
     device = Injected(lambda y: y, at=10**9)
-    pid = PID(kp=1.0, v_limit=6.0)
-    object.__setattr__(pid, "kp", float("nan"))
-    result = run_loop(device, pid, [0.1] * 50, clock="virtual")
+    reference = [float("nan")] * 50
+    result = run_loop(device, PID(kp=1.0, v_limit=6.0), reference, clock="virtual")
     assert result.status == "fault" and "nan" in result.fault
     assert set(device.writes) == {0.0}  # nothing but the 0 V of the finally (and of stop)
 
