@@ -65,10 +65,12 @@ def structure(inputs, diagnosis=None) -> tuple[tuple, tuple]:
 
 
 def compute(
-    inputs, tap_b_eq=None, diagnosis=None, *, fit=None, say=lambda t: None
+    inputs, tap_b_eq=None, diagnosis=None, *, start=None, fit=None, say=lambda t: None
 ) -> JointCart | None:
     """The joint fit of every recording of ``inputs`` (:class:`tuning.lab.inputs.Inputs`,
     repeats included) with :func:`structure`; ``tap_b_eq``: Part (i)'s (value, stderr);
+    ``start``: the cart as the parts left it ({name: value}), where the fits start (the
+    diagnosis's values where there is one) and, from there, only polish;
     ``fit``: the lab's fitter (:func:`tuning.lab.fits.fit`). None without a driven run."""
     from tuning.design.tune import tune
     from tuning.lab import fits
@@ -83,15 +85,32 @@ def compute(
     params, per = structure(inputs, diagnosis)
     per = per if len(driven) >= 2 else ()
     say(f"the cart: one joint fit of {len(runs)} recordings ({', '.join(params)})")
-    joint = fit(runs, params, per_recording=per)
+    initial = _start(params, diagnosis, start or {})
+    joint = fit(runs, params, per_recording=per, initial=initial, quick=bool(initial))
     alone = None
     if len(driven) < len(runs) and tap_b_eq is not None:
         say("the cart: the driven runs alone, for B_eq beside the tap's")
-        alone = fit(driven, params, per_recording=per)
+        alone = fit(driven, params, per_recording=per, initial=initial, quick=bool(initial))
     say("the cart: the PID re-tuned on the fitted cart")
     tuned = tune(_design_plant(joint), progress=False, **TUNE_OPTIONS)
     names = tuple(s.name for s in joint.segments)
     return JointCart(joint, alone, tap_b_eq, tuned, names)
+
+
+def _start(params, diagnosis, before: dict) -> dict:
+    """Start values of the joint fit: the diagnosis's (shared values, each drive limit at the
+    median of its runs), else the parts' ({} without them: the fit's own continuation)."""
+    import numpy as np
+
+    out = {k: v for k, v in before.items() if k in params}
+    if diagnosis is not None and diagnosis.status == "diagnosed":
+        out.update({n: p["value"] for n, p in diagnosis.parameters.items() if n in params})
+        own = {}
+        for rec in diagnosis.per_recording.values():
+            for n, p in rec["parameters"].items():
+                own.setdefault(n, []).append(p["value"])
+        out.update({n: float(np.median(v)) for n, v in own.items()})
+    return out
 
 
 def _design_plant(joint):

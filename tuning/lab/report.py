@@ -228,7 +228,8 @@ def compute(
     # The cart once, from every recording (repeats too), in the diagnosis's structure; Part
     # (v) simulates the measured run on it (the gains re-tuned on it go to gains.json).
     tap_b = None if tap.fit is None else (tap.model.B_eq, tap.model.B_eq_stderr)
-    joint = cart.compute(inputs, tap_b, found, fit=fit, say=say)
+    known = {"B_eq": friction.model.B_eq, "f_c": friction.model.f_c}
+    joint = cart.compute(inputs, tap_b, found, start=known, fit=fit, say=say)
     model = cart.model_of(joint, friction.model)
     pid = part_v.compute(recordings.get("pid"), model, pre.gains, say=say)
     return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found, joint)
