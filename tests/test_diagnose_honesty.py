@@ -82,9 +82,7 @@ def test_the_misfit_rule_and_widening_are_the_fits_own():
 def test_an_effect_at_its_bound_or_near_its_neutral_value_is_not_significant():
     """The evaluation's two cases: a spring with k_s at its lower bound (y_rest off the
     track), and f_c = 0.0005 +/- 0.0005 N beside a saturation; a real effect passes."""
-    spring = significance(
-        ("spring",), {"B_eq": 5.4, "k_s": 5e-4, "y_rest": 0.3}, lambda w: 0.00037
-    )
+    spring = significance(("spring",), {"B_eq": 5.4, "k_s": 5e-4, "y_rest": 0.3}, lambda w: 0.00037)
     assert "lower bound" in spring["spring"]["why"]
     values = {"B_eq": 4.0, "v_sat": 4.0, "f_c": 0.000573}
     se = {"v_sat": 4.1e-5, "f_c": 0.00055}
