@@ -6,8 +6,8 @@ own under a temporary directory, medians), and prints wall time beside CPU time 
 the command and its children: on a shared, loaded machine the wall time grows with the load,
 the CPU time much less):
 
-- ``single``: ``jaxcart diagnose`` of one recording, the built-in P 50 step and, where the
-  folder exists, the real one (``../shared/realdata/p50.toml``). Target: under 15 s median.
+- ``single``: ``jaxcart diagnose`` of one recording, the built-in P 50 step and, with
+  ``--real DIR``, a folder's own ``p50.toml`` (a real recording). Target: under 15 s median.
 - ``joint``: ``jaxcart diagnose`` of five recordings of one cart made here by the generator
   (:mod:`jaxcart.synthetic`): a tap with the motor unplugged and four driven runs (P 50, PD,
   PI and P 10 steps) of a cart with Coulomb friction whose amplifier limit v_sat differs from
@@ -38,7 +38,6 @@ CASES = ("single", "joint", "lab")
 #: Issue 21's targets for the median wall time [s] (on the project's 2-core machine).
 TARGETS = {"single": 15.0, "joint": 60.0, "lab": 45.0}
 #: Where the real recordings are, beside the repository (used when it exists).
-REALDATA = Path(__file__).resolve().parents[2].parent / "shared" / "realdata"
 
 #: The joint case's cart, shared by its runs (SI: kg, kg/s, N). Not the built-in cart (M 0.94,
 #: B_eq 4.6, f_c 0.45), so the joint machinery is checked on a cart of its own.
@@ -219,7 +218,7 @@ def _lab_rows(tmp: Path, repeats: int, say) -> list[Row]:
     return [Row("lab", "built-in data", "cold", cold), Row("lab", "built-in data", "warm", warm)]
 
 
-def measure(cases=CASES, repeats: int = 3, progress=None, realdata: Path | None = REALDATA):
+def measure(cases=CASES, repeats: int = 3, progress=None, realdata: Path | None = None):
     """The rows of the table, in the order of ``cases``, and the load averages (1, 5, 15 min)
     at the start and the end: {"rows": [Row], "load": {"start": (...), "end": (...)}}."""
     import os
@@ -305,12 +304,17 @@ def main(argv=None) -> int:
     parser.add_argument("--only", default=",".join(CASES), help=f"of {', '.join(CASES)}")
     parser.add_argument("--repeats", type=int, default=3, help="runs per median (default 3)")
     parser.add_argument("--json", metavar="OUT", help="also write the result as JSON")
+    parser.add_argument(
+        "--real", metavar="DIR", help="a folder whose p50.toml (a real recording) is timed too"
+    )
     args = parser.parse_args(argv)
     cases = [c.strip() for c in args.only.split(",") if c.strip()]
     unknown = [c for c in cases if c not in CASES]
     if unknown or not cases or args.repeats < 1:
         parser.error(f"--only: some of {', '.join(CASES)}; --repeats: 1 or more")
-    result = measure(cases, args.repeats, progress=lambda t: print(t, file=sys.stderr))
+    result = measure(
+        cases, args.repeats, progress=lambda t: print(t, file=sys.stderr), realdata=args.real
+    )
     print(table(result))
     if args.json:
         rows = [row.to_json() for row in result["rows"]]
