@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hw.atomicio import write_text
 from jaxcart import matfile
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
@@ -413,13 +414,10 @@ def write_imported(run: Imported, toml_path, *, force: bool = False) -> Path:
         raise UserError(f"{toml_path} exists; choose another name or pass --force to replace it")
     try:
         toml_path.parent.mkdir(parents=True, exist_ok=True)
-        with toml_path.open("w" if force else "x") as f:
-            f.write(text)
-    except FileExistsError:
-        raise UserError(f"{toml_path} exists; choose another name or pass --force") from None
     except OSError as exc:
         raise UserError(f"{toml_path}: cannot write it ({exc.strerror or exc})") from None
-    return toml_path
+    # Atomically (a temporary name, then a rename): a full disk leaves no half file.
+    return write_text(toml_path, text, force=force)
 
 
 _SOURCE = re.compile(r"(?P<file>.*\.mat)(?::(?P<variable>[^:/\\]+))?\Z", re.IGNORECASE)

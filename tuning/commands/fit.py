@@ -17,7 +17,6 @@ recordings for ``--cross``; process 0 runs the joint fit, prints and writes.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from jaxcart.errors import UserError
 
@@ -230,18 +229,6 @@ def check_outputs(args) -> None:
     ):
         if path:
             check_writable(path, suffixes=suffixes, option=option, force=args.force)
-
-
-def _write(path, text: str, force: bool) -> None:
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("w" if force else "x") as f:
-            f.write(text)
-    except FileExistsError:
-        raise UserError(f"{path} exists; choose another name or pass --force") from None
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror}") from None
 
 
 def _mm(x) -> str:
