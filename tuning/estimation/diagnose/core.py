@@ -531,6 +531,21 @@ class ExactMemo:
         self.size = size
         self.runs: dict = {}
         self.hits = 0
+        # One recording's run by its own plant and start: a parameter that does not act on a
+        # recording (a per-run copy of another run, a drive limit on the unplugged tap) leaves
+        # its run as it was, so a forward difference re-simulates only the runs it moves.
+        self.one: dict = {}
+
+    def segment(self, key, compute):
+        """One recording's exact run, by (index, plant, y0, yd0)."""
+        if key in self.one:
+            self.hits += 1
+            self.one[key] = self.one.pop(key)
+            return self.one[key]
+        out = self.one[key] = compute()
+        if len(self.one) > 4 * self.size:
+            del self.one[next(iter(self.one))]
+        return out
 
     def get(self, cand, values, compute):
         key = (
@@ -555,13 +570,16 @@ class ExactMemo:
 
 def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo | None = None):
     """Exact-simulator residuals [m] (and commands [V] of motor segments) of ``cand`` at
-    ``values``, one array per segment; ``memo`` reuses a run made before."""
+    ``values``, one array per segment; ``memo`` reuses a run made before (of all recordings,
+    or of one recording whose plant and start are unchanged)."""
     if memo is not None:
         return memo.get(
-            cand, values, lambda: exact_residuals(cand, segments, base_plants, values, layout)
+            cand, values, lambda: _exact_all(cand, segments, base_plants, values, layout, memo)
         )
-    from jaxcart.exact import simulate_exact
+    return _exact_all(cand, segments, base_plants, values, layout, None)
 
+
+def _exact_all(cand, segments, base_plants, values, layout, memo):
     plants = exact_plants(cand, base_plants, values)
     out, commands = [], []
     for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
@@ -570,15 +588,29 @@ def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo
             exp = dataclasses.replace(
                 exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
             )
-        res = simulate_exact(plant, seg.controller, exp)
-        pos = np.asarray(res.position, dtype=float)
-        if seg.counts_in_loop and not res.diverged:
-            pos = _cart_position(plant, exp, res.command)
-        if not np.all(np.isfinite(pos)):
-            pos = np.where(np.isfinite(pos), pos, 1.0)
-        out.append(pos - seg.target)
-        commands.append(np.asarray(res.command, dtype=float) if seg.motor else None)
+        run = lambda seg=seg, plant=plant, exp=exp: _exact_run(seg, plant, exp)  # noqa: E731
+        r, u = run() if memo is None else memo.segment((i, plant, exp.y0, exp.yd0), run)
+        out.append(r)
+        commands.append(u)
     return out, commands
+
+
+def _exact_run(seg, plant, exp):
+    """(exact residual [m], command [V] or None) of one recording, read-only arrays."""
+    from jaxcart.exact import simulate_exact
+
+    res = simulate_exact(plant, seg.controller, exp)
+    pos = np.asarray(res.position, dtype=float)
+    if seg.counts_in_loop and not res.diverged:
+        pos = _cart_position(plant, exp, res.command)
+    if not np.all(np.isfinite(pos)):
+        pos = np.where(np.isfinite(pos), pos, 1.0)
+    r = pos - seg.target
+    u = np.asarray(res.command, dtype=float) if seg.motor else None
+    for a in (r, u):
+        if a is not None:
+            a.flags.writeable = False
+    return r, u
 
 
 def _cart_position(plant, experiment, command) -> np.ndarray:
