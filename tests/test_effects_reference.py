@@ -10,8 +10,9 @@ here without the simulator's code: the closed form of the linear cart
 its spring-mass-damper and Coulomb variants, an equivalence between two runs (a delay of k
 samples and the command shifted by k samples; equal track-friction knots and Coulomb friction),
 or a numerical integration with scipy (friction varying along the track). Tolerances are stated
-beside each comparison; the closed-form simulator (no force effect but Coulomb) is held to
-1e-12 m, the RK4 one (spring, current limit, track friction) to 1e-9 m.
+beside each comparison; the closed-form simulator (no force effect but Coulomb and the current
+limit, whose corners it locates in closed form) is held to 1e-12 m, the RK4 one (spring, track
+friction) to 1e-9 m.
 """
 
 from __future__ import annotations
@@ -162,20 +163,16 @@ def _current_limited(t, volts, i_max):
 @pytest.mark.parametrize("i_max, limited_throughout", [(0.5, True), (1.5, False)])
 def test_current_limit_of_a_6V_step_is_the_closed_form(i_max, limited_throughout):
     """i_max = 0.5 A: the current stays limited (the terminal speed under the limit is below
-    where the back-EMF would release it); 1.5 A: limited until t* ~ 94 ms, then linear. RK4
-    with a corner in the force at t*: 1e-9 m."""
+    where the back-EMF would release it); 1.5 A: limited until t* ~ 94 ms, then linear. The
+    simulator finds the corner at t* in closed form: 1e-12 m and 1e-12 m/s (measured 3e-15)."""
     t = _times(0.5)
     res = simulate_exact(build_plant({"i_max": i_max}), None, jc.voltage_step(6.0, horizon=0.5))
     y, v, t_star = _current_limited(t, 6.0, i_max)
     assert math.isinf(t_star) == limited_throughout
     if not limited_throughout:
         assert 0.05 < t_star < 0.2
-    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_RK4)
-    # The velocity crosses the corner at t* inside an RK4 sub-step (the integrator does not
-    # locate it): measured 1.1e-9 m/s after it, so 1e-8 m/s (1e-12 m/s before the corner).
-    before = t < t_star
-    np.testing.assert_allclose(res.velocity[before], v[before], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
     # The limit matters: the unlimited step is far ahead.
     assert res.position[-1] < linear(t, GAMMA * 6.0)[0][-1] - 0.01
 
@@ -186,7 +183,7 @@ def test_current_limit_above_the_stall_current_does_nothing():
     res = simulate_exact(
         build_plant({"i_max": 1.01 * stall}), None, jc.voltage_step(6.0, horizon=0.3)
     )
-    np.testing.assert_allclose(res.position, linear(t, GAMMA * 6.0)[0], rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.position, linear(t, GAMMA * 6.0)[0], rtol=0, atol=TOL_CLOSED)
 
 
 # ---------------------------------------------------------------- spring

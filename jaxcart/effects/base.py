@@ -225,6 +225,12 @@ class Effect:
         force = self.exact_force
         return lambda y, yd, v: force(y, yd, v, drive)
 
+    # An effect whose exact force is piecewise linear in the velocity alone, at a held voltage,
+    # may also give ``exact_velocity_pieces(drive, v)`` -> (breaks, pieces): the velocities
+    # [m/s] where its law changes, ascending, and for each of the len(breaks) + 1 intervals
+    # (f0 [N], k [N s/m]) with F = f0 + k y'. The exact simulator then solves the cart in
+    # closed form between events instead of by RK4 (jaxcart.exact._VelocityCart).
+
 
 #: Registered effect classes by name, in registration order.
 REGISTRY: dict[str, type[Effect]] = {}

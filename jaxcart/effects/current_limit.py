@@ -72,3 +72,24 @@ class CurrentLimit(Effect):
             return gamma * (min(max(u, -limit), limit) - u)
 
         return force
+
+    def exact_velocity_pieces(self, drive, v):
+        """The force at the held voltage v [V] as pieces linear in y' (see
+        :class:`jaxcart.effects.base.Effect`): the current limits where u = v - K_b y' reaches
+        +-Rm i_max, i.e. at y' = (v -+ Rm i_max) / K_b; between them no force."""
+        gamma = drive.gamma
+        k_b, limit = drive.B_emf / gamma, self.i_max * drive.Rm
+        if not math.isfinite(limit):
+            return (), ((0.0, 0.0),)
+        clipped = gamma * (min(max(v, -limit), limit) - v)
+        if k_b == 0.0:  # no back-EMF: u is v whatever the speed
+            return (), ((clipped, 0.0),)
+        # Below the low break u > limit: F = gamma (limit - v) + B_emf y'; above the high one
+        # u < -limit: F = gamma (-limit - v) + B_emf y'.
+        low, high = (v - limit) / k_b, (v + limit) / k_b
+        b_emf = gamma * k_b
+        return (low, high), (
+            (gamma * (limit - v), b_emf),
+            (0.0, 0.0),
+            (-gamma * (limit + v), b_emf),
+        )
