@@ -24,16 +24,17 @@ Standard errors. Residuals are autocorrelated: the encoder's error stays put whi
 slow or at rest (one count's error for hundreds of samples), model error is smooth in time. The
 naive sigma^2 (J^T J)^-1 counts those samples as independent and is far too small (on a
 P-controlled step 10-20 times). The reported error is the sandwich (J^T J)^-1 S (J^T J)^-1
-(:func:`_covariances`): samples are grouped into runs within one count, whose CR3-adjusted
-scores enter a Newey-West long-run covariance, and the encoder's known share (q^2/12 per run)
-is a floor. Checked over many seeds (tests/test_fit.py): about 68 % of the truths within one
-standard error and 95 % within two, slightly conservative on encoder-only data. The naive value
-is kept beside it (``stderr_naive``). Where the RMS error exceeds MISFIT_RATIO times the noise
-floor (q / sqrt(12) and white noise) the residual is model error, not noise: the fit says the
-model does not explain the data, and each standard error is at least the naive one times
-sqrt(N / n_eff), n_eff the independent samples the residual's autocorrelation leaves
-(tests/test_fit_honesty.py). A parameter held, and an optimizer stopped at its iteration cap,
-are reported (``FitResult.warnings``: the printout, the JSON and the plant file's [fit] table).
+(:func:`tuning.estimation.engine.covariance.covariances`): samples are grouped into runs within
+one count, whose CR3-adjusted scores enter a Newey-West long-run covariance, and the encoder's
+known share (q^2/12 per run) is a floor. Checked over many seeds (tests/test_fit.py): about
+68 % of the truths within one standard error and 95 % within two, slightly conservative on
+encoder-only data. The naive value is kept beside it (``stderr_naive``). Where the RMS error
+exceeds MISFIT_RATIO times the noise floor (q / sqrt(12) and white noise) the residual is model
+error, not noise: the fit says the model does not explain the data, and each standard error is
+at least the naive one times sqrt(N / n_eff), n_eff the independent samples the residual's
+autocorrelation leaves (tests/test_fit_honesty.py). A parameter held, and an optimizer stopped
+at its iteration cap, are reported (``FitResult.warnings``: the printout, the JSON and the
+plant file's [fit] table).
 
 >>> import jaxcart as jc
 >>> from jaxcart.synthetic import make_recording
@@ -70,7 +71,9 @@ from jaxcart.plantspec import handout_plant
 from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing, continuation
 from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.lm import gauss_newton_step, marquardt_step
+from tuning.estimation.engine.covariance import covariances
+from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
+from tuning.estimation.engine.lm import marquardt_step
 from tuning.estimation.engine.noise import (
     effective_samples,
     encoder_count,
@@ -154,9 +157,6 @@ class Nuisance(NamedTuple):
         return self.scale
 
 
-#: Secant half-width (internal units: 3 % for a log-scaled parameter) where the exact
-#: simulator's output moves in steps of a parameter (an event snapped to a sample).
-STAIRCASE_STEP = 0.03
 #: Largest Levenberg-Marquardt step per iteration, in internal units.
 MAX_STEP = 1.0
 #: Damping values tried at once in each Levenberg-Marquardt iteration, as multiples of the
@@ -858,18 +858,29 @@ class _Problem:
             {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
         )
 
-    def clip_bounded(self, theta, reset=False):
-        """theta with each bounded nuisance within +-BOUNDED_LIMIT (its sigmoid keeps a slope
-        there), or at 0, the middle of its range, with ``reset``."""
-        theta = np.array(theta, dtype=float)
-        # The plant's values stay inside what a cart of this lab has (engine.parameters.bounds).
+    def theta_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of every entry of theta: the plant's values inside what a cart of this
+        lab has (engine.parameters.bounds), each bounded nuisance within +-BOUNDED_LIMIT (its
+        sigmoid keeps a slope there), the other nuisances free."""
+        low = np.full(self.theta0.size, -np.inf)
+        high = np.full(self.theta0.size, np.inf)
         for i, name in enumerate(self.params):
-            lo, hi = (to_theta(name, b) for b in P.bounds(name))
-            theta[i] = min(max(theta[i], lo), hi)
+            low[i], high[i] = (to_theta(name, b) for b in P.bounds(name))
         for k in range(len(self.segments)):
             for v, i in self.nuisance_index(k):
                 if v.bounded:
-                    theta[i] = 0.0 if reset else min(max(theta[i], -BOUNDED_LIMIT), BOUNDED_LIMIT)
+                    low[i], high[i] = -BOUNDED_LIMIT, BOUNDED_LIMIT
+        return low, high
+
+    def clip_bounded(self, theta, reset=False):
+        """theta within :meth:`theta_bounds`, with ``reset`` each bounded nuisance at 0, the
+        middle of its range."""
+        theta = np.clip(np.asarray(theta, dtype=float), *self.theta_bounds())
+        if reset:
+            for k in range(len(self.segments)):
+                for v, i in self.nuisance_index(k):
+                    if v.bounded:
+                        theta[i] = 0.0
         return theta
 
     def nuisance_index(self, k):
@@ -889,17 +900,6 @@ class _Problem:
             res = simulate_exact(plant, seg.controller, exp)
             out.append(np.asarray(res.position))
         return out
-
-    def exact_jacobian(self, theta, idx, r=None, step=1e-6):
-        """Forward differences of the exact residuals in theta[idx] (internal units: a relative
-        step of 1e-6 for the logs; ``r``: the residuals at theta, if known)."""
-        r = self.exact_residuals(theta) if r is None else r
-        cols = []
-        for i in idx:
-            up = theta.copy()
-            up[i] += step
-            cols.append((self.exact_residuals(up) - r) / step)
-        return np.stack(cols, axis=1)
 
     def exact_residuals(self, theta):
         """Exact-simulator positions minus the measured ones, all segments [m]."""
@@ -1025,197 +1025,39 @@ def _lm(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
 
 
 def _exact_polish(problem, theta, active, jac, iterations):
-    """Gauss-Newton on the exact simulator: residuals and Jacobian (forward differences) both
-    from :func:`jaxcart.exact.simulate_exact`, started from the smooth fit.
-
-    The smooth model differs from the exact one by a little: a breakaway from rest lags by about
-    one sub-step, the corners are rounded, a cart at rest creeps at F w / f_c. Against encoder
-    noise of a few micrometres that little is a bias of several standard errors, in the fitted
-    values and in the Jacobian the standard errors come from. The exact model is piecewise
-    smooth in the parameters (stop times are found in closed form), so its difference quotients
-    are clean. Returns (theta, exact residuals, Jacobian with exact active columns, iterations,
-    converged).
-    """
+    """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
+    gauss_newton`: residuals and forward-difference Jacobian both from
+    :func:`jaxcart.exact.simulate_exact`), started from the smooth fit, in the internal
+    coordinates (each entry moves at most MAX_STEP per iteration, as in :func:`_lm`; a column
+    the exact model's staircase flattens is a secant over +-STAIRCASE). Returns (theta,
+    exact residuals, Jacobian with exact active columns, iterations, converged)."""
     # A bounded nuisance may have been pushed to its bound by the smooth model's own errors
     # (the breakaway lag); restart it from the middle, where the exact model decides.
     theta = problem.clip_bounded(theta, reset=True)
-    r = problem.exact_residuals(theta)
-    cost = float(r @ r)
     idx = np.flatnonzero(active)
     jac = jac.copy()
-    if idx.size == 0 or not math.isfinite(cost):
-        return theta, r, jac, 0, True
-    smooth_norm = np.linalg.norm(jac[:, idx], axis=0)
 
-    def columns(theta, r):
-        # Where an event snaps to a sample (a breakaway at f_s, say) the exact output moves in
-        # steps, and a small difference quotient is 0 although the data depend on the
-        # parameter: there a central secant over a few percent spans the steps.
-        cols = problem.exact_jacobian(theta, idx, r)
-        flat = np.flatnonzero(np.linalg.norm(cols, axis=0) < 1e-3 * smooth_norm)
-        for j in flat:
-            up, down = theta.copy(), theta.copy()
-            up[idx[j]] += STAIRCASE_STEP
-            down[idx[j]] -= STAIRCASE_STEP
-            cols[:, j] = (problem.exact_residuals(up) - problem.exact_residuals(down)) / (
-                2 * STAIRCASE_STEP
-            )
-        return cols
+    def residual(x):
+        full = theta.copy()
+        full[idx] = x
+        return problem.exact_residuals(full)
 
-    jac[:, idx] = columns(theta, r)
-    done = 0
-    converged = False
-    while done < iterations:
-        done += 1
-        ja = jac[:, idx]
-        step = np.clip(gauss_newton_step(ja, r), -MAX_STEP, MAX_STEP)
-        b_pinv = np.linalg.pinv(ja.T @ ja)
-        scale = np.sqrt(np.maximum(np.diag(b_pinv) * cost / max(r.size - idx.size, 1), 1e-300))
-        t = 1.0
-        while t >= 1 / 64:
-            trial = theta.copy()
-            trial[idx] += t * step
-            trial = problem.clip_bounded(trial)
-            r2 = problem.exact_residuals(trial)
-            cost2 = float(r2 @ r2)
-            if math.isfinite(cost2) and cost2 <= cost:
-                break
-            t /= 2
-        else:
-            converged = True  # no descent along the Gauss-Newton direction: a minimum
-            break
-        theta, r, cost = trial, r2, cost2
-        jac[:, idx] = columns(theta, r)
-        if np.all(np.abs(t * step) <= 1e-2 * scale):
-            converged = True
-            break
-    return theta, r, jac, done, converged
-
-
-# ---------------------------------------------------------------- standard errors
-
-
-def _bartlett_bandwidth(scores) -> int:
-    """Andrews (1991) AR(1) plug-in bandwidth for the Bartlett kernel (scores: (n, p))."""
-    n = scores.shape[0]
-    num = den = 0.0
-    for x in scores.T:
-        if not np.any(x):
-            continue
-        rho = float(np.dot(x[1:], x[:-1]) / max(np.dot(x[:-1], x[:-1]), 1e-300))
-        rho = min(max(rho, -0.97), 0.97)
-        s2 = float(np.mean((x[1:] - rho * x[:-1]) ** 2))
-        num += 4 * rho**2 * s2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)
-        den += s2**2 / (1 - rho) ** 4
-    if den == 0 or n < 3:
-        return 0
-    alpha = num / den
-    return int(min(n - 1, max(0, math.ceil(1.1447 * (alpha * n) ** (1 / 3)))))
-
-
-def _runs(model, quantization):
-    """Start indices of the runs of samples whose model position stays within one encoder
-    count of the run's first sample (every sample its own run when quantization is 0)."""
-    if not quantization > 0:
-        return np.arange(model.size)
-    starts = [0]
-    ref = model[0]
-    for k in range(1, model.size):
-        if abs(model[k] - ref) >= quantization:
-            starts.append(k)
-            ref = model[k]
-    return np.asarray(starts)
-
-
-def _cluster_scores(jac, r, starts, b_inv_sqrt, power=-0.5):
-    """Scores J_b^T r~_b of the runs b (see :func:`_runs`).
-
-    Within a run the encoder's error is one count's sawtooth, strongly correlated, so a run is
-    one observation. r~_b = (I - H_bb)^power r_b (-1/2: Bell-McCaffrey CR2; -1: CR3, the
-    cluster jackknife) undoes the shrinking of a run's residuals by the fit itself (a run of
-    400 samples at rest pulls the fit towards it); computed from the p x p matrices
-    A_b = J_b^T J_b only."""
-    s = np.add.reduceat(jac * r[:, None], starts, axis=0)  # (runs, p): J_b^T r_b
-    a = np.add.reduceat(jac[:, :, None] * jac[:, None, :], starts, axis=0)  # (runs, p, p)
-    # Leverage of each run: eigen-decomposition of B^-1/2 A_b B^-1/2 (eigenvalues in [0, 1)).
-    lev = b_inv_sqrt @ a @ b_inv_sqrt
-    lam, w = np.linalg.eigh(lev)
-    lam = np.clip(lam, 0.0, 0.999)
-    small = lam < 1e-8
-    d = np.where(small, -power, ((1 - lam) ** power - 1) / np.where(small, 1.0, lam))
-    # (I - H_bb)^power = I + U W D W^T U^T with U = J_b B^-1/2:
-    # J_b^T r~_b = s_b + A_b B^-1/2 W D W^T B^-1/2 s_b.
-    v = np.einsum("ij,bj->bi", b_inv_sqrt, s)
-    v = np.einsum("bji,bj->bi", w, v) * d
-    v = np.einsum("bij,bj->bi", w, v)
-    v = np.einsum("ij,bj->bi", b_inv_sqrt, v)
-    return s + np.einsum("bij,bj->bi", a, v)
-
-
-def _long_run(scores) -> np.ndarray:
-    """Newey-West S = sum_{|l| <= L} (1 - |l|/(L+1)) Gamma_l of a series of scores."""
-    lag = _bartlett_bandwidth(scores)
-    s = scores.T @ scores
-    for k in range(1, lag + 1):
-        g = scores[k:].T @ scores[:-k]
-        s += (1 - k / (lag + 1)) * (g + g.T)
-    return s
-
-
-def _covariances(problem, r, jac, idx):
-    """(robust covariance, naive covariance, singular flags) of theta[idx], internal units.
-
-    Robust: the sandwich B^-1 S B^-1 (B = J^T J). Per segment, the samples are grouped into
-    runs within one encoder count of the model's position (:func:`_runs`): the encoder's error
-    is nearly constant within a run and nearly independent between runs. S is the larger (in
-    the positive-semidefinite sense) of
-      - S_data: the Newey-West long-run covariance of the runs' CR3-adjusted scores
-        (:func:`_cluster_scores`), which sees noise, quantization and model error in the
-        residuals, and whose lags absorb smooth model error;
-      - S_encoder: sum over runs of (q^2 / 12) g_b g_b^T, g_b the run's column sums of J, the
-        encoder's own share, known from q: the residual of a run that the fit pulls towards
-        itself (a cart at rest, one run of hundreds of samples) underestimates it.
-    Naive: sigma^2 B^-1 with sigma^2 = RSS / (N - p)."""
-    ja = jac[:, idx]
-    p = idx.size
-    if p == 0:
-        return np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0, dtype=bool)
-    norms = np.linalg.norm(ja, axis=0)
-    zero = norms <= 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
-    scale = np.where(zero, 1.0, norms)
-    js = ja / scale
-    b = js.T @ js
-    w, v = np.linalg.eigh(b)
-    tiny = w <= 1e-13 * max(float(w.max(initial=0.0)), 1e-300)
-    inv_w = np.where(tiny, 0.0, 1.0 / np.where(tiny, 1.0, w))
-    b_inv = (v * inv_w) @ v.T
-    b_inv_sqrt = (v * np.sqrt(inv_w)) @ v.T
-    singular = zero | np.any(np.abs(v[:, tiny]) > 1e-3, axis=1)
-    dof = max(r.size - p, 1)
-    naive = b_inv * float(r @ r) / dof
-    s_data = np.zeros((p, p))
-    s_enc = np.zeros((p, p))
-    model = r + problem.observed
-    for seg, part_j, part_r, part_m in zip(
-        problem.segments,
-        problem.split_rows(js),
-        problem.split(r),
-        problem.split(model),
-        strict=True,
-    ):
-        starts = _runs(part_m, seg.quantization)
-        s_data += _long_run(_cluster_scores(part_j, part_r, starts, b_inv_sqrt, power=-1.0))
-        g = np.add.reduceat(part_j, starts, axis=0)
-        s_enc += g.T @ g * seg.quantization**2 / 12
-    ev, vec = np.linalg.eigh(s_enc - s_data)
-    meat = s_data + (vec * np.maximum(ev, 0.0)) @ vec.T
-    robust = b_inv @ meat @ b_inv
-    robust = robust / np.outer(scale, scale)
-    naive = naive / np.outer(scale, scale)
-    for cov in (robust, naive):
-        cov[singular, :] = np.inf
-        cov[:, singular] = np.inf
-    return robust, naive, singular
+    low, high = problem.theta_bounds()
+    done = gauss_newton(
+        residual,
+        theta[idx],
+        np.full(idx.size, 1e-6),  # internal units: a relative step of 1e-6 for the logs
+        (low[idx], high[idx]),
+        iterations,
+        max_step=MAX_STEP,
+        reference=np.linalg.norm(jac[:, idx], axis=0),
+        staircase=STAIRCASE,
+    )
+    theta = theta.copy()
+    theta[idx] = done.x
+    if done.jac is not None:
+        jac[:, idx] = done.jac
+    return theta, done.r, jac, done.iterations, done.converged
 
 
 # ---------------------------------------------------------------- the fit
@@ -1440,7 +1282,12 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
     p = problem.n_params
     while True:
         idx = np.flatnonzero(active)
-        hac, naive, singular = _covariances(problem, r, jac, idx)
+        hac, naive, singular = covariances(
+            jac[:, idx],
+            problem.split(r),
+            problem.split(r + problem.observed),  # the model's positions decide the runs
+            [s.quantization for s in problem.segments],
+        )
         # Relative standard errors (for log-scaled parameters the log-space error is that).
         rel = np.sqrt(np.diag(hac)) * np.asarray(
             [

@@ -38,7 +38,7 @@ from jaxcart.errors import UserError
 from jaxcart.files import signal64
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout, Segment
-from tuning.estimation.engine.lm import gauss_newton_step
+from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
 from tuning.estimation.engine.noise import MISFIT_RATIO, repeatability
 
 PARAM_ERRORS = {"mass": ("M",), "gain": ("gamma_scale",)}
@@ -662,52 +662,73 @@ def score(cand, mse, floor2, n_eff) -> float:
 
 
 def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None):
-    """Gauss-Newton on the exact simulator with forward differences (a few parameters).
-    Returns (values, the last forward-difference Jacobian of the exact residual [m per unit of
-    each value] or None, the values' names in its column order)."""
+    """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
+    gauss_newton`, forward differences, within :func:`~.parameters.bounds`) in the values
+    themselves, a few parameters. Returns (values, the forward-difference Jacobian of the exact
+    residual [m per unit of each value] at them or None, the values' names in its column
+    order)."""
+    names = list(values)
 
-    def residual(at):
-        return np.concatenate(exact_residuals(cand, segments, base_plants, at, layout, memo)[0])
+    def at(x):
+        return dict(zip(names, (float(v) for v in x), strict=True))
 
-    names = [n for n in values]
-    jac = None
-    for _ in range(iterations):
-        r0 = residual(values)
-        cost0 = float(r0 @ r0)
-        cols = []
-        for n in names:
-            v = values[n]
-            # A time or a position: a smaller absolute floor than a force or a gain.
-            tiny = Layout.kind(n) in P.NUISANCE or P.spec(n).unit in ("s", "m")
-            h = 1e-4 * abs(v) + (1e-7 if tiny else 1e-6)
-            trial = dict(values, **{n: v + h})
-            r1 = residual(trial)
-            cols.append((r1 - r0) / h)
-        jac = np.column_stack(cols)
-        step = gauss_newton_step(jac, r0)
-        improved = False
-        for frac in (1.0, 0.5, 0.25):
-            trial = {n: values[n] + frac * s for n, s in zip(names, step, strict=True)}
-            # A log-fitted parameter may not cross 0; the others stay inside their bounds.
-            if any(P.is_log(n) and trial[n] <= 0 for n in names):
-                continue
-            trial = {n: float(np.clip(v, *P.bounds(n))) for n, v in trial.items()}
-            r1 = residual(trial)
-            if float(r1 @ r1) < cost0:
-                values, improved = trial, True
-                break
-        if not improved:
-            break
-    return values, jac, names
+    def residual(x):
+        # Through the memo: a difference in a per-run value re-simulates its own run alone.
+        return np.concatenate(exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0])
+
+    # A time or a position: a smaller absolute floor than a force or a gain.
+    floors = np.array(
+        [
+            1e-7 if Layout.kind(n) in P.NUISANCE or P.spec(n).unit in ("s", "m") else 1e-6
+            for n in names
+        ]
+    )
+    low = np.array([P.bounds(n)[0] for n in names], dtype=float)
+    high = np.array([P.bounds(n)[1] for n in names], dtype=float)
+    x0 = np.array([values[n] for n in names], dtype=float)
+    # Where the exact output moves in steps of a value (a breakaway at f_s snapped to a
+    # sample), the secant spans STAIRCASE of its internal coordinate.
+    slopes = np.array([P.value_slope(n, values[n]) for n in names])
+    done = gauss_newton(
+        residual,
+        x0,
+        lambda x: 1e-4 * np.abs(x) + floors,
+        (low, high),
+        iterations,
+        shortest=0.25,
+        reference=_smooth_norms(cand, names, slopes, segments),
+        staircase=STAIRCASE * np.abs(slopes),
+    )
+    out = at(done.x) if done.improved else values
+    return out, done.jac, names
+
+
+def _smooth_norms(cand, names, slopes, segments):
+    """Column norms of ``cand``'s batch-fit Jacobian (its free slots, then the nuisances) per
+    unit of each value of ``names`` (0 where it has none): where the smooth model sees a value
+    act, a flat exact difference quotient is the staircase."""
+    jac = getattr(cand, "jac", None)
+    order = list(cand.free) + [n for n in names if n not in cand.free]
+    if jac is None or jac.ndim != 2 or jac.shape[1] < len(order):
+        return np.zeros(len(names))
+    norms = np.linalg.norm(jac, axis=0) / fitter_scale(segments)
+    return np.array(
+        [
+            norms[order.index(n)] / abs(slope) if slope else 0.0
+            for n, slope in zip(names, slopes, strict=True)
+        ]
+    )
 
 
 @dataclass
 class Covariance:
-    """Parameter covariances of one fit, natural units: ``robust`` (run-clustered sandwich
-    with the encoder floor), ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); ``n``
-    residuals worth ``n_eff`` independent ones (:func:`tuning.estimation.fit.effective_samples`);
-    ``widened``: the residual is model error, and every standard error is widened as
-    ``jaxcart fit`` widens its own (:func:`tuning.estimation.fit.widened_for_model_error`)."""
+    """Parameter covariances of one fit, natural units: ``robust`` (the engine's run-clustered
+    sandwich with the encoder floor, :func:`tuning.estimation.engine.covariance.covariances`),
+    ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); a parameter the data do not
+    determine has inf in its row and column; ``n`` residuals worth ``n_eff`` independent ones
+    (:func:`tuning.estimation.engine.noise.effective_samples`); ``widened``: the residual is
+    model error, and every standard error is widened as ``jaxcart fit`` widens its own
+    (:func:`tuning.estimation.engine.noise.widened_for_model_error`)."""
 
     names: list
     robust: np.ndarray
@@ -718,74 +739,56 @@ class Covariance:
 
     def stderr(self, weights: dict) -> float:
         """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
-        difference ({"f_s": 1, "f_c": -1})."""
+        difference ({"f_s": 1, "f_c": -1}); nan where one of them is not determined."""
         from tuning.estimation.engine.noise import widened_for_model_error
 
-        a = np.zeros(len(self.names))
-        for n, w in weights.items():
-            if n not in self.names:
-                return math.nan
-            a[self.names.index(n)] = w
-        var = float(a @ self.robust @ a)
-        if not math.isfinite(var):
+        if any(n not in self.names for n in weights):
             return math.nan
+        # Only the named entries: 0 * inf of an undetermined other one would be nan.
+        i = [self.names.index(n) for n in weights]
+        a = np.array(list(weights.values()), dtype=float)
+        robust = self.robust[np.ix_(i, i)]
+        if not np.all(np.isfinite(robust)):
+            return math.nan
+        var = float(a @ robust @ a)
         se = math.sqrt(max(var, 0.0))
         if self.widened:
-            naive = max(float(a @ self.naive @ a), 0.0)
+            naive = max(float(a @ self.naive[np.ix_(i, i)] @ a), 0.0)
             se = float(widened_for_model_error(se, naive, self.n, self.n_eff))
         return se
 
 
 def covariance(segments, names, values, jac, residuals, widen_above=None) -> Covariance:
-    """Robust (run-clustered sandwich, encoder floor) and naive covariances in natural units;
-    with an RMS residual above ``widen_above`` [m] the standard errors are widened for model
-    error (:func:`tuning.estimation.fit.widened_for_model_error`; :func:`diagnose` passes the
-    criterion's
-    floor, FLOOR_FACTOR times q / sqrt(12): what the criterion counts as structure to explain
-    is not the encoder's own error)."""
+    """Robust and naive covariances in natural units (the engine's,
+    :func:`tuning.estimation.engine.covariance.covariances`, of the fitted parameters: J per
+    unit of each one's logarithm for a log-fitted one; runs by the model's positions, the
+    residuals plus the targets); with an RMS residual above ``widen_above`` [m] the standard
+    errors are widened for model error
+    (:func:`tuning.estimation.engine.noise.widened_for_model_error`; :func:`diagnose` passes
+    the criterion's floor, FLOOR_FACTOR times q / sqrt(12): what the criterion counts as
+    structure to explain is not the encoder's own error)."""
+    from tuning.estimation.engine.covariance import covariances
     from tuning.estimation.engine.noise import effective_samples
 
     jac = np.asarray(jac, dtype=float)
     r = np.concatenate(residuals)
     p = len(names)
     jac = jac[:, :p]
+    nan = np.full((p, p), np.nan)
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.all(np.isfinite(jac)) and np.all(np.isfinite(r))
+        finite = finite and np.all(np.isfinite(jac.T @ jac))
+    if not finite:  # a smooth fit that ran away: no standard errors
+        return Covariance(list(names), nan, nan, r.size, 1.0, False)
+    models = [np.asarray(x) + seg.target for x, seg in zip(residuals, segments, strict=True)]
+    cov = covariances(jac, residuals, models, [seg.quantization for seg in segments])
     # d value / d theta (log parameters).
     dv = np.array([P.value_slope(n, values[n]) for n in names])
-    nan = np.full((p, p), np.nan)
-    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
-        return Covariance(list(names), nan, nan, r.size, 1.0, False)
-    with np.errstate(over="ignore", invalid="ignore"):
-        b = jac.T @ jac
-    if not np.all(np.isfinite(b)):  # a smooth fit that ran away: no standard errors
-        return Covariance(list(names), nan, nan, r.size, 1.0, False)
-    try:
-        b_inv = np.linalg.pinv(b, rcond=1e-12)
-    except np.linalg.LinAlgError:
-        return Covariance(list(names), nan, nan, r.size, 1.0, False)
-    s = np.zeros((p, p))
-    offset = 0
-    for seg in segments:
-        n = seg.target.size
-        jj, rr = jac[offset : offset + n], r[offset : offset + n]
-        offset += n
-        q = seg.quantization
-        if q > 0:
-            counts = seg.count_index()
-            starts = np.concatenate([[0], 1 + np.flatnonzero(np.diff(counts))])
-        else:
-            starts = np.arange(n)
-        g = np.add.reduceat(jj * rr[:, None], starts, axis=0)
-        cs = np.add.reduceat(jj, starts, axis=0)
-        s_data = g.T @ g
-        s_enc = (q * q / 12.0) * (cs.T @ cs)
-        s += s_data if np.trace(s_data) >= np.trace(s_enc) else s_enc
     d = np.outer(dv, dv)
-    robust = (b_inv @ s @ b_inv) * d
-    naive = b_inv * float(r @ r) / max(r.size - p, 1) * d
     rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
     widened = widen_above is not None and rms > widen_above
     n_eff = effective_samples(residuals) if widened else float(r.size)
-    return Covariance(list(names), robust, naive, int(r.size), n_eff, bool(widened))
+    return Covariance(list(names), cov.robust * d, cov.naive * d, int(r.size), n_eff, widened)
 
 
 def at_bound(name: str, value: float) -> str:

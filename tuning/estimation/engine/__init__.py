@@ -9,5 +9,8 @@
 - :mod:`.lm`: the damped least-squares (Levenberg-Marquardt) step.
 - :mod:`.batch`: candidates x recordings in one compiled, sharded Levenberg-Marquardt loop,
   with parameters shared across recordings or free per recording.
-- :mod:`.covariance`: robust (run-clustered sandwich) covariances.
+- :mod:`.exact_polish`: Gauss-Newton on the exact simulator's residuals, the last step of
+  ``fit`` and of ``diagnose``'s exact re-fits.
+- :mod:`.covariance`: robust (run-clustered sandwich with the encoder floor) and naive
+  covariances, with the directions the data do not determine flagged.
 """

@@ -1,0 +1,151 @@
+"""The parameter covariances every fit of the engine reports: robust and naive, with the
+directions the data do not determine flagged.
+
+Robust: the sandwich B^-1 S B^-1 (B = J^T J). Per recording the samples are grouped into runs
+within one encoder count of the model's position (:func:`runs`): the encoder's error is
+nearly constant within a run and nearly independent between runs. S is the larger (in the
+positive-semidefinite sense) of
+
+- S_data: the Newey-West long-run covariance of the runs' CR3-adjusted scores
+  (:func:`cluster_scores`), which sees noise, quantization and model error in the residuals,
+  and whose lags absorb smooth model error;
+- S_encoder: sum over runs of (q^2 / 12) g_b g_b^T, g_b the run's column sums of J: the
+  encoder's own share, known from the count q [m]; the residual of a run that the fit pulls
+  towards itself (a cart at rest, one run of hundreds of samples) underestimates it.
+
+Naive: sigma^2 B^-1 with sigma^2 = RSS / (N - p). Both in the units of J's columns (a fit's
+internal parameters); a caller converts to natural units with the value slopes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Covariances(NamedTuple):
+    """``robust`` and ``naive`` (p x p, the units of J's columns; rows and columns of a
+    ``singular`` parameter are inf), ``singular`` (p,): True where a parameter has no effect
+    on the residual or lies along a direction the data do not determine."""
+
+    robust: np.ndarray
+    naive: np.ndarray
+    singular: np.ndarray
+
+
+def bartlett_bandwidth(scores) -> int:
+    """Andrews (1991) AR(1) plug-in bandwidth for the Bartlett kernel (scores: (n, p))."""
+    n = scores.shape[0]
+    num = den = 0.0
+    for x in scores.T:
+        if not np.any(x):
+            continue
+        rho = float(np.dot(x[1:], x[:-1]) / max(np.dot(x[:-1], x[:-1]), 1e-300))
+        rho = min(max(rho, -0.97), 0.97)
+        s2 = float(np.mean((x[1:] - rho * x[:-1]) ** 2))
+        num += 4 * rho**2 * s2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)
+        den += s2**2 / (1 - rho) ** 4
+    if den == 0 or n < 3:
+        return 0
+    alpha = num / den
+    return int(min(n - 1, max(0, math.ceil(1.1447 * (alpha * n) ** (1 / 3)))))
+
+
+def runs(model, quantization) -> np.ndarray:
+    """Start indices of the runs of samples whose model position [m] stays within one encoder
+    count (``quantization`` [m]) of the run's first sample (every sample its own run when
+    quantization is 0)."""
+    model = np.asarray(model, dtype=float)
+    if not quantization > 0:
+        return np.arange(model.size)
+    starts = [0]
+    ref = model[0]
+    for k in range(1, model.size):
+        if abs(model[k] - ref) >= quantization:
+            starts.append(k)
+            ref = model[k]
+    return np.asarray(starts)
+
+
+def cluster_scores(jac, r, starts, b_inv_sqrt, power=-0.5):
+    """Scores J_b^T r~_b of the runs b (see :func:`runs`).
+
+    Within a run the encoder's error is one count's sawtooth, strongly correlated, so a run is
+    one observation. r~_b = (I - H_bb)^power r_b (-1/2: Bell-McCaffrey CR2; -1: CR3, the
+    cluster jackknife) undoes the shrinking of a run's residuals by the fit itself (a run of
+    400 samples at rest pulls the fit towards it); computed from the p x p matrices
+    A_b = J_b^T J_b only."""
+    s = np.add.reduceat(jac * r[:, None], starts, axis=0)  # (runs, p): J_b^T r_b
+    a = np.add.reduceat(jac[:, :, None] * jac[:, None, :], starts, axis=0)  # (runs, p, p)
+    # Leverage of each run: eigen-decomposition of B^-1/2 A_b B^-1/2 (eigenvalues in [0, 1)).
+    lev = b_inv_sqrt @ a @ b_inv_sqrt
+    lam, w = np.linalg.eigh(lev)
+    lam = np.clip(lam, 0.0, 0.999)
+    small = lam < 1e-8
+    d = np.where(small, -power, ((1 - lam) ** power - 1) / np.where(small, 1.0, lam))
+    # (I - H_bb)^power = I + U W D W^T U^T with U = J_b B^-1/2:
+    # J_b^T r~_b = s_b + A_b B^-1/2 W D W^T B^-1/2 s_b.
+    v = np.einsum("ij,bj->bi", b_inv_sqrt, s)
+    v = np.einsum("bji,bj->bi", w, v) * d
+    v = np.einsum("bij,bj->bi", w, v)
+    v = np.einsum("ij,bj->bi", b_inv_sqrt, v)
+    return s + np.einsum("bij,bj->bi", a, v)
+
+
+def long_run(scores) -> np.ndarray:
+    """Newey-West S = sum_{|l| <= L} (1 - |l|/(L+1)) Gamma_l of a series of scores."""
+    lag = bartlett_bandwidth(scores)
+    s = scores.T @ scores
+    for k in range(1, lag + 1):
+        g = scores[k:].T @ scores[:-k]
+        s += (1 - k / (lag + 1)) * (g + g.T)
+    return s
+
+
+def _inverse(jac):
+    """(column scales, scaled J, B^-1, B^-1/2, singular flags) of J: columns scaled to unit
+    norm (the parameters' units differ by orders of magnitude), B = J^T J inverted on the
+    directions the data determine."""
+    norms = np.linalg.norm(jac, axis=0)
+    zero = norms <= 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
+    scale = np.where(zero, 1.0, norms)
+    js = jac / scale
+    w, v = np.linalg.eigh(js.T @ js)
+    tiny = w <= 1e-13 * max(float(w.max(initial=0.0)), 1e-300)
+    inv_w = np.where(tiny, 0.0, 1.0 / np.where(tiny, 1.0, w))
+    singular = zero | np.any(np.abs(v[:, tiny]) > 1e-3, axis=1)
+    return scale, js, (v * inv_w) @ v.T, (v * np.sqrt(inv_w)) @ v.T, singular
+
+
+def covariances(jac, residuals, models, quantizations) -> Covariances:
+    """Robust and naive covariances (module docstring) of the parameters of J.
+
+    jac: (N, p) d residual / d parameter [m per unit], rows in the order of ``residuals``;
+    residuals: one array [m] per recording; models: the model's positions [m] per recording
+    (they decide the runs); quantizations: each recording's encoder count [m] (0: none)."""
+    jac = np.asarray(jac, dtype=float)
+    parts = [np.asarray(x, dtype=float) for x in residuals]
+    r = np.concatenate(parts) if parts else np.zeros(0)
+    p = jac.shape[1]
+    if p == 0:
+        return Covariances(np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0, dtype=bool))
+    scale, js, b_inv, b_inv_sqrt, singular = _inverse(jac)
+    s_data = np.zeros((p, p))
+    s_enc = np.zeros((p, p))
+    rows = np.split(js, np.cumsum([x.size for x in parts])[:-1], axis=0)
+    for part_j, part_r, model, q in zip(rows, parts, models, quantizations, strict=True):
+        starts = runs(model, q)
+        s_data += long_run(cluster_scores(part_j, part_r, starts, b_inv_sqrt, power=-1.0))
+        g = np.add.reduceat(part_j, starts, axis=0)
+        s_enc += g.T @ g * q**2 / 12
+    ev, vec = np.linalg.eigh(s_enc - s_data)
+    meat = s_data + (vec * np.maximum(ev, 0.0)) @ vec.T
+    unscale = np.outer(scale, scale)
+    robust = b_inv @ meat @ b_inv / unscale
+    naive = b_inv * float(r @ r) / max(r.size - p, 1) / unscale
+    for cov in (robust, naive):
+        cov[singular, :] = np.inf
+        cov[:, singular] = np.inf
+    return Covariances(robust, naive, singular)
