@@ -336,7 +336,9 @@ def test_a_recording_no_candidate_explains_says_so(tmp_path):
         i = names.index(k)
         want = widened_for_model_error(plain.stderr({k: 1.0}), plain.naive[i, i], n, n_eff)
         assert p["stderr"] == pytest.approx(float(want), rel=1e-9)
-    assert d.parameters["B_eq"]["stderr"] > 5 * plain.stderr({"B_eq": 1.0})
+    # The robust sandwich's Newey-West lags absorb part of this slow model error (the engine's
+    # covariance, shared with jaxcart fit); what the residual's n_eff supports is still larger.
+    assert d.parameters["B_eq"]["stderr"] > 1.5 * plain.stderr({"B_eq": 1.0})
     doc = d.to_json()
     assert doc["explained"] is False and doc["misfit"] and doc["suggestions"]
     assert "## Not explained" in render_markdown(d) and figure_title(d).startswith("NOT EXPLAINED")

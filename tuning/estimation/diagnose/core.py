@@ -711,7 +711,9 @@ def _smooth_norms(cand, names, slopes, segments):
     order = list(cand.free) + [n for n in names if n not in cand.free]
     if jac is None or jac.ndim != 2 or jac.shape[1] < len(order):
         return np.zeros(len(names))
-    norms = np.linalg.norm(jac, axis=0) / fitter_scale(segments)
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.linalg.norm(jac, axis=0) / fitter_scale(segments)
+    norms = np.where(np.isfinite(norms), norms, 0.0)  # a smooth fit that ran away says nothing
     return np.array(
         [
             norms[order.index(n)] / abs(slope) if slope else 0.0
