@@ -297,12 +297,13 @@ class _VelocityCart:
         self.f_k = sum(float(e.kinetic(0.0, math)) for e in dry)
         statics = [float(e.static()) for e in dry if e.static() is not None]
         self.f_break = max([*statics, self.f_k])
-        self._at = None
+        self._at: dict = {}
 
     def _law(self, v):
         """(breaks, pieces) of all the effects together at the held voltage v [V]."""
-        if self._at is not None and self._at[0] == v:
-            return self._at[1]
+        law = self._at.get(v)
+        if law is not None:
+            return law
         each = [e.exact_velocity_pieces(self.drive, v) for e in self.others]
         breaks = sorted({b for bs, _ in each for b in bs})
         # A velocity inside each interval of the union tells which piece of each effect acts.
@@ -316,7 +317,9 @@ class _VelocityCart:
                 f0, k = f0 + g0, k + g
             pieces.append((f0, k))
         law = (tuple(breaks), tuple(pieces))
-        self._at = (v, law)
+        if len(self._at) >= 8:  # a sample holds one or two voltages: the last few suffice
+            self._at.clear()
+        self._at[v] = law
         return law
 
     def advance(self, y: float, yd: float, v: float, h: float):
