@@ -233,6 +233,9 @@ class Diagnosis:
     repeat: float | None = None
     #: What the best structure leaves, in words ("white noise", "a ripple at 7 Hz ...").
     remainder: str = ""
+    #: Several recordings: each left out of the chosen structure's fit and predicted
+    #: (:func:`tuning.estimation.diagnose.crossval.cross_validate`; {} for one recording).
+    cross_validation: dict = field(default_factory=dict)
 
     @property
     def floor_ratio(self) -> float:
@@ -316,6 +319,8 @@ class Diagnosis:
             text += "; " + self.unidentifiable["note"]
         if self.implausible:
             text += "; implausible: " + "; ".join(self.implausible)
+        if self.cross_validation.get("text"):
+            text += "; " + self.cross_validation["text"]
         return text
 
     @property
@@ -372,6 +377,7 @@ class Diagnosis:
             "per_recording": self.per_recording,
             "repeat": self.repeat,
             "remainder": self.remainder,
+            "cross_validation": self.cross_validation,
         }
 
 
