@@ -118,18 +118,61 @@ def _per_recording_section(d) -> list:
         "",
         "## Each recording",
         "",
-        "| recording | kind | own values | RMS before | RMS after |",
-        "|---|---|---|---|---|",
+        "| recording | kind | own values | RMS before | RMS after | predicted, held out |",
+        "|---|---|---|---|---|---|",
     ]
     for name, rec in d.per_recording.items():
         own = ", ".join(
             f"{n} = {_num(p['value'])} +/- {_num(p['stderr'])} {p['unit']}"
             for n, p in rec["parameters"].items()
         )
+        predicted = _mm(rec.get("predicted_rms"))
+        if rec.get("held_out") is False:
+            predicted += " (joint values)"
         lines.append(
             f"| {name} | {rec['kind']} | {own or '-'} | {_mm(rec['rms_before'])} | "
-            f"{_mm(rec['rms_after'])} |"
+            f"{_mm(rec['rms_after'])} | {predicted} |"
         )
+    return lines + _cross_validation_lines(d.cross_validation)
+
+
+def _cross_validation_lines(cv) -> list:
+    """What the held-out column means, and what it says (a joint diagnosis)."""
+    if not cv:
+        return []
+    from tuning.estimation.diagnose.crossval import WORSE
+
+    per_run = ", ".join(cv["per_run_median"])
+    text = (
+        "Held out: each recording left out of the fit, the shared values "
+        f"({', '.join(cv['refitted'])}) re-fitted on the others ({cv['iterations']} "
+        "Gauss-Newton iterations on the exact simulator from the joint values), and the "
+        "recording predicted with them; a tap's start state is the joint fit's."
+    )
+    if per_run:
+        text += (
+            f" A run's own {per_run} is not known before it is fitted: it is taken as the other "
+            "runs' median, so the prediction error includes the drive's variation from run to run."
+        )
+    lines = ["", text]
+    for f in cv["folds"]:
+        if not f["held_out"]:
+            lines += ["", f"{f['recording']} is not held out ({f['why']}): the joint values."]
+    ratio = cv["ratio"]
+    if math.isfinite(ratio):
+        why = ""
+        if ratio > WORSE:
+            why = (
+                f": each run's own {per_run} differs from the others'"
+                if per_run
+                else ": the shared values depend on which recordings are fitted, so something "
+                "varies from run to run that the structure does not have"
+            )
+        lines += [
+            "",
+            f"Over the recordings held out: fitted {_mm(cv['fitted_rms'])}, predicted "
+            f"{_mm(cv['predicted_rms'])} ({ratio:.2g}x the fit){why}.",
+        ]
     return lines
 
 

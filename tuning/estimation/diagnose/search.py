@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxcart import plantspec
 from tuning.estimation.diagnose import core as C
-from tuning.estimation.diagnose import locate
+from tuning.estimation.diagnose import crossval, locate
 from tuning.estimation.diagnose.core import (
     DIRECT_WIDTHS,
     FLOOR_FACTOR,
@@ -639,6 +639,10 @@ class Search:
         )
         suggestions, misfit = self.misfit(best, explained)
         corrections = [PARAM_ERRORS[p][0] for p in best.corrections]
+        per_recording = C._per_recording(best, names, segments, base, cov)
+        # Fitted beside predicted: each recording left out of the chosen structure's fit.
+        cv = crossval.cross_validate(self, best, list(per_recording))
+        crossval.annotate(per_recording, cv)
         return Diagnosis(
             names,
             "diagnosed",
@@ -669,7 +673,8 @@ class Search:
             significance=dict(best.z),
             unidentifiable=unident,
             start_values={n: self.neutral[n] for n in corrections},
-            per_recording=C._per_recording(best, names, segments, base, cov),
+            per_recording=per_recording,
+            cross_validation=cv,
             repeat=level,
             remainder=C._remainder(best, segments),
         )
