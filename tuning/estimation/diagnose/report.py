@@ -160,7 +160,7 @@ def _cross_validation_lines(cv) -> list:
             lines += ["", f"{f['recording']} is not held out ({f['why']}): the joint values."]
     ratio = cv["ratio"]
     if math.isfinite(ratio):
-        why = ""
+        why, times = "", f"{ratio:.2g}" if ratio < 10 else f"{ratio:.0f}"
         if ratio > WORSE:
             why = (
                 f": each run's own {per_run} differs from the others'"
@@ -171,7 +171,7 @@ def _cross_validation_lines(cv) -> list:
         lines += [
             "",
             f"Over the recordings held out: fitted {_mm(cv['fitted_rms'])}, predicted "
-            f"{_mm(cv['predicted_rms'])} ({ratio:.2g}x the fit){why}.",
+            f"{_mm(cv['predicted_rms'])} ({times}x the fit){why}.",
         ]
     return lines
 
