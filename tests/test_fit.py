@@ -289,7 +289,7 @@ def test_numpy_adam_is_optax_adam():
     import jax.numpy as jnp
     import optax
 
-    from tuning.estimation.fit import _adam
+    from tuning.estimation.engine.lm import adam
 
     a = np.array([[1.0, 0.5], [0.0, 3.0], [2.0, -1.0]])
     b = np.array([0.3, -1.0, 2.0])
@@ -301,7 +301,7 @@ def test_numpy_adam_is_optax_adam():
     theta0 = np.array([1.0, -2.0, 7.0])
     active = np.array([True, True, False])
     steps, lr = 15, 0.1
-    best, best_cost = _adam(Linear(), theta0, active, 0.0, steps, lr)
+    best, best_cost = adam(Linear(), theta0, active, 0.0, steps, lr)
     opt = optax.adam(optax.cosine_decay_schedule(lr, steps))
     x = jnp.asarray(theta0[:2])
     state = opt.init(x)

@@ -73,7 +73,14 @@ from jaxcart.smoothing import Smoothing, continuation
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.covariance import covariances
 from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
-from tuning.estimation.engine.lm import marquardt_step
+from tuning.estimation.engine.lm import (
+    LM_DAMPING,
+    LM_TOLERANCE,
+    LM_TOLERANCE_WIDE,
+    MAX_STEP,
+    adam,
+    levenberg_marquardt,
+)
 from tuning.estimation.engine.noise import (
     effective_samples,
     encoder_count,
@@ -157,20 +164,9 @@ class Nuisance(NamedTuple):
         return self.scale
 
 
-#: Largest Levenberg-Marquardt step per iteration, in internal units.
-MAX_STEP = 1.0
-#: Damping values tried at once in each Levenberg-Marquardt iteration, as multiples of the
-#: current one (the classic sequence lambda, 4 lambda, ... in one batch; the least damped that
-#: decreases the cost is taken, then lambda / 5): a batch of K trial steps costs about one run
-#: on a CPU (loop overhead bound), so a rejected step no longer costs a run of its own.
-LM_DAMPING = (1.0, 4.0, 16.0, 64.0)
-#: Points per batched evaluation (every call is padded to a multiple: one compiled program).
+#: Points per batched evaluation (every call is padded to a multiple: one compiled program):
+#: the damping values one Levenberg-Marquardt iteration tries at once.
 LM_BATCH = len(LM_DAMPING)
-#: Levenberg-Marquardt converges when the step moves the parameters by less than this fraction
-#: of a standard error (one that the residual supports, :func:`effective_samples`): at the
-#: narrowest width, and at the wider ones of the continuation (whose result is only a start).
-LM_TOLERANCE = 0.01
-LM_TOLERANCE_WIDE = 0.1
 #: Bounded nuisance values stay within sigmoid(+-BOUNDED_LIMIT) of their range.
 BOUNDED_LIMIT = 6.0
 #: Segments are padded to a multiple of this many samples (fewer recompilations).
@@ -932,104 +928,13 @@ def _padded_experiment(experiment: Experiment, n: int) -> Experiment:
 # ---------------------------------------------------------------- optimizers
 
 
-def _adam(problem, theta, active, width, steps, lr, b1=0.9, b2=0.999, eps=1e-8):
-    """Adam with a cosine-decayed step (optax.adam(optax.cosine_decay_schedule(lr, steps))'s
-    arithmetic, in numpy: a handful of numbers need no device programs of their own)."""
-    if steps <= 0 or not np.any(active):
-        return theta, None
-    mu = np.zeros(int(np.count_nonzero(active)))
-    nu = np.zeros_like(mu)
-    best, best_cost = theta.copy(), np.inf
-    current = theta.copy()
-    for k in range(steps):
-        r, jac = problem.evaluate(current, width)
-        cost = float(r @ r)
-        if not math.isfinite(cost):
-            break
-        if cost < best_cost:
-            best, best_cost = current.copy(), cost
-        grad = jac[:, active].T @ r / max(cost, 1e-300)  # scale-free (adam normalizes anyway)
-        mu = b1 * mu + (1 - b1) * grad
-        nu = b2 * nu + (1 - b2) * grad**2
-        step = lr * 0.5 * (1 + math.cos(math.pi * k / steps))
-        current = current.copy()
-        current[active] -= (
-            step * (mu / (1 - b1 ** (k + 1))) / (np.sqrt(nu / (1 - b2 ** (k + 1))) + eps)
-        )
-    return best, best_cost
-
-
-def _lm(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
-    """Levenberg-Marquardt (Marquardt's diagonal scaling) on the active entries of theta; each
-    iteration tries the damping values :data:`LM_DAMPING` in one batched evaluation and keeps
-    the least damped that decreases the cost. Converged when a step moves the parameters by
-    under ``tolerance`` of a standard error that the residual supports (or no step decreases
-    the cost).
-    Returns (theta, r, J, iterations done, converged)."""
-    r, jac = problem.evaluate(theta, width)
-    cost = float(r @ r)
-    if not math.isfinite(cost):
-        raise UserError(
-            "the model does not simulate at the starting values (not finite); "
-            "give starting values closer to the cart's (--plant-file)"
-        )
-    lam = 1e-3
-    done = 0
-    idx = np.flatnonzero(active)
-    if idx.size == 0:
-        return theta, r, jac, 0, True
-    n_eff = effective_samples(problem.split(r))
-    while done < iterations:
-        done += 1
-        ja = jac[:, idx]
-        g = ja.T @ r
-        b = ja.T @ ja
-        best = None
-        while best is None and lam < 1e10:
-            lams = lam * np.asarray(LM_DAMPING)
-            trials, clipped = [], []
-            for lam_k in lams:
-                try:
-                    step = marquardt_step(b, g, lam_k)
-                except np.linalg.LinAlgError:
-                    step = np.zeros(idx.size)
-                # Trust region: each entry moves at most MAX_STEP internal units (an e-fold
-                # of a parameter, 1 mm of y0) per iteration; far from the optimum the
-                # Gauss-Newton step can throw a log-parameter to where the data no longer
-                # depend on it.
-                clipped.append(bool(np.any(np.abs(step[idx < problem.n_params]) > MAX_STEP)))
-                trial = theta.copy()
-                trial[idx] += np.clip(step, -MAX_STEP, MAX_STEP)
-                trials.append(problem.clip_bounded(trial))
-            r_k, jac_k = problem.evaluate_batch(trials, width)
-            costs = np.einsum("kn,kn->k", r_k, r_k)
-            costs[~np.isfinite(costs)] = np.inf
-            ok = np.flatnonzero(costs <= cost)
-            if ok.size:
-                best = int(ok[0])
-                lam = max(lams[best] / 5, 1e-12)
-            else:
-                lam = lams[-1] * 4
-        if best is None:
-            return theta, r, jac, done, True  # no step decreases the cost: a minimum
-        decrease = cost - float(costs[best])
-        theta, r, jac, cost = trials[best], r_k[best], jac_k[best], float(costs[best])
-        # The residual whitens as the fit improves: n_eff of the current one, not the start's.
-        n_eff = effective_samples(problem.split(r))
-        # Near the minimum d cost = sum (d theta / stderr)^2 sigma^2 N / n_eff (the stderr that
-        # n_eff independent samples support): under tolerance^2 the step moved by less than
-        # ``tolerance`` of a standard error.
-        if not clipped[best] and decrease <= tolerance**2 * cost / n_eff:
-            return theta, r, jac, done, True
-    return theta, r, jac, done, False
-
-
 def _exact_polish(problem, theta, active, jac, iterations):
     """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
     gauss_newton`: residuals and forward-difference Jacobian both from
     :func:`jaxcart.exact.simulate_exact`), started from the smooth fit, in the internal
-    coordinates (each entry moves at most MAX_STEP per iteration, as in :func:`_lm`; a column
-    the exact model's staircase flattens is a secant over +-STAIRCASE). Returns (theta,
+    coordinates (each entry moves at most MAX_STEP per iteration, as in the engine's
+    :func:`~tuning.estimation.engine.lm.levenberg_marquardt`; a column the exact model's
+    staircase flattens is a secant over +-STAIRCASE). Returns (theta,
     exact residuals, Jacobian with exact active columns, iterations, converged)."""
     # A bounded nuisance may have been pushed to its bound by the smooth model's own errors
     # (the breakaway lag); restart it from the middle, where the exact model decides.
@@ -1120,7 +1025,7 @@ class _Run:
 
     def lm(self, label, problem, theta, active, width, cap, tol=LM_TOLERANCE):
         """One Levenberg-Marquardt run, recorded and said; returns (theta, r, J)."""
-        theta, r, jac, n_it, ok = _lm(problem, theta, active, width, cap, tol)
+        theta, r, jac, n_it, ok = levenberg_marquardt(problem, theta, active, width, cap, tol)
         self.stage(label, n_it, cap, ok)
         self.say(
             f"{label}: {n_it} iterations{'' if ok else ' (stopped at its cap)'}, "
@@ -1223,7 +1128,7 @@ def _optimize(problem, active, settings, run):
         # Gradient descent where the model is smoothest, to leave a poor start; from there
         # Levenberg-Marquardt converges in a few iterations at each narrower width.
         steps = settings.adam_steps if k == 0 else 0
-        theta, cost = _adam(problem, theta, active, width, steps, settings.learning_rate)
+        theta, cost = adam(problem, theta, active, width, steps, settings.learning_rate)
         if cost is not None:
             rms = math.sqrt(cost / problem.observed.size)
             run.say(f"width {width:g} m/s: adam {steps} steps, RMS {rms * 1e3:.4g} mm")
@@ -1243,7 +1148,7 @@ def _optimize(problem, active, settings, run):
     # the narrowest width, 0.0043 mm and the truth). So the narrowest width is also fitted
     # straight from the start (at most DIRECT_ITERATIONS), and the lower cost there wins.
     cap = min(settings.lm_iterations, DIRECT_ITERATIONS)
-    direct = _lm(problem, problem.theta0.copy(), active, narrow, cap, LM_TOLERANCE)
+    direct = levenberg_marquardt(problem, problem.theta0.copy(), active, narrow, cap, LM_TOLERANCE)
     # Lower by more than 1 %: where both find the same minimum, the continuation's stays.
     d, c = _rms(direct[1]), _rms(r)
     if not (math.isfinite(d) and (not math.isfinite(c) or d < 0.99 * c)):
