@@ -265,6 +265,10 @@ def test_builtin_report_diagnoses_every_recording(builtin_report):
     assert len(d["per_recording"]) == 6
     for name, rec in d["per_recording"].items():
         assert rec["rms_after"] < 0.02e-3 < rec["rms_before"], name
+        # The true structure predicts each recording held out about as well as it fits it
+        # (measured 1.0-1.5x: the ramp's f_c rests on the ramp most).
+        assert rec["held_out"] and rec["predicted_rms"] < 2 * rec["rms_after"], name
+    assert "| held out [mm] |" in md
     assert d["parameters"]["f_c"]["value"] == pytest.approx(data.TRUE["f_c"], rel=0.02)
     assert d["parameters"]["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=0.02)
 

@@ -67,13 +67,36 @@ def render(lab, d, agreement=None) -> None:
     rows = []
     for name, rec in d.per_recording.items():
         own = ", ".join(f"{n} = {p['value']:.4g} {p['unit']}" for n, p in rec["parameters"].items())
+        held = rec.get("predicted_rms")
+        # Predicted by the others' fit (diagnose/crossval.py); "*": with the joint values.
+        held = "-" if held is None else _mm(held) + ("" if rec.get("held_out", True) else "*")
         rows.append(
-            [_part_of(lab, name), name, own or "-", _mm(rec["rms_before"]), _mm(rec["rms_after"])]
+            [
+                _part_of(lab, name),
+                name,
+                own or "-",
+                _mm(rec["rms_before"]),
+                _mm(rec["rms_after"]),
+                held,
+            ]
         )
     doc.table(
-        ["part", "recording", "its own values", "RMS before [mm]", "RMS after [mm]"],
+        [
+            "part",
+            "recording",
+            "its own values",
+            "RMS before [mm]",
+            "RMS after [mm]",
+            "held out [mm]",
+        ],
         rows,
-        numeric=[False, False, False, True, True],
+        numeric=[False, False, False, True, True, True],
+    )
+    doc.paragraph(
+        "Held out: each recording predicted by the cart fitted to the others alone (a value "
+        "free per run at the other runs' median; * where the others cannot determine it, "
+        "predicted with the joint values). A correct model predicts a recording it was not "
+        "fitted to about as well as it fits it."
     )
     fitted = ", ".join(
         f"{n} = {p['value']:.4g} ± {p['stderr']:.2g} {p['unit']}"
