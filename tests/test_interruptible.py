@@ -23,11 +23,18 @@ def test_result_and_exception_come_back():
 def test_ctrl_c_ends_a_blocked_command_within_a_second(tmp_path):
     """The worker blocks for 60 s in a call that never returns to Python (as XLA does); a
     SIGINT 0.5 s in ends the process with status 130 well within a second of it."""
+    # The child takes Python's own Ctrl-C handler and unblocks SIGINT whatever it inherited
+    # from the test process, and says "ready" from the worker thread, once the main thread is
+    # in its waiting loop (a SIGINT before it would be a plain KeyboardInterrupt).
     code = (
-        "import threading\n"
+        "import signal, threading\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+        "signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])\n"
         "from tuning.commands import interruptible\n"
-        "print('ready', flush=True)\n"
-        "interruptible.run(threading.Event().wait, 60)\n"
+        "def blocked():\n"
+        "    print('ready', flush=True)\n"
+        "    threading.Event().wait(60)\n"
+        "interruptible.run(blocked)\n"
     )
     proc = subprocess.Popen(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
@@ -36,7 +43,12 @@ def test_ctrl_c_ends_a_blocked_command_within_a_second(tmp_path):
     time.sleep(0.5)
     sent = time.perf_counter()
     os.kill(proc.pid, signal.SIGINT)
-    rc = proc.wait(timeout=10)
+    try:
+        rc = proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        pytest.fail(f"SIGINT did not end the command within 10 s; its stderr: {err!r}")
     waited = time.perf_counter() - sent
     with proc.stdout, proc.stderr:
         err = proc.stderr.read()
