@@ -682,6 +682,16 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
         # Through the memo: a difference in a per-run value re-simulates its own run alone.
         return np.concatenate(exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0])
 
+    done = exact_gauss_newton(cand, names, values, residual, segments, iterations)
+    out = at(done.x) if done.improved else values
+    return out, done.jac, names
+
+
+def exact_gauss_newton(cand, names, values, residual, segments, iterations):
+    """The engine's exact Gauss-Newton (:func:`~tuning.estimation.engine.exact_polish.
+    gauss_newton`) on ``residual`` (a function of the vector of ``names``' values) from
+    ``values``, within :func:`~.parameters.bounds`, as every exact re-fit of a diagnosis takes
+    it (the polish, the held-out re-fits)."""
     # A time or a position: a smaller absolute floor than a force or a gain.
     floors = np.array(
         [
@@ -691,11 +701,12 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
     )
     low = np.array([P.bounds(n)[0] for n in names], dtype=float)
     high = np.array([P.bounds(n)[1] for n in names], dtype=float)
-    x0 = np.array([values[n] for n in names], dtype=float)
+    x0 = np.clip(np.array([values[n] for n in names], dtype=float), low, high)
     # Where the exact output moves in steps of a value (a breakaway at f_s snapped to a
-    # sample), the secant spans STAIRCASE of its internal coordinate.
+    # sample, a controller reading whole counts), the secant spans STAIRCASE of its internal
+    # coordinate; the smooth fit's Jacobian tells which values act.
     slopes = np.array([P.value_slope(n, values[n]) for n in names])
-    done = gauss_newton(
+    return gauss_newton(
         residual,
         x0,
         lambda x: 1e-4 * np.abs(x) + floors,
@@ -705,8 +716,6 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
         reference=_smooth_norms(cand, names, slopes, segments),
         staircase=STAIRCASE * np.abs(slopes),
     )
-    out = at(done.x) if done.improved else values
-    return out, done.jac, names
 
 
 def _smooth_norms(cand, names, slopes, segments):

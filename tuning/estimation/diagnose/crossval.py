@@ -31,12 +31,11 @@ import numpy as np
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
-from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
 
 #: Gauss-Newton iterations of each held-out re-fit. From the joint values the shared values
 #: move little when one recording is dropped: on the five-recording benchmark cart 1, 2 and 3
-#: iterations give the same predicted RMS to 4 digits, on the real tap and P 50 runs of
-#: ../shared/realdata 2 against 1 moved one by 0.4 % and 3 against 2 by 0.1 %.
+#: iterations give the same predicted RMS to 4 digits; on the real tap and P 50 runs of a lab
+#: cart 2 against 1 moved one by 0.4 % and 3 against 2 by 0.1 %.
 ITERATIONS = 2
 #: The held-out prediction of a correct model is about its fit; above this many times the fit
 #: the structure misses something that varies from run to run (said in the report).
@@ -161,25 +160,7 @@ def refit_without(best, search, k: int, iterations: int = ITERATIONS) -> dict:
         values = {**held, **dict(zip(shared, (float(v) for v in x), strict=True))}
         return np.concatenate(sub.residuals(values))
 
-    # A time or a length: a smaller absolute step floor than a force or a gain (as the polish).
-    floors = np.array([1e-7 if P.spec(n).unit in ("s", "m") else 1e-6 for n in shared])
-    low = np.array([P.bounds(n)[0] for n in shared])
-    high = np.array([P.bounds(n)[1] for n in shared])
-    x0 = np.clip(np.array([best.values[n] for n in shared]), low, high)
-    # Where the exact output moves in steps of a value (a controller reading whole counts), a
-    # flat forward difference is replaced by a secant, as in the polish; the joint fit's
-    # Jacobian tells which values act.
-    slopes = np.array([P.value_slope(n, best.values[n]) for n in shared])
-    done = gauss_newton(
-        residual,
-        x0,
-        lambda x: 1e-4 * np.abs(x) + floors,
-        (low, high),
-        iterations,
-        shortest=0.25,
-        reference=C._smooth_norms(best, shared, slopes, search.segments),
-        staircase=STAIRCASE * np.abs(slopes),
-    )
+    done = C.exact_gauss_newton(best, shared, best.values, residual, search.segments, iterations)
     return dict(zip(shared, (float(v) for v in done.x), strict=True))
 
 
