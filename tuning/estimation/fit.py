@@ -886,16 +886,25 @@ class _Problem:
 
     def simulate_exact(self, theta):
         """Exact-simulator positions of each segment at theta (list of arrays) [m]."""
-        from jaxcart.exact import simulate_exact
+        return self.simulate_exact_many([theta])[0]
 
-        out = []
-        for k, seg in enumerate(self.segments):
-            values, nuisance = self.segment_values(theta, k)
-            plant = seg.plant.replace(**assemble(seg.plant, values))
-            exp = dataclasses.replace(seg.experiment, **nuisance)
-            res = simulate_exact(plant, seg.controller, exp)
-            out.append(np.asarray(res.position))
-        return out
+    def simulate_exact_many(self, thetas):
+        """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
+        (:func:`jaxcart.workers.map`)."""
+        from jaxcart import workers
+        from tuning.estimation.engine.exact_runs import exact_position
+
+        jobs = []
+        for theta in thetas:
+            for k, seg in enumerate(self.segments):
+                values, nuisance = self.segment_values(theta, k)
+                plant = seg.plant.replace(**assemble(seg.plant, values))
+                jobs.append(
+                    (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
+                )
+        runs = workers.map(exact_position, jobs, list(self.sizes) * len(thetas))
+        n = len(self.segments)
+        return [runs[i : i + n] for i in range(0, len(runs), n)]
 
     def exact_residuals(self, theta):
         """Exact-simulator positions minus the measured ones, all segments [m]."""
@@ -942,10 +951,23 @@ def _exact_polish(problem, theta, active, jac, iterations):
     idx = np.flatnonzero(active)
     jac = jac.copy()
 
+    def full(x):
+        out = theta.copy()
+        out[idx] = x
+        return out
+
+    made = {}  # the Jacobian's columns, made at once (several at a time) by prefetch
+
     def residual(x):
-        full = theta.copy()
-        full[idx] = x
-        return problem.exact_residuals(full)
+        key = np.asarray(x, dtype=float).tobytes()
+        if key in made:
+            return made.pop(key)
+        return problem.exact_residuals(full(x))
+
+    def prefetch(xs):
+        made.clear()
+        for x, pos in zip(xs, problem.simulate_exact_many([full(x) for x in xs]), strict=True):
+            made[np.asarray(x, dtype=float).tobytes()] = np.concatenate(pos) - problem.observed
 
     low, high = problem.theta_bounds()
     done = gauss_newton(
@@ -957,6 +979,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
         max_step=MAX_STEP,
         reference=np.linalg.norm(jac[:, idx], axis=0),
         staircase=STAIRCASE,
+        prefetch=prefetch,
     )
     theta = theta.copy()
     theta[idx] = done.x
@@ -996,6 +1019,9 @@ def fit(
     from jaxcart.plausibility import check_fit_recordings
 
     recordings = check_fit_recordings(recordings)
+    from jaxcart import workers
+
+    workers.start()  # the exact polish's helpers import while the smooth fit runs
     with jax.enable_x64(True):
         return _fit(recordings, params, per_recording, initial, settings, exact, progress)
 

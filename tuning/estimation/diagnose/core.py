@@ -39,6 +39,7 @@ from jaxcart.files import signal64
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout, Segment
 from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
+from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
 from tuning.estimation.engine.noise import MISFIT_RATIO, repeatability
 
 PARAM_ERRORS = {"mass": ("M",), "gain": ("gamma_scale",)}
@@ -537,6 +538,7 @@ class ExactMemo:
         self.size = size
         self.runs: dict = {}
         self.hits = 0
+        self.made = 0  # single runs simulated (here or by a helper process)
         # One recording's run by its own plant and start: a parameter that does not act on a
         # recording (a per-run copy of another run, a drive limit on the unplugged tap) leaves
         # its run as it was, so a forward difference re-simulates only the runs it moves.
@@ -548,7 +550,24 @@ class ExactMemo:
             self.hits += 1
             self.one[key] = self.one.pop(key)
             return self.one[key]
-        out = self.one[key] = compute()
+        return self._store(key, compute())
+
+    def fill(self, jobs) -> None:
+        """Make the runs of ``jobs`` ((key, :class:`ExactJob`) pairs) not stored yet, all at
+        once (:func:`jaxcart.workers.map`: several at a time, in helper processes)."""
+        from jaxcart import workers
+
+        todo = {}
+        for key, job in jobs:
+            if key not in self.one and key not in todo:
+                todo[key] = job
+        sizes = [job.target.size for job in todo.values()]
+        for key, out in zip(todo, workers.map(exact_run, todo.values(), sizes), strict=True):
+            self._store(key, out)
+
+    def _store(self, key, out):
+        self.made += 1
+        self.one[key] = out = read_only(out)
         if len(self.one) > 4 * self.size:
             del self.one[next(iter(self.one))]
         return out
@@ -574,69 +593,47 @@ class ExactMemo:
         return out
 
 
-def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo | None = None):
-    """Exact-simulator residuals [m] (and commands [V] of motor segments) of ``cand`` at
-    ``values``, one array per segment; ``memo`` reuses a run made before (of all recordings,
-    or of one recording whose plant and start are unchanged)."""
-    if memo is not None:
-        return memo.get(
-            cand, values, lambda: _exact_all(cand, segments, base_plants, values, layout, memo)
-        )
-    return _exact_all(cand, segments, base_plants, values, layout, None)
-
-
-def _exact_all(cand, segments, base_plants, values, layout, memo):
+def exact_jobs(cand, segments, base_plants, values, layout) -> list:
+    """(memo key, :class:`ExactJob`) of each recording of ``cand`` at ``values``."""
     plants = exact_plants(cand, base_plants, values)
-    out, commands = [], []
+    out = []
     for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
         exp = seg.experiment
         if i in layout.nuisance:
             exp = dataclasses.replace(
                 exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
             )
-        run = lambda seg=seg, plant=plant, exp=exp: _exact_run(seg, plant, exp)  # noqa: E731
-        r, u = run() if memo is None else memo.segment((i, plant, exp.y0, exp.yd0), run)
-        out.append(r)
-        commands.append(u)
-    return out, commands
+        job = ExactJob(seg.controller, plant, exp, seg.target, seg.counts_in_loop, seg.motor)
+        out.append(((i, plant, exp.y0, exp.yd0), job))
+    return out
 
 
-def _exact_run(seg, plant, exp):
-    """(exact residual [m], command [V] or None) of one recording, read-only arrays."""
-    from jaxcart.exact import simulate_exact
+def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo | None = None):
+    """Exact-simulator residuals [m] (and commands [V] of motor segments) of ``cand`` at
+    ``values``, one array per segment; ``memo`` reuses a run made before (of all recordings,
+    or of one recording whose plant and start are unchanged). The recordings' runs are made
+    several at a time (:func:`jaxcart.workers.map`)."""
+    jobs = exact_jobs(cand, segments, base_plants, values, layout)
+    if memo is None:
+        from jaxcart import workers
 
-    res = simulate_exact(plant, seg.controller, exp)
-    pos = np.asarray(res.position, dtype=float)
-    if seg.counts_in_loop and not res.diverged:
-        pos = _cart_position(plant, exp, res.command)
-    if not np.all(np.isfinite(pos)):
-        pos = np.where(np.isfinite(pos), pos, 1.0)
-    r = pos - seg.target
-    u = np.asarray(res.command, dtype=float) if seg.motor else None
-    for a in (r, u):
-        if a is not None:
-            a.flags.writeable = False
-    return r, u
+        jobs = [j for _, j in jobs]
+        runs = workers.map(exact_run, jobs, [j.target.size for j in jobs])
+        runs = [read_only(run) for run in runs]
+        return [r for r, _ in runs], [u for _, u in runs]
+
+    def compute():
+        memo.fill(jobs)
+        runs = [memo.segment(key, lambda job=job: exact_run(job)) for key, job in jobs]
+        return [r for r, _ in runs], [u for _, u in runs]
+
+    return memo.get(cand, values, compute)
 
 
-def _cart_position(plant, experiment, command) -> np.ndarray:
-    """The cart's position [m] under the commands [V] a closed loop sent: the same run replayed
-    open loop on the plant without its sensor (the sensor only shapes what the controller
-    reads, so the trajectory is the same, float for float). A run whose controller reads
-    counts records the counts; their forward differences in a parameter are a staircase."""
-    from jaxcart.exact import simulate_exact
-    from jaxcart.experiments import voltage_sequence
-
-    bare = dataclasses.replace(
-        plant, effects=tuple(e for e in plant.effects if e.stage != "sensor")
-    )
-    replay = voltage_sequence(
-        np.asarray(command, dtype=float),
-        sample_time=float(experiment.sample_time),
-        y0=float(experiment.y0),
-        yd0=float(experiment.yd0),
-    )
-    return np.asarray(simulate_exact(bare, None, replay).position, dtype=float)
+def exact_prefetch(cand, segments, base_plants, many, layout, memo: ExactMemo) -> None:
+    """Make the runs of ``cand`` at each of ``many`` (a list of values) at once, into ``memo``
+    (a forward-difference Jacobian's columns: several run at a time)."""
+    memo.fill([j for v in many for j in exact_jobs(cand, segments, base_plants, v, layout)])
 
 
 def _rms(parts) -> float:
@@ -682,16 +679,22 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
         # Through the memo: a difference in a per-run value re-simulates its own run alone.
         return np.concatenate(exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0])
 
-    done = exact_gauss_newton(cand, names, values, residual, segments, iterations)
+    def prefetch(xs):
+        exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
+
+    done = exact_gauss_newton(
+        cand, names, values, residual, segments, iterations, prefetch if memo else None
+    )
     out = at(done.x) if done.improved else values
     return out, done.jac, names
 
 
-def exact_gauss_newton(cand, names, values, residual, segments, iterations):
+def exact_gauss_newton(cand, names, values, residual, segments, iterations, prefetch=None):
     """The engine's exact Gauss-Newton (:func:`~tuning.estimation.engine.exact_polish.
     gauss_newton`) on ``residual`` (a function of the vector of ``names``' values) from
     ``values``, within :func:`~.parameters.bounds`, as every exact re-fit of a diagnosis takes
-    it (the polish, the held-out re-fits)."""
+    it (the polish, the held-out re-fits); ``prefetch``: makes the runs of several vectors at
+    once (the Jacobian's columns)."""
     # A time or a position: a smaller absolute floor than a force or a gain.
     floors = np.array(
         [
@@ -715,6 +718,7 @@ def exact_gauss_newton(cand, names, values, residual, segments, iterations):
         shortest=0.25,
         reference=_smooth_norms(cand, names, slopes, segments),
         staircase=STAIRCASE * np.abs(slopes),
+        prefetch=prefetch,
     )
 
 

@@ -53,7 +53,13 @@ class _Through:
         self.memo, self.order = memo, list(order)
 
     def segment(self, key, compute):
-        return self.memo.segment((self.order[key[0]], *key[1:]), compute)
+        return self.memo.segment(self._key(key), compute)
+
+    def fill(self, jobs) -> None:
+        self.memo.fill([(self._key(key), job) for key, job in jobs])
+
+    def _key(self, key):
+        return (self.order[key[0]], *key[1:])
 
     def get(self, cand, values, compute):
         del cand, values
@@ -156,11 +162,20 @@ def refit_without(best, search, k: int, iterations: int = ITERATIONS) -> dict:
     sub = Subset.of(best, search, [i for i in range(len(search.segments)) if i != k])
     held = sub.values({n: v for n, v in best.values.items() if "@" in n})
 
-    def residual(x):
-        values = {**held, **dict(zip(shared, (float(v) for v in x), strict=True))}
-        return np.concatenate(sub.residuals(values))
+    def at(x):
+        return {**held, **dict(zip(shared, (float(v) for v in x), strict=True))}
 
-    done = C.exact_gauss_newton(best, shared, best.values, residual, search.segments, iterations)
+    def residual(x):
+        return np.concatenate(sub.residuals(at(x)))
+
+    def prefetch(xs):
+        C.exact_prefetch(
+            sub.cand, sub.segments, sub.plants, [at(x) for x in xs], sub.layout, sub.memo
+        )
+
+    done = C.exact_gauss_newton(
+        best, shared, best.values, residual, search.segments, iterations, prefetch
+    )
     return dict(zip(shared, (float(v) for v in done.x), strict=True))
 
 

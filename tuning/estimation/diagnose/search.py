@@ -148,6 +148,9 @@ class Search:
         self.fitter = BatchFitter(segments, self.base_plants, per_recording=per)
         self.layout = self.fitter.layout
         self.memo = C.ExactMemo()
+        from jaxcart import workers
+
+        workers.start()  # the exact runs' helpers import while the batch fit runs
         self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
         self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
         self.starts_all = C._start_values(segments, recordings, self.base_plants, P.superset())
@@ -162,6 +165,13 @@ class Search:
     def exact(self, c, values):
         """(exact residuals per segment, commands) of ``c`` at ``values`` (memoized)."""
         return C.exact_residuals(c, self.segments, self.base_plants, values, self.layout, self.memo)
+
+    def prefetch(self, pairs):
+        """Make the exact runs of the (candidate, values) ``pairs`` at once (several at a
+        time), into the memo; a distributed run's processes make their own shares instead."""
+        if self.processes is None:
+            seg, plants, lay = self.segments, self.base_plants, self.layout
+            self.memo.fill([j for c, v in pairs for j in C.exact_jobs(c, seg, plants, v, lay)])
 
     def run_round(self, cands, starts, number):
         """Fit ``cands`` in one batch, re-check each on the exact simulator and score it."""
@@ -187,6 +197,7 @@ class Search:
         say(f"  batch fit: {_time.perf_counter() - t_fit:.1f} s")
         for c, (vals, cost, jac, _r) in zip(cands, results, strict=False):
             c.values, c.rms_smooth, c.jac, c.round = vals, math.sqrt(cost), jac, number
+        self.prefetch([(c, c.values) for c in cands])
         rechecked = C._spread(self.processes, cands, lambda c: ({}, self.exact(c, c.values)[0]))
         for c, (_, res) in zip(cands, rechecked, strict=True):
             c.residuals = res
@@ -212,6 +223,7 @@ class Search:
             share=self.processes,
         )
         values = [vals for vals, _cost, _jac, _r in results]
+        self.prefetch(list(zip(cands, values, strict=True)))
         rechecked = C._spread(
             self.processes,
             list(zip(cands, values, strict=True)),

@@ -11,6 +11,8 @@
   with parameters shared across recordings or free per recording.
 - :mod:`.exact_polish`: Gauss-Newton on the exact simulator's residuals, the last step of
   ``fit`` and of ``diagnose``'s exact re-fits.
+- :mod:`.exact_runs`: one recording's exact run as a job for a helper process
+  (:mod:`jaxcart.workers`), so that a re-fit makes its runs several at a time.
 - :mod:`.covariance`: robust (run-clustered sandwich with the encoder floor) and naive
   covariances, with the directions the data do not determine flagged.
 """

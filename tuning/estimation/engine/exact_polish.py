@@ -39,29 +39,36 @@ class Polished(NamedTuple):
     converged: bool
 
 
-def jacobian(residual, x, r, steps, reference=None, staircase=None) -> np.ndarray:
-    """Forward differences of ``residual`` at ``x`` (residual ``r`` there) with ``steps``.
+def jacobian(residual, x, r, steps, reference=None, staircase=None, prefetch=None) -> np.ndarray:
+    """Forward differences of ``residual`` at ``x`` (residual ``r`` there) with ``steps``;
+    ``prefetch``, where given, is called first with every point the columns evaluate (so
+    that their runs are made at once, several at a time).
 
     Where an event snaps to a sample (a breakaway at f_s, say) the exact output moves in steps,
     and a small difference quotient is 0 although the data depend on the parameter: a column
     under 1e-3 of its ``reference`` norm (the smooth model's; 0 for a parameter that does not
     act) is replaced by a central secant over +-``staircase`` (a number or one per entry),
     which spans the steps."""
-    cols = []
-    for i, h in enumerate(steps):
-        up = x.copy()
-        up[i] += h
-        cols.append((residual(up) - r) / h)
-    jac = np.stack(cols, axis=1)
+    prefetch = prefetch or (lambda points: None)
+    ups = [_moved(x, i, h) for i, h in enumerate(steps)]
+    prefetch(ups)
+    jac = np.stack([(residual(up) - r) / h for up, h in zip(ups, steps, strict=True)], axis=1)
     if reference is None or staircase is None:
         return jac
     half = np.broadcast_to(np.asarray(staircase, dtype=float), x.shape)
-    for j in np.flatnonzero(np.linalg.norm(jac, axis=0) < 1e-3 * np.asarray(reference)):
-        up, down = x.copy(), x.copy()
-        up[j] += half[j]
-        down[j] -= half[j]
+    flat = np.flatnonzero(np.linalg.norm(jac, axis=0) < 1e-3 * np.asarray(reference))
+    pairs = [(_moved(x, j, half[j]), _moved(x, j, -half[j])) for j in flat]
+    prefetch([p for pair in pairs for p in pair])
+    for j, (up, down) in zip(flat, pairs, strict=True):
         jac[:, j] = (residual(up) - residual(down)) / (2 * half[j])
     return jac
+
+
+def _moved(x, i, h):
+    """``x`` with entry ``i`` moved by ``h``."""
+    out = x.copy()
+    out[i] += h
+    return out
 
 
 def _standard_errors(jac, r) -> np.ndarray:
@@ -83,6 +90,7 @@ def gauss_newton(
     tolerance: float = 1e-2,
     reference=None,
     staircase: float | None = None,
+    prefetch=None,
 ) -> Polished:
     """Gauss-Newton on ``residual`` (a function of the parameter vector, one array [m]).
 
@@ -91,15 +99,15 @@ def gauss_newton(
     iterations: at most this many steps. Each iteration takes the Gauss-Newton step (each entry
     clipped to +-``max_step``), halved until the cost falls (down to ``shortest`` of it: no
     descent is a minimum); a step under ``tolerance`` of every naive standard error
-    converges. ``reference``, ``staircase``: see :func:`jacobian`. The Jacobian returned is
-    the one at the values returned (the standard errors are computed from it)."""
+    converges. ``reference``, ``staircase``, ``prefetch``: see :func:`jacobian`. The Jacobian
+    returned is the one at the values returned (the standard errors are computed from it)."""
     x = np.asarray(x0, dtype=float).copy()
     r = residual(x)
     cost = float(r @ r)
     if x.size == 0 or iterations <= 0 or not math.isfinite(cost):
         return Polished(x, r, None, False, 0, True)
     step_of = steps if callable(steps) else (lambda _x: np.asarray(steps, dtype=float))
-    jac = jacobian(residual, x, r, step_of(x), reference, staircase)
+    jac = jacobian(residual, x, r, step_of(x), reference, staircase, prefetch)
     improved = converged = False
     done = 0
     while done < iterations:
@@ -120,7 +128,7 @@ def gauss_newton(
             break
         small = np.all(np.abs(trial - x) <= tolerance * _standard_errors(jac, r))
         x, r, cost, improved = trial, r2, cost2, True
-        jac = jacobian(residual, x, r, step_of(x), reference, staircase)
+        jac = jacobian(residual, x, r, step_of(x), reference, staircase, prefetch)
         if small:
             converged = True
             break
