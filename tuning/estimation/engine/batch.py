@@ -5,9 +5,10 @@ effect (delay, deadzone, saturation, Coulomb, stiction, spring, current limit), 
 (delay 0, deadzone 0, v_sat = i_max = 1e4, f_c = f_s = k_s = 0) where the candidate lacks it. A
 candidate is a vector of index slots into one full parameter vector (its free parameters; unused
 slots point at a dummy entry) and a base vector (the neutral or start values). One compiled
-Levenberg-Marquardt step (Jacobian by ``jax.jacfwd``: a few parameters, forward mode is cheap)
-is mapped over the candidates (:func:`jaxcart.parallel.sharded_map`: sharded over every local
-device); every recording of a joint diagnosis is simulated inside it
+Levenberg-Marquardt step (Jacobian in forward mode: a few parameters, one tangent each, and the
+values of different recordings' own sharing one: :meth:`BatchFitter._colouring`) is mapped over
+the candidates (:func:`jaxcart.parallel.sharded_map`: sharded over every local device); every
+recording of a joint diagnosis is simulated inside it
 (one plant, each file's controller), so the same compiled step serves every round.
 """
 
@@ -113,6 +114,29 @@ def _superset(plant, shared):
     return build_plant(missing, base=plant, check=False)
 
 
+def _owner(name: str) -> int:
+    """The recording a slot acts in alone (``v_sat@2``, ``y0@0``: 2, 0), else -1."""
+    return P.recording_of(name) if "@" in name else -1
+
+
+def _colours(owners) -> list[int]:
+    """A colour for each slot of ``owners`` (the recording it acts in alone, -1 for all):
+    each shared slot its own, a recording's own slots the first colour without a slot of
+    the same recording (and no shared one)."""
+    out, groups = [], []  # groups: the recordings of each colour (None: a shared slot's)
+    for rec in owners:
+        k = next(
+            (k for k, g in enumerate(groups) if rec >= 0 and g is not None and rec not in g),
+            len(groups),
+        )
+        if k == len(groups):
+            groups.append(None if rec < 0 else set())
+        if rec >= 0:
+            groups[k].add(int(rec))
+        out.append(k)
+    return out
+
+
 def _theta_arrays(layout):
     """(log mask, linear scale, lower and upper bounds in internal units) of every slot."""
     names = layout.names
@@ -132,7 +156,11 @@ def _theta_arrays(layout):
 class BatchFitter:
     """The compiled, vmapped LM step for a set of segments (built once per diagnosis)."""
 
-    def __init__(self, segments, start_plants, substeps: int | None = None, per_recording=()):
+    def __init__(
+        self, segments, start_plants, substeps: int | None = None, per_recording=(), compress=True
+    ):
+        """``compress``: False gives every slot a tangent of its own (the plain forward-mode
+        Jacobian, which the tests compare :meth:`_colouring`'s with)."""
         import jax
         import jax.numpy as jnp
 
@@ -143,6 +171,10 @@ class BatchFitter:
 
         self.segments = segments
         self.layout = layout = Layout(segments, per_recording)
+        # The recording each slot acts in alone (-1: every recording, a shared value).
+        self._owner = np.array([_owner(n) for n in layout.names], dtype=np.int32)
+        self._n_colours = 1
+        self._compress = compress
         self.supers = supers = [_superset(plant, layout.shared) for plant in start_plants]
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
@@ -192,13 +224,21 @@ class BatchFitter:
                 out.append(pos - tgt)
             return jnp.concatenate(out) * scale
 
-        def step(theta, lam, idx, free, base, own, width):
-            def f(th):
-                r = residuals(th, idx, base, own, width)
-                return r, r
+        # The recording of every sample (a column's support is its slot's recordings).
+        row_segment = np.concatenate(
+            [np.full(s.target.size, i, dtype=np.int32) for i, s in enumerate(segments)]
+        )
 
-            jac, r = jax.jacfwd(f, has_aux=True)(theta)
-            jac = jac * free[None, :]
+        def step(theta, lam, idx, free, base, own, seeds, support, width):
+            # Forward mode, one tangent per colour (see _colouring): slots that act on
+            # different recordings share a tangent, and each column is read back on its own
+            # recordings' rows.
+            def push(t):
+                return jax.jvp(lambda th: residuals(th, idx, base, own, width), (theta,), (t,))
+
+            r, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
+            colour = jnp.argmax(seeds, axis=0)
+            jac = packed[:, colour] * support[row_segment, :] * free[None, :]
             cost = r @ r
             delta = marquardt_step(jac.T @ jac, jac.T @ r, lam, free, xp=jnp)
             new = jnp.clip(theta + delta, lo_j[idx], hi_j[idx])
@@ -211,8 +251,8 @@ class BatchFitter:
 
         # One candidate per item, the width shared; sharded over every local device.
         run = sharded_map(lambda item, width: step(*item, width), cache=False)
-        self._step = lambda theta, lam, idx, free, base, own, width: run(
-            (theta, lam, idx, free, base, own), width
+        self._step = lambda theta, lam, idx, free, base, own, seeds, support, width: run(
+            (theta, lam, idx, free, base, own, seeds, support), width
         )
         self._jnp = jnp
 
@@ -273,6 +313,8 @@ class BatchFitter:
             from jaxcart.parallel import devices
 
             rows = np.concatenate([rows, np.repeat(rows[:1], -n_mine % len(devices()))])
+        seeds, support = self._colouring(idx, free)
+        seeds, support = jnp.asarray(seeds[rows]), jnp.asarray(support[rows])
         theta = jnp.asarray(theta[rows])
         lam = jnp.full(rows.size, 1e-2)
         idx_j, free_j, base_j = jnp.asarray(idx[rows]), jnp.asarray(free[rows]), base[rows]
@@ -283,7 +325,7 @@ class BatchFitter:
             lam = jnp.maximum(lam, 1e-3)
             for _ in range(its):
                 theta, lam, cost, jac, r = self._step(
-                    theta, lam, idx_j, free_j, base_j, own_j, width
+                    theta, lam, idx_j, free_j, base_j, own_j, seeds, support, width
                 )
             if progress and share is None:
                 progress(width, np.asarray(cost))
@@ -294,6 +336,33 @@ class BatchFitter:
             }
             return self._gathered(share, problems, arrays, progress, widths)
         return self._unpack(problems, theta, cost, jac, r)
+
+    def _colouring(self, idx, free):
+        """(seeds (problems, colours, slots), support (problems, recordings, slots)) of the
+        compressed forward-mode Jacobian (Curtis, Powell and Reid): a value free per
+        recording (``v_sat@2``) or a tap's start state moves one recording's samples alone,
+        so such values of different recordings share one tangent (a colour); a shared value
+        has one of its own. The Jacobian is the same (each sample's derivative in a colour
+        comes from the one slot of its recording there); the step's forward passes go from
+        the slots (every copy of every recording) to the colours (the shared values, and the
+        most any one recording has of its own). The number of colours only grows, so a
+        round does not compile the step again for fewer."""
+        n, kmax = idx.shape
+        recordings = np.arange(len(self.segments))
+        colours = np.zeros((n, kmax), dtype=np.int32)
+        support = np.zeros((n, len(self.segments), kmax))
+        for c in range(n):
+            slots = np.flatnonzero(free[c])
+            owners = self._owner[idx[c, slots]]
+            colours[c, slots] = _colours(owners) if self._compress else range(len(slots))
+            for s, rec in zip(slots, owners, strict=True):
+                support[c, :, s] = 1.0 if rec < 0 else recordings == rec
+        self._n_colours = max(self._n_colours, int(colours.max()) + 1)
+        seeds = np.zeros((n, self._n_colours, kmax))
+        for c in range(n):
+            slots = np.flatnonzero(free[c])
+            seeds[c, colours[c, slots], slots] = 1.0
+        return seeds, support
 
     def _gathered(self, share, problems, arrays, progress, widths):
         """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
