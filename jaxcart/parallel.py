@@ -387,9 +387,6 @@ def init_distributed(settings, *, timeout_s: int = 300) -> bool:
         raise UserError(
             f"cannot join {what}: {first[:200]}; start process 0 first and check the address"
         ) from None
-    from jaxcart import workers
-
-    workers.set_enabled(False)  # the processes share out the work (several may share a host)
     return True
 
 

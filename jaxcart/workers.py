@@ -16,7 +16,8 @@ again by the caller, whose exception, if any, is the one raised. Results are the
 for float, as the caller's own (the same code on the same inputs).
 
 ``JAXCART_WORKERS=N`` sets the number of helpers (0: none); by default one fewer than the
-cores this process may use, at most :data:`MOST`. Inside a helper there are none.
+cores this process may use, at most :data:`MOST`. Inside a helper there are none, nor in a
+jax.distributed run (its processes share out the work themselves).
 """
 
 from __future__ import annotations
@@ -41,14 +42,13 @@ _HEADER = struct.Struct("!Q")
 
 _lock = threading.Lock()
 _pool: list[_Helper] | None = None
-_enabled = True
 #: (module, name) of functions a helper could not import: computed here from then on.
 _unknown: set = set()
 
 
 def count() -> int:
     """How many helpers :func:`map` uses (0: everything runs in this process)."""
-    if not _enabled or os.environ.get(INSIDE) or os.name != "posix":
+    if os.environ.get(INSIDE) or os.name != "posix" or _distributed():
         return 0  # (the helpers' pipes are waited on with select: POSIX only)
     given = os.environ.get(VARIABLE, "").strip()
     if given:
@@ -64,6 +64,13 @@ def count() -> int:
     return min(max((cores or 1) - 1, 0), MOST)
 
 
+def _distributed() -> bool:
+    """A jax.distributed run (:func:`jaxcart.parallel.init_distributed`): its processes share
+    out the work, several of them perhaps on one host, so none starts helpers."""
+    dist = sys.modules.get("jax._src.distributed")
+    return dist is not None and dist.global_state.client is not None
+
+
 def start() -> None:
     """Start the helpers now, so that they have imported by the time :func:`map` needs them
     (a fit starts them before its compiled part; until then :func:`map` runs here)."""
@@ -72,15 +79,6 @@ def start() -> None:
             _helpers()
         finally:
             _lock.release()
-
-
-def set_enabled(on: bool) -> None:
-    """Turn the helpers off (a distributed run: every process already has its share of the
-    cores) or on again; turning them off stops those running."""
-    global _enabled
-    _enabled = bool(on)
-    if not on:
-        shutdown()
 
 
 def map(fn: Callable, items: Iterable, weights: Iterable[float] | None = None) -> list:  # noqa: A001
