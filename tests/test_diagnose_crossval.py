@@ -143,3 +143,24 @@ def test_one_recording_is_not_cross_validated(tmp_path):
     search, truths = _search(PER_RUN, tmp_path, first=1)
     best = _at_truth(search, truths, ("coulomb",))
     assert crossval.cross_validate(search, best, _names(search)) == {}
+
+
+def test_the_driven_runs_alone_find_the_cart_with_their_own_drive_limits(tmp_path):
+    """Tap, a P and a PD step (v_sat 4.6 V and 5.5 V): the structure fitted on the two driven
+    runs alone, from values 5 % off the truth (B_eq, f_c) and 3 % off each run's limit,
+    recovers B_eq and f_c within 1 % of the generator's cart and within 3 of its standard
+    errors, at the encoder floor; without a driven run there is nothing to fit."""
+    search, truths = _search(PER_RUN, tmp_path)
+    best = _at_truth(search, truths, ("coulomb", "saturation", C.PER_RUN))
+    off = {"B_eq": 1.05, "f_c": 0.95, "v_sat@1": 0.97, "v_sat@2": 1.03}
+    best.values = {n: v * off.get(n, 1.0) for n, v in best.values.items()}
+    alone = crossval.driven_alone(search, best)
+    assert alone["recordings"] == [1, 2]
+    assert alone["rms"] < 2 * search.floor
+    for n in ("B_eq", "f_c"):
+        p = alone["parameters"][n]
+        assert p["value"] == pytest.approx(truths[-1][n], rel=0.01), n
+        assert 0 < p["stderr"] and abs(p["value"] - truths[-1][n]) < 3 * p["stderr"], (n, p)
+    assert set(alone["parameters"]) == {"B_eq", "f_c"}  # the runs' own limits are theirs
+    tap_only, _ = _search(PER_RUN, tmp_path / "tap", first=1)
+    assert crossval.driven_alone(tap_only, _at_truth(tap_only, truths, ("coulomb",))) == {}

@@ -286,6 +286,19 @@ def test_builtin_report_fits_the_cart_once_and_writes_it(builtin_report):
     assert cart["retuned"]["meets"]
     gains = json.loads((out / "gains.json").read_text())
     assert gains["controller"]["kp"] == pytest.approx(cart["retuned"]["kp"])
+    # The cart is the joint diagnosis's fit, not a second one: the same values, standard
+    # errors and exact RMS per recording, and the driven runs' own B_eq is the diagnosis's too.
+    d = results["diagnosis"]
+    assert cart["source"] == "the joint diagnosis"
+    for n, p in d["parameters"].items():
+        assert params[n]["value"] == p["value"] and params[n]["stderr"] == p["stderr"], n
+    assert [r["rms_after"] for r in cart["fit"]["recordings"]] == [
+        r["rms_after"] for r in d["per_recording"].values()
+    ]
+    alone = d["driven_alone"]
+    assert "tap.toml" not in alone["recordings"] and len(alone["recordings"]) == 5
+    assert cart["driven_only_B_eq"]["value"] == alone["parameters"]["B_eq"]["value"]
+    assert alone["parameters"]["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=TOL_B_EQ)
 
 
 def test_builtin_report_recovers_the_true_cart(builtin_report):

@@ -295,7 +295,8 @@ class FitResult:
     params: {name as asked: :class:`Estimate`}; values: every plant value the fit used, by
     canonical name (fitted, or held) [SI]; segments: a :class:`SegmentFit` per recording;
     correlation: {(a, b): correlation} of the identified parameters; n_data: samples fitted;
-    seconds: wall time [s]; smoothing: the narrowest smoothing used; history: (width [m/s],
+    seconds: wall time [s]; smoothing: the narrowest smoothing used (None for a diagnosis's
+    fit, whose values are the exact simulator's); history: (width [m/s],
     Levenberg-Marquardt iterations, RMS [m]) per width (at the narrowest, of the run kept:
     the continuation's or the direct start's); exact_polish: True when the last polish
     ran on the exact simulator; stages: each optimizer run ({"stage", "iterations", "cap",
@@ -314,13 +315,16 @@ class FitResult:
     correlation: dict
     n_data: int
     seconds: float
-    smoothing: Smoothing
+    smoothing: Smoothing | None
     history: list = field(default_factory=list)
     exact_polish: bool = False
     stages: list = field(default_factory=list)
     noise_floor: float = 0.0
     n_effective: float = 0.0
     misfit: str = ""
+    #: The fitted plant itself, effects included, where the fit made one (a diagnosis's chosen
+    #: structure, :func:`tuning.estimation.diagnose.as_fit.fit_result`); None: from ``values``.
+    cart: Plant | None = None
 
     @property
     def converged(self) -> bool:
@@ -391,8 +395,11 @@ class FitResult:
         return out
 
     def plant(self, base: Plant | None = None) -> Plant:
-        """The fitted plant for closed-loop use: ``base`` (default: the first closed- or
-        open-loop recording's plant, else the handout's) with the fitted values."""
+        """The fitted plant for closed-loop use: ``base`` (default: :attr:`cart` where the fit
+        made one, else the first closed- or open-loop recording's plant, else the handout's)
+        with the fitted values."""
+        if base is None and self.cart is not None:
+            return self.cart
         if base is None:
             driven = [s.plant for s in self.segments if s.plant.motor_connected]
             base = driven[0] if driven else handout_plant()

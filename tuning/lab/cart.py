@@ -2,10 +2,13 @@
 
 A real cart is one set of mechanics across its recordings (B_eq, f_c), while its drive does not
 repeat itself: the amplifier limit differs from run to run as the motor warms and the supply
-sags. :func:`compute` fits every recording at once with the mechanics shared and the limit
-v_sat free in each driven run (:func:`tuning.estimation.fit.fit`, ``per_recording``), fits
-the driven runs alone to say whether their B_eq agrees with the tap's under that model, and
-re-tunes the PID on the fitted cart; :func:`render` writes the section and the plant file.
+sags. The lab's joint diagnosis (:mod:`tuning.lab.diagnosis`) ends with exactly that fit: its
+chosen structure over every recording, the mechanics shared and a drive limit free per run
+where the data show one, and the same structure on the driven runs alone, for a B_eq beside
+the tap's. :func:`compute` takes the cart from there (fitting only where there is no
+diagnosis: ``--no-diagnosis``, or recordings it could not diagnose, with
+:func:`tuning.estimation.fit.fit`, ``per_recording``) and re-tunes the PID on it;
+:func:`render` writes the section and the plant file.
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ from dataclasses import dataclass
 from jaxcart import plantspec
 from tuning.lab.context import Lab, fmt, value
 
-#: The joint model: viscous and Coulomb friction shared, the amplifier limit per driven run.
+#: The joint model without a diagnosis: viscous and Coulomb friction shared, the amplifier
+#: limit per driven run.
 PARAMS = ("B_eq", "f_c", "v_sat")
 PER_RUN = "v_sat"
 #: The file the report writes the fitted cart into (for simulate, tune, grid, lab --plant).
@@ -25,16 +29,19 @@ PLANT_FILE = "cart_plant.toml"
 
 @dataclass(frozen=True)
 class JointCart:
-    """fit: the joint fit (every recording); driven: the driven runs alone (None without a
-    tap to compare with); tap: Part (i)'s (B_eq, its standard error) [kg/s] or None; tuned:
-    :class:`tuning.design.tune.TuneResult` of the PID re-tuned on the fitted cart (None when
-    no fit was possible); names: each recording's file name."""
+    """fit: the joint fit of every recording (a :class:`tuning.estimation.fit.FitResult`: the
+    diagnosis's, :func:`tuning.estimation.diagnose.as_fit.fit_result`, or a fit of its own);
+    driven: B_eq of the driven runs alone (an :class:`~tuning.estimation.fit.Estimate`; None
+    without a tap to compare with); tap: Part (i)'s (B_eq, its standard error) [kg/s] or None;
+    tuned: :class:`tuning.design.tune.TuneResult` of the PID re-tuned on the fitted cart;
+    names: each recording's file name; source: where the fit comes from, in words."""
 
     fit: object
     driven: object
     tap: tuple | None
     tuned: object
     names: tuple
+    source: str = "the joint diagnosis"
 
     @property
     def plant(self):
@@ -46,7 +53,7 @@ class JointCart:
         the difference), or None without both."""
         if self.tap is None or self.driven is None:
             return None
-        b = self.driven.params["B_eq"]
+        b = self.driven
         if b.value is None:
             return None
         diff = b.value - self.tap[0]
@@ -54,63 +61,72 @@ class JointCart:
         return diff, abs(diff) / se if se > 0 else math.inf
 
 
-def structure(inputs, diagnosis=None) -> tuple[tuple, tuple]:
-    """(parameters fitted, those free per driven run): the joint diagnosis's structure where
-    there is one; else B_eq, f_c and v_sat, v_sat per run where a part was run twice (the
-    evidence that the drive varies)."""
-    if diagnosis is not None and diagnosis.status == "diagnosed":
-        per = sorted({n for r in diagnosis.per_recording.values() for n in r["parameters"]})
-        return tuple(diagnosis.parameters) + tuple(per), tuple(per)
+def structure(inputs) -> tuple[tuple, tuple]:
+    """(parameters fitted, those free per driven run) of a joint fit without a diagnosis:
+    B_eq, f_c and v_sat, v_sat per run where a part was run twice (the evidence that the drive
+    varies)."""
     return PARAMS, (PER_RUN,) if inputs.repeats else ()
 
 
 def compute(
     inputs, tap_b_eq=None, diagnosis=None, *, start=None, fit=None, say=lambda t: None
 ) -> JointCart | None:
-    """The joint fit of every recording of ``inputs`` (:class:`tuning.lab.inputs.Inputs`,
-    repeats included) with :func:`structure`; ``tap_b_eq``: Part (i)'s (value, stderr);
-    ``start``: the cart as the parts left it ({name: value}), where the fits start (the
-    diagnosis's values where there is one) and, from there, only polish;
-    ``fit``: the lab's fitter (:func:`tuning.lab.fits.fit`). None without a driven run."""
+    """The cart of every recording of ``inputs`` (:class:`tuning.lab.inputs.Inputs`, repeats
+    included) in :func:`structure`: the diagnosis's fit where ``diagnosis`` (its
+    :class:`~tuning.estimation.diagnose.Diagnosis`) diagnosed the recordings, else fitted;
+    ``tap_b_eq``: Part (i)'s (value, stderr); ``start``: the cart as the parts left it ({name:
+    value}), where a fit of its own starts; ``fit``: the lab's fitter
+    (:func:`tuning.lab.fits.fit`). None without a driven run."""
     from tuning.design.tune import tune
-    from tuning.lab import fits
     from tuning.lab.prelab import TUNE_OPTIONS
 
-    fit = fit or fits.fit
-
     runs = inputs.runs()
-    driven = [r for r in runs if r.kind != "tap"]
-    if not driven:
+    if not any(r.kind != "tap" for r in runs):
         return None
-    params, per = structure(inputs, diagnosis)
+    if diagnosis is not None and diagnosis.status == "diagnosed":
+        joint, alone = _diagnosed(diagnosis, tap_b_eq, say)
+        source = "the joint diagnosis"
+    else:
+        joint, alone = _fitted(inputs, runs, tap_b_eq, start or {}, fit, say)
+        source = "a joint fit of its own (no diagnosis)"
+    say("the cart: the PID re-tuned on the fitted cart")
+    tuned = tune(_design_plant(joint), progress=False, **TUNE_OPTIONS)
+    names = tuple(s.name for s in joint.segments)
+    return JointCart(joint, alone, tap_b_eq, tuned, names, source)
+
+
+def _diagnosed(diagnosis, tap_b_eq, say):
+    """(the diagnosis's joint fit, B_eq of its driven runs alone or None)."""
+    from tuning.estimation.diagnose.as_fit import fit_result
+    from tuning.estimation.fit import Estimate
+
+    joint = fit_result(diagnosis)
+    say(f"the cart: the diagnosis's joint fit of {len(joint.segments)} recordings")
+    b = diagnosis.driven_alone.get("parameters", {}).get("B_eq")
+    alone = None
+    if b is not None and tap_b_eq is not None:
+        alone = Estimate("B_eq", b["value"], b["stderr"])
+    return joint, alone
+
+
+def _fitted(inputs, runs, tap_b_eq, start, fit, say):
+    """(a joint fit of ``runs``, B_eq of the driven runs fitted alone or None): without a
+    diagnosis, in :func:`structure`'s parameters from the parts' values."""
+    from tuning.lab import fits
+
+    fit = fit or fits.fit
+    driven = [r for r in runs if r.kind != "tap"]
+    params, per = structure(inputs)
     per = per if len(driven) >= 2 else ()
     say(f"the cart: one joint fit of {len(runs)} recordings ({', '.join(params)})")
-    initial = _start(params, diagnosis, start or {})
+    initial = {k: v for k, v in start.items() if k in params}
     joint = fit(runs, params, per_recording=per, initial=initial, quick=bool(initial))
     alone = None
     if len(driven) < len(runs) and tap_b_eq is not None:
         say("the cart: the driven runs alone, for B_eq beside the tap's")
         alone = fit(driven, params, per_recording=per, initial=initial, quick=bool(initial))
-    say("the cart: the PID re-tuned on the fitted cart")
-    tuned = tune(_design_plant(joint), progress=False, **TUNE_OPTIONS)
-    names = tuple(s.name for s in joint.segments)
-    return JointCart(joint, alone, tap_b_eq, tuned, names)
-
-
-def _start(params, diagnosis, before: dict) -> dict:
-    """Start values of the joint fit: the diagnosis's (shared values, each drive limit at the
-    median of its runs), else the parts' ({} without them: the fit's own continuation)."""
-    import numpy as np
-
-    out = {k: v for k, v in before.items() if k in params}
-    if diagnosis is not None and diagnosis.status == "diagnosed":
-        out.update({n: p["value"] for n, p in diagnosis.parameters.items() if n in params})
-        own = {}
-        for rec in diagnosis.per_recording.values():
-            for n, p in rec["parameters"].items():
-                own.setdefault(n, []).append(p["value"])
-        out.update({n: float(np.median(v)) for n, v in own.items()})
-    return out
+        alone = alone.params["B_eq"]
+    return joint, alone
 
 
 def _design_plant(joint):
@@ -166,7 +182,8 @@ def as_json(c: JointCart | None) -> dict | None:
     g = c.tuned.gains
     return {
         "fit": c.fit.to_json(),
-        "driven_only_B_eq": None if c.driven is None else c.driven.params["B_eq"].to_json(),
+        "source": c.source,
+        "driven_only_B_eq": None if c.driven is None else c.driven.to_json(),
         "tap_B_eq": None if c.tap is None else {"value": c.tap[0], "stderr": c.tap[1]},
         "B_eq_difference": None if agree is None else {"kg/s": agree[0], "sigmas": agree[1]},
         "retuned": {"kp": g.kp, "ki": g.ki, "kd": g.kd, "meets": c.tuned.meets},
@@ -183,14 +200,8 @@ def render(lab: Lab, c: JointCart | None) -> None:
         return
     from jaxcart.plantspec import write_plant_file
 
-    write_plant_file(lab.out / PLANT_FILE, c.plant, fit={"source": "jaxcart lab, joint fit"})
-    doc.paragraph(
-        f"Every recording ({', '.join(c.names)}) is fitted at once on one cart: B_eq and f_c "
-        "shared, and in each driven run its own amplifier limit v_sat (a real drive does not "
-        "repeat itself: the motor warms, the supply sags). The fitted cart is written to "
-        f"`{PLANT_FILE}` (for `jaxcart simulate`, `tune`, `grid`, `lab --plant`), with the "
-        "drive's limit at the median of the runs."
-    )
+    write_plant_file(lab.out / PLANT_FILE, c.plant, fit={"source": f"jaxcart lab, {c.source}"})
+    doc.paragraph(_structure_text(c))
     rows = []
     for name, est in c.fit.params.items():
         base, _, k = name.partition("@")
@@ -215,12 +226,32 @@ def render(lab: Lab, c: JointCart | None) -> None:
     )
 
 
+def _structure_text(c: JointCart) -> str:
+    """What the cart's fit is: its source, the values shared and those of each run."""
+    shared = [n for n in c.fit.params if "@" not in n]
+    own = sorted({n.partition("@")[0] for n in c.fit.params if "@" in n})
+    text = (
+        f"Every recording ({', '.join(c.names)}) is fitted at once on one cart, by "
+        f"{c.source}: {', '.join(shared)} shared by every recording"
+    )
+    if own:
+        text += (
+            f", and in each driven run its own {', '.join(own)} (a real drive does not repeat "
+            "itself: the motor warms, the supply sags)"
+        )
+    text += (
+        f". The fitted cart is written to `{PLANT_FILE}` (for `jaxcart simulate`, `tune`, "
+        "`grid`, `lab --plant`)"
+    )
+    return text + (", with each value of a run's own at the median of the runs." if own else ".")
+
+
 def _agreement_text(c: JointCart) -> str:
     agree = c.agreement()
     if agree is None:
         return "Without a tap and a driven run there is no second B_eq to compare."
     diff, sigmas = agree
-    b = c.driven.params["B_eq"]
+    b = c.driven
     from tuning.estimation.engine.parameters import bounds
 
     lo, hi = bounds("B_eq")

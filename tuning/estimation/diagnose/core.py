@@ -237,6 +237,10 @@ class Diagnosis:
     #: Several recordings: each left out of the chosen structure's fit and predicted
     #: (:func:`tuning.estimation.diagnose.crossval.cross_validate`; {} for one recording).
     cross_validation: dict = field(default_factory=dict)
+    #: With a tap and driven runs: the chosen structure fitted on the driven runs alone
+    #: (:func:`tuning.estimation.diagnose.crossval.driven_alone`; {"recordings": names,
+    #: "parameters": {name: {"value", "stderr", "unit"}}, "rms" [m]}), else {}.
+    driven_alone: dict = field(default_factory=dict)
 
     @property
     def floor_ratio(self) -> float:
@@ -379,6 +383,7 @@ class Diagnosis:
             "repeat": self.repeat,
             "remainder": self.remainder,
             "cross_validation": self.cross_validation,
+            "driven_alone": self.driven_alone,
         }
 
 

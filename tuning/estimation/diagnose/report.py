@@ -133,7 +133,24 @@ def _per_recording_section(d) -> list:
             f"| {name} | {rec['kind']} | {own or '-'} | {_mm(rec['rms_before'])} | "
             f"{_mm(rec['rms_after'])} | {predicted} |"
         )
-    return lines + _cross_validation_lines(d.cross_validation)
+    return lines + _cross_validation_lines(d.cross_validation) + _driven_alone_lines(d)
+
+
+def _driven_alone_lines(d) -> list:
+    """The shared values from the driven runs alone beside the joint ones (with a tap)."""
+    alone = d.driven_alone
+    if not alone or not alone["parameters"]:
+        return []
+    each = ", ".join(
+        f"{n} = {_num(p['value'])} +/- {_num(p['stderr'])} {p['unit']} (jointly "
+        f"{_num(d.parameters[n]['value'])})"
+        for n, p in alone["parameters"].items()
+    )
+    return [
+        "",
+        f"Fitted on the driven runs alone ({', '.join(alone['recordings'])}; their own values "
+        f"free too), the structure gives {each}, at {_mm(alone['rms'])} RMS over those runs.",
+    ]
 
 
 def _cross_validation_lines(cv) -> list:

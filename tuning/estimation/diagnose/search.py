@@ -655,6 +655,9 @@ class Search:
         # Fitted beside predicted: each recording left out of the chosen structure's fit.
         cv = crossval.cross_validate(self, best, list(per_recording))
         crossval.annotate(per_recording, cv)
+        driven = crossval.driven_alone(self, best)
+        if driven:
+            driven["recordings"] = [list(per_recording)[i] for i in driven["recordings"]]
         return Diagnosis(
             names,
             "diagnosed",
@@ -687,6 +690,7 @@ class Search:
             start_values={n: self.neutral[n] for n in corrections},
             per_recording=per_recording,
             cross_validation=cv,
+            driven_alone=driven,
             repeat=level,
             remainder=C._remainder(best, segments),
         )
