@@ -93,6 +93,10 @@ POLISH = 4
 #: Structures re-fitted from the best-scoring one's values after the search, besides those
 #: nested in it (the best by score).
 NESTED = 8
+#: Such a re-fit stops after its first Jacobian where the linearised fit cannot come within
+#: this factor of the cost [m^2] at which the structure would tie with the best (the exact
+#: model is piecewise smooth: its linearisation may miss a basin by far less than this).
+SCREEN = 4.0
 MIN_COUNTS = 20
 #: An effect (or a parameter correction) is named only when its strength lies more than this
 #: many standard errors from the values where it does nothing (a Wald test, one-sided for an
@@ -669,12 +673,19 @@ def score(cand, mse, floor2, n_eff) -> float:
 # ---------------------------------------------------------------- exact polish + errors
 
 
-def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None):
+def cost_to_reach(cand, reach, floor2, n_eff, n) -> float:
+    """The largest sum of squared residuals [m^2] over ``n`` samples at which ``cand`` scores
+    ``reach`` or better (0 where its penalties alone score worse)."""
+    room = reach - score(cand, floor2, floor2, n_eff)  # at the floor: the penalties alone
+    return n * floor2 * math.exp(min(room / n_eff, 700.0)) if room >= 0 else 0.0
+
+
+def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None, target=None):
     """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
     gauss_newton`, forward differences, within :func:`~.parameters.bounds`) in the values
     themselves, a few parameters. Returns (values, the forward-difference Jacobian of the exact
     residual [m per unit of each value] at them or None, the values' names in its column
-    order)."""
+    order); ``target``: the cost worth fitting for (see :func:`exact_gauss_newton`)."""
     names = list(values)
 
     def at(x):
@@ -688,18 +699,21 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
         exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
 
     done = exact_gauss_newton(
-        cand, names, values, residual, segments, iterations, prefetch if memo else None
+        cand, names, values, residual, segments, iterations, prefetch if memo else None, target
     )
     out = at(done.x) if done.improved else values
     return out, done.jac, names
 
 
-def exact_gauss_newton(cand, names, values, residual, segments, iterations, prefetch=None):
+def exact_gauss_newton(
+    cand, names, values, residual, segments, iterations, prefetch=None, target=None
+):
     """The engine's exact Gauss-Newton (:func:`~tuning.estimation.engine.exact_polish.
     gauss_newton`) on ``residual`` (a function of the vector of ``names``' values) from
     ``values``, within :func:`~.parameters.bounds`, as every exact re-fit of a diagnosis takes
     it (the polish, the held-out re-fits); ``prefetch``: makes the runs of several vectors at
-    once (the Jacobian's columns)."""
+    once (the Jacobian's columns); ``target``: a cost [m^2] worth fitting for (see
+    :func:`~tuning.estimation.engine.exact_polish.gauss_newton`)."""
     # A time or a position: a smaller absolute floor than a force or a gain.
     floors = np.array(
         [
@@ -724,6 +738,7 @@ def exact_gauss_newton(cand, names, values, residual, segments, iterations, pref
         reference=_smooth_norms(cand, names, slopes, segments),
         staircase=STAIRCASE * np.abs(slopes),
         prefetch=prefetch,
+        target=target,
     )
 
 

@@ -31,6 +31,7 @@ from tuning.estimation.diagnose.core import (
     PARAM_ERRORS,
     PER_RUN,
     POLISH,
+    SCREEN,
     SEEDS,
     TIE,
     WIDTHS,
@@ -299,17 +300,23 @@ class Search:
         error would stop the search on the recordings it matters most for."""
         return sorted((c for c in cs if c.score < than - 1.0), key=lambda c: c.score)
 
-    def polished(self, c, start):
-        """(values, [exact residuals per segment..., the Jacobian in the batch fit's form])."""
+    def polished(self, c, start, reach=None):
+        """(values, [exact residuals per segment..., the Jacobian in the batch fit's form]);
+        ``reach``: a score the re-fit is for (it stops early where it cannot come near)."""
         seg, plants, lay = self.segments, self.base_plants, self.layout
-        values, jac, order = C._polish(c, seg, plants, start, lay, memo=self.memo)
+        target = None
+        if reach is not None:
+            n = sum(s.target.size for s in seg)
+            target = SCREEN * C.cost_to_reach(c, reach, self.floor2, self.n_eff, n)
+        values, jac, order = C._polish(c, seg, plants, start, lay, memo=self.memo, target=target)
         res = self.exact(c, values)[0]
         return values, [*res, C._theta_jacobian(c, jac, order, values, self.nuis, seg)]
 
-    def polish_all(self, todo):
+    def polish_all(self, todo, reach=None):
         """Exact re-fits of (candidate, start) pairs, each kept only where it lowers the exact
-        residual; independent, so split over the processes of a distributed run."""
-        done = C._spread(self.processes, todo, lambda item: self.polished(*item))
+        residual; independent, so split over the processes of a distributed run. ``reach``:
+        see :meth:`polished`."""
+        done = C._spread(self.processes, todo, lambda item: self.polished(*item, reach))
         for (c, _start), (values, arrays) in zip(todo, done, strict=True):
             self.keep(c, values, arrays[:-1], arrays[-1])
 
@@ -521,12 +528,20 @@ class Search:
             )
             inside = [c for c in nested if set(c.parts) < set(lead.parts)]
             others = [c for c in nested if not set(c.parts) < set(lead.parts)][:NESTED]
-            nested = inside + others
-            if not nested:
+            if not inside + others:
                 break
-            done.update(id(c) for c in nested)
-            todo = [(c, {k: lead.values.get(k, c.values[k]) for k in c.values}) for c in nested]
-            self.polish_all(todo)
+            done.update(id(c) for c in inside + others)
+            self.polish_all([(c, self._from(lead, c)) for c in inside])
+            # The others are re-fitted for near-ties: one that cannot come near the best
+            # eligible score of the lead and the structures inside it stops early.
+            eligible = [c.score for c in [lead, *inside] if self.eligible(c)]
+            reach = min(eligible) + TIE if eligible else None
+            self.polish_all([(c, self._from(lead, c)) for c in others], reach)
+
+    @staticmethod
+    def _from(lead, c) -> dict:
+        """``c``'s start for a re-fit from ``lead``'s values (its own where ``lead`` lacks one)."""
+        return {k: lead.values.get(k, c.values[k]) for k in c.values}
 
     # ------------------------------------------------------------ the verdict
 

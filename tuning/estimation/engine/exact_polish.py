@@ -91,6 +91,7 @@ def gauss_newton(
     reference=None,
     staircase: float | None = None,
     prefetch=None,
+    target: float | None = None,
 ) -> Polished:
     """Gauss-Newton on ``residual`` (a function of the parameter vector, one array [m]).
 
@@ -99,8 +100,11 @@ def gauss_newton(
     iterations: at most this many steps. Each iteration takes the Gauss-Newton step (each entry
     clipped to +-``max_step``), halved until the cost falls (down to ``shortest`` of it: no
     descent is a minimum); a step under ``tolerance`` of every naive standard error
-    converges. ``reference``, ``staircase``, ``prefetch``: see :func:`jacobian`. The Jacobian
-    returned is the one at the values returned (the standard errors are computed from it)."""
+    converges. ``reference``, ``staircase``, ``prefetch``: see :func:`jacobian`. ``target``: a
+    cost worth fitting for; where even the Gauss-Newton model's least cost at the start,
+    |r + J step|^2, is above it, the fit stops after the first Jacobian (nothing improved:
+    what cannot come near a better model is not fitted to the end). The Jacobian returned is
+    the one at the values returned (the standard errors are computed from it)."""
     x = np.asarray(x0, dtype=float).copy()
     r = residual(x)
     cost = float(r @ r)
@@ -110,6 +114,10 @@ def gauss_newton(
     jac = jacobian(residual, x, r, step_of(x), reference, staircase, prefetch)
     improved = converged = False
     done = 0
+    if target is not None:
+        reach = r + jac @ gauss_newton_step(jac, r)
+        if float(reach @ reach) > target:
+            return Polished(x, r, jac, False, 0, False)
     while done < iterations:
         done += 1
         step = gauss_newton_step(jac, r)
