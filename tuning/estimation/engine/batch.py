@@ -137,6 +137,51 @@ def _colours(owners) -> list[int]:
     return out
 
 
+def _groups(segments, supers, n_subs) -> list[tuple]:
+    """The recordings (indices) that simulate side by side: those alike in everything static
+    (experiment kind and sample time, the plant's and the controller's structure, sub-steps,
+    an encoder in the loop). One loop per group instead of one per recording: a joint
+    diagnosis's step compiles once per kind of run, not once per file."""
+    import jax
+
+    groups: dict = {}
+    for i, (seg, sup) in enumerate(zip(segments, supers, strict=True)):
+        exp = seg.experiment
+        key = (
+            exp.kind,
+            float(exp.sample_time),
+            jax.tree_util.tree_structure(sup),
+            jax.tree_util.tree_structure(seg.controller),
+            n_subs[i],
+            seg.counts_in_loop,
+            seg.quantization if seg.counts_in_loop else 0.0,
+        )
+        groups.setdefault(key, []).append(i)
+    return [tuple(g) for g in groups.values()]
+
+
+def _padded(segments, groups) -> dict:
+    """Each recording's experiment with its signal held at its last value to the longest of
+    its group (the samples past its end are simulated and dropped)."""
+    out = {}
+    for group in groups:
+        n = max(segments[i].experiment.n_samples for i in group)
+        for i in group:
+            exp = segments[i].experiment
+            signal = np.asarray(exp.signal)
+            signal = np.pad(signal, (0, n - signal.size), mode="edge")
+            out[i] = dataclasses.replace(exp, signal=signal)
+    return out
+
+
+def _stacked(trees):
+    """The pytrees ``trees`` (one structure) stacked leaf by leaf along a new first axis."""
+    import jax
+    import jax.numpy as jnp
+
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
+
+
 def _theta_arrays(layout):
     """(log mask, linear scale, lower and upper bounds in internal units) of every slot."""
     names = layout.names
@@ -183,6 +228,13 @@ class BatchFitter:
         log_mask_j, scale_j = jnp.asarray(self.log_mask), jnp.asarray(scale_v)
         lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
         base_smoothing = Smoothing()
+        n_subs = [
+            substeps_per_sample(sup, screening=True) if substeps is None else substeps
+            for sup in supers
+        ]
+        groups = _groups(segments, supers, n_subs)
+        padded = _padded(segments, groups)
+        ctrls = {g: [segments[i].controller for i in g] for g in groups}
 
         def full_values(theta, idx, base):
             vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta * scale_j[idx])
@@ -195,21 +247,25 @@ class BatchFitter:
             # run.
             smoothing = base_smoothing.scaled(width)
             smoothing = dataclasses.replace(smoothing, voltage=VOLTAGE_WIDTH * width / 4.0)
-            out = []
-            for i, (seg, sup, tgt) in enumerate(zip(segments, supers, targets, strict=True)):
-                have = sup.param_names()
-                # A candidate's own copy of a per-recording parameter where it frees one, else
-                # the shared value (one compiled step serves both kinds of candidate).
-                values = {
-                    n: jnp.where(own[i, k] > 0, full[j], full[k])
-                    for k, (n, j) in enumerate(zip(layout.shared, slots[i], strict=True))
-                    if n in have
-                }
-                plant = sup.replace(**values)
-                exp = seg.experiment
-                if i in layout.nuisance:
-                    a, b = layout.nuisance[i]
-                    exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
+            out = [None] * len(segments)
+            for group in groups:
+                plants, exps = [], []
+                for i in group:
+                    have = supers[i].param_names()
+                    # A candidate's own copy of a per-recording parameter where it frees one,
+                    # else the shared value (one compiled step serves both kinds of candidate).
+                    values = {
+                        n: jnp.where(own[i, k] > 0, full[j], full[k])
+                        for k, (n, j) in enumerate(zip(layout.shared, slots[i], strict=True))
+                        if n in have
+                    }
+                    plants.append(supers[i].replace(**values))
+                    exp = padded[i]
+                    if i in layout.nuisance:
+                        a, b = layout.nuisance[i]
+                        exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
+                    exps.append(exp)
+                seg = segments[group[0]]
                 sm, shift = smoothing, 0.0
                 if seg.counts_in_loop:
                     # The encoder in the loop as its mean, y - q/2 (a position width of one
@@ -218,10 +274,19 @@ class BatchFitter:
                     # exact re-check reads whole counts.
                     sm = dataclasses.replace(smoothing, position=seg.quantization)
                     shift = seg.quantization / 2
-                n_sub = substeps_per_sample(plant, screening=True) if substeps is None else substeps
-                res = simulate_smooth(plant, seg.controller, exp, smoothing=sm, substeps=n_sub)
-                pos = jnp.where(jnp.isfinite(res.position), res.position + shift, 1.0)
-                out.append(pos - tgt)
+                n_sub = n_subs[group[0]]
+
+                def run(plant, controller, exp, sm=sm, n_sub=n_sub):
+                    res = simulate_smooth(plant, controller, exp, smoothing=sm, substeps=n_sub)
+                    return res.position
+
+                if len(group) == 1:
+                    pos = run(plants[0], segments[group[0]].controller, exps[0])[None]
+                else:  # the group's runs side by side in one loop (one program to compile)
+                    pos = jax.vmap(run)(*(_stacked(x) for x in (plants, ctrls[group], exps)))
+                pos = jnp.where(jnp.isfinite(pos), pos + shift, 1.0)
+                for lane, i in enumerate(group):
+                    out[i] = pos[lane, : targets[i].size] - targets[i]
             return jnp.concatenate(out) * scale
 
         # The recording of every sample (a column's support is its slot's recordings).
