@@ -140,6 +140,9 @@ class Candidate:
     z: dict = field(default_factory=dict)
     why: dict = field(default_factory=dict)
     assessed: object = None
+    #: The values (:func:`values_key`) an exact polish converged at: one from them would
+    #: repeat itself, so it is not run again.
+    settled: object = None
     #: the recordings a PER_RUN part frees the drive limits of (driven runs)
     runs: tuple = ()
 
@@ -685,7 +688,8 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
     gauss_newton`, forward differences, within :func:`~.parameters.bounds`) in the values
     themselves, a few parameters. Returns (values, the forward-difference Jacobian of the exact
     residual [m per unit of each value] at them or None, the values' names in its column
-    order); ``target``: the cost worth fitting for (see :func:`exact_gauss_newton`)."""
+    order, whether it converged); ``target``: the cost worth fitting for (see
+    :func:`exact_gauss_newton`)."""
     names = list(values)
 
     def at(x):
@@ -702,7 +706,12 @@ def _polish(cand, segments, base_plants, values, layout, iterations=3, memo=None
         cand, names, values, residual, segments, iterations, prefetch if memo else None, target
     )
     out = at(done.x) if done.improved else values
-    return out, done.jac, names
+    return out, done.jac, names, done.converged
+
+
+def values_key(values: dict) -> tuple:
+    """``values`` as a key (names and floats, sorted)."""
+    return tuple(sorted((k, float(v)) for k, v in values.items()))
 
 
 def exact_gauss_newton(

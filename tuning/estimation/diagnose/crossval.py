@@ -253,7 +253,7 @@ def driven_alone(search, best, iterations: int = DRIVEN_ITERATIONS) -> dict:
     if not order or len(order) == len(search.segments):
         return {}
     sub = Subset.of(best, search, order)
-    values, jac, names = C._polish(
+    values, jac, names, _ = C._polish(
         sub.cand, sub.segments, sub.plants, sub.values(best.values), sub.layout, iterations,
         memo=sub.memo,
     )  # fmt: skip

@@ -308,17 +308,24 @@ class Search:
         if reach is not None:
             n = sum(s.target.size for s in seg)
             target = SCREEN * C.cost_to_reach(c, reach, self.floor2, self.n_eff, n)
-        values, jac, order = C._polish(c, seg, plants, start, lay, memo=self.memo, target=target)
+        values, jac, order, converged = C._polish(
+            c, seg, plants, start, lay, memo=self.memo, target=target
+        )
         res = self.exact(c, values)[0]
-        return values, [*res, C._theta_jacobian(c, jac, order, values, self.nuis, seg)]
+        jac = C._theta_jacobian(c, jac, order, values, self.nuis, seg)
+        return values, [*res, jac], converged
 
     def polish_all(self, todo, reach=None):
         """Exact re-fits of (candidate, start) pairs, each kept only where it lowers the exact
         residual; independent, so split over the processes of a distributed run. ``reach``:
         see :meth:`polished`."""
+        # A polish that converged at a candidate's values would only repeat itself.
+        todo = [(c, start) for c, start in todo if c.settled != C.values_key(start)]
         done = C._spread(self.processes, todo, lambda item: self.polished(*item, reach))
-        for (c, _start), (values, arrays) in zip(todo, done, strict=True):
+        for (c, _start), (values, arrays, converged) in zip(todo, done, strict=True):
             self.keep(c, values, arrays[:-1], arrays[-1])
+            if converged and C.values_key(c.values) == C.values_key(values):
+                c.settled = C.values_key(values)
 
     def keep(self, c, values, res, jac):
         if C._rms(res) < c.rms_exact:
@@ -591,7 +598,7 @@ class Search:
         if not C.implausible(best.values, best.free) or C.implausible(swapped.values, swapped.free):
             return best
         if swapped.jac is None:  # values mapped from best's: an exact re-fit gives its own
-            values, arrays = self.polished(swapped, dict(swapped.values))
+            values, arrays, _ = self.polished(swapped, dict(swapped.values))
             swapped.jac = arrays[-1]
             if C._rms(arrays[:-1]) < swapped.rms_exact:
                 swapped.values, swapped.residuals = values, arrays[:-1]
