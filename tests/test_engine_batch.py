@@ -52,3 +52,46 @@ def test_compressed_jacobian_is_the_plain_one(search):
         assert a[2].shape == b[2].shape and np.count_nonzero(b[2]) > 0
         for k in b[0]:
             assert a[0][k] == pytest.approx(b[0][k], rel=1e-9)
+
+
+def test_recordings_simulated_side_by_side_are_each_simulated_alone(search):
+    """The two closed-loop steps (P and PD, the PD step cut to 1.5 s) run as lanes of one
+    loop, its signal held to the P step's end; every recording's residual of one LM step
+    equals its own smooth run, unpadded, to 1e-12 m."""
+    import dataclasses
+
+    from jaxcart.smooth_sim import simulate_smooth
+    from jaxcart.smoothing import Smoothing
+    from tuning.estimation.engine.batch import VOLTAGE_WIDTH, BatchFitter, _groups
+
+    tap, p_step, pd_step = search.segments
+    n = 1501
+    pd_step = dataclasses.replace(
+        pd_step,
+        target=pd_step.target[:n],
+        time=pd_step.time[:n],
+        experiment=dataclasses.replace(pd_step.experiment, signal=pd_step.experiment.signal[:n]),
+    )
+    segs = [tap, p_step, pd_step]
+    fitter = BatchFitter(segs, search.base_plants)
+    assert sorted(len(g) for g in _groups(segs, fitter.supers, [1] * 3)) == [1, 2]
+    names = ("B_eq", "f_c", "y0@0", "yd0@0")
+    start = {"B_eq": 4.0, "f_c": 0.3}
+    (_, _, _, r), *_ = fitter.fit([(names, start, {})], (1.0,), (1,), kmax=5)
+    scale = 1.0 / np.sqrt(sum(s.target.size for s in segs))
+    smoothing = dataclasses.replace(Smoothing().scaled(1.0), voltage=VOLTAGE_WIDTH / 4.0)
+    full = fitter.base_vector(start)
+    offset = 0
+    for i, (seg, sup) in enumerate(zip(segs, fitter.supers, strict=True)):
+        plant = sup.replace(**{k: v for k, v in start.items() if k in sup.param_names()})
+        exp = seg.experiment
+        if i in fitter.layout.nuisance:
+            a, b = fitter.layout.nuisance[i]
+            exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
+        assert not seg.counts_in_loop
+        alone = simulate_smooth(plant, seg.controller, exp, smoothing=smoothing, substeps=1)
+        mine = np.asarray(r[offset : offset + seg.target.size]) / scale
+        expected = np.asarray(alone.position) - seg.target
+        np.testing.assert_allclose(mine, expected, rtol=0, atol=1e-12)
+        offset += seg.target.size
+    assert offset == r.size

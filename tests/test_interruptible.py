@@ -54,3 +54,23 @@ def test_ctrl_c_ends_a_blocked_command_within_a_second(tmp_path):
         err = proc.stderr.read()
     assert rc == 130 and waited < 1.0, (rc, waited, err)
     assert "interrupted" in err
+
+
+def test_background_work_returns_its_result_or_raises_its_error_and_does_not_hold_exit():
+    """jaxcart.background.Background (the lab's diagnosis beside its parts): result() waits
+    and returns, an exception is raised where result() is called, the thread is a daemon."""
+    import threading
+
+    from jaxcart.background import Background
+
+    gate = threading.Event()
+    slow = Background(lambda: gate.wait(5) and 42)
+    assert slow.alive() and slow._thread.daemon
+    gate.set()
+    assert slow.result() == 42 and not slow.alive()
+
+    def fail():
+        raise ValueError("recording p50.toml: no samples")
+
+    with pytest.raises(ValueError, match="no samples"):
+        Background(fail).result()

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import os
 import sys
-import threading
+
+from jaxcart.background import Background
 
 #: How often the waiting main thread looks up [s].
 SLICE = 0.1
@@ -21,23 +22,12 @@ SLICE = 0.1
 def run(func, *args):
     """``func(*args)`` in a worker thread; its result, or its exception re-raised here. A
     KeyboardInterrupt while waiting ends the process at once with status 130."""
-    box: dict = {}
-
-    def work():
-        try:
-            box["result"] = func(*args)
-        except BaseException as exc:  # handed to the main thread as it is
-            box["error"] = exc
-
-    worker = threading.Thread(target=work, name="jaxcart-command", daemon=True)
-    worker.start()
+    worker = Background(func, *args, name="jaxcart-command")
     try:
-        while worker.is_alive():
+        while worker.alive():
             worker.join(SLICE)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os._exit(130)
-    if "error" in box:
-        raise box["error"]
-    return box.get("result")
+    return worker.result()

@@ -15,7 +15,7 @@ PARTS = {
 }
 
 
-def compute(inputs, *, say=lambda text: None):
+def compute(inputs, say=lambda text: None):
     """Every recording of the lab diagnosed jointly, one cart (repeats included): a
     :class:`tuning.estimation.diagnose.Diagnosis`, or None without recordings."""
     from tuning.estimation.diagnose import diagnose

@@ -218,13 +218,18 @@ def compute(
     every recording, say) goes in as the ``model`` argument of the parts that simulate with
     it, and :func:`tuning.lab.part_ii.agreement` is the one place the tap's and the step's
     B_eq are compared."""
+    from jaxcart.background import Background
+
     recordings = inputs.recordings
+    # The joint diagnosis needs only the recordings: it runs beside the parts (while one
+    # compiles, the other fits), and the cart below waits for it.
+    found = Background(diagnosis_section.compute, inputs, say) if diagnosis else None
     pre = prelab.compute(say=say)
     tap = part_i.compute(recordings.get("tap"), start, fit=fit, say=say)
     step = part_ii.compute(recordings.get("p_step"), tap.model, fit=fit, say=say)
     friction = part_iii.compute(recordings, tap.model, fit=fit, say=say)
     pi = part_iv.compute(recordings.get("pi"), friction.model, say=say)
-    found = diagnosis_section.compute(inputs, say=say) if diagnosis else None
+    found = found.result() if found is not None else None
     # The cart once, from every recording (repeats too), in the diagnosis's structure; Part
     # (v) simulates the measured run on it (the gains re-tuned on it go to gains.json).
     tap_b = None if tap.fit is None else (tap.model.B_eq, tap.model.B_eq_stderr)

@@ -1,0 +1,40 @@
+"""One function run in a daemon thread, its result (or exception) collected later.
+
+Used where two long, independent pieces of work can overlap (the lab's joint diagnosis beside
+its parts: one compiles while the other fits) and by :mod:`tuning.commands.interruptible`. The
+thread is a daemon: a process that ends (an error elsewhere, Ctrl-C) does not wait for it.
+"""
+
+from __future__ import annotations
+
+import threading
+
+
+class Background:
+    """``func(*args)`` started at once in a daemon thread named ``name``."""
+
+    def __init__(self, func, *args, name: str = "jaxcart-background"):
+        self._box: dict = {}
+
+        def work():
+            try:
+                self._box["result"] = func(*args)
+            except BaseException as exc:  # handed to the caller of result() as it is
+                self._box["error"] = exc
+
+        self._thread = threading.Thread(target=work, name=name, daemon=True)
+        self._thread.start()
+
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def join(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+    def result(self):
+        """The function's result once it has returned (waiting for it), or its exception
+        re-raised here."""
+        self._thread.join()
+        if "error" in self._box:
+            raise self._box["error"]
+        return self._box.get("result")
