@@ -11,14 +11,14 @@ import threading
 
 
 class Background:
-    """``func(*args)`` started at once in a daemon thread named ``name``."""
+    """``func(*args, **kwargs)`` started at once in a daemon thread named ``name``."""
 
-    def __init__(self, func, *args, name: str = "jaxcart-background"):
+    def __init__(self, func, *args, name: str = "jaxcart-background", **kwargs):
         self._box: dict = {}
 
         def work():
             try:
-                self._box["result"] = func(*args)
+                self._box["result"] = func(*args, **kwargs)
             except BaseException as exc:  # handed to the caller of result() as it is
                 self._box["error"] = exc
 

@@ -33,15 +33,21 @@ class JointCart:
     diagnosis's, :func:`tuning.estimation.diagnose.as_fit.fit_result`, or a fit of its own);
     driven: B_eq of the driven runs alone (an :class:`~tuning.estimation.fit.Estimate`; None
     without a tap to compare with); tap: Part (i)'s (B_eq, its standard error) [kg/s] or None;
-    tuned: :class:`tuning.design.tune.TuneResult` of the PID re-tuned on the fitted cart;
-    names: each recording's file name; source: where the fit comes from, in words."""
+    retune: the PID re-tuned on the fitted cart (:attr:`tuned`); names: each recording's
+    file name; source: where the fit comes from, in words."""
 
     fit: object
     driven: object
     tap: tuple | None
-    tuned: object
+    retune: object
     names: tuple
     source: str = "the joint diagnosis"
+
+    @property
+    def tuned(self):
+        """The re-tune's :class:`tuning.design.tune.TuneResult` (``retune`` runs it in a
+        :class:`jaxcart.background.Background` beside Part (v); this waits for it)."""
+        return self.retune.result()
 
     @property
     def plant(self):
@@ -77,6 +83,7 @@ def compute(
     ``tap_b_eq``: Part (i)'s (value, stderr); ``start``: the cart as the parts left it ({name:
     value}), where a fit of its own starts; ``fit``: the lab's fitter
     (:func:`tuning.lab.fits.fit`). None without a driven run."""
+    from jaxcart.background import Background
     from tuning.design.tune import tune
     from tuning.lab.prelab import TUNE_OPTIONS
 
@@ -90,9 +97,10 @@ def compute(
         joint, alone = _fitted(inputs, runs, tap_b_eq, start or {}, fit, say)
         source = "a joint fit of its own (no diagnosis)"
     say("the cart: the PID re-tuned on the fitted cart")
-    tuned = tune(_design_plant(joint), progress=False, **TUNE_OPTIONS)
+    # Beside Part (v) and the report's figures, which do not need it.
+    retune = Background(tune, _design_plant(joint), progress=False, **TUNE_OPTIONS)
     names = tuple(s.name for s in joint.segments)
-    return JointCart(joint, alone, tap_b_eq, tuned, names, source)
+    return JointCart(joint, alone, tap_b_eq, retune, names, source)
 
 
 def _diagnosed(diagnosis, tap_b_eq, say):
