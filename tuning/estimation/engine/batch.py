@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -174,6 +175,63 @@ def _padded(segments, groups) -> dict:
     return out
 
 
+class _Runs(NamedTuple):
+    """What :func:`_group_positions` needs of a fitter: its segments, superset plants, layout
+    and each segment's slots, padded experiments and sub-steps."""
+
+    segments: list
+    supers: list
+    layout: Layout
+    slots: list
+    padded: dict
+    n_subs: list
+
+
+def _group_positions(runs: _Runs, group, full, own, smoothing):
+    """The smooth positions [m] of ``group``'s recordings (one row each, to the longest one's
+    length) at the full parameter vector ``full``: one loop, the runs side by side."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxcart.smooth_sim import simulate_smooth
+
+    plants, exps = [], []
+    for i in group:
+        have = runs.supers[i].param_names()
+        # A candidate's own copy of a per-recording parameter where it frees one, else the
+        # shared value (one compiled step serves both kinds of candidate).
+        values = {
+            n: jnp.where(own[i, k] > 0, full[j], full[k])
+            for k, (n, j) in enumerate(zip(runs.layout.shared, runs.slots[i], strict=True))
+            if n in have
+        }
+        plants.append(runs.supers[i].replace(**values))
+        exp = runs.padded[i]
+        if i in runs.layout.nuisance:
+            a, b = runs.layout.nuisance[i]
+            exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
+        exps.append(exp)
+    seg, n_sub = runs.segments[group[0]], runs.n_subs[group[0]]  # one of each in a group
+    sm, shift = smoothing, 0.0
+    if seg.counts_in_loop:
+        # The encoder in the loop as its mean, y - q/2 (a position width of one count leaves
+        # 0.2 % of the staircase; a staircase gives LM a Jacobian only at the count edges),
+        # and the position as that reading + q/2. The exact re-check reads whole counts.
+        sm = dataclasses.replace(smoothing, position=seg.quantization)
+        shift = seg.quantization / 2
+
+    def run(plant, controller, exp):
+        res = simulate_smooth(plant, controller, exp, smoothing=sm, substeps=n_sub)
+        return res.position
+
+    ctrls = [runs.segments[i].controller for i in group]
+    if len(group) == 1:
+        pos = run(plants[0], ctrls[0], exps[0])[None]
+    else:  # the group's runs side by side in one loop (one program to compile)
+        pos = jax.vmap(run)(*(_stacked(x) for x in (plants, ctrls, exps)))
+    return jnp.where(jnp.isfinite(pos), pos + shift, 1.0)
+
+
 def _stacked(trees):
     """The pytrees ``trees`` (one structure) stacked leaf by leaf along a new first axis."""
     import jax
@@ -210,7 +268,6 @@ class BatchFitter:
         import jax.numpy as jnp
 
         from jaxcart.parallel import sharded_map
-        from jaxcart.smooth_sim import simulate_smooth
         from jaxcart.smoothing import Smoothing
         from jaxcart.substeps import substeps_per_sample
 
@@ -233,8 +290,7 @@ class BatchFitter:
             for sup in supers
         ]
         groups = _groups(segments, supers, n_subs)
-        padded = _padded(segments, groups)
-        ctrls = {g: [segments[i].controller for i in g] for g in groups}
+        runs = _Runs(segments, supers, layout, slots, _padded(segments, groups), n_subs)
 
         def full_values(theta, idx, base):
             vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta * scale_j[idx])
@@ -249,42 +305,7 @@ class BatchFitter:
             smoothing = dataclasses.replace(smoothing, voltage=VOLTAGE_WIDTH * width / 4.0)
             out = [None] * len(segments)
             for group in groups:
-                plants, exps = [], []
-                for i in group:
-                    have = supers[i].param_names()
-                    # A candidate's own copy of a per-recording parameter where it frees one,
-                    # else the shared value (one compiled step serves both kinds of candidate).
-                    values = {
-                        n: jnp.where(own[i, k] > 0, full[j], full[k])
-                        for k, (n, j) in enumerate(zip(layout.shared, slots[i], strict=True))
-                        if n in have
-                    }
-                    plants.append(supers[i].replace(**values))
-                    exp = padded[i]
-                    if i in layout.nuisance:
-                        a, b = layout.nuisance[i]
-                        exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
-                    exps.append(exp)
-                seg = segments[group[0]]
-                sm, shift = smoothing, 0.0
-                if seg.counts_in_loop:
-                    # The encoder in the loop as its mean, y - q/2 (a position width of one
-                    # count leaves 0.2 % of the staircase; a staircase gives LM a Jacobian
-                    # only at the count edges), and the position as that reading + q/2. The
-                    # exact re-check reads whole counts.
-                    sm = dataclasses.replace(smoothing, position=seg.quantization)
-                    shift = seg.quantization / 2
-                n_sub = n_subs[group[0]]
-
-                def run(plant, controller, exp, sm=sm, n_sub=n_sub):
-                    res = simulate_smooth(plant, controller, exp, smoothing=sm, substeps=n_sub)
-                    return res.position
-
-                if len(group) == 1:
-                    pos = run(plants[0], segments[group[0]].controller, exps[0])[None]
-                else:  # the group's runs side by side in one loop (one program to compile)
-                    pos = jax.vmap(run)(*(_stacked(x) for x in (plants, ctrls[group], exps)))
-                pos = jnp.where(jnp.isfinite(pos), pos + shift, 1.0)
+                pos = _group_positions(runs, group, full, own, smoothing)
                 for lane, i in enumerate(group):
                     out[i] = pos[lane, : targets[i].size] - targets[i]
             return jnp.concatenate(out) * scale
