@@ -95,3 +95,29 @@ def test_recordings_simulated_side_by_side_are_each_simulated_alone(search):
         np.testing.assert_allclose(mine, expected, rtol=0, atol=1e-12)
         offset += seg.target.size
     assert offset == r.size
+
+
+def test_a_search_that_grows_compiles_its_step_again_once(search):
+    """The step's tangents: the first fit's need (no more); a later fit that needs more gets
+    the most any problem of the search can need (K_MAX shared values and a recording's own
+    two slots) at once, so a further round does not compile the step again."""
+    from tuning.estimation.diagnose.core import K_MAX
+    from tuning.estimation.engine.batch import BatchFitter
+
+    fitter = BatchFitter(
+        search.segments, search.base_plants, per_recording=search.layout.per_recording,
+        max_shared=K_MAX,
+    )  # fmt: skip
+    lay = fitter.layout
+
+    def colours(names, kmax=12):
+        idx = np.full((1, kmax), lay.dummy, dtype=np.int32)
+        free = np.zeros((1, kmax))
+        for s, n in enumerate(names):
+            idx[0, s], free[0, s] = lay.index(n), 1.0
+        return fitter._colouring(idx, free)[0].shape[1]
+
+    assert colours(["B_eq", "f_c"]) == 2
+    assert colours(["B_eq"]) == 2  # never fewer
+    assert colours(["B_eq", "f_c", "v_sat"]) == K_MAX + 2
+    assert colours(["B_eq", "f_c", "f_s", "v_sat", "delay"]) == K_MAX + 2

@@ -146,7 +146,7 @@ class Search:
         self.runs = runs if len(runs) >= 2 else ()
         self.extra = max(0, 2 * len(self.runs) - 2)  # a PER_RUN structure's extra slots
         per = C.per_run_params() if self.runs else ()
-        self.fitter = BatchFitter(segments, self.base_plants, per_recording=per)
+        self.fitter = BatchFitter(segments, self.base_plants, per_recording=per, max_shared=K_MAX)
         self.layout = self.fitter.layout
         self.memo = C.ExactMemo()
         from jaxcart import workers

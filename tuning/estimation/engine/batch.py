@@ -260,10 +260,19 @@ class BatchFitter:
     """The compiled, vmapped LM step for a set of segments (built once per diagnosis)."""
 
     def __init__(
-        self, segments, start_plants, substeps: int | None = None, per_recording=(), compress=True
+        self,
+        segments,
+        start_plants,
+        substeps: int | None = None,
+        per_recording=(),
+        compress=True,
+        max_shared: int | None = None,
     ):
         """``compress``: False gives every slot a tangent of its own (the plain forward-mode
-        Jacobian, which the tests compare :meth:`_colouring`'s with)."""
+        Jacobian, which the tests compare :meth:`_colouring`'s with). ``max_shared``: the most
+        shared values any problem will free (a search's largest structure): where a fit needs
+        more tangents than the step has, the step is compiled at once for the most any
+        problem can need, so a search that grows compiles it again once, not every round."""
         import jax
         import jax.numpy as jnp
 
@@ -275,8 +284,12 @@ class BatchFitter:
         self.layout = layout = Layout(segments, per_recording)
         # The recording each slot acts in alone (-1: every recording, a shared value).
         self._owner = np.array([_owner(n) for n in layout.names], dtype=np.int32)
-        self._n_colours = 1
+        self._n_colours = 0  # none compiled yet
         self._compress = compress
+        # The most tangents a problem can need: its shared values, and a recording's own slots
+        # (per-recording copies, a tap's start state) at most one colour each.
+        own = [len(layout.copies[i]) + 2 * (i in layout.nuisance) for i in range(len(segments))]
+        self._most = None if max_shared is None else max_shared + max(own, default=0)
         self.supers = supers = [_superset(plant, layout.shared) for plant in start_plants]
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
@@ -432,7 +445,8 @@ class BatchFitter:
         comes from the one slot of its recording there); the step's forward passes go from
         the slots (every copy of every recording) to the colours (the shared values, and the
         most any one recording has of its own). The number of colours only grows, so a
-        round does not compile the step again for fewer."""
+        round does not compile the step again for fewer, and where it grows after the first
+        fit it goes to the most any problem can need (``max_shared``)."""
         n, kmax = idx.shape
         recordings = np.arange(len(self.segments))
         colours = np.zeros((n, kmax), dtype=np.int32)
@@ -443,7 +457,10 @@ class BatchFitter:
             colours[c, slots] = _colours(owners) if self._compress else range(len(slots))
             for s, rec in zip(slots, owners, strict=True):
                 support[c, :, s] = 1.0 if rec < 0 else recordings == rec
-        self._n_colours = max(self._n_colours, int(colours.max()) + 1)
+        need = int(colours.max()) + 1
+        if need > self._n_colours:
+            # The first step for what round 1 needs; a later, larger one for the most at once.
+            self._n_colours = need if not self._n_colours else max(need, self._most or need)
         seeds = np.zeros((n, self._n_colours, kmax))
         for c in range(n):
             slots = np.flatnonzero(free[c])
