@@ -321,10 +321,15 @@ class Search:
         see :meth:`polished`."""
         # A polish that converged at a candidate's values would only repeat itself.
         todo = [(c, start) for c, start in todo if c.settled != C.values_key(start)]
-        done = C._spread(self.processes, todo, lambda item: self.polished(*item, reach))
-        for (c, _start), (values, arrays, converged) in zip(todo, done, strict=True):
-            self.keep(c, values, arrays[:-1], arrays[-1])
-            if converged and C.values_key(c.values) == C.values_key(values):
+
+        def polish(item):  # (values, arrays) as C._spread gathers them: the flag an array too
+            values, arrays, converged = self.polished(*item, reach)
+            return values, [*arrays, np.array(float(converged))]
+
+        done = C._spread(self.processes, todo, polish)
+        for (c, _start), (values, arrays) in zip(todo, done, strict=True):
+            self.keep(c, values, arrays[:-2], arrays[-2])
+            if bool(arrays[-1]) and C.values_key(c.values) == C.values_key(values):
                 c.settled = C.values_key(values)
 
     def keep(self, c, values, res, jac):
