@@ -78,8 +78,9 @@ def compute(
     inputs, tap_b_eq=None, diagnosis=None, *, start=None, fit=None, say=lambda t: None
 ) -> JointCart | None:
     """The cart of every recording of ``inputs`` (:class:`tuning.lab.inputs.Inputs`, repeats
-    included) in :func:`structure`: the diagnosis's fit where ``diagnosis`` (its
-    :class:`~tuning.estimation.diagnose.Diagnosis`) diagnosed the recordings, else fitted;
+    included): the diagnosis's fit where ``diagnosis`` (its
+    :class:`~tuning.estimation.diagnose.Diagnosis`) diagnosed the recordings, else fitted in
+    :func:`structure`'s parameters;
     ``tap_b_eq``: Part (i)'s (value, stderr); ``start``: the cart as the parts left it ({name:
     value}), where a fit of its own starts; ``fit``: the lab's fitter
     (:func:`tuning.lab.fits.fit`). None without a driven run."""
