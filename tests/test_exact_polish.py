@@ -74,3 +74,20 @@ def test_no_descent_keeps_the_start():
     assert not done.improved and done.converged and done.iterations == 1
     np.testing.assert_array_equal(done.x, start)
     np.testing.assert_allclose(done.jac, [[1, 0], [0, 1], [0, 0]], atol=1e-6)
+
+
+def test_a_fit_that_cannot_reach_its_target_stops_after_the_first_jacobian():
+    """A residual linear in x with 0.5 m that no x explains: its least cost is 0.25 m^2.
+    With a target below that the fit stops at the start after one Jacobian (not improved, not
+    converged); with a target above it, it fits to the minimum as without one."""
+
+    def residual(x):
+        return np.array([x[0] - 1.0, x[1] + 2.0, 0.5])
+
+    start = np.array([3.0, 1.0])
+    hopeless = gauss_newton(residual, start, np.full(2, 1e-6), WIDE, 5, target=0.2)
+    assert not hopeless.improved and not hopeless.converged and hopeless.iterations == 0
+    np.testing.assert_array_equal(hopeless.x, start)
+    assert hopeless.jac is not None
+    reached = gauss_newton(residual, start, np.full(2, 1e-6), WIDE, 5, target=0.3)
+    np.testing.assert_allclose(reached.x, [1.0, -2.0], atol=1e-6)

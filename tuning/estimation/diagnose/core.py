@@ -588,7 +588,7 @@ class ExactMemo:
         key = (
             tuple(cand.parts),
             tuple(cand.corrections),
-            tuple(sorted((k, float(v)) for k, v in values.items())),
+            values_key(values),
         )
         if key in self.runs:
             self.hits += 1
