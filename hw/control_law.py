@@ -195,31 +195,63 @@ def hard_clip(v, limit, xp=np):
     return xp.clip(v, -limit, limit)
 
 
+class Floats:
+    """The array namespace of the control law on Python floats (numpy scalars are ~10x
+    slower): the same arithmetic, so the same numbers. The hardware loop and the exact
+    simulator pass it as ``xp`` with :func:`float_clip`."""
+
+    abs = staticmethod(abs)
+
+    @staticmethod
+    def where(condition, a, b):
+        return a if condition else b
+
+
+def float_clip(v, limit):
+    """:func:`hard_clip` on Python floats."""
+    return min(max(v, -limit), limit)
+
+
 def pid_update(pid: PID, state: PIDState, r, y, xp=np, clip=None):
     """One controller sample: returns (u_k, v_k, next state).
 
     ``v_k`` is the unlimited command and ``u_k`` the command after the software limit.
     ``clip(v, limit)`` defaults to the exact clip; the smooth simulator passes a smooth one.
     """
+    return pid_stepper(pid, xp, clip)(state, r, y)
+
+
+def pid_stepper(pid: PID, xp=np, clip=None):
+    """``step(state, r, y) -> (u_k, v_k, next state)``: :func:`pid_update` with the
+    controller's constants bound once, the same arithmetic (bit for bit). A loop that runs
+    many samples (the exact simulator, the hardware loop) calls this once, then ``step``."""
     if clip is None:
 
         def clip(v, limit):
             return hard_clip(v, limit, xp)
 
-    ts = pid.sample_time
-    e = r - y
-    s = _signal(pid, r, y)
-    d = (pid.tau * state.derivative + s - state.previous) * (1.0 / (pid.tau + ts))
-    v = pid.kp * e + pid.ki * state.integral + pid.kd * d
-    u = clip(v, pid.v_limit)
-    if pid.anti_windup == "clamping":
-        # Hold I while the output is limited and the error drives it further into the limit.
-        pushing = (xp.abs(v) > pid.v_limit) & (e * v > 0)
-        integral = xp.where(pushing, state.integral, state.integral + ts * e)
-    elif pid.anti_windup == "back_calculation":
-        safe_ki = xp.where(pid.ki == 0, 1.0, pid.ki)
-        correction = xp.where(pid.ki == 0, 0.0, pid.kb * (u - v) / safe_ki)
-        integral = state.integral + ts * (e + correction)
-    else:
-        integral = state.integral + ts * e
-    return u, v, PIDState(integral=integral, derivative=d, previous=s)
+    ts, kp, ki, kd, tau, limit = (pid.sample_time, pid.kp, pid.ki, pid.kd, pid.tau, pid.v_limit)
+    on_error, mode = pid.derivative_on == "error", pid.anti_windup
+    filt = 1.0 / (tau + ts)
+    if mode == "back_calculation":
+        safe_ki = xp.where(ki == 0, 1.0, ki)
+        no_ki = ki == 0
+
+    def step(state: PIDState, r, y):
+        e = r - y
+        s = (r - y) if on_error else -y
+        d = (tau * state.derivative + s - state.previous) * filt
+        v = kp * e + ki * state.integral + kd * d
+        u = clip(v, limit)
+        if mode == "clamping":
+            # Hold I while the output is limited and the error drives it further into the limit.
+            pushing = (xp.abs(v) > limit) & (e * v > 0)
+            integral = xp.where(pushing, state.integral, state.integral + ts * e)
+        elif mode == "back_calculation":
+            correction = xp.where(no_ki, 0.0, pid.kb * (u - v) / safe_ki)
+            integral = state.integral + ts * (e + correction)
+        else:
+            integral = state.integral + ts * e
+        return u, v, PIDState(integral=integral, derivative=d, previous=s)
+
+    return step

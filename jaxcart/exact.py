@@ -46,7 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hw.control_law import PID, PIDState, float_pid, pid_init, pid_update
+from hw.control_law import PID, Floats, PIDState, float_clip, float_pid, pid_init, pid_stepper
 from jaxcart.effects import Held
 from jaxcart.experiments import Experiment
 from jaxcart.metrics import StepInfo, step_info
@@ -157,7 +157,8 @@ class _GeneralCart:
     along the track). Forces keep their hard forms: no smoothing anywhere. Within a slip phase
     the friction direction is fixed, so the right-hand side is smooth and RK4 converges at
     fourth order; the error is below 1e-12 m per sample at these time scales (tested against
-    the closed form where both apply).
+    the closed form where both apply). Where every force is affine (a spring) a piece of a
+    sample without an event is the sub-steps composed into one map (:func:`_rk4_map`).
     """
 
     def __init__(self, m, c, gamma, drive, dry, others, h, substeps):
@@ -169,6 +170,8 @@ class _GeneralCart:
         # Friction that does not vary along the track is one number: computed once.
         self.varying = any(e.position_dependent for e in dry)
         self.kinetic_force = None if self.varying else self._kinetic(0.0)
+        self.affine = None if self.varying else _affine_phase(m, c, drive, others, h)
+        self.maps: dict = {}
 
     def _kinetic(self, y):
         return sum(float(e.kinetic(y, math)) for e in self.dry) if self.dry else 0.0
@@ -233,8 +236,25 @@ class _GeneralCart:
             yd + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4),
         )
 
+    def _sub_steps(self, left):
+        """(n, hs [s]): the RK4 sub-steps that span ``left`` [s], at most Ts/substeps each."""
+        n = max(1, math.ceil(left / self.h * self.substeps - 1e-9))
+        return n, left / n
+
+    def _map(self, h):
+        """:func:`_rk4_map` of a whole piece of h [s] (a sample, or a delay's two pieces):
+        made once per length."""
+        got = self.maps.get(h)
+        if got is None:
+            if len(self.maps) >= 8:
+                self.maps.clear()
+            n, hs = self._sub_steps(h)
+            got = self.maps[h] = _rk4_map(self.affine[0], hs, n)
+        return got
+
     def advance(self, y: float, yd: float, v: float, h: float):
-        """(y, y') after h [s] under the held voltage v [V]."""
+        """(y, y') after h [s] under the held voltage v [V]: a piece with no event in one
+        affine map where the forces allow (:func:`_affine_phase`), else RK4 sub-steps."""
         left = h
         friction = bool(self.dry)
         for _ in range(_MAX_EVENTS):
@@ -251,8 +271,14 @@ class _GeneralCart:
                 s = 1.0 if applied > 0.0 else -1.0
             else:
                 s = 1.0 if yd > 0.0 else -1.0
-            n = max(1, math.ceil(left / self.h * self.substeps - 1e-9))
-            hs = left / n
+            if self.affine is not None and left == h:
+                p00, p01, p10, p11, q0, q1 = self._map(h)
+                acc = (self.gamma * v - s * self.kinetic_force + self.affine[1]) / self.m
+                y1, yd1 = p00 * y + p01 * yd + q0 * acc, p10 * y + p11 * yd + q1 * acc
+                if not friction or yd1 * s > 0.0:
+                    return y1, yd1
+                # The velocity reached 0 in this sample: the sub-steps below find when.
+            n, hs = self._sub_steps(left)
             rk4 = self._stepper(v, s)
             for i in range(n):
                 y1, yd1 = rk4(y, yd, hs)
@@ -273,6 +299,43 @@ class _GeneralCart:
             else:
                 return y, yd
         raise RuntimeError(f"more than {_MAX_EVENTS} stick-slip events in one sample")
+
+
+def _affine_phase(m, c, drive, others, h):
+    """(A, f0 [N]) where every force of ``others`` is affine in (y, y')
+    (:meth:`jaxcart.effects.base.Effect.exact_affine`), else None: within a slip phase
+    x = (y, y') then obeys x' = A x + (0, a), a = (gamma v - s f_k + f0)/m [m/s^2] constant.
+
+    Its velocity could reach 0 inside a sample and come back only if the phase oscillates
+    within a sample, which a check at the sample's end would miss: None unless half the
+    damped period pi/w is over 2 h (a spring of up to ~1e5 N/m at Ts = 2 ms)."""
+    affine = [e.exact_affine(drive) for e in others]
+    if not affine or any(a is None for a in affine):
+        return None
+    k_y, k_yd, f0 = (float(sum(a[i] for a in affine)) for i in range(3))
+    mat = np.array([[0.0, 1.0], [k_y / m, (k_yd - c) / m]])
+    half_trace, det = 0.5 * mat[1, 1], -mat[1, 0]
+    if det > half_trace**2 and math.pi / math.sqrt(det - half_trace**2) <= 2 * h:
+        return None
+    return mat, f0
+
+
+def _rk4_map(mat, hs, n):
+    """(p00, p01, p10, p11, q0, q1): ``n`` RK4 sub-steps of length ``hs`` [s] of x' = A x +
+    (0, a) as one affine map x -> P x + q a. RK4 on a linear system is exactly affine: a
+    sub-step is x -> R x + hs S (0, a) with Z = hs A, R = I + Z + Z^2/2 + Z^3/6 + Z^4/24,
+    S = I + Z/2 + Z^2/6 + Z^3/24; so the map gives the sub-steps' numbers up to rounding
+    (1e-16 relative)."""
+    z = hs * mat
+    eye = np.eye(2)
+    z2 = z @ z
+    z3 = z2 @ z
+    r = eye + z + z2 / 2 + z3 / 6 + z3 @ z / 24
+    step = hs * (eye + z / 2 + z2 / 6 + z3 / 24)[:, 1]
+    p, q = eye, np.zeros(2)
+    for _ in range(n):
+        p, q = r @ p, r @ q + step
+    return (*(float(x) for x in p.ravel()), float(q[0]), float(q[1]))
 
 
 class _VelocityCart:
@@ -298,6 +361,7 @@ class _VelocityCart:
         statics = [float(e.static()) for e in dry if e.static() is not None]
         self.f_break = max([*statics, self.f_k])
         self._at: dict = {}
+        self._phis: dict = {}
 
     def _law(self, v):
         """(breaks, pieces) of all the effects together at the held voltage v [V]."""
@@ -351,12 +415,21 @@ class _VelocityCart:
                     _, p1, p2 = _phis(a, t_e)
                     y, yd, left = y + p1 * yd + p2 * b, ve, left - t_e
                     continue
-            e, p1, p2 = _phis(a, left)
+            e, p1, p2 = self._whole(a, h) if left == h else _phis(a, left)
             y_end, yd_end = y + p1 * yd + p2 * b, e * yd + p1 * b
             if ve is not None and (yd_end - ve) * (yd - ve) < 0.0:
                 yd_end = ve  # rounding only: y' does not pass the event it did not reach
             return y_end, yd_end
         raise RuntimeError(f"more than {_MAX_EVENTS} events in one sample")
+
+    def _whole(self, a, h):
+        """:func:`_phis` of a whole piece (a piece's ``a`` and a sample's length repeat)."""
+        got = self._phis.get((a, h))
+        if got is None:
+            if len(self._phis) >= 16:
+                self._phis.clear()
+            got = self._phis[(a, h)] = _phis(a, h)
+        return got
 
     def _phase(self, piece, gv, s):
         """(a [1/s], b [m/s^2]) of y'' = -a y' + b on ``piece`` in slip direction s."""
@@ -555,38 +628,90 @@ def _cart(plant: Plant, ts: float):
     substeps = substeps_per_sample(plant, rk4=True)
     dry = [e for e in forces if e.dry_friction]
     others = [e for e in forces if not e.dry_friction]
-    if transmission is not None:
-        drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
-        cart = _BacklashCart(plant, transmission, gamma, drive, dry, others, ts, substeps)
-        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts)
+    drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
     varying = any(e.position_dependent for e in dry)
-    if others and not varying and all(hasattr(e, "exact_velocity_pieces") for e in others):
-        drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
+    if transmission is not None:
+        cart = _BacklashCart(plant, transmission, gamma, drive, dry, others, ts, substeps)
+    elif others and not varying and all(hasattr(e, "exact_velocity_pieces") for e in others):
         cart = _VelocityCart(m, c, gamma, drive, dry, others)
-        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts)
-    if others or varying:
-        drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
+    elif others or varying:
         cart = _GeneralCart(m, c, gamma, drive, dry, others, ts, substeps)
-        return lambda y, v, held: _pieces(cart.advance, y, v, held, ts)
-    f_k = sum(float(e.kinetic(0.0, math)) for e in dry)
-    statics = [float(e.static()) for e in dry if e.static() is not None]
-    f_s = max(statics) if statics else f_k
-    cart = _Cart(m, c, f_k, f_s, ts)
-    return lambda y, v, held: _pieces(
-        lambda y, v, volt, h: cart.advance(y, v, gamma * volt, h), y, v, held, ts
-    )
+    else:
+        f_k = sum(float(e.kinetic(0.0, math)) for e in dry)
+        statics = [float(e.static()) for e in dry if e.static() is not None]
+        cart = _Cart(m, c, f_k, max(statics) if statics else f_k, ts)
+        return _pieces(cart.advance, ts, scale=gamma)
+    return _pieces(cart.advance, ts)
 
 
-def _pieces(advance, y, v, held, ts):
-    """Advance over the sample's one or two held-voltage pieces."""
-    if held.split > 0.0:
-        y, v = advance(y, v, held.early, held.split)
-    return advance(y, v, held.late, ts - held.split)
+def _pieces(advance, ts, scale=None):
+    """``step(y, y', early, late, split)``: (y, y') a sample later, over the sample's one or two
+    held-voltage pieces (``early`` [V] for ``split`` [s], then ``late``); ``advance(y, y', x,
+    h)`` takes the voltage, or the force ``scale`` * voltage [N] where ``scale`` is given."""
+    if scale is None:
+
+        def step(y, v, early, late, split):
+            if split > 0.0:
+                y, v = advance(y, v, early, split)
+            return advance(y, v, late, ts - split)
+
+    else:
+
+        def step(y, v, early, late, split):
+            if split > 0.0:
+                y, v = advance(y, v, scale * early, split)
+            return advance(y, v, scale * late, ts - split)
+
+    return step
 
 
-def _clip(v, limit):
-    """Exact clip to [-limit, limit] on Python floats (same as hw.control_law.hard_clip)."""
-    return min(max(v, -limit), limit)
+def _sensors(plant: Plant, ts: float):
+    """``measure(y) -> y_read``: the sensor stage, its state carried; None without sensors."""
+    sensors = [_as_floats(e) for e in plant.stage("sensor")]
+    if not sensors:
+        return None
+    states = [e.exact_init(ts) for e in sensors]
+
+    def measure(y):
+        for i, e in enumerate(sensors):
+            y, states[i] = e.exact_measure(states[i], y)
+        return y
+
+    # The controller's first read (pid_init) must not advance any sensor state.
+    measure.peek = lambda y: _peek(sensors, list(states), y)
+    return measure
+
+
+def _peek(sensors, states, y):
+    for e, st in zip(sensors, states, strict=True):
+        y, _ = e.exact_measure(st, y)
+    return y
+
+
+def _pid_start(controller: PID, r0: float, y0: float, measure):
+    """(the PID on floats, its state before the first sample): the controller's first read
+    advances no sensor state."""
+    pid = float_pid(controller)
+    y_first = measure.peek(y0) if measure is not None else y0
+    state = PIDState(*(float(s) for s in pid_init(pid, r0, y_first, xp=np)))
+    return pid, state
+
+
+def _voltage_stage(plant: Plant, ts: float):
+    """``stage(u) -> (early, late, split)``: the voltage effects on the command u [V] held
+    over a sample, their state carried; None without voltage effects."""
+    voltages = [_as_floats(e) for e in plant.stage("voltage")]
+    if not voltages:
+        return None
+    states = [e.exact_init(ts) for e in voltages]
+
+    def stage(u):
+        held = Held(u, u, 0.0)
+        for i, e in enumerate(voltages):
+            held, states[i] = e.exact(states[i], held, ts)
+        return float(held.early), float(held.late), float(held.split)
+
+    return stage
 
 
 # ---------------------------------------------------------------- the loop
@@ -612,56 +737,18 @@ def simulate_exact(plant: Plant, controller: PID | None, experiment: Experiment)
     kind = experiment.kind
     closed = kind == "closed_loop"
     advance = _cart(plant, ts)
-    sensors = [_as_floats(e) for e in plant.stage("sensor")]
-    voltages = [_as_floats(e) for e in plant.stage("voltage")]
-    sensor_states = [e.exact_init(ts) for e in sensors]
-    voltage_states = [e.exact_init(ts) for e in voltages]
-
-    def measure(y):
-        for i, e in enumerate(sensors):
-            y, sensor_states[i] = e.exact_measure(sensor_states[i], y)
-        return y
-
     signal = np.asarray(experiment.signal, dtype=np.float64)
     n = signal.shape[-1]
-    y, v = float(experiment.y0), float(experiment.yd0)
-    position = np.full(n, np.nan)
-    velocity = np.full(n, np.nan)
-    command = np.full(n, np.nan)
-    voltage = np.full(n, np.nan)
-    unlimited = np.full(n, np.nan)
-    reference = signal.copy() if closed else np.full(n, y)
-    signal_list = signal.tolist()
-
-    if closed:
-        pid = float_pid(controller)
-        # The controller's first read, without advancing any sensor state.
-        y_first = y
-        for e, st in zip(sensors, list(sensor_states), strict=True):
-            y_first, _ = e.exact_measure(st, y_first)
-        state = PIDState(*(float(s) for s in pid_init(pid, signal_list[0], y_first, xp=np)))
-    diverged = False
-    for k in range(n):
-        if not abs(y) <= DIVERGED_POSITION:  # also catches nan
-            position[k], velocity[k] = y, v
-            diverged = True
-            break
-        y_read = measure(y)
-        position[k], velocity[k] = y_read, v
-        if closed:
-            u, raw, state = pid_update(pid, state, signal_list[k], y_read, xp=np, clip=_clip)
-        elif kind == "open_loop":
-            u = raw = signal_list[k]
-        else:
-            u = raw = 0.0
-        held = Held(u, u, 0.0)
-        for i, e in enumerate(voltages):
-            held, voltage_states[i] = e.exact(voltage_states[i], held, ts)
-        held = Held(float(held.early), float(held.late), float(held.split))
-        command[k], voltage[k], unlimited[k] = u, held.late, raw
-        if k + 1 < n:
-            y, v = advance(y, v, held)
-
+    y0 = float(experiment.y0)
+    measure = _sensors(plant, ts)
+    pid = _pid_start(controller, float(signal[0]), y0, measure) if closed else None
+    rows = _loop(advance, measure, pid, _voltage_stage(plant, ts), signal.tolist(), experiment)
+    position, velocity, command, voltage, unlimited = (np.full(n, np.nan) for _ in range(5))
+    for out, got in zip((position, velocity, command, voltage, unlimited), rows, strict=True):
+        out[: len(got)] = got
+    # A diverged run records the state it stopped at, but no command for that sample.
+    diverged = len(rows[2]) < len(rows[0])
+    reference = signal.copy() if closed else np.full(n, y0)
     return Response(
         time=np.arange(n, dtype=np.float64) * ts,
         position=position,
@@ -674,6 +761,44 @@ def simulate_exact(plant: Plant, controller: PID | None, experiment: Experiment)
         unlimited=unlimited,
         kind=kind,
     )
+
+
+def _loop(advance, measure, pid, voltage_stage, signal: list, experiment: Experiment):
+    """The sampled loop on Python floats: lists of the sensor's position [m], velocity [m/s],
+    command u_k [V], voltage [V] and unlimited v_k [V], one entry a sample; a run that
+    diverges stops with its state recorded and no command for that sample."""
+    n = len(signal)
+    open_loop = experiment.kind == "open_loop"
+    y, v = float(experiment.y0), float(experiment.yd0)
+    position, velocity, command, voltage, unlimited = [], [], [], [], []
+    if pid is not None:
+        pid, state = pid
+        control = pid_stepper(pid, Floats, float_clip)
+    for k in range(n):
+        if not abs(y) <= DIVERGED_POSITION:  # also catches nan
+            position.append(y)
+            velocity.append(v)
+            break
+        y_read = y if measure is None else measure(y)
+        if pid is not None:
+            u, raw, state = control(state, signal[k], y_read)
+        elif open_loop:
+            u = raw = signal[k]
+        else:
+            u = raw = 0.0
+        if voltage_stage is None:
+            early = late = u
+            split = 0.0
+        else:
+            early, late, split = voltage_stage(u)
+        position.append(y_read)
+        velocity.append(v)
+        command.append(u)
+        voltage.append(late)
+        unlimited.append(raw)
+        if k + 1 < n:
+            y, v = advance(y, v, early, late, split)
+    return position, velocity, command, voltage, unlimited
 
 
 def step_info_exact(plant: Plant, controller: PID, experiment: Experiment) -> StepInfo:

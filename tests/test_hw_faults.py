@@ -311,16 +311,21 @@ def test_an_exception_in_the_device(monkeypatch, tmp_path, gains, capsys, where)
 
 
 def test_an_exception_in_the_control_law(monkeypatch, tmp_path, gains, capsys):
-    real = hw.loop.pid_update
+    real = hw.loop.pid_stepper
     for i, at in enumerate(_rng("law").integers(0, SAMPLES, RUNS)):
         rig = Rig()
 
-        def law(*args, at=at, rig=rig, **kw):
-            if rig.reads == at + 1:  # the run's law, not the pre-run check's
-                raise ZeroDivisionError("bug in the law")
-            return real(*args, **kw)
+        def stepper(*args, at=at, rig=rig, **kw):
+            step = real(*args, **kw)
 
-        monkeypatch.setattr(hw.loop, "pid_update", law)
+            def law(*args):
+                if rig.reads == at + 1:  # the run's law, not the pre-run check's
+                    raise ZeroDivisionError("bug in the law")
+                return step(*args)
+
+            return law
+
+        monkeypatch.setattr(hw.loop, "pid_stepper", stepper)
         status, out = _run(monkeypatch, tmp_path, gains, rig, i=i)
         _promises("exception in the control law", rig, status, out, ["bug in the law"], capsys)
 

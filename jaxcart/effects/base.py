@@ -225,6 +225,12 @@ class Effect:
         force = self.exact_force
         return lambda y, yd, v: force(y, yd, v, drive)
 
+    def exact_affine(self, drive):
+        """(k_y [N/m], k_yd [N s/m], f0 [N]) where the exact force is F = k_y y + k_yd y' + f0
+        at every voltage, or None (the default: not affine). The exact simulator then steps a
+        whole sample in one affine map instead of its RK4 sub-steps (jaxcart.exact)."""
+        return None
+
     # An effect whose exact force is piecewise linear in the velocity alone, at a held voltage,
     # may also give ``exact_velocity_pieces(drive, v)`` -> (breaks, pieces): the velocities
     # [m/s] where its law changes, ascending, and for each of the len(breaks) + 1 intervals

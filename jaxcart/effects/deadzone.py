@@ -48,5 +48,9 @@ class Deadzone(Effect):
         return Held(f(held.early), f(held.late), held.split), state
 
     def exact(self, state, held: Held, sample_time):
-        f = lambda v: v - min(max(v, -self.deadzone), self.deadzone)  # noqa: E731
-        return Held(f(held.early), f(held.late), held.split), state
+        w = self.deadzone
+        early, late = held.early, held.late
+        return (
+            Held(early - min(max(early, -w), w), late - min(max(late, -w), w), held.split),
+            state,
+        )

@@ -49,5 +49,6 @@ class Saturation(Effect):
         return Held(f(held.early), f(held.late), held.split), state
 
     def exact(self, state, held: Held, sample_time):
-        f = lambda v: min(max(v, -self.v_sat), self.v_sat)  # noqa: E731
-        return Held(f(held.early), f(held.late), held.split), state
+        top = self.v_sat
+        early, late = held.early, held.late
+        return Held(min(max(early, -top), top), min(max(late, -top), top), held.split), state

@@ -60,3 +60,6 @@ class Spring(Effect):
     def exact_force_for(self, drive):
         k_s, y_rest = self.k_s, self.y_rest
         return lambda y, yd, v: -k_s * (y - y_rest)
+
+    def exact_affine(self, drive):
+        return -self.k_s, 0.0, self.k_s * self.y_rest
