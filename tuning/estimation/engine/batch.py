@@ -328,31 +328,38 @@ class BatchFitter:
             [np.full(s.target.size, i, dtype=np.int32) for i, s in enumerate(segments)]
         )
 
-        def step(theta, lam, idx, free, base, own, seeds, support, width):
-            # Forward mode, one tangent per colour (see _colouring): slots that act on
-            # different recordings share a tangent, and each column is read back on its own
-            # recordings' rows.
-            def push(t):
-                return jax.jvp(lambda th: residuals(th, idx, base, own, width), (theta,), (t,))
-
-            r, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
-            colour = jnp.argmax(seeds, axis=0)
-            jac = packed[:, colour] * support[row_segment, :] * free[None, :]
-            cost = r @ r
+        def step(theta, lam, cost, jac, r, idx, free, base, own, seeds, support, width):
+            # One LM trial from the accepted values theta, whose residual r and Jacobian jac
+            # are carried: the trial's residual and Jacobian come from one forward pass, and a
+            # trial that is kept brings its Jacobian for the next step (a rejected one costs no
+            # second pass at theta). A carried cost of inf asks for theta itself (a fit's
+            # first step at a width). Forward mode, one tangent per colour (see _colouring):
+            # slots that act on different recordings share a tangent, and each column is read
+            # back on its own recordings' rows.
+            fresh = ~jnp.isfinite(cost)
             delta = marquardt_step(jac.T @ jac, jac.T @ r, lam, free, xp=jnp)
-            new = jnp.clip(theta + delta, lo_j[idx], hi_j[idx])
-            r_new = residuals(new, idx, base, own, width)
+            new = jnp.where(fresh, theta, jnp.clip(theta + delta, lo_j[idx], hi_j[idx]))
+
+            def push(t):
+                return jax.jvp(lambda th: residuals(th, idx, base, own, width), (new,), (t,))
+
+            r_new, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
+            colour = jnp.argmax(seeds, axis=0)
+            jac_new = packed[:, colour] * support[row_segment, :] * free[None, :]
             cost_new = r_new @ r_new
             ok = jnp.isfinite(cost_new) & (cost_new < cost)
-            theta_out = jnp.where(ok, new, theta)
             lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
-            return theta_out, lam_out, jnp.where(ok, cost_new, cost), jac, r
+            return (
+                jnp.where(ok, new, theta),
+                jnp.where(fresh, lam, lam_out),
+                jnp.where(ok, cost_new, cost),
+                jnp.where(ok, jac_new, jac),
+                jnp.where(ok, r_new, r),
+            )
 
         # One candidate per item, the width shared; sharded over every local device.
         run = sharded_map(lambda item, width: step(*item, width), cache=False)
-        self._step = lambda theta, lam, idx, free, base, own, seeds, support, width: run(
-            (theta, lam, idx, free, base, own, seeds, support), width
-        )
+        self._step = lambda *item, width: run(item, width)
         self._jnp = jnp
 
     def base_vector(self, values: dict) -> np.ndarray:
@@ -419,12 +426,28 @@ class BatchFitter:
         idx_j, free_j, base_j = jnp.asarray(idx[rows]), jnp.asarray(free[rows]), base[rows]
         own_j = jnp.asarray(own[rows])
         base_j = jnp.asarray(base_j)
-        cost = jac = r = None
+        n_rows = sum(seg.target.size for seg in self.segments)
+        # (the step's own dtype: a carry of another would compile the step a second time)
+        jac = jnp.zeros((rows.size, n_rows, kmax), dtype=theta.dtype)
+        r = jnp.zeros((rows.size, n_rows), dtype=theta.dtype)
         for width, its in zip(widths, iterations, strict=True):
             lam = jnp.maximum(lam, 1e-3)
-            for _ in range(its):
+            # The residual and Jacobian at the values so far, at this width; then the trials.
+            cost = jnp.full(rows.size, jnp.inf, dtype=theta.dtype)
+            for _ in range(its + 1):
                 theta, lam, cost, jac, r = self._step(
-                    theta, lam, idx_j, free_j, base_j, own_j, seeds, support, width
+                    theta,
+                    lam,
+                    cost,
+                    jac,
+                    r,
+                    idx_j,
+                    free_j,
+                    base_j,
+                    own_j,
+                    seeds,
+                    support,
+                    width=width,
                 )
             if progress and share is None:
                 progress(width, np.asarray(cost))
