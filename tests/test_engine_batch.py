@@ -37,16 +37,19 @@ def test_compressed_jacobian_is_the_plain_one(search):
         for c in (per_run, single)
     ]
     assert any("@" in n for n in problems[0][0] if not n.startswith("y"))
-    plain = BatchFitter(
-        search.segments,
-        search.base_plants,
-        per_recording=search.layout.per_recording,
-        compress=False,
+    compressed, plain = (
+        BatchFitter(
+            search.segments,
+            search.base_plants,
+            per_recording=search.layout.per_recording,
+            compress=compress,
+        )
+        for compress in (True, False)
     )
     out = {}
-    for name, fitter in (("compressed", search.fitter), ("plain", plain)):
+    for name, fitter in (("compressed", compressed), ("plain", plain)):
         out[name] = fitter.fit(problems, (1.0,), (1,), kmax=12)
-    assert search.fitter._n_colours < len(problems[0][0])
+    assert compressed._n_colours < len(problems[0][0])
     for a, b in zip(out["compressed"], out["plain"], strict=True):
         assert np.max(np.abs(a[2] - b[2])) <= 1e-12 * np.max(np.abs(b[2]))
         assert a[2].shape == b[2].shape and np.count_nonzero(b[2]) > 0
@@ -97,10 +100,10 @@ def test_recordings_simulated_side_by_side_are_each_simulated_alone(search):
     assert offset == r.size
 
 
-def test_a_search_that_grows_compiles_its_step_again_once(search):
-    """The step's tangents: the first fit's need (no more); a later fit that needs more gets
-    the most any problem of the search can need (K_MAX shared values and a recording's own
-    two slots) at once, so a further round does not compile the step again."""
+def test_a_search_compiles_its_step_once(search):
+    """The step's tangents: from the first fit on, the most any problem of the search can need
+    (K_MAX shared values and a recording's own two slots), so no later round compiles the
+    step again; without ``max_shared``, what the fits so far needed, never fewer."""
     from tuning.estimation.diagnose.core import K_MAX
     from tuning.estimation.engine.batch import BatchFitter
 
@@ -117,7 +120,11 @@ def test_a_search_that_grows_compiles_its_step_again_once(search):
             idx[0, s], free[0, s] = lay.index(n), 1.0
         return fitter._colouring(idx, free)[0].shape[1]
 
+    assert colours(["B_eq", "f_c"]) == K_MAX + 2
+    assert colours(["B_eq", "f_c", "f_s", "v_sat", "delay"]) == K_MAX + 2
+    fitter = BatchFitter(
+        search.segments, search.base_plants, per_recording=search.layout.per_recording
+    )
     assert colours(["B_eq", "f_c"]) == 2
     assert colours(["B_eq"]) == 2  # never fewer
-    assert colours(["B_eq", "f_c", "v_sat"]) == K_MAX + 2
-    assert colours(["B_eq", "f_c", "f_s", "v_sat", "delay"]) == K_MAX + 2
+    assert colours(["B_eq", "f_c", "v_sat"]) == 3
