@@ -677,22 +677,15 @@ def _sensors(plant: Plant, ts: float):
             y, states[i] = e.exact_measure(states[i], y)
         return y
 
-    # The controller's first read (pid_init) must not advance any sensor state.
-    measure.peek = lambda y: _peek(sensors, list(states), y)
     return measure
 
 
-def _peek(sensors, states, y):
-    for e, st in zip(sensors, states, strict=True):
-        y, _ = e.exact_measure(st, y)
-    return y
-
-
-def _pid_start(controller: PID, r0: float, y0: float, measure):
-    """(the PID on floats, its state before the first sample): the controller's first read
-    advances no sensor state."""
+def _pid_start(controller: PID, r0: float, y0: float, plant: Plant, ts: float):
+    """(the PID on floats, its state before the first sample). The controller's first read
+    goes through sensors of its own, so that it advances no state of the loop's."""
     pid = float_pid(controller)
-    y_first = measure.peek(y0) if measure is not None else y0
+    first = _sensors(plant, ts)
+    y_first = y0 if first is None else first(y0)
     state = PIDState(*(float(s) for s in pid_init(pid, r0, y_first, xp=np)))
     return pid, state
 
@@ -741,7 +734,7 @@ def simulate_exact(plant: Plant, controller: PID | None, experiment: Experiment)
     n = signal.shape[-1]
     y0 = float(experiment.y0)
     measure = _sensors(plant, ts)
-    pid = _pid_start(controller, float(signal[0]), y0, measure) if closed else None
+    pid = _pid_start(controller, float(signal[0]), y0, plant, ts) if closed else None
     rows = _loop(advance, measure, pid, _voltage_stage(plant, ts), signal.tolist(), experiment)
     position, velocity, command, voltage, unlimited = (np.full(n, np.nan) for _ in range(5))
     for out, got in zip((position, velocity, command, voltage, unlimited), rows, strict=True):
