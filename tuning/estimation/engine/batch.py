@@ -256,6 +256,44 @@ def _theta_arrays(layout):
     return log_mask, scale, lo, hi
 
 
+def _lm_trial(residuals, lo, hi, row_segment):
+    """The batched LM's step for one candidate, ``step(theta, lam, cost, jac, r, idx, free,
+    base, own, seeds, support, width)`` -> (theta, lam, cost, jac, r): one LM trial from the
+    accepted values theta, whose residual r and Jacobian jac are carried. The trial's residual
+    and Jacobian come from one forward pass, and a trial that is kept brings its Jacobian for
+    the next step (a rejected one costs no second pass at theta). A carried cost of inf asks
+    for theta itself (a fit's first step at a width). Forward mode, one tangent per colour (see
+    :meth:`BatchFitter._colouring`): slots that act on different recordings share a tangent,
+    and each column is read back on its own recordings' rows (``row_segment``: the recording
+    of every residual row). ``lo``, ``hi``: bounds of every slot, internal units."""
+    import jax
+    import jax.numpy as jnp
+
+    def step(theta, lam, cost, jac, r, idx, free, base, own, seeds, support, width):
+        fresh = ~jnp.isfinite(cost)
+        delta = marquardt_step(jac.T @ jac, jac.T @ r, lam, free, xp=jnp)
+        new = jnp.where(fresh, theta, jnp.clip(theta + delta, lo[idx], hi[idx]))
+
+        def push(t):
+            return jax.jvp(lambda th: residuals(th, idx, base, own, width), (new,), (t,))
+
+        r_new, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
+        colour = jnp.argmax(seeds, axis=0)
+        jac_new = packed[:, colour] * support[row_segment, :] * free[None, :]
+        cost_new = r_new @ r_new
+        ok = jnp.isfinite(cost_new) & (cost_new < cost)
+        lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
+        return (
+            jnp.where(ok, new, theta),
+            jnp.where(fresh, lam, lam_out),
+            jnp.where(ok, cost_new, cost),
+            jnp.where(ok, jac_new, jac),
+            jnp.where(ok, r_new, r),
+        )
+
+    return step
+
+
 class BatchFitter:
     """The compiled, vmapped LM step for a set of segments (built once per diagnosis)."""
 
@@ -275,7 +313,6 @@ class BatchFitter:
         search that grows costs more than the tangents a first round leaves unused (real P 50:
         17.3 s -> 13.7 s cold, 11.6 -> 10.9 s warm; joint five 40.1 -> 35.3 s cold; the lab,
         whose first round explains its recordings, 1.5 s more)."""
-        import jax
         import jax.numpy as jnp
 
         from jaxcart.parallel import sharded_map
@@ -329,35 +366,7 @@ class BatchFitter:
         row_segment = np.concatenate(
             [np.full(s.target.size, i, dtype=np.int32) for i, s in enumerate(segments)]
         )
-
-        def step(theta, lam, cost, jac, r, idx, free, base, own, seeds, support, width):
-            # One LM trial from the accepted values theta, whose residual r and Jacobian jac
-            # are carried: the trial's residual and Jacobian come from one forward pass, and a
-            # trial that is kept brings its Jacobian for the next step (a rejected one costs no
-            # second pass at theta). A carried cost of inf asks for theta itself (a fit's
-            # first step at a width). Forward mode, one tangent per colour (see _colouring):
-            # slots that act on different recordings share a tangent, and each column is read
-            # back on its own recordings' rows.
-            fresh = ~jnp.isfinite(cost)
-            delta = marquardt_step(jac.T @ jac, jac.T @ r, lam, free, xp=jnp)
-            new = jnp.where(fresh, theta, jnp.clip(theta + delta, lo_j[idx], hi_j[idx]))
-
-            def push(t):
-                return jax.jvp(lambda th: residuals(th, idx, base, own, width), (new,), (t,))
-
-            r_new, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
-            colour = jnp.argmax(seeds, axis=0)
-            jac_new = packed[:, colour] * support[row_segment, :] * free[None, :]
-            cost_new = r_new @ r_new
-            ok = jnp.isfinite(cost_new) & (cost_new < cost)
-            lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
-            return (
-                jnp.where(ok, new, theta),
-                jnp.where(fresh, lam, lam_out),
-                jnp.where(ok, cost_new, cost),
-                jnp.where(ok, jac_new, jac),
-                jnp.where(ok, r_new, r),
-            )
+        step = _lm_trial(residuals, lo_j, hi_j, row_segment)
 
         # One candidate per item, the width shared; sharded over every local device.
         run = sharded_map(lambda item, width: step(*item, width), cache=False)
