@@ -239,7 +239,7 @@ def pid_stepper(pid: PID, xp=np, clip=None):
 
     def step(state: PIDState, r, y):
         e = r - y
-        s = (r - y) if on_error else -y
+        s = (r - y) if on_error else -y  # _signal, inlined: this runs every sample
         d = (tau * state.derivative + s - state.previous) * filt
         v = kp * e + ki * state.integral + kd * d
         u = clip(v, limit)

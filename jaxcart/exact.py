@@ -756,16 +756,18 @@ def simulate_exact(plant: Plant, controller: PID | None, experiment: Experiment)
     )
 
 
-def _loop(advance, measure, pid, voltage_stage, signal: list, experiment: Experiment):
+def _loop(advance, measure, pid_start, voltage_stage, signal: list, experiment: Experiment):
     """The sampled loop on Python floats: lists of the sensor's position [m], velocity [m/s],
     command u_k [V], voltage [V] and unlimited v_k [V], one entry a sample; a run that
-    diverges stops with its state recorded and no command for that sample."""
+    diverges stops with its state recorded and no command for that sample. ``pid_start``:
+    :func:`_pid_start`'s (controller, state) of a closed loop, else None."""
     n = len(signal)
     open_loop = experiment.kind == "open_loop"
     y, v = float(experiment.y0), float(experiment.yd0)
     position, velocity, command, voltage, unlimited = [], [], [], [], []
-    if pid is not None:
-        pid, state = pid
+    control = None
+    if pid_start is not None:
+        pid, state = pid_start
         control = pid_stepper(pid, Floats, float_clip)
     for k in range(n):
         if not abs(y) <= DIVERGED_POSITION:  # also catches nan
@@ -773,7 +775,7 @@ def _loop(advance, measure, pid, voltage_stage, signal: list, experiment: Experi
             velocity.append(v)
             break
         y_read = y if measure is None else measure(y)
-        if pid is not None:
+        if control is not None:
             u, raw, state = control(state, signal[k], y_read)
         elif open_loop:
             u = raw = signal[k]
