@@ -423,13 +423,15 @@ class BatchFitter:
         if rows.size == 0:  # more processes than problems: this one only gathers
             return self._gathered(share, problems, {}, progress, widths)
         n_mine = rows.size
-        if share is not None:
-            # A whole number of problems per device (copies of the first): an uneven batch
-            # makes the sharded map reshard its output, which in a distributed run opens a
-            # cross-process (gloo) channel for what is a local computation.
-            from jaxcart.parallel import devices
+        # A whole number of problems per device (copies of the first), so that the sharded
+        # map neither pads nor cuts the batch, nor so reshards it, at each step: eager
+        # operations on the carried Jacobian, split unevenly over the devices, made XLA abort
+        # (seen in 2 of 6 runs of tests/test_new_effect.py two at a time), and in a
+        # distributed run a resharded output opens a cross-process (gloo) channel for what is
+        # a local computation.
+        from jaxcart.parallel import devices
 
-            rows = np.concatenate([rows, np.repeat(rows[:1], -n_mine % len(devices()))])
+        rows = np.concatenate([rows, np.repeat(rows[:1], -n_mine % len(devices()))])
         seeds, support = self._colouring(idx, free)
         seeds, support = jnp.asarray(seeds[rows]), jnp.asarray(support[rows])
         theta = jnp.asarray(theta[rows])
@@ -461,7 +463,7 @@ class BatchFitter:
                     width=width,
                 )
             if progress and share is None:
-                progress(width, np.asarray(cost))
+                progress(width, np.asarray(cost)[:n_mine])
         if share is not None:
             arrays = {
                 k: np.asarray(v)[:n_mine]
