@@ -308,7 +308,7 @@ def _affine_phase(m, c, drive, others, h):
 
     Its velocity could reach 0 inside a sample and come back only if the phase oscillates
     within a sample, which a check at the sample's end would miss: None unless half the
-    damped period pi/w is over 2 h (a spring of up to ~1e5 N/m at Ts = 2 ms)."""
+    damped period pi/w is over 2 h (springs up to ~6e5 N/m on a 1 kg cart at Ts = 2 ms)."""
     affine = [e.exact_affine(drive) for e in others]
     if not affine or any(a is None for a in affine):
         return None
