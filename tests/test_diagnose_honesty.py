@@ -24,6 +24,7 @@ from tuning.estimation.diagnose import diagnose, render_markdown
 from tuning.estimation.diagnose.core import (
     CORRECTION_MARGIN,
     K_MAX,
+    PER_RUN,
     PLAUSIBLE,
     SIGNIFICANCE,
     Candidate,
@@ -79,9 +80,10 @@ def test_the_misfit_rule_and_widening_are_the_fits_own():
     np.testing.assert_allclose(got, [4.0, 5.0])
 
 
-def test_an_effect_at_its_bound_or_near_its_neutral_value_is_not_significant():
-    """The evaluation's two cases: a spring with k_s at its lower bound (y_rest off the
-    track), and f_c = 0.0005 +/- 0.0005 N beside a saturation; a real effect passes."""
+def test_an_effect_at_its_bound_or_idle_is_not_named_and_its_z_is_reported():
+    """A spring with k_s at its lower bound (y_rest off the track) is not named; f_c = 0.0005
+    +/- 0.0005 N beside a saturation has its z reported (whether it is there is decided by
+    held-out prediction, not by a Wald test); the drive limits free per run need z > 3."""
     spring = significance(("spring",), {"B_eq": 5.4, "k_s": 5e-4, "y_rest": 0.3}, lambda w: 0.00037)
     assert "lower bound" in spring["spring"]["why"]
     values = {"B_eq": 4.0, "v_sat": 4.0, "f_c": 0.000573}
@@ -93,7 +95,10 @@ def test_an_effect_at_its_bound_or_near_its_neutral_value_is_not_significant():
         peaks={"command": 6.0},
     )
     assert sig["coulomb"]["z"] == pytest.approx(0.000573 / 0.00055)
-    assert sig["coulomb"]["why"] and "standard errors from 0 N" in sig["coulomb"]["why"]
+    assert "too small to matter" in sig["coulomb"]["why"]  # under its least size worth naming
+    runs = {"v_sat@1": 5.0, "v_sat@2": 5.1}
+    same = significance((PER_RUN, "saturation"), runs, lambda w: 0.05, peaks={"command": 6.0})
+    assert "standard errors from the same value in every run" in same[PER_RUN]["why"]
     assert sig["saturation"]["z"] == pytest.approx((6.0 - 4.0) / 4.1e-5)
     assert not sig["saturation"]["why"]
     # A limit above every command sent never acts.
@@ -231,7 +236,7 @@ def test_the_verdict_says_effects_and_corrections_and_what_it_does_not_know():
         implausible=["B_eq = 0.38 kg/s is outside what a cart of this lab has (1.08-27 kg/s)"],
     )
     v = d.verdict
-    assert v.startswith("no candidate explains the recording: the best approximation (left out:")
+    assert v.startswith("not explained: the best approximation (left out:")
     assert f"ends at {0.5e-3 / FLOOR:.0f} times the encoder floor" in v  # 76 times
     assert "at 3.2 times" in _diagnosis(explained=False, rms_after=3.2 * FLOOR).verdict
     assert "corrected parameters: M 0.94 -> 1.25 kg" in v
@@ -318,7 +323,7 @@ def test_a_recording_no_candidate_explains_says_so(tmp_path):
     )
     d = diagnose([rec], progress=False)
     assert not d.explained and d.floor_ratio > MISFIT_RATIO
-    assert d.verdict.startswith("no candidate explains the recording: the best approximation")
+    assert d.verdict.startswith("not explained: the best approximation")
     assert " times the encoder floor" in d.verdict
     assert any("along the track" in s for s in d.suggestions)  # its residual follows position
     assert "physics outside the effects library" in d.suggestions
@@ -355,7 +360,7 @@ def test_forward_selection_finds_three_parts_and_says_effects_and_correction(tmp
     assert set(d.left_out) == {"saturation", "coulomb"}, d.verdict
     assert d.rms_after < 2.5 * d.floor
     assert any(c.round >= 3 and len(c.parts) == 3 for c in d.candidates)
-    assert max(c.round for c in d.candidates) <= 4  # it stops
+    assert max(c.round for c in d.candidates if isinstance(c.round, int)) <= 4  # it stops
     assert "left out: saturation, coulomb; corrected parameters: " in d.verdict
     corrected = d.corrected_parameters[0]
     assert corrected in ("M", "gamma_scale")

@@ -1,23 +1,30 @@
-"""Leave one recording out: how well the chosen structure predicts a run it was not fitted to.
+"""Held out: how well a structure predicts what it was not fitted to, the test every part of a
+diagnosis must pass to be named, and each recording's verdict.
 
 A joint diagnosis fits every recording of a cart at once; its RMS says how well the structure
-*fits*. Whether it has captured the cart shows in how well it *predicts* a recording left out
-of the fit. For each recording k of a joint diagnosis the chosen structure's shared values
-(B_eq, f_c, ...) are re-fitted on the other recordings by the engine's exact-simulator
-Gauss-Newton (:func:`tuning.estimation.engine.exact_polish.gauss_newton`), a few iterations
-from the joint values, and recording k is simulated exactly with them:
+*fits*. Whether it has captured the cart shows in how well it *predicts* what was left out of
+the fit (:func:`folds`):
 
-- a value free per recording (a drive limit ``v_sat@2``) is unknown for a run left out: it is
-  predicted by the median of the other runs' values, so the prediction error includes the
-  run-to-run variation of the drive (what a new run of the cart would show);
-- a tap's start state (``y0@k``, ``yd0@k``) is a property of that run, not of the cart: it is
-  taken from the joint fit;
-- where the other recordings cannot determine a shared value (the only driven run left out:
-  nothing else moves a drive parameter) or give no value of a per-run parameter, recording k
-  is predicted with the joint values and marked as not held out.
+- several recordings: each one left out in turn. The cart's values (B_eq, f_c, ...: shared)
+  are re-fitted on the others by one Gauss-Newton step from the joint values on the exact
+  simulator's Jacobian (:func:`one_step`, each recording weighed as in the joint fit); then the
+  values that recording alone determines, its own drive limit and a tap's start state, are
+  fitted to it (:func:`own_refit`): a run's drive state and a tap's push belong to that run,
+  not to the cart, as system identification validates a model on a new experiment given its
+  initial state. A shared value that only the recording left out determines (the only driven
+  run: nothing else moves a drive parameter) stays at the joint fit's, and the recording is
+  marked as not held out (:func:`impossible`);
+- one recording: its stretches of equal motion, each held out of the fit to the rest.
+
+:meth:`~tuning.estimation.diagnose.search.Search.select` drops every part whose structure does
+not predict better than the one without it (the same criterion as the in-sample score), and
+:func:`cross_validate` judges each recording by its held-out prediction: explained when within
+what that experiment repeats (runs of the same experiment, :func:`~.core._repeat_levels`) or,
+with no repeat, within :data:`~tuning.estimation.engine.noise.MISFIT_RATIO` times its encoder
+floor.
 
 The runs are those the diagnosis made already (the search's :class:`~.core.ExactMemo`, seen
-through each subset of recordings): the first Jacobian is one set of runs for all folds.
+through each subset of recordings).
 """
 
 from __future__ import annotations
@@ -31,12 +38,17 @@ import numpy as np
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
+from tuning.estimation.engine.lm import marquardt_step
+from tuning.estimation.engine.noise import MISFIT_RATIO
 
-#: Gauss-Newton iterations of each held-out re-fit. From the joint values the shared values
-#: move little when one recording is dropped: on the five-recording benchmark cart 1, 2 and 3
-#: iterations give the same predicted RMS to 4 digits; on the real tap and P 50 runs of a lab
-#: cart 2 against 1 moved one by 0.4 % and 3 against 2 by 0.1 %.
+#: Gauss-Newton iterations of a held-out recording's own values fitted to it (its drive limit,
+#: a tap's start state: one or two values, from the joint fit's, close already).
 ITERATIONS = 2
+#: Damping of the held-out re-fit's Gauss-Newton step (Marquardt's, relative to the diagonal):
+#: a direction that only the recording held out determined stays where the joint fit put it.
+DAMPING = 1e-3
+#: The shortest share of that step tried (halving from the whole step).
+SHORTEST = 1 / 8
 #: Gauss-Newton iterations of the driven runs' own fit (:func:`driven_alone`): it frees every
 #: value of theirs, so it may move further from the joint values; the fit stops earlier where
 #: a step falls under a hundredth of a standard error.
@@ -138,106 +150,275 @@ def impossible(best, segments, k: int) -> str:
     return ""
 
 
-def predicted_values(best, fitted: dict, k: int) -> dict:
-    """The values recording ``k`` is predicted with (diagnosis names): the shared ``fitted``
-    ones, each value free per run at the median of the other runs' values (a run's own drive
-    limit is not known before it is fitted), ``k``'s start state from the joint fit."""
-    out = dict(fitted)
-    for n in best.free:
-        if "@" in n and P.recording_of(n) == k:
-            kind = Layout.kind(n)
-            others = [
-                v
-                for key, v in best.values.items()
-                if "@" in key and Layout.kind(key) == kind and P.recording_of(key) != k
-            ]
-            out[n] = float(np.median(others))
-    for n in P.NUISANCE:
-        if f"{n}@{k}" in best.values:
-            out[f"{n}@{k}"] = best.values[f"{n}@{k}"]
-    return out
-
-
-def refit_without(best, search, k: int, iterations: int = ITERATIONS) -> dict:
-    """``best``'s shared values re-fitted on every recording but ``k`` (Gauss-Newton on the
-    exact simulator from the joint values; the other runs' own values and start states held
-    at the joint ones). Returns {name: value} of the shared values."""
-    shared = _shared(best)
-    sub = Subset.of(best, search, [i for i in range(len(search.segments)) if i != k])
-    held = sub.values({n: v for n, v in best.values.items() if "@" in n})
-
-    def at(x):
-        return {**held, **dict(zip(shared, (float(v) for v in x), strict=True))}
-
-    def residual(x):
-        return np.concatenate(sub.residuals(at(x)))
-
-    def prefetch(xs):
-        C.exact_prefetch(
-            sub.cand, sub.segments, sub.plants, [at(x) for x in xs], sub.layout, sub.memo
-        )
-
-    done = C.exact_gauss_newton(
-        best, shared, best.values, residual, search.segments, iterations, prefetch
-    )
-    return dict(zip(shared, (float(v) for v in done.x), strict=True))
-
-
 def predict(best, search, k: int, values: dict) -> np.ndarray:
     """Recording ``k``'s exact residual [m] at ``values`` (diagnosis names)."""
     sub = Subset.of(best, search, [k])
     return sub.residuals(sub.values(values))[0]
 
 
-def cross_validate(search, best, names, iterations: int = ITERATIONS) -> dict:
-    """Leave each recording of a joint diagnosis out of ``best``'s fit and predict it.
+#: A single recording is held out of its own fit in this many stretches of equal motion (path
+#: length): each stretch predicted by the values fitted to the others.
+BLOCKS = 5
 
-    search: the finished :class:`~.search.Search`; best: the chosen structure; names: the
-    recordings' names (as in ``per_recording``). Returns {} for a single recording, else the
-    summary (see :func:`summary`) with "folds": per recording its "fitted_rms" (the joint
-    fit's) and "predicted_rms" [m], "held_out" (False: predicted with the joint values,
-    "why" says why), the shared "values" fitted without it and whether they "moved" from the
-    joint ones (a re-fit that finds no descent from them keeps them)."""
-    segments = search.segments
-    if len(segments) < 2:
-        return {}
+
+@dataclasses.dataclass(frozen=True)
+class Fold:
+    """What one fit leaves out: recording ``recording``, all of it (``rows`` None: several
+    recordings, leave one out) or the samples ``rows`` of it (one recording, a stretch)."""
+
+    recording: int
+    rows: np.ndarray | None = None
+
+
+def folds(segments) -> list[Fold]:
+    """Leave one recording out of several; one recording's stretches of equal path length
+    (:data:`BLOCKS`), each held out in turn (a stretch of a run whose cart moves is worth as
+    much as any other, wherever the run spends its time at rest)."""
+    if len(segments) > 1:
+        return [Fold(k) for k in range(len(segments))]
+    y = np.asarray(segments[0].target, dtype=float)
+    path = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(y)))])
+    if path[-1] <= 0:
+        return [Fold(0, np.arange(y.size))]
+    edges = np.searchsorted(path, path[-1] * np.arange(1, BLOCKS) / BLOCKS)
+    return [Fold(0, rows) for rows in np.split(np.arange(y.size), edges) if rows.size]
+
+
+def _names_of(search, c) -> list:
+    """``c``'s free values and the nuisances it has values of (a tap's start state)."""
+    return list(c.free) + [n for n in search.nuis if n in c.values]
+
+
+def exact_jacobian(search, c) -> np.ndarray:
+    """The exact simulator's forward-difference Jacobian of ``c``'s residual (every recording's
+    rows, in order) at its values, per unit of each of :func:`_names_of`'s values (memoized on
+    ``c`` by its values)."""
+    key = C.values_key(c.values)
+    if c.jac_exact[0] == key:
+        return c.jac_exact[1]
+    names = _names_of(search, c)
+
+    def at(x):
+        return {**c.values, **dict(zip(names, (float(v) for v in x), strict=True))}
+
+    def residual(x):
+        return np.concatenate(search.exact(c, at(x))[0])
+
+    jac = C.exact_jacobian(
+        c,
+        names,
+        c.values,
+        residual,
+        search.segments,
+        lambda xs: search.prefetch([(c, at(x)) for x in xs]),
+    )
+    c.jac_exact = (key, jac)
+    return jac
+
+
+def one_step(search, c, fold: Fold) -> dict:
+    """``c``'s values re-fitted without ``fold``: one Gauss-Newton step from the joint values on
+    the exact Jacobian (:func:`exact_jacobian`), each recording weighed as in the joint fit,
+    within the bounds, halved until the cost of what is fitted falls (a step the linearisation
+    overshoots, Coulomb friction without the stretch where the cart stops, is not taken
+    whole; none that falls: the joint values). The values that only what is held out
+    determines (a run's own drive limit, a tap's start state) stay at the joint fit's
+    (:func:`own_refit` fits them)."""
+    names = _names_of(search, c)
+    jac = exact_jacobian(search, c)
+    weights = search.noise.weights(c.residuals)
+    keep, root = [], []
+    for i, (seg, w) in enumerate(zip(search.segments, weights, strict=True)):
+        held = np.zeros(seg.target.size, dtype=bool)
+        if i == fold.recording:
+            held[slice(None) if fold.rows is None else fold.rows] = True
+        root.append(np.full(seg.target.size, math.sqrt(w)))
+        keep.append(~held)
+    keep, root = np.concatenate(keep), np.concatenate(root)
+
+    def fitted(values):  # the weighted residual of what is fitted
+        return np.concatenate(search.exact(c, values)[0])[keep] * root[keep]
+
+    r = fitted(c.values)
+    jw = jac[keep] * root[keep, None]
+    step = marquardt_step(jw.T @ jw, jw.T @ r, DAMPING)
+    low = np.array([P.bounds(n)[0] for n in names])
+    high = np.array([P.bounds(n)[1] for n in names])
+    x0 = np.array([c.values[n] for n in names])
+    cost, t = float(r @ r), 1.0
+    while t >= SHORTEST:
+        x = np.clip(x0 + t * step, low, high)
+        values = {**c.values, **dict(zip(names, (float(v) for v in x), strict=True))}
+        trial = fitted(values)
+        if float(trial @ trial) < cost:
+            return values
+        t /= 2
+    return dict(c.values)
+
+
+def own_names(search, c, k: int) -> list:
+    """The values of ``c`` that recording ``k`` alone determines: its own copies of the values
+    free per run (a drive limit) and a tap's start state."""
+    return [n for n in _names_of(search, c) if "@" in n and P.recording_of(n) == k]
+
+
+def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> dict:
+    """``values`` with recording ``k``'s own values (:func:`own_names`) fitted to it alone by
+    the exact Gauss-Newton, the cart's values held: a run's drive state and a tap's push are
+    properties of that run, not of the cart, and a run held out of the cart's fit is predicted
+    given them, as system identification validates a model on a new experiment."""
+    own = own_names(search, c, k)
+    if not own:
+        return values
+    sub = Subset.of(c, search, [k])
+    renamed = [_renamed(n, [k]) for n in own]
+    held = sub.values(values)
+
+    def residual(x):
+        return sub.residuals({**held, **dict(zip(renamed, (float(v) for v in x), strict=True))})[0]
+
+    def prefetch(xs):
+        C.exact_prefetch(
+            sub.cand, sub.segments, sub.plants,
+            [{**held, **dict(zip(renamed, (float(v) for v in x), strict=True))} for x in xs],
+            sub.layout, sub.memo,
+        )  # fmt: skip
+
+    done = C.exact_gauss_newton(
+        sub.cand, renamed, held, residual, sub.segments, iterations, prefetch
+    )
+    return {**values, **dict(zip(own, (float(v) for v in done.x), strict=True))}
+
+
+def held_out(search, c) -> list:
+    """Each recording's residual [m] predicted out of ``c``'s fit (:func:`folds`): the cart's
+    values re-fitted without it (:func:`one_step`), then its own values fitted to it
+    (:func:`own_refit`); one array per recording, every sample predicted by the fit that left
+    it out."""
+    out = [np.full(s.target.size, np.nan) for s in search.segments]
+    for fold in folds(search.segments):
+        values = one_step(search, c, fold)
+        if fold.rows is None:
+            values = own_refit(search, c, fold.recording, values)
+        r = predict(c, search, fold.recording, values)
+        if fold.rows is None:
+            out[fold.recording] = r
+        else:
+            out[fold.recording][fold.rows] = r[fold.rows]
+    return out
+
+
+def cross_validate(search, best, names, levels) -> dict:
+    """Every recording of ``best`` predicted out of its fit (:meth:`~.search.Search.held_score`)
+    beside its fit, and judged.
+
+    names: the recordings' names; levels: {recording index: what that experiment repeats [m]}
+    (:func:`~.core._repeat_levels`). Returns the summary: "method", "refitted" (the cart's
+    values re-fitted), "own" (values fitted to each recording held out), "fitted_rms" and
+    "predicted_rms" over the recordings [m], "ratio", "predicted_range" [m], "not_held_out"
+    (names), "text" (one sentence), "explained" (every recording within its level) and
+    "folds": per recording its "fitted_rms", "predicted_rms" [m], "held_out" (False: a value
+    only it determines stayed at the joint fit's, "why" says which), "level" [m] (what it is
+    judged against), "repeat" [m] or None, "explained"."""
     t0 = _time.perf_counter()
-    why = [impossible(best, segments, k) for k in range(len(segments))]
-
-    def fold(k):
-        fitted = {n: best.values[n] for n in _shared(best)}
-        if not why[k]:
-            fitted = refit_without(best, search, k, iterations)
-        r = predict(
-            best, search, k, predicted_values(best, fitted, k) if not why[k] else best.values
-        )
-        return {**fitted, "_rms": C._rms([r])}, []
-
-    done = C._spread(search.processes, list(range(len(segments))), fold)
+    search.held_score(best)
+    predicted = best.held["residuals"]
+    segments = search.segments
     folds = []
-    for k, (values, _) in enumerate(done):
-        fitted_rms = C._rms([best.residuals[k]])
-        predicted = values.pop("_rms")
+    for k in range(len(segments)):
+        why = impossible(best, segments, k) if len(segments) > 1 else ""
+        floor = float(search.noise.floors[k]) / C.FLOOR_FACTOR
+        repeat = levels.get(k)
+        level = max(MISFIT_RATIO * floor, repeat or 0.0)
+        # A single recording is judged by its fit: its stretches carry what the rest lacks
+        # (where a Coulomb cart stops fixes f_c), so even the truth predicts the last one at
+        # 3 times its fit; its held-out prediction chooses what is named and is shown.
+        judged = best.residuals[k] if len(segments) == 1 else predicted[k]
         folds.append(
             {
                 "recording": names[k],
-                "fitted_rms": fitted_rms,
-                "predicted_rms": predicted,
-                "held_out": not why[k],
-                "why": why[k],
-                "values": values,
-                # False where the re-fit found no descent from the joint values.
-                "moved": any(v != best.values[n] for n, v in values.items()),
+                "fitted_rms": C._rms([best.residuals[k]]),
+                "predicted_rms": C._rms([predicted[k]]),
+                "held_out": not why,
+                "why": why,
+                "floor": floor,
+                "repeat": repeat,
+                "level": level,
+                "explained": C._rms([judged]) <= level,
             }
         )
-        search.say(
-            f"  held out {names[k]}: fitted {fitted_rms * 1e3:.4g} mm, predicted "
-            f"{predicted * 1e3:.4g} mm" + (f" (with the joint values: {why[k]})" if why[k] else "")
-        )
-    out = summary(best, folds, iterations)
+    out = summary(best, folds, single=len(segments) == 1)
     out["seconds"] = round(_time.perf_counter() - t0, 2)
-    search.say(f"cross-validation (leave one recording out): {out['seconds']:.1f} s")
+    for f in folds:
+        search.say(
+            f"  held out {f['recording']}: fitted {f['fitted_rms'] * 1e3:.4g} mm, predicted "
+            f"{f['predicted_rms'] * 1e3:.4g} mm, "
+            + ("within" if f["explained"] else "beyond")
+            + f" {f['level'] * 1e3:.3g} mm ("
+            + ("what it repeats" if f["repeat"] else f"{MISFIT_RATIO:g} times its encoder floor")
+            + ")"
+            + (f" (with the joint values: {f['why']})" if f["why"] else "")
+        )
     return out
+
+
+def summary(best, folds, single: bool = False) -> dict:
+    """The held-out summary of :func:`cross_validate` from its ``folds``."""
+    held = [f for f in folds if f["held_out"]] or folds
+    fit = math.sqrt(np.mean([f["fitted_rms"] ** 2 for f in held]))
+    pred = math.sqrt(np.mean([f["predicted_rms"] ** 2 for f in held]))
+    out = {
+        "method": (
+            f"each of {BLOCKS} stretches of equal motion held out of the fit to the rest"
+            if single
+            else "leave one recording out; its own drive values and start state fitted to it"
+        ),
+        "refitted": _shared(best),
+        "own": sorted({Layout.kind(n) for n in best.free if "@" in n}),
+        "fitted_rms": fit,
+        "predicted_rms": pred,
+        "ratio": pred / fit if fit > 0 else math.inf,
+        "predicted_range": [
+            min(f["predicted_rms"] for f in held),
+            max(f["predicted_rms"] for f in held),
+        ],
+        "not_held_out": [f["recording"] for f in folds if not f["held_out"]],
+        "explained": all(f["explained"] for f in folds),
+        "folds": folds,
+    }
+    out["text"] = sentence(out, single)
+    return out
+
+
+def sentence(s: dict, single: bool = False) -> str:
+    """One short sentence for the verdict: the held-out prediction beside the fit."""
+    if single:
+        f = s["folds"][0]
+        return (
+            f"held out stretch by stretch, the recording is predicted to "
+            f"{f['predicted_rms'] * 1e3:.2g} mm (fitted {f['fitted_rms'] * 1e3:.2g} mm)"
+        )
+    lo, hi = (x * 1e3 for x in s["predicted_range"])
+    fits = [f["fitted_rms"] * 1e3 for f in s["folds"] if f["held_out"]] or [math.nan]
+    span = f"{lo:.2g} mm" if f"{lo:.2g}" == f"{hi:.2g}" else f"{lo:.2g}-{hi:.2g} mm"
+    text = f"held out, each recording is predicted to {span} (fitted {min(fits):.2g}-"
+    text += f"{max(fits):.2g} mm)"
+    if s["own"]:
+        text += f", its own {', '.join(s['own'])} fitted to it"
+    return text
+
+
+def annotate(per_recording: dict, cv: dict) -> None:
+    """Each recording's entry of ``per_recording`` (in the diagnosis's order) with its
+    "predicted_rms" [m], "held_out" (and "held_out_why" where it was not), the "level" [m] it
+    is judged against and whether it is "explained"."""
+    for entry, f in zip(per_recording.values(), cv.get("folds", []), strict=False):
+        entry["predicted_rms"] = f["predicted_rms"]
+        entry["held_out"] = f["held_out"]
+        entry["level"] = f["level"]
+        entry["explained"] = f["explained"]
+        if f["why"]:
+            entry["held_out_why"] = f["why"]
 
 
 def driven_alone(search, best, iterations: int = DRIVEN_ITERATIONS) -> dict:
@@ -271,57 +452,3 @@ def driven_alone(search, best, iterations: int = DRIVEN_ITERATIONS) -> dict:
             "unit": P.spec(n).unit,
         }
     return out
-
-
-def summary(best, folds, iterations: int = ITERATIONS) -> dict:
-    """The cross-validation's summary: "method", "iterations", "refitted" (the shared values
-    re-fitted), "per_run_median" (values free per run, predicted by the others' median),
-    "fitted_rms" and "predicted_rms" (over every recording held out [m]), "ratio", the
-    "predicted_range" [m] of single recordings, "not_held_out" (names), "text" (one sentence,
-    or "" with no recording held out), "folds"."""
-    held = [f for f in folds if f["held_out"]]
-    per_run = sorted({Layout.kind(n) for n in best.free if "@" in n})
-    out = {
-        "method": "leave one recording out",
-        "iterations": iterations,
-        "refitted": _shared(best),
-        "per_run_median": per_run,
-        "fitted_rms": math.nan,
-        "predicted_rms": math.nan,
-        "ratio": math.nan,
-        "predicted_range": [math.nan, math.nan],
-        "not_held_out": [f["recording"] for f in folds if not f["held_out"]],
-        "text": "",
-        "folds": folds,
-    }
-    if not held:
-        return out
-    fit = math.sqrt(np.mean([f["fitted_rms"] ** 2 for f in held]))
-    pred = math.sqrt(np.mean([f["predicted_rms"] ** 2 for f in held]))
-    lo, hi = min(f["predicted_rms"] for f in held), max(f["predicted_rms"] for f in held)
-    out.update(fitted_rms=fit, predicted_rms=pred, ratio=pred / fit if fit > 0 else math.inf)
-    out["predicted_range"] = [lo, hi]
-    out["text"] = sentence(out)
-    return out
-
-
-def sentence(s: dict) -> str:
-    """One short sentence for the verdict: the held-out prediction error beside the fit."""
-    lo, hi = (x * 1e3 for x in s["predicted_range"])
-    fits = [f["fitted_rms"] * 1e3 for f in s["folds"] if f["held_out"]]
-    span = f"{lo:.2g} mm" if f"{lo:.2g}" == f"{hi:.2g}" else f"{lo:.2g}-{hi:.2g} mm"
-    text = f"held out, each recording is predicted to {span} (fitted {min(fits):.2g}-"
-    text += f"{max(fits):.2g} mm)"
-    if s["per_run_median"]:
-        text += f", its own {', '.join(s['per_run_median'])} taken as the other runs' median"
-    return text
-
-
-def annotate(per_recording: dict, cv: dict) -> None:
-    """Each recording's entry of ``per_recording`` (in the diagnosis's order) with its
-    "predicted_rms" [m] and "held_out" (and "held_out_why" where it was not)."""
-    for entry, f in zip(per_recording.values(), cv.get("folds", []), strict=False):
-        entry["predicted_rms"] = f["predicted_rms"]
-        entry["held_out"] = f["held_out"]
-        if f["why"]:
-            entry["held_out_why"] = f["why"]

@@ -113,7 +113,7 @@ def _fit_section(d) -> list:
 def _per_recording_section(d) -> list:
     """Each recording's own drive values and RMS (a joint diagnosis)."""
     if len(d.per_recording) < 2:
-        return []
+        return _cross_validation_lines(d.cross_validation)
     lines = [
         "",
         "## Each recording",
@@ -154,40 +154,39 @@ def _driven_alone_lines(d) -> list:
 
 
 def _cross_validation_lines(cv) -> list:
-    """What the held-out column means, and what it says (a joint diagnosis)."""
+    """What the held-out column means, and what it says."""
     if not cv:
         return []
     from tuning.estimation.diagnose.crossval import WORSE
 
-    per_run = ", ".join(cv["per_run_median"])
     text = (
-        "Held out: each recording left out of the fit, the shared values "
-        f"({', '.join(cv['refitted'])}) re-fitted on the others ({cv['iterations']} "
-        "Gauss-Newton iterations on the exact simulator from the joint values), and the "
-        "recording predicted with them; a tap's start state is the joint fit's."
+        f"Held out ({cv['method']}): the cart's values ({', '.join(cv['refitted'])}) re-fitted "
+        "without what is held out (one Gauss-Newton step from the joint values on the exact "
+        "simulator)"
     )
-    if per_run:
-        text += (
-            f" A run's own {per_run} is not known before it is fitted: it is taken as the other "
-            "runs' median, so the prediction error includes the drive's variation from run to run."
-        )
+    if cv["own"]:
+        text += f", each run's own {', '.join(cv['own'])} and a tap's start state fitted to it"
+    text += (
+        "; what is held out is predicted with them and judged against what that experiment "
+        "repeats, or without a repeat against 3 times its encoder floor. A part is named only "
+        "where it improves this prediction."
+    )
     lines = ["", text]
     for f in cv["folds"]:
         if not f["held_out"]:
             lines += ["", f"{f['recording']} is not held out ({f['why']}): the joint values."]
     ratio = cv["ratio"]
     if math.isfinite(ratio):
-        why, times = "", f"{ratio:.2g}" if ratio < 10 else f"{ratio:.0f}"
+        times = f"{ratio:.2g}" if ratio < 10 else f"{ratio:.0f}"
+        why = ""
         if ratio > WORSE:
             why = (
-                f": each run's own {per_run} differs from the others'"
-                if per_run
-                else ": the shared values depend on which recordings are fitted, so something "
+                ": the cart's values depend on which recordings are fitted, so something "
                 "varies from run to run that the structure does not have"
             )
         lines += [
             "",
-            f"Over the recordings held out: fitted {_mm(cv['fitted_rms'])}, predicted "
+            f"Over what was held out: fitted {_mm(cv['fitted_rms'])}, predicted "
             f"{_mm(cv['predicted_rms'])} ({times}x the fit){why}.",
         ]
     return lines

@@ -39,7 +39,7 @@ from tuning.estimation.diagnose.core import (
 )
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
-from tuning.estimation.engine.noise import MISFIT_RATIO
+from tuning.estimation.engine.noise import RecordingNoise
 
 
 def diagnose(
@@ -132,9 +132,9 @@ class Search:
         # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data
         # that are not whole counts (jaxcart fit's floor).
         self.floor = floor_of((s.target, s.quantization) for s in segments)
-        self.floor2 = (FLOOR_FACTOR * self.floor) ** 2
         self.widen_above = FLOOR_FACTOR * self.floor  # above it the residual is model error
-        self.n_eff = C._n_eff(segments)
+        # Each recording against its own floor: the criterion and the joint fits' weights.
+        self.noise = RecordingNoise(segments, FLOOR_FACTOR)
         self.repeat = C._repeat_levels(segments)
         say(
             f"diagnose {', '.join(s.name for s in segments)}: "
@@ -146,7 +146,9 @@ class Search:
         self.runs = runs if len(runs) >= 2 else ()
         self.extra = max(0, 2 * len(self.runs) - 2)  # a PER_RUN structure's extra slots
         per = C.per_run_params() if self.runs else ()
-        self.fitter = BatchFitter(segments, self.base_plants, per_recording=per, max_shared=K_MAX)
+        self.fitter = BatchFitter(
+            segments, self.base_plants, per_recording=per, max_shared=K_MAX, noise=self.noise
+        )
         self.layout = self.fitter.layout
         self.memo = C.ExactMemo()
         from jaxcart import workers
@@ -160,6 +162,7 @@ class Search:
         # A parameter correction is measured from the start plant's value.
         self.neutral = {n: float(self.ref_plant.get(n)) for p in PARAM_ERRORS.values() for n in p}
         self.cands = []
+        self.polished_once = set()  # ids of the candidates an exact polish has improved
 
     # ------------------------------------------------------------ fitting and judging
 
@@ -203,7 +206,7 @@ class Search:
         for c, (_, res) in zip(cands, rechecked, strict=True):
             c.residuals = res
             c.rms_exact = C._rms(res)
-            c.score = C.score(c, c.rms_exact**2, self.floor2, self.n_eff)
+            c.score = C.score(c, c.residuals, self.noise)
             say(
                 f"  candidate {c.name:<24} smooth {c.rms_smooth * 1e3:8.4f} mm   exact "
                 f"{c.rms_exact * 1e3:8.4f} mm   score {c.score:10.1f}"
@@ -262,7 +265,10 @@ class Search:
         """``c``'s parameter covariances at its values (free slots and nuisances)."""
         jac = c.jac / C.fitter_scale(self.segments)
         names = list(c.free) + self.nuis
-        return C.covariance(self.segments, names, c.values, jac, c.residuals, self.widen_above)
+        weights = self.noise.weights(c.residuals)
+        return C.covariance(
+            self.segments, names, c.values, jac, c.residuals, self.widen_above, weights
+        )
 
     def eligible(self, c) -> bool:
         """Every effect and correction of ``c`` significant (:func:`~.core.significance`), at
@@ -306,10 +312,11 @@ class Search:
         seg, plants, lay = self.segments, self.base_plants, self.layout
         target = None
         if reach is not None:
-            n = sum(s.target.size for s in seg)
-            target = SCREEN * C.cost_to_reach(c, reach, self.floor2, self.n_eff, n)
+            target = SCREEN * C.cost_to_reach(c, reach, self.noise)
+        # Each recording weighed by its own misfit at the start (one reweighting a polish).
+        weights = self.noise.weights(self.exact(c, start)[0])
         values, jac, order, converged = C._polish(
-            c, seg, plants, start, lay, memo=self.memo, target=target
+            c, seg, plants, start, lay, memo=self.memo, target=target, weights=weights
         )
         res = self.exact(c, values)[0]
         jac = C._theta_jacobian(c, jac, order, values, self.nuis, seg)
@@ -335,13 +342,15 @@ class Search:
     def keep(self, c, values, res, jac):
         if C._rms(res) < c.rms_exact:
             c.values, c.residuals, c.rms_exact = values, res, C._rms(res)
-            c.score = C.score(c, c.rms_exact**2, self.floor2, self.n_eff)
+            c.score = C.score(c, c.residuals, self.noise)
             # The significance test's standard errors at these values: the exact re-fit's
             # Jacobian, not the smooth fit's at the values it started from.
             if jac.size:
                 c.jac = jac
+            again = ", continued" if id(c) in self.polished_once else ""
+            self.polished_once.add(id(c))
             self.say(
-                f"  exact polish {c.name:<20} exact {c.rms_exact * 1e3:8.4f} mm"
+                f"  exact polish{again} {c.name:<20} exact {c.rms_exact * 1e3:8.4f} mm"
                 f"   score {c.score:10.1f}"
             )
 
@@ -393,7 +402,9 @@ class Search:
         self.commands = commands
         limits = [float(getattr(s.controller, "v_limit", math.inf)) for s in self.segments]
         self.wins = locate.windows(self.segments, base.residuals, commands, limits, self.floor)
-        self.tests = locate.residual_tests(self.segments, base.residuals, commands, self.n_eff)
+        self.tests = locate.residual_tests(
+            self.segments, base.residuals, commands, self.noise.total
+        )
 
     def pairs_round(self):
         """Round 2: the singles that helped in pairs, each with the concealing friction, and
@@ -455,10 +466,10 @@ class Search:
         while level:
             seeds = self.seeds(level)
             if not seeds:
-                self.say(f"round {number} skipped: round {number - 1} did not improve the score")
+                self.say(f"forward selection ends: round {number - 1} did not improve the score")
                 break
             if not C.extend(seeds, additions, set(seen), kmax=kmax):
-                self.say(f"round {number} skipped: no structure left within {kmax} slots")
+                self.say(f"forward selection ends: no structure left within {kmax} slots")
                 break
             # The lead polished on the exact simulator and the structures nested in it
             # re-fitted from its values (as after the search): a smooth fit stalled where the
@@ -473,7 +484,7 @@ class Search:
                 ]
             )
             if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
-                self.say(f"round {number} skipped: a structure explains the recording")
+                self.say("forward selection ends: a structure explains the recording")
                 break
             seeds = self.seeds(level)  # the polish may have improved earlier structures too
             grown = C.extend(seeds, additions, seen, kmax=kmax) if seeds else []
@@ -555,13 +566,100 @@ class Search:
         """``c``'s start for a re-fit from ``lead``'s values (its own where ``lead`` lacks one)."""
         return {k: lead.values.get(k, c.values[k]) for k in c.values}
 
+    # ------------------------------------------------------------ selection by prediction
+
+    def held_score(self, c) -> float:
+        """``c``'s criterion on its held-out predictions (:func:`~.crossval.held_out`: each
+        recording predicted by the cart fitted to the others, or each stretch of a single
+        recording by the fit to the rest), the same criterion as the in-sample score
+        (:func:`~.core.score`); computed once per set of values."""
+        key = C.values_key(c.values)
+        if c.held_out_key != key:
+            residuals = crossval.held_out(self, c)
+            c.held = {"residuals": residuals, "score": C.score(c, residuals, self.noise)}
+            c.held_out_key = key
+        return c.held["score"]
+
+    def without(self, c, part):
+        """The structure of ``c`` without ``part``, fitted on the exact simulator from ``c``'s
+        values (a structure the search has not made yet is made here)."""
+        parts = tuple(p for p in c.parts if p != part)
+        made = C._structure(parts, c.runs if PER_RUN in parts else ())
+        sub = next((x for x in self.cands if set(x.parts) == set(parts)), None)
+        start = self._start_from(c, sub or made)
+        if sub is None:
+            sub = made
+            sub.name = sub.name or "baseline"
+            sub.round = "selection"
+            values, arrays, converged = self.polished(sub, start)
+            sub.values, sub.residuals, sub.jac = values, arrays[:-1], arrays[-1]
+            sub.rms_exact = C._rms(sub.residuals)
+            sub.score = C.score(sub, sub.residuals, self.noise)
+            if converged:
+                sub.settled = C.values_key(values)
+            self.cands.append(sub)
+        else:
+            self.polish_all([(sub, start)])
+        return sub
+
+    def _start_from(self, c, sub) -> dict:
+        """Start values of ``sub`` from ``c``'s: a value ``c`` has; a shared drive limit at the
+        median of ``c``'s values per run, one per run at ``c``'s shared one; else its own."""
+        out = {}
+        for n in list(sub.free) + self.nuis:
+            kind = Layout.kind(n)
+            own = [v for k, v in c.values.items() if "@" in k and Layout.kind(k) == kind]
+            if n in c.values:
+                out[n] = c.values[n]
+            elif "@" not in n and own:
+                out[n] = float(np.median(own))
+            elif kind in c.values:
+                out[n] = c.values[kind]
+            else:
+                out[n] = sub.values.get(n, self.starts_all[kind])
+        return out
+
+    def select(self, lead):
+        """Backward elimination by prediction: from the structure that fits best, each part
+        (an effect, a correction, the drive limits free per run) is dropped while the
+        structure without it predicts the recordings held out of its fit at least as well
+        (:meth:`held_score`, the penalties of the parts included): a part earns its place by
+        what it predicts, not by what it fits."""
+        current = lead
+        while current.parts:
+            here = self.held_score(current)
+            subs = [self.without(current, p) for p in current.parts]
+            subs = [s for s in subs if self.eligible(s)]
+            self.say(
+                f"  held out: {current.name} scores {here:.1f}; without "
+                + ", ".join(
+                    f"{'+'.join(p for p in current.parts if p not in s.parts)} "
+                    f"{self.held_score(s):.1f}"
+                    for s in subs
+                )
+            )
+            if not subs:
+                break
+            sub = min(subs, key=self.held_score)
+            if self.held_score(sub) > here:
+                break
+            dropped = "+".join(p for p in current.parts if p not in sub.parts)
+            self.say(f"  {dropped} not named: it does not improve the held-out prediction")
+            self.unearned.append(
+                {"structure": current.name, "part": dropped, "with": here,
+                 "without": self.held_score(sub)}
+            )  # fmt: skip
+            current = sub
+        return current
+
     # ------------------------------------------------------------ the verdict
 
     def best(self):
         """(the structure named, near-ties, effects of better-scoring structures not named,
         M/gamma_scale not told apart)."""
         cands = self.cands
-        best = self.choose(cands)
+        self.unearned = []
+        best = self.select(self.choose(cands))
         C._window_evidence(cands, self.round1[0], self.masks)
         for c in cands:
             self.eligible(c)  # every candidate's significance at its final values
@@ -590,7 +688,7 @@ class Search:
         # M or gamma_scale corrected: the other may fit as well (only ratios are identifiable).
         unident, swapped = C._swap_tie(
             best, cands, self.ref_plant, self.segments, self.base_plants, self.layout,
-            self.memo, self.floor2, self.n_eff,
+            self.memo, self.noise,
         )  # fmt: skip
         if swapped is not None:
             ties = [c for c in ties if set(c.parts) != set(swapped.parts)]
@@ -608,7 +706,7 @@ class Search:
             if C._rms(arrays[:-1]) < swapped.rms_exact:
                 swapped.values, swapped.residuals = values, arrays[:-1]
                 swapped.rms_exact = C._rms(swapped.residuals)
-                swapped.score = C.score(swapped, swapped.rms_exact**2, self.floor2, self.n_eff)
+                swapped.score = C.score(swapped, swapped.residuals, self.noise)
         return swapped if swapped.jac.size and self.eligible(swapped) else best
 
     def parameters(self, best, cov, unident) -> tuple[dict, dict]:
@@ -639,18 +737,26 @@ class Search:
         }
         return params, baseline
 
-    def misfit(self, best, explained) -> tuple[list, str]:
-        """(what may be missing, why the best structure does not explain the recordings)."""
-        if explained:
+    def misfit(self, best, cv) -> tuple[list, str]:
+        """(what may be missing, which recordings the best structure does not explain and by
+        how much) from its held-out summary ``cv``."""
+        if cv["explained"]:
             return [], ""
-        left = locate.residual_tests(self.segments, best.residuals, self.commands, self.n_eff)
-        text = (
-            f"the best structure ({best.name}) ends at RMS {best.rms_exact * 1e3:.4g} mm, "
-            f"{C._times(best.rms_exact / self.floor)} times the encoder floor "
-            f"{self.floor * 1e3:.2g} mm (above {MISFIT_RATIO:g} times it the residual is model "
-            "error): no candidate explains the recording, and the standard errors are widened "
-            "for model error"
+        left = locate.residual_tests(self.segments, best.residuals, self.commands, self.noise.total)
+        beyond = [f for f in cv["folds"] if not f["explained"]]
+        text = f"the best structure ({best.name}) leaves " + "; ".join(
+            f"{f['recording']} predicted to {f['predicted_rms'] * 1e3:.3g} mm held out "
+            f"(fitted {f['fitted_rms'] * 1e3:.3g} mm), "
+            + (
+                f"{f['predicted_rms'] / f['repeat']:.2g} times what that run repeats "
+                f"({f['repeat'] * 1e3:.3g} mm)"
+                if f["repeat"]
+                else f"{C._times(f['predicted_rms'] / f['floor'])} times its encoder floor "
+                f"{f['floor'] * 1e3:.2g} mm, and no repeat of that run to compare with"
+            )
+            for f in beyond
         )
+        text += "; the standard errors are widened for model error"
         self.say(text)
         return C._suggestions(left, best), text
 
@@ -671,17 +777,14 @@ class Search:
             for seg, rb, ra in zip(segments, base.residuals, best.residuals, strict=True)
         ]
         level = max(self.repeat.values()) if self.repeat else None
-        # A real cart does not repeat itself to its encoder: within what it repeats, a model
-        # that names significant physics has explained what can be explained.
-        explained = not C._misfits(best.rms_exact, self.floor) or (
-            level is not None and best.rms_exact <= level
-        )
-        suggestions, misfit = self.misfit(best, explained)
-        corrections = [PARAM_ERRORS[p][0] for p in best.corrections]
         per_recording = C._per_recording(best, names, segments, base, cov)
-        # Fitted beside predicted: each recording left out of the chosen structure's fit.
-        cv = crossval.cross_validate(self, best, list(per_recording))
+        # Judged by prediction: each recording (each stretch of a single one) held out of the
+        # fit and predicted, against what that experiment repeats or its encoder floor.
+        cv = crossval.cross_validate(self, best, list(per_recording), self.repeat)
         crossval.annotate(per_recording, cv)
+        explained = cv["explained"]
+        suggestions, misfit = self.misfit(best, cv)
+        corrections = [PARAM_ERRORS[p][0] for p in best.corrections]
         driven = crossval.driven_alone(self, best)
         if driven:
             driven["recordings"] = [list(per_recording)[i] for i in driven["recordings"]]

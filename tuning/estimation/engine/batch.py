@@ -256,7 +256,7 @@ def _theta_arrays(layout):
     return log_mask, scale, lo, hi
 
 
-def _lm_trial(residuals, lo, hi, row_segment):
+def _lm_trial(residuals, lo, hi, row_segment, noise=None):
     """The batched LM's step for one candidate, ``step(theta, lam, cost, jac, r, idx, free,
     base, own, seeds, support, width)`` -> (theta, lam, cost, jac, r): one LM trial from the
     accepted values theta, whose residual r and Jacobian jac are carried. The trial's residual
@@ -265,13 +265,29 @@ def _lm_trial(residuals, lo, hi, row_segment):
     for theta itself (a fit's first step at a width). Forward mode, one tangent per colour (see
     :meth:`BatchFitter._colouring`): slots that act on different recordings share a tangent,
     and each column is read back on its own recordings' rows (``row_segment``: the recording
-    of every residual row). ``lo``, ``hi``: bounds of every slot, internal units."""
+    of every residual row). ``lo``, ``hi``: bounds of every slot, internal units.
+
+    ``noise``: (nu, floor) per recording, the effective samples and the floor of the scaled
+    residual's sum of squares: the cost is then sum_k nu_k log(SSE_k + floor_k) (each
+    recording against its own level, :class:`~tuning.estimation.engine.noise.RecordingNoise`)
+    and each step weighs a recording's rows by nu_k / (SSE_k + floor_k) at theta (iteratively
+    reweighted least squares); None: the plain sum of squares."""
     import jax
     import jax.numpy as jnp
 
+    def objective(r):
+        if noise is None:
+            return r @ r, jnp.ones_like(r)
+        nu, floor = noise
+        sse = jax.ops.segment_sum(r * r, row_segment, num_segments=nu.shape[0])
+        weights = nu / (sse + floor)
+        return jnp.sum(nu * jnp.log(sse + floor)), weights[row_segment] / jnp.max(weights)
+
     def step(theta, lam, cost, jac, r, idx, free, base, own, seeds, support, width):
         fresh = ~jnp.isfinite(cost)
-        delta = marquardt_step(jac.T @ jac, jac.T @ r, lam, free, xp=jnp)
+        _, w = objective(r)
+        jw = jac * jnp.sqrt(w)[:, None]
+        delta = marquardt_step(jw.T @ jw, jw.T @ (r * jnp.sqrt(w)), lam, free, xp=jnp)
         new = jnp.where(fresh, theta, jnp.clip(theta + delta, lo[idx], hi[idx]))
 
         def push(t):
@@ -280,7 +296,7 @@ def _lm_trial(residuals, lo, hi, row_segment):
         r_new, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
         colour = jnp.argmax(seeds, axis=0)
         jac_new = packed[:, colour] * support[row_segment, :] * free[None, :]
-        cost_new = r_new @ r_new
+        cost_new, _ = objective(r_new)
         ok = jnp.isfinite(cost_new) & (cost_new < cost)
         lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
         return (
@@ -305,6 +321,7 @@ class BatchFitter:
         per_recording=(),
         compress=True,
         max_shared: int | None = None,
+        noise=None,
     ):
         """``compress``: False gives every slot a tangent of its own (the plain forward-mode
         Jacobian, which the tests compare :meth:`_colouring`'s with). ``max_shared``: the most
@@ -312,7 +329,10 @@ class BatchFitter:
         compiled once, for the most tangents any problem can need. A second program for a
         search that grows costs more than the tangents a first round leaves unused (real P 50:
         17.3 s -> 13.7 s cold, 11.6 -> 10.9 s warm; joint five 40.1 -> 35.3 s cold; the lab,
-        whose first round explains its recordings, 1.5 s more)."""
+        whose first round explains its recordings, 1.5 s more). ``noise``: a
+        :class:`~tuning.estimation.engine.noise.RecordingNoise` of the segments: several
+        recordings are then fitted each against its own level (see :func:`_lm_trial`);
+        None: plain least squares."""
         import jax.numpy as jnp
 
         from jaxcart.parallel import sharded_map
@@ -366,7 +386,11 @@ class BatchFitter:
         row_segment = np.concatenate(
             [np.full(s.target.size, i, dtype=np.int32) for i, s in enumerate(segments)]
         )
-        step = _lm_trial(residuals, lo_j, hi_j, row_segment)
+        weighing = None
+        if noise is not None and len(segments) > 1:
+            floor_sse = noise.sizes * noise.floors**2 * scale**2  # in the scaled residual's units
+            weighing = (jnp.asarray(noise.n_eff), jnp.asarray(floor_sse))
+        step = _lm_trial(residuals, lo_j, hi_j, row_segment, weighing)
 
         # One candidate per item, the width shared; sharded over every local device.
         run = sharded_map(lambda item, width: step(*item, width), cache=False)
@@ -395,7 +419,8 @@ class BatchFitter:
 
     def fit(self, problems, widths, iterations, progress=None, kmax=None, share=None):
         """LM on every problem at once. problems: list of (free names, start values dict,
-        base values dict). Returns list of (values dict, smooth cost, jac, r).
+        base values dict). Returns list of (values dict, smooth mean square residual [m^2],
+        jac, r).
 
         share: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: this process fits
         its :meth:`~tuning.design.tunerun.Exchange.items` of the problems and every process gets
@@ -463,14 +488,11 @@ class BatchFitter:
                     width=width,
                 )
             if progress and share is None:
-                progress(width, np.asarray(cost)[:n_mine])
+                progress(width, np.sum(np.asarray(r)[:n_mine] ** 2, axis=1))
         if share is not None:
-            arrays = {
-                k: np.asarray(v)[:n_mine]
-                for k, v in dict(theta=theta, cost=cost, jac=jac, r=r).items()
-            }
+            arrays = {k: np.asarray(v)[:n_mine] for k, v in dict(theta=theta, jac=jac, r=r).items()}
             return self._gathered(share, problems, arrays, progress, widths)
-        return self._unpack(problems, theta, cost, jac, r)
+        return self._unpack(problems, theta, jac, r)
 
     def _colouring(self, idx, free):
         """(seeds (problems, colours, slots), support (problems, recordings, slots)) of the
@@ -512,15 +534,16 @@ class BatchFitter:
         owners = [o for o, p in zip(share.owners(n), parts, strict=True) if p]
         full = assemble([p for p in parts if p], owners, n)
         if progress:  # only the final costs are gathered: one line, at the last width
-            progress(widths[-1], full["cost"])
-        return self._unpack(problems, full["theta"], full["cost"], full["jac"], full["r"])
+            progress(widths[-1], np.sum(np.asarray(full["r"]) ** 2, axis=1))
+        return self._unpack(problems, full["theta"], full["jac"], full["r"])
 
-    def _unpack(self, problems, theta, cost, jac, r):
+    def _unpack(self, problems, theta, jac, r):
         theta = np.asarray(theta)
         out = []
         for c, (names, _start, _b) in enumerate(problems):
             vals = {}
             for s, n in enumerate(names):
                 vals[n] = float(P.to_value(n, float(theta[c, s])))
-            out.append((vals, float(cost[c]), np.asarray(jac[c]), np.asarray(r[c])))
+            res = np.asarray(r[c])
+            out.append((vals, float(res @ res), np.asarray(jac[c]), res))
         return out

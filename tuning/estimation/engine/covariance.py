@@ -119,14 +119,23 @@ def _inverse(jac):
     return scale, js, (v * inv_w) @ v.T, (v * np.sqrt(inv_w)) @ v.T, singular
 
 
-def covariances(jac, residuals, models, quantizations) -> Covariances:
+def covariances(jac, residuals, models, quantizations, weights=None) -> Covariances:
     """Robust and naive covariances (module docstring) of the parameters of J.
 
     jac: (N, p) d residual / d parameter [m per unit], rows in the order of ``residuals``;
     residuals: one array [m] per recording; models: the model's positions [m] per recording
-    (they decide the runs); quantizations: each recording's encoder count [m] (0: none)."""
+    (they decide the runs); quantizations: each recording's encoder count [m] (0: none);
+    weights: each recording's weight in a weighted fit (its rows of J and its residuals scaled
+    by the square root, and its encoder share with it), None for equal weights."""
     jac = np.asarray(jac, dtype=float)
     parts = [np.asarray(x, dtype=float) for x in residuals]
+    weights = np.ones(len(parts)) if weights is None else np.asarray(weights, dtype=float)
+    roots = np.sqrt(weights)
+    jac = (
+        jac
+        * np.concatenate([np.full(x.size, w) for x, w in zip(parts, roots, strict=True)])[:, None]
+    )
+    parts = [x * w for x, w in zip(parts, roots, strict=True)]
     r = np.concatenate(parts) if parts else np.zeros(0)
     p = jac.shape[1]
     if p == 0:
@@ -135,11 +144,13 @@ def covariances(jac, residuals, models, quantizations) -> Covariances:
     s_data = np.zeros((p, p))
     s_enc = np.zeros((p, p))
     rows = np.split(js, np.cumsum([x.size for x in parts])[:-1], axis=0)
-    for part_j, part_r, model, q in zip(rows, parts, models, quantizations, strict=True):
+    for part_j, part_r, model, q, w in zip(
+        rows, parts, models, quantizations, weights, strict=True
+    ):
         starts = runs(model, q)
         s_data += long_run(cluster_scores(part_j, part_r, starts, b_inv_sqrt, power=-1.0))
         g = np.add.reduceat(part_j, starts, axis=0)
-        s_enc += g.T @ g * q**2 / 12
+        s_enc += g.T @ g * w * q**2 / 12
     ev, vec = np.linalg.eigh(s_enc - s_data)
     meat = s_data + (vec * np.maximum(ev, 0.0)) @ vec.T
     unscale = np.outer(scale, scale)

@@ -120,3 +120,65 @@ def repeatability(runs) -> dict:
         for i, _ in members:
             out[i] = level
     return out
+
+
+def count_runs(target, quantization: float) -> float:
+    """Effective number of independent samples of one recording's positions [m]: for encoder
+    data (count ``quantization`` [m] > 0) the number of runs of equal counts (a count held for
+    hundreds of samples is one reading), else every sample; at most a third of the samples."""
+    target = np.asarray(target, dtype=float)
+    if quantization > 0:
+        counts = np.floor(target / quantization)
+        runs = 1 + int(np.count_nonzero(np.diff(counts)))
+    else:
+        runs = target.size
+    return float(min(runs, target.size / 3))
+
+
+class RecordingNoise:
+    """What each recording of a joint fit is worth, and the criterion that weighs them.
+
+    floors: each recording's criterion floor f_k [m] (``factor`` times its own noise floor,
+    :func:`floor_of`: below it a residual explains nothing); n_eff: the effective samples nu
+    each recording counts for, the same for each (the mean of their :func:`count_runs`);
+    sizes: its samples N_k. Every recording has a noise level of its own (a tap fits to
+    micrometres where a closed-loop run of the same cart misses by millimetres), so the
+    criterion is the likelihood with one variance per recording,
+
+        sum_k nu log(max(mse_k, f_k^2) / f_k^2),
+
+    in which a recording's misfit counts relative to its own level, and every recording as
+    much as another: one run fitted worse cannot buy a tap fitted ten times worse, and a long
+    run that nothing explains (a PD run held back by something the model lacks, 6.7 s against
+    the tap's 1.2 s of coasting) cannot outvote the others. A joint fit minimises it by least
+    squares with the weights :meth:`weights` (iteratively reweighted)."""
+
+    def __init__(self, segments, factor: float = 1.0):
+        self.floors = np.array([factor * floor_of([(s.target, s.quantization)]) for s in segments])
+        runs = [max(count_runs(s.target, s.quantization), 1.0) for s in segments]
+        self.n_eff = np.full(len(runs), float(np.mean(runs)))
+        self.sizes = np.array([s.target.size for s in segments], dtype=float)
+
+    @property
+    def total(self) -> float:
+        """Effective samples of every recording together (at least 10)."""
+        return max(float(self.n_eff.sum()), 10.0)
+
+    def misfit(self, residuals) -> float:
+        """sum_k nu_k log(max(mse_k, f_k^2) / f_k^2) of the residuals [m], one array per
+        recording (0 where every recording is within its floor)."""
+        out = 0.0
+        for r, f, nu in zip(residuals, self.floors, self.n_eff, strict=True):
+            r = np.asarray(r, dtype=float)
+            mse = float(np.mean(r * r)) if r.size else 0.0
+            out += nu * math.log(max(mse, f * f) / (f * f)) if math.isfinite(mse) else math.inf
+        return out
+
+    def weights(self, residuals) -> np.ndarray:
+        """Each recording's weight for its squared residuals in a joint least-squares fit at
+        ``residuals`` [m] (one array each): nu_k / (N_k (mse_k + f_k^2)) [1/m^2], the gradient
+        of :meth:`misfit` (with its floor smoothed); one recording's are all equal."""
+        mse = np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])
+        mse = np.where(np.isfinite(mse), mse, np.inf)
+        w = self.n_eff / (self.sizes * (mse + self.floors**2))
+        return w / np.max(w) if np.max(w) > 0 else np.ones_like(w)
