@@ -6,6 +6,7 @@ evidence is weak."""
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -158,8 +159,11 @@ def test_v73_hdf5_reads_as_v7(tmp_path):
     np.testing.assert_array_equal(
         matfile.scope_signals(loaded["arr"], "arr")[0].values, y
     )  # N x 2 [t, value], transposed back
-    with pytest.raises(UserError, match=r"2 signals look like a position \(run73.mat:arr"):
-        read_experiment(tmp_path / "run73.mat")  # no TOML: y and arr both positions
+    # No TOML: y and arr hold the same position in two layouts, one signal (arr's time).
+    (run,) = matimport.scan([tmp_path / "run73.mat"])
+    assert run.problem is None and run.signals["y"].source == "run73.mat:arr"
+    assert [(a.source, b.source) for a, b in run.copies] == [("run73.mat:arr", "run73.mat:y")]
+    np.testing.assert_array_equal(read_experiment(tmp_path / "run73.mat").position, y)
     _write_v73(tmp_path / "raw73.mat", {"y": part["y"], "v": part["v"]})
     raw = read_experiment(tmp_path / "raw73.mat")  # no TOML: recognised
     assert raw.controller.kp == 50.0 and raw.controller.v_limit == 6.0
@@ -255,18 +259,61 @@ def test_each_experiment_recognised_from_content_alone(builtin, tmp_path, stem, 
         np.testing.assert_array_equal(got.reference, rec.reference)  # the step, exactly
 
 
-def test_error_scope_alone_asks_unless_named(builtin, tmp_path):
-    """Parts (iii) and (iv) save the error e = r - y: without the voltage, P 10 and PI differ
-    only in how the error settles, which friction blurs, so the error alone is weak evidence;
-    a name that says the part settles it, and the position is r - e."""
-    rec = builtin["pi"]
+@pytest.mark.parametrize(
+    ("stem", "want", "why"),
+    [
+        ("pi", "pi", "then moves again toward e = 0 .* integral action"),
+        ("p10", "p_error", "no integral action .* P 10's Coulomb dead band"),
+    ],
+)
+def test_error_scope_alone_tells_p10_from_pi(builtin, tmp_path, stem, want, why):
+    """Parts (iii) and (iv) save the error e = r - y. Without the voltage the physics tells
+    them apart: under P control a cart at rest stays at rest, inside the dead band |e| <=
+    f_c/(k gamma), while a PI's integral grows until the cart moves again toward e = 0."""
+    rec = builtin[stem]
     e = rec.reference - rec.position
     scipy.io.savemat(tmp_path / "scope3.mat", {"Error": np.column_stack([rec.time, e])})
-    with pytest.raises(UserError, match=r"scope3\.mat: the evidence is weak .*--as PART"):
+    (run,) = matimport.scan([tmp_path / "scope3.mat"])
+    assert run.guess.experiment == want and run.guess.confident, run.lines()
+    assert any(re.search(why, x.text) and x.weight == 3 for x in run.guess.evidence)
+    got = read_experiment(tmp_path / "scope3.mat", check=False)
+    assert got.controller == rec.controller  # the handout's, no voltage to measure it
+    np.testing.assert_allclose(got.position, rec.position, atol=1e-15)  # y = r - e
+
+
+@pytest.mark.parametrize(("f_c", "B_eq"), [(0.3, 1.5), (0.45, 4.6), (0.6, 1.5)])
+def test_error_alone_recognised_on_other_carts(f_c, B_eq):
+    """P 10 and PI runs (step 0.2 m, 8 s) on carts unlike the built-in one, with stiction
+    (f_s = 1.8 f_c): the error alone, and with the position, names each."""
+    import jax
+
+    import jaxcart as jc
+    from jaxcart.plantspec import build_plant
+    from jaxcart.recognition import Traces, recognise
+    from jaxcart.synthetic import make_recording
+
+    plant = build_plant({"B_eq": B_eq, "f_c": f_c, "f_s": 1.8 * f_c, "v_sat": 6.0})
+    for pid, want in ((jc.PID(kp=10.0), "p_error"), (jc.PID(kp=10.0, ki=15.0), "pi")):
+        with jax.enable_x64(True):
+            rec = make_recording(plant, pid, jc.step(0.2, horizon=8.0), seed=7)
+        e = rec.reference - rec.position
+        for traces in (Traces(0.001, error=e), Traces(0.001, position=rec.position, error=e)):
+            guess = recognise(traces)
+            assert (guess.experiment, guess.confident) == (want, True), guess.lines()
+
+
+def test_error_that_has_not_settled_asks_unless_named(builtin, tmp_path):
+    """The PI's error cut off while the cart still moves shows neither integral action nor a
+    dead band: weak evidence, one line that asks; the part named (option or file name)
+    settles it."""
+    rec = builtin["pi"]
+    e = (rec.reference - rec.position)[:1200]
+    scipy.io.savemat(tmp_path / "scope3.mat", {"Error": np.column_stack([rec.time[:1200], e])})
+    with pytest.raises(UserError, match=r"^scope3\.mat: the evidence is weak .*--as PART") as err:
         read_experiment(tmp_path / "scope3.mat")
+    assert "\n" not in str(err.value)
     got = read_experiment(tmp_path / "scope3.mat", experiment="pi", check=False)
     assert got.controller.kp == 10.0 and got.controller.ki == 15.0  # the handout's PI
-    np.testing.assert_allclose(got.position, rec.position, atol=1e-15)
     shutil.copy(tmp_path / "scope3.mat", tmp_path / "part4_error.mat")
     named = read_experiment(tmp_path / "part4_error.mat", check=False)  # "part4": Part (iv)
     assert named.controller.ki == 15.0
@@ -277,7 +324,7 @@ def test_position_chosen_in_a_muxed_scope_on_the_command_line(tmp_path):
     other = np.rint(0.5 * y / Q) * Q  # a second cart's position, also in counts
     mux = _scope(np.column_stack([other, v, y]), t)
     scipy.io.savemat(tmp_path / "mux.mat", {"ScopeData": mux})
-    with pytest.raises(UserError, match=r"2 signals look like a position \(mux.mat:ScopeData\[1\]"):
+    with pytest.raises(UserError, match=r"2 different signals look like a position \(mux.mat:Scop"):
         read_experiment(tmp_path / "mux.mat")
     got = read_experiment(f"{tmp_path / 'mux.mat'}:ScopeData[3]", check=False)
     np.testing.assert_array_equal(got.position, y)
