@@ -9,6 +9,8 @@ struct array, in one variable), MATLAB v7.3 (HDF5) files. This module
 1. reads every variable of the files and names each signal's role from its variable name,
    label and block name (position y, voltage v, error e = r - y, reference r, time t), else
    from its content (positions are whole encoder counts; voltages exceed the track's metres);
+   a signal saved twice (the same values, any layout or time) is one signal, and the
+   pendulum's sensor is none of the cart's;
 2. puts the signals of one run together: the variables of one file, and files whose names
    differ only by the signal ("2.1pos.mat" + "2.1volt.mat") and that hold as many samples;
 3. recognises the experiment of each run (:mod:`jaxcart.recognition`) and writes the experiment
@@ -311,6 +313,15 @@ def _assemble(files, signals) -> Imported:
     if unknown and "y" not in run.signals and "e" not in run.signals:
         run.problem = f"{run.label}: no signal that is a position; map it in [data]"
         return run
+    for s in run.signals.values():
+        bad = np.flatnonzero(~np.isfinite(s.values))
+        if bad.size:  # the experiment reader refuses it too; say so before recognising
+            run.problem = (
+                f"{s.source} holds {s.values[bad[0]]} at sample {bad[0] + 1} ({bad.size} "
+                f"such); every sample must be a finite number: save the scope again or cut "
+                f"the bad samples"
+            )
+            return run
     n = {s.values.size for s in run.signals.values()}
     if len(n) > 1:
         run.problem = (
