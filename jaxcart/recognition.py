@@ -505,8 +505,9 @@ def _settling(e, ts: float) -> list[Evidence]:
     back = float(np.max(travel) - min(travel[-1], abs(e[0])))
     # Under P 10 the drive is at most 10 gamma |r| and the back-EMF alone damps the cart: it
     # moves no faster than that over B_emf (20 % margin for the cart's own gamma).
+    k10, k50 = (EXPERIMENTS[k].controller["kp"] for k in ("p_error", "p_step"))
     fastest = float(np.max(np.abs(_speed(travel, ts))))
-    p10 = fastest <= 1.2 * 10.0 * GAMMA * abs(e[0]) / B_EMF
+    p10 = fastest <= 1.2 * k10 * GAMMA * abs(e[0]) / B_EMF
     if back < 1e-3:
         text = (
             "the error falls to its rest without overshoot: an overdamped loop (P 10 on the "
@@ -530,7 +531,7 @@ def _settling(e, ts: float) -> list[Evidence]:
         )
     # P 10 creeps to the band's edge: f_c = k gamma |e|; P 50 stops anywhere inside after
     # its overshoot: f_c >= k gamma |e|.
-    f10, f50 = 10.0 * GAMMA * abs(final), 50.0 * GAMMA * abs(final)
+    f10, f50 = k10 * GAMMA * abs(final), k50 * GAMMA * abs(final)
     p10 = p10 and back < 1e-3 and FRICTION_MIN <= f10 <= FRICTION_MAX
     p50 = back >= 1e-3 and f50 <= FRICTION_MAX
     if p10:
