@@ -9,6 +9,8 @@ struct array, in one variable), MATLAB v7.3 (HDF5) files. This module
 1. reads every variable of the files and names each signal's role from its variable name,
    label and block name (position y, voltage v, error e = r - y, reference r, time t), else
    from its content (positions are whole encoder counts; voltages exceed the track's metres);
+   a signal saved twice (the same values, any layout or time) is one signal, and the
+   pendulum's sensor is none of the cart's;
 2. puts the signals of one run together: the variables of one file, and files whose names
    differ only by the signal ("2.1pos.mat" + "2.1volt.mat") and that hold as many samples;
 3. recognises the experiment of each run (:mod:`jaxcart.recognition`) and writes the experiment
@@ -44,6 +46,7 @@ ASSUMED_SAMPLE_TIME = 0.001
 ROLES = ("y", "v", "e", "r")
 _ROLE_WORDS = (  # first match wins: "voltage out" is a voltage, "cart position" a position
     ("t", r"^(t|time|tout|tt)$"),
+    ("?", r"rod|pendulum|angle|alpha|theta"),  # the pendulum's sensor, not the cart's loop
     ("e", r"err|(?<![a-z])e(?![a-z])"),
     ("v", r"volt|(?<![a-z])(v|u|vm|um)(?![a-z])|motor|command|control|drive|input"),
     ("r", r"ref|setpoint|set point|desired|slider|(?<![a-z])r(?![a-z])"),
@@ -69,8 +72,9 @@ class RawSignal:
 @dataclass(eq=False)
 class Imported:
     """One run put together from raw .mat files: its files, signals by role, sample time
-    [s] (and whether it was assumed), the guess, and what kept it from being a recording
-    (``problem``, one line) if anything."""
+    [s] (and whether it was assumed), the guess, what kept it from being a recording
+    (``problem``, one line) if anything, the ``copies`` (kept, copy) of a signal saved twice
+    and the signals ``ignored`` (neither the cart's position, voltage, error nor reference)."""
 
     files: list[Path]
     signals: dict = field(default_factory=dict)
@@ -78,6 +82,8 @@ class Imported:
     time_assumed: bool = True
     guess: Guess | None = None
     problem: str | None = None
+    copies: list = field(default_factory=list)
+    ignored: list = field(default_factory=list)
 
     @property
     def label(self) -> str:
@@ -102,6 +108,14 @@ class Imported:
         roles = ", ".join(f"{k} = {s.source} ({s.why})" for k, s in self.signals.items())
         if roles:
             head.append(f"  signals: {roles}")
+        for kept, copy in self.copies:
+            timing = "its own time" if copy.time is not None else "no time"
+            head.append(
+                f"  {copy.source} is a copy of {kept.source} (the same {copy.values.size} "
+                f"values to the encoder count, {timing}): one signal"
+            )
+        for s in self.ignored:
+            head.append(f"  not used: {s.source} ({s.why})")
         when = "assumed (no time in the data)" if self.time_assumed else "from the data"
         head.append(f"  sample time {self.sample_time:g} s, {when}")
         if self.guess is not None:
@@ -163,20 +177,29 @@ def _role(names, signal, *, many: bool) -> tuple[str, str]:
     a block path first), else from its values."""
     texts = []
     for text in names:
-        texts += [text.rsplit("/", 1)[-1], text]
+        # A block path's first segment is the model ("labcartpid/rod"): it names the lab,
+        # not the signal.
+        texts += [text.rsplit("/", 1)[-1], text.split("/", 1)[-1]]
     for text in texts:
         low = text.lower()
         for role, pattern in _ROLE_WORDS:
             if role == "t" and (many or signal.time is not None):
                 continue
             if re.search(pattern, low):
-                return role, f"name {text!r}"
+                whose = ": the pendulum's, not the cart's" if role == "?" else ""
+                return role, f"name {text!r}{whose}"
     values = signal.values  # time only by name: a voltage ramp increases too
     if float(np.max(np.abs(values))) > 1.0:
         return "v", "values beyond 1 (V, not m on the 1 m track)"
     step = _count_of(values)
-    if step is not None:
+    if step is not None and 0.5 * ENCODER_RESOLUTION <= step <= 2 * ENCODER_RESOLUTION:
         return "y", f"whole encoder counts of {step:.5g} m"
+    changes = int(np.count_nonzero(np.diff(values)))
+    if step is not None and changes > 10:  # a sensor that dithers, not a reference's levels
+        return "?", (
+            f"whole counts of {step:.4g} that change {changes} times: another sensor's "
+            f"encoder (the pendulum's?), not the cart's {ENCODER_RESOLUTION:.4g} m"
+        )
     if np.unique(values).size <= 10:
         return "r", "a few constant levels (a reference)"
     if not many:  # a scope's own signal, smooth: what the software computed
@@ -185,17 +208,14 @@ def _role(names, signal, *, many: bool) -> tuple[str, str]:
 
 
 def _count_of(values) -> float | None:
-    """The encoder count [m] when every change of ``values`` is a whole number of one small
-    step within a factor 2 of the lab's encoder (2.27e-5 m) and the values also stand still or
-    change by several counts at a time (a voltage ramp changes by the same step every sample),
-    else None."""
+    """The count of an encoder (its unit) when every change of ``values`` is a whole number
+    of one step and the values also stand still or change by several counts at a time (a
+    voltage ramp changes by the same step every sample), else None."""
     steps = np.abs(np.diff(values))
     moved = steps[steps > 0]
     if moved.size == 0:
         return None
     count = float(moved.min())
-    if not 0.5 * ENCODER_RESOLUTION <= count <= 2 * ENCODER_RESOLUTION:
-        return None
     ratio = moved / count
     if not np.all(np.abs(ratio - np.rint(ratio)) < 1e-3):
         return None
@@ -276,20 +296,32 @@ def _assemble(files, signals) -> Imported:
     for s in signals:
         by_role.setdefault(s.role, []).append(s)
     for role in ("y", "e", "v", "r", "t"):
-        found = by_role.get(role, [])
+        found = _copies_as_one(run, by_role.get(role, []), role)
+        by_role[role] = found
         if len(found) > 1:
             listed = ", ".join(s.source for s in found)
             run.problem = (
-                f"{run.label}: {len(found)} signals look like {_LONG[role]} ({listed}); map "
-                f"the one to use in an experiment file's [data] table"
+                f"{run.label}: {len(found)} different signals look like {_LONG[role]} "
+                f"({listed}); choose the one to use: jaxcart import {found[0].source} (or map "
+                f"it in an experiment file's [data] table)"
             )
             return run
         if found and role != "t":
             run.signals[role] = found[0]
     unknown = by_role.get("?", [])
+    run.ignored = list(unknown)
     if unknown and "y" not in run.signals and "e" not in run.signals:
         run.problem = f"{run.label}: no signal that is a position; map it in [data]"
         return run
+    for s in run.signals.values():
+        bad = np.flatnonzero(~np.isfinite(s.values))
+        if bad.size:  # the experiment reader refuses it too; say so before recognising
+            run.problem = (
+                f"{s.source} holds {s.values[bad[0]]} at sample {bad[0] + 1} ({bad.size} "
+                f"such); every sample must be a finite number: save the scope again or cut "
+                f"the bad samples"
+            )
+            return run
     n = {s.values.size for s in run.signals.values()}
     if len(n) > 1:
         run.problem = (
@@ -299,7 +331,7 @@ def _assemble(files, signals) -> Imported:
         )
         return run
     timed = [s.time for s in run.signals.values() if s.time is not None]
-    if "t" in by_role:
+    if by_role["t"]:
         timed.insert(0, by_role["t"][0].values)
         run.signals["t"] = by_role["t"][0]
     if timed and timed[0].size > 1:
@@ -307,6 +339,28 @@ def _assemble(files, signals) -> Imported:
         run.sample_time = float(f"{(time[-1] - time[0]) / (time.size - 1):.12g}")
         run.time_assumed = False
     return run
+
+
+def _copies_as_one(run: Imported, found: list[RawSignal], role: str) -> list[RawSignal]:
+    """The different signals among ``found`` (all of one role): a copy (as many samples, the
+    same values to within half an encoder count, or 1 uV for a voltage, whatever its time or
+    layout) is the same signal saved twice, kept once (the first that carries its own time)
+    and listed in ``run.copies``."""
+    kept: list[RawSignal] = []
+    for s in sorted(found, key=lambda s: s.time is None):  # stable: the timed ones first
+        twin = next((k for k in kept if _same_values(k, s, role)), None)
+        if twin is None:
+            kept.append(s)
+        else:
+            run.copies.append((twin, s))
+    return kept
+
+
+def _same_values(a: RawSignal, b: RawSignal, role: str) -> bool:
+    if a.values.shape != b.values.shape:
+        return False
+    tol = 1e-6 if role == "v" else 0.5 * ENCODER_RESOLUTION if role != "t" else 0.0
+    return bool(np.all(np.abs(a.values - b.values) <= tol))
 
 
 _LONG = {"y": "a position", "v": "a voltage", "e": "an error", "r": "a reference", "t": "time"}

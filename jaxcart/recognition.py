@@ -20,16 +20,25 @@ Content features (each an :class:`Evidence`, weight 1 weak, 2 moderate, 3 strong
 - the controller identified from the recorded voltage v: least squares of v on the PID's
   terms over the samples below the software limit, v = kp e + ki int(e) + kd de/dt with
   e = r - y (the step r unknown: v = kp r + ki r t - kp y - ki int(y) - kd dy/dt); the fit's
-  R^2 says how strong it is, the gains say which experiment;
+  R^2 says how strong it is, the gains say which experiment; the derivative is tried through
+  the handout's filter (tau = 0.01 s) and as a pure difference, and the better fit kept;
 - an open-loop ramp: v linear in time (R^2), its slope;
 - a 6 V limit block: v held at its largest magnitude for several samples;
 - the motion: how many times the cart moves, when the first move starts (a step at t = 0, a
   tap after the cart rested), whether it coasts (deceleration proportional to speed, no
-  drive), where it comes to rest (the handout's step sizes);
-- the recorded error e alone: a step (e(0) = r) and whether it settles to zero (PI) or not.
+  drive) or speeds up to the end (a ramp's growing drive), where it comes to rest (the
+  handout's step sizes);
+- without a voltage, the error e (recorded, or r - y) as physics tells it: a step (e(0) = r)
+  with the reference unchanged (no jump faster than the cart moves); integral action (the
+  cart rests, then moves again toward e = 0: under P control a cart at rest stays at rest);
+  P control's Coulomb dead band (the cart rests at a constant error |e| <= f_c/(k gamma) for
+  longer than an integral would let it: k_i |e| T volts more than friction holds); an
+  overshoot or none (P 10 is overdamped on the cart, P 50 and the PI are not); a top speed
+  within what P 10 can drive the cart to (10 gamma |r| / B_emf).
 
-Name features: "tap", "ramp", "p50", "p10", "pi", "pid", "slider", "err" and the handout's
-numbering ("2.1pos" is Part (ii), "part1.1" Part (i)) in file, variable, label and block names.
+Name features: "tap", "ramp", "p50", "p10", "pi", "pid", "slider", "err" (weak: every part's
+model has an error block) and the handout's numbering ("2.1pos" is Part (ii), "part1.1" Part
+(i)) in file, variable, label and block names.
 
 The experiment with the highest total weight is the guess when it has at least 3 and leads
 the next by at least 2; otherwise the guess is weak. Units: s, m, V.
@@ -42,6 +51,8 @@ import re
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from hw.handout import APPENDIX, ENCODER_RESOLUTION
 
 
 @dataclass(frozen=True)
@@ -88,8 +99,25 @@ WEIGHTS = {1: "weak", 2: "moderate", 3: "strong"}
 CONFIDENT_SCORE, CONFIDENT_LEAD = 3, 2
 #: A cart moves when its speed is above this [m/s] (an encoder count per 2 ms is 1.1 cm/s).
 MOVING_SPEED = 0.02
-#: The derivative filter assumed when the controller is identified [s] (the handout's).
-TAU = 0.01
+#: The Coulomb friction a working IP02 cart can have [N], with a wide margin (the lab's real
+#: cart: 0.44 N).
+FRICTION_MIN, FRICTION_MAX = 0.1, 1.5
+#: The handout cart's force per volt gamma [N/V] (jaxcart.params; hw/handout.py's appendix).
+GAMMA = (
+    APPENDIX["eta_g"] * APPENDIX["Kg"] * APPENDIX["eta_m"] * APPENDIX["Kt"]
+    / (APPENDIX["Rm"] * APPENDIX["r_mp"])
+)  # fmt: skip
+#: The handout cart's back-EMF damping B_emf [kg/s] (jaxcart.params).
+B_EMF = (
+    APPENDIX["eta_g"] * APPENDIX["Kg"] ** 2 * APPENDIX["eta_m"] * APPENDIX["Kt"] * APPENDIX["Km"]
+    / (APPENDIX["Rm"] * APPENDIX["r_mp"] ** 2)
+)  # fmt: skip
+#: Faster than this [m/s] the cart cannot move (6 V drive: about 1 m/s): a faster change of
+#: the recorded error is the reference's.
+JUMP_SPEED = 5.0
+#: The derivative filters tried when the controller is identified [s]: the handout's 0.01 s
+#: first, and a pure backward difference (the lab's Part (v) run used one).
+FILTERS = (0.01, 0.0)
 
 
 @dataclass(frozen=True)
@@ -175,10 +203,16 @@ def recognise(traces: Traces, experiment: str | None = None) -> Guess:
     evidence: list[Evidence] = []
     settings: dict = {}
     ts = float(traces.sample_time)
+    error = traces.error
+    if error is None and traces.reference is not None and traces.position is not None:
+        error = np.asarray(traces.reference, dtype=float) - np.asarray(traces.position)
+    if traces.reference is not None:
+        r = np.asarray(traces.reference, dtype=float)
+        settings["steady_reference"] = float(np.ptp(r[1:])) <= 1e-9 * max(1.0, np.max(abs(r)))
     if traces.command is not None:
         evidence += _voltage_features(traces, ts, settings)
-    elif traces.error is not None:
-        evidence += _error_features(traces.error, ts, settings)
+    elif error is not None:
+        evidence += _error_features(error, ts, settings)
     if traces.position is not None:
         evidence += _motion_features(traces, ts, settings)
     evidence += _name_features(traces.names)
@@ -242,9 +276,11 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
         out.append(Evidence(text, ("slider",), 2 if moves >= 2 else 1))
         return out
     settings.update(gains=gains, step=step, r2=r2)  # only what a fitting PID shows
+    if step is not None:  # a PID of the position with one constant step r
+        settings["steady_reference"] = True
     kp, ki, kd = gains["kp"], gains["ki"], gains["kd"]
     if kd > 0:
-        out.append(Evidence(text + ": a PID", ("pid", "slider"), weight))
+        out.append(Evidence(text + (": a PID" if ki else ": a PD"), ("pid", "slider"), weight))
     elif ki > 0:
         near = _near(kp, 10.0) and _near(ki, 15.0)
         out.append(Evidence(text + ": PI" + (", the handout's" if near else ""), ("pi",), weight))
@@ -259,43 +295,55 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
 
 
 def identify_controller(traces: Traces, ts: float, v_limit: float | None = None):
-    """(gains {kp, ki, kd}, R^2, samples used, step r [m] or None) of the PID that made the
-    recorded voltage, by least squares over the samples below ``v_limit``; None when there
-    are too few. The terms are e, int(e) and de/dt (filtered with ``TAU``) of the error e
-    (recorded, or r - y); with y alone the constant step r is estimated first
-    (:func:`_step_of`)."""
+    """(gains {kp, ki, kd, tau}, R^2, samples used, step r [m] or None) of the PID that made
+    the recorded voltage, by least squares over the samples below ``v_limit``; None when there
+    are too few. The terms are e, int(e) and de/dt of the error e (recorded, or r - y), the
+    derivative through each filter of ``FILTERS`` (tau [s]) and the best kept; with y alone
+    the constant step r is estimated first (:func:`_steps_of`)."""
     v = np.asarray(traces.command, dtype=float)
     n = v.size
     free = np.ones(n, dtype=bool) if v_limit is None else np.abs(v) < v_limit * (1 - 1e-6)
     free[0] = False  # the derivative's kick at the step
     if free.sum() < 20:
         return None
+    fits = [_identify(traces, v, free, ts, tau) for tau in FILTERS]
+    fits = [f for f in fits if f is not None]
+    if not fits:
+        return None
+    # The handout's filter unless another fits clearly better (a pure difference, the lab's
+    # "PID" run): a P or PI has no derivative, and its fits tie.
+    gains, r2, step = max(fits, key=lambda f: (f[1] > fits[0][1] + 1e-4, f is fits[0]))
+    return gains, r2, int(free.sum()), step
+
+
+def _identify(traces: Traces, v, free, ts: float, tau: float):
+    """(gains, R^2, step or None) of :func:`identify_controller` for one filter ``tau``."""
     if traces.error is not None:
         e = np.asarray(traces.error, dtype=float)
-        return (*_fit_pid(e, v, free, ts)[:2], int(free.sum()), None)
+        return (*_fit_pid(e, v, free, ts, tau=tau)[:2], None)
     if traces.position is None:
         return None
     y = np.asarray(traces.position, dtype=float)
     if traces.reference is not None:
         r = np.asarray(traces.reference, dtype=float)
-        return (*_fit_pid(r - y, v, free, ts)[:2], int(free.sum()), None)
-    steps = _steps_of(y, v, free, ts)
+        return (*_fit_pid(r - y, v, free, ts, tau=tau)[:2], None)
+    steps = _steps_of(y, v, free, ts, tau)
     if not steps:
         return None
     # The step whose PID in e = r - y fits best (the simplest model's among near ties).
     spread = float(np.std(v[free])) or 1.0
-    scored = [(r, _fit_pid(r - y, v, free, ts, select=False)[2]) for r in steps]
+    scored = [(r, _fit_pid(r - y, v, free, ts, select=False, tau=tau)[2]) for r in steps]
     floor = min(rms for _, rms in scored)
     r = next(r for r, rms in scored if rms <= 1.1 * floor + 1e-3 * spread)
     # r and ki trade off where the integral is small: a step within half a millimetre of
     # whole centimetres is taken as that (the handout's are 0.2, 0.4, 0.5 m).
     if abs(r - round(r, 2)) < 5e-4:
         r = round(r, 2)
-    gains, r2, _ = _fit_pid(r - y, v, free, ts)
-    return gains, r2, int(free.sum()), r
+    gains, r2, _ = _fit_pid(r - y, v, free, ts, tau=tau)
+    return gains, r2, r
 
 
-def _steps_of(y, v, free, ts: float) -> list[float]:
+def _steps_of(y, v, free, ts: float, tau: float) -> list[float]:
     """Candidates for the constant reference r [m] of a PID that made v from y alone, one per
     model P, PD, PI, PID in y (v = c0 + c1 t - kp y - ki int(y) - kd dy/dt, c0 = kp r,
     c1 = ki r): r = c0 / kp. An intercept also takes up the integral's settled value, so the
@@ -306,7 +354,7 @@ def _steps_of(y, v, free, ts: float) -> list[float]:
         "kp": -y,
         "c1": np.arange(n) * ts,
         "ki": -np.cumsum(y) * ts,
-        "kd": -_filtered_rate(y, ts),
+        "kd": -_filtered_rate(y, ts, tau),
     }
     models = (("c0", "kp"), ("c0", "kp", "kd"), ("c0", "kp", "c1", "ki"), tuple(columns))
     steps = []
@@ -317,12 +365,12 @@ def _steps_of(y, v, free, ts: float) -> list[float]:
     return steps
 
 
-def _fit_pid(e, v, free, ts: float, *, select: bool = True):
+def _fit_pid(e, v, free, ts: float, *, select: bool = True, tau: float = 0.01):
     """(gains, R^2, RMS residual [V]) of v = kp e + ki int(e) + kd de/dt on the samples
     ``free``; with ``select`` ki and kd are kept only where they lower the residual (by more
     than 10 % and 0.1 % of the voltage's spread): a P controller is not read as a PI with a
     tiny ki."""
-    terms = {"kp": e, "ki": np.cumsum(e) * ts, "kd": _filtered_rate(e, ts)}
+    terms = {"kp": e, "ki": np.cumsum(e) * ts, "kd": _filtered_rate(e, ts, tau)}
     spread = float(np.std(v[free])) or 1.0
 
     def fit(names):
@@ -336,14 +384,15 @@ def _fit_pid(e, v, free, ts: float, *, select: bool = True):
     names = ["kp", "ki", "kd"]
     full = fit(names)
     if full is None:
-        return {"kp": 0.0, "ki": 0.0, "kd": 0.0}, 0.0, math.inf
+        return {"kp": 0.0, "ki": 0.0, "kd": 0.0, "tau": float(tau)}, 0.0, math.inf
     for term in ("kd", "ki") if select else ():
         reduced = fit([k for k in names if k != term])
         if reduced is not None and reduced[2] <= 1.1 * full[2] + 1e-3 * spread:
             names.remove(term)
             full = reduced
     coef, r2, rms = full
-    return {k: float(coef.get(k, 0.0)) for k in ("kp", "ki", "kd")}, r2, rms
+    gains = {k: float(coef.get(k, 0.0)) for k in ("kp", "ki", "kd")}
+    return {**gains, "tau": float(tau)}, r2, rms
 
 
 def _least_squares(columns: dict, target, mask):
@@ -360,12 +409,13 @@ def _least_squares(columns: dict, target, mask):
     return dict(zip(columns, map(float, x), strict=True)), r2
 
 
-def _filtered_rate(x, ts: float):
-    """dx/dt through the first-order filter tau s / (tau s + 1), backward Euler [unit/s]."""
+def _filtered_rate(x, ts: float, tau: float):
+    """dx/dt through the first-order filter s / (tau s + 1), backward Euler [unit/s] (the
+    control law's, hw/control_law.py; tau = 0: the backward difference)."""
     from scipy.signal import lfilter
 
-    a = TAU / (TAU + ts)
-    rate = lfilter([1.0 / (TAU + ts), -1.0 / (TAU + ts)], [1.0, -a], x)
+    a = tau / (tau + ts)
+    rate = lfilter([1.0 / (tau + ts), -1.0 / (tau + ts)], [1.0, -a], x)
     rate[0] = 0.0
     return rate
 
@@ -399,18 +449,105 @@ def _near(x: float, target: float, tol: float = 0.05) -> bool:
 
 
 def _error_features(e, ts: float, settings: dict) -> list[Evidence]:
+    """The step (e(0) = r), whether the reference stays put, and how the error settles."""
     e = np.asarray(e, dtype=float)
     r = float(e[0])
     if abs(r) < 1e-3:
         return [Evidence("the recorded error starts at zero: no step at t = 0", (), 1)]
-    settings["step"] = r
-    tail = e[-max(2, e.size // 10) :]
-    final = float(np.mean(tail))
-    text = f"the recorded error steps to {r:.4g} m at t = 0 and ends at {final * 1e3:.3g} mm"
-    # Weak: a PI whose cart sticks keeps an error too, and a P 10 with little friction none.
-    if abs(final) > 0.002 * abs(r):  # 0.4 mm of a 0.2 m step: P control's steady error
-        return [Evidence(text + ": a steady-state error (P control?)", ("p_error",), 1)]
-    return [Evidence(text + ": the error vanishes (integral action?)", ("pi",), 1)]
+    # The cart cannot move faster than JUMP_SPEED: a faster change is the reference's.
+    jumps = np.flatnonzero(np.abs(np.diff(e)) > max(1e-3, JUMP_SPEED * ts))
+    if jumps.size:
+        k = int(jumps[0])
+        text = (
+            f"the error jumps by {(e[k + 1] - e[k]) * 1e3:.3g} mm at t = {(k + 1) * ts:.3g} s, "
+            "faster than the cart moves: the reference moved (slider moves?)"
+        )
+        return [Evidence(text, ("slider",), 2)]
+    settings.update(step=r, steady_reference=True)
+    out = []
+    sizes = tuple(k for k, s in EXPERIMENTS.items() if s.step and _near(r, s.step))
+    if sizes:
+        which = " and ".join(EXPERIMENTS[k].what.split(",")[0] for k in sizes)
+        text = f"the error steps to {r:.4g} m at t = 0: the handout's step for {which}"
+        out.append(Evidence(text, sizes, 1))
+    return out + _settling(e, ts)
+
+
+def _settling(e, ts: float) -> list[Evidence]:
+    """Integral action or P control's Coulomb dead band, from how the error ``e`` [m] of a
+    step with a constant reference settles. Under P control (u = k e) a cart at rest sees a
+    constant drive, below friction, and stays at rest: it stops inside the dead band
+    |e| <= f_c / (k gamma) (tuning/lab/deadband.py) and never moves again. The integral of a
+    PI grows while the cart sticks until it breaks away: the cart moves again toward e = 0."""
+    q = ENCODER_RESOLUTION
+    moves = _moves(e[0] - e, ts)  # the cart's travel
+    if not moves:
+        return [Evidence("the error does not change: the cart does not move", (), 1)]
+    for (_, b0), (a1, b1) in zip(moves, moves[1:], strict=False):
+        before, after = float(e[a1]), float(e[b1])
+        if abs(before) > 3 * q and np.sign(after - before) == -np.sign(before):
+            text = (
+                f"the cart rests {(a1 - b0) * ts:.3g} s at e = {before * 1e3:.3g} mm, then "
+                f"moves again toward e = 0 (to {after * 1e3:.3g} mm) with the reference "
+                "unchanged: integral action (under P control a cart at rest stays at rest)"
+            )
+            return [Evidence(text, ("pi",), 3)]
+    last = moves[-1][1]
+    rest = (e.size - 1 - last) * ts
+    if rest < 0.2:
+        return []  # still moving at the end: nothing settled
+    final = float(np.mean(e[last + 1 :]))
+    out = []
+    # How far the cart went past the target or where it rests [m]: P 50 and the PI overshoot
+    # (complex poles), P 10 does not (real poles, -2.7 and -5.8 1/s at B_eq = 1.5 kg/s, for
+    # any B_eq above 0.9 kg/s).
+    travel = np.sign(e[0]) * (e[0] - e)
+    back = float(np.max(travel) - min(travel[-1], abs(e[0])))
+    # Under P 10 the drive is at most 10 gamma |r| and the back-EMF alone damps the cart: it
+    # moves no faster than that over B_emf (20 % margin for the cart's own gamma).
+    k10, k50 = (EXPERIMENTS[k].controller["kp"] for k in ("p_error", "p_step"))
+    fastest = float(np.max(np.abs(_speed(travel, ts))))
+    p10 = fastest <= 1.2 * k10 * GAMMA * abs(e[0]) / B_EMF
+    if back < 1e-3:
+        text = (
+            "the error falls to its rest without overshoot: an overdamped loop (P 10 on the "
+            f"cart, or a PID tuned not to overshoot); the cart's top speed, {fastest:.2g} m/s,"
+        )
+        text += " is within" if p10 else " is more than"
+        text += " what P 10 can drive it to"
+        out.append(Evidence(text, ("p_error", "pid") if p10 else ("pid",), 2))
+    if abs(final) <= 2 * q:
+        text = "the error settles to zero (within 2 encoder counts): integral action, or P"
+        return out + [Evidence(text + " control with little friction", ("pi",), 1)]
+    text = f"the cart rests the last {rest:.3g} s at a constant error of {final * 1e3:.3g} mm"
+    ki = EXPERIMENTS["pi"].controller["ki"]
+    added = ki * abs(final) * rest  # [V], what the handout's integral adds meanwhile
+    weight = 1
+    if added * GAMMA > FRICTION_MAX:
+        weight = 3
+        text += (
+            f": no integral action (k_i = {ki:g} V/(m s) would have added {added:.2g} V, "
+            f"{added * GAMMA:.2g} N, more than any friction of the cart)"
+        )
+    # P 10 creeps to the band's edge: f_c = k gamma |e|; P 50 stops anywhere inside after
+    # its overshoot: f_c >= k gamma |e|.
+    f10, f50 = k10 * GAMMA * abs(final), k50 * GAMMA * abs(final)
+    p10 = p10 and back < 1e-3 and FRICTION_MIN <= f10 <= FRICTION_MAX
+    p50 = back >= 1e-3 and f50 <= FRICTION_MAX
+    if p10:
+        text += f"; P 10's Coulomb dead band, |e| = f_c/(k gamma) with f_c = {f10:.2g} N"
+    elif p50:
+        text += (
+            f"; P 50's Coulomb dead band after its {back * 1e3:.3g} mm overshoot, |e| <= "
+            f"f_c/(k gamma) with f_c >= {f50:.2g} N"
+        )
+    else:
+        text += (
+            f"; no P loop of the handout's holds it (k = 10 V/m would need f_c = {f10:.2g} N "
+            f"and no overshoot, k = 50 V/m f_c >= {f50:.2g} N after one)"
+        )
+    held = ("p_error",) if p10 else ("p_step",) if p50 else ()
+    return out + [Evidence(text, held, weight if held else 1)]
 
 
 def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence]:
@@ -423,7 +560,7 @@ def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence
     final = float(np.mean(y[-max(2, y.size // 20) :])) - float(y[0])
     if traces.command is None and traces.error is None:
         out.append(Evidence("no voltage recorded (the motor unplugged?)", ("tap",), 1))
-    if len(moves) >= 3:
+    if len(moves) >= 3 and not settings.get("steady_reference"):
         where = np.unique(np.round([y[b] for _, b in moves], 2))
         out.append(
             Evidence(
@@ -436,11 +573,20 @@ def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence
     if len(moves) == 1 and start > 0.1:
         out.append(
             Evidence(
-                f"the cart rests {start:.3g} s, then moves once: not a step at t = 0", ("tap",), 1
-            )  # fmt: skip
+                f"the cart rests {start:.3g} s, then moves once: not a step at t = 0",
+                ("tap", "ramp"),
+                1,
+            )
         )
         coast = _coasting(y, ts, moves[0])
-        if coast is not None:
+        driven = _speeding_up(y, ts, moves[0])
+        if driven is not None:
+            text = (
+                f"from {start:.3g} s it moves faster and faster until the recording ends "
+                f"({driven:.3g} s of it): driven by a growing voltage (a ramp), not a tap's coast"
+            )
+            out.append(Evidence(text, ("ramp",), 3))
+        elif coast is not None:
             c, r2 = coast
             text = f"after the push it slows in proportion to its speed (c/M = {c:.3g} 1/s, "
             out.append(Evidence(text + f"R^2 = {r2:.3f}): coasting, no drive", ("tap",), 2))
@@ -448,7 +594,7 @@ def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence
         steps = tuple(k for k, s in EXPERIMENTS.items() if s.step is not None)
         text = f"the cart moves at t = {start:.3g} s and comes to rest: one step, not slider moves"
         out.append(Evidence(text, steps, 2))
-    elif start <= 0.1:
+    elif start <= 0.1 and "step" not in settings:  # the recorded error gave the step
         near = [
             k
             for k, spec in EXPERIMENTS.items()
@@ -490,6 +636,19 @@ def _moves(y, ts: float) -> list[tuple[int, int]]:
     return [(a, b) for a, b in joined if abs(y[b] - y[a]) > 0.002]
 
 
+def _speeding_up(y, ts: float, move) -> float | None:
+    """How long [s] the cart has moved when the recording ends during ``move`` at its fastest
+    (its speed, averaged over 0.1 s, highest in the last 0.1 s), when at least 0.5 s, else
+    None: an open-loop ramp's growing drive; a tapped cart only slows down after the push."""
+    a, b = move
+    tail = int(round(0.1 / ts))
+    if b < y.size - 1 - tail or (b - a) * ts < 0.5:
+        return None  # at rest before the end, or too short to tell
+    speed = np.abs(np.convolve(_speed(y, ts)[a:], np.ones(tail) / tail, mode="valid"))
+    fastest = int(np.argmax(speed))
+    return (b - a) * ts if fastest >= speed.size - tail else None
+
+
 def _coasting(y, ts: float, move):
     """(c [1/s], R^2) of deceleration = -c speed after the fastest sample of a move (the
     speeds smoothed over 20 ms), or None when it does not fit."""
@@ -520,15 +679,16 @@ def _coasting(y, ts: float, move):
 # ---------------------------------------------------------------- names
 
 
-_WORDS = (
-    (r"tap|unplug|coast", ("tap",), "a tap"),
-    (r"ramp", ("ramp",), "a ramp"),
-    (r"(?<![a-z0-9])k?p_?50(?![0-9])|k_?50(?![0-9])", ("p_step",), "P 50"),
-    (r"(?<![a-z0-9])k?p_?10(?![0-9])|k_?10(?![0-9])", ("p_error",), "P 10"),
-    (r"(?<![a-z])pid(?![a-z])", ("pid", "slider"), "a PID"),
-    (r"(?<![a-z])pi(?![a-z])", ("pi",), "PI"),
-    (r"slider|slide", ("slider",), "slider moves"),
-    (r"(?<![a-z])err(or)?(?![a-z])", ("p_error", "pi"), "the error scope (Parts (iii), (iv))"),
+_WORDS = (  # (pattern, supports, what it says, weight)
+    (r"tap|unplug|coast", ("tap",), "a tap", 2),
+    (r"ramp", ("ramp",), "a ramp", 2),
+    (r"(?<![a-z0-9])k?p_?50(?![0-9])|k_?50(?![0-9])", ("p_step",), "P 50", 2),
+    (r"(?<![a-z0-9])k?p_?10(?![0-9])|k_?10(?![0-9])", ("p_error",), "P 10", 2),
+    (r"(?<![a-z])pid(?![a-z])", ("pid", "slider"), "a PID", 2),
+    (r"(?<![a-z])pi(?![a-z])", ("pi",), "PI", 2),
+    (r"slider|slide", ("slider",), "slider moves", 2),
+    # Weak: every part's model has an error block; the handout asks to save it in (iii), (iv).
+    (r"(?<![a-z])err(or)?(?![a-z])", ("p_error", "pi"), "the error scope (Parts (iii), (iv))", 1),
 )
 # "part4", "part_iv", "part1.1" (strong: the user wrote the part) or "2.1pos" (the handout's
 # numbering of the experiment steps, moderate).
@@ -544,10 +704,10 @@ def _name_features(names) -> list[Evidence]:
         text = str(raw).lower()
         if not text:
             continue
-        for pattern, supports, what in _WORDS:
+        for pattern, supports, what, weight in _WORDS:
             if re.search(pattern, text) and (supports, text) not in seen:
                 seen.add((supports, text))
-                out.append(Evidence(f"the name {raw!r} says {what}", supports, 2))
+                out.append(Evidence(f"the name {raw!r} says {what}", supports, weight))
         match = _PART.search(text)
         if match:
             number = match["n"] or _ROMAN.get(match["m"], match["m"])
@@ -583,10 +743,15 @@ def _settings(guess: Guess, found: dict) -> None:
                 controller[key] = book
             else:
                 controller[key] = float(f"{value:.4g}") if abs(value) > 1e-9 else 0.0
+        if controller["kd"]:
+            controller["tau"] = gains["tau"]
+            how = f"the derivative filter that fits, tau = {gains['tau']:g} s"
+        else:
+            how = "no derivative"
         guess.notes.append(
             "controller: "
             + ", ".join(f"{k} = {controller[k]:g}" for k in ("kp", "ki", "kd"))
-            + f" from the voltage (derivative filter assumed tau = {TAU:g} s)"
+            + f" from the voltage ({how})"
         )
     elif handout:
         controller = {k: handout.get(k, 0.0) for k in ("kp", "ki", "kd")}

@@ -6,6 +6,7 @@ evidence is weak."""
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -17,7 +18,6 @@ from jaxcart import matfile, matimport
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 Q = 2.2735e-5  # the lab's encoder [m/count]
 
 
@@ -158,8 +158,11 @@ def test_v73_hdf5_reads_as_v7(tmp_path):
     np.testing.assert_array_equal(
         matfile.scope_signals(loaded["arr"], "arr")[0].values, y
     )  # N x 2 [t, value], transposed back
-    with pytest.raises(UserError, match=r"2 signals look like a position \(run73.mat:arr"):
-        read_experiment(tmp_path / "run73.mat")  # no TOML: y and arr both positions
+    # No TOML: y and arr hold the same position in two layouts, one signal (arr's time).
+    (run,) = matimport.scan([tmp_path / "run73.mat"])
+    assert run.problem is None and run.signals["y"].source == "run73.mat:arr"
+    assert [(a.source, b.source) for a, b in run.copies] == [("run73.mat:arr", "run73.mat:y")]
+    np.testing.assert_array_equal(read_experiment(tmp_path / "run73.mat").position, y)
     _write_v73(tmp_path / "raw73.mat", {"y": part["y"], "v": part["v"]})
     raw = read_experiment(tmp_path / "raw73.mat")  # no TOML: recognised
     assert raw.controller.kp == 50.0 and raw.controller.v_limit == 6.0
@@ -255,18 +258,61 @@ def test_each_experiment_recognised_from_content_alone(builtin, tmp_path, stem, 
         np.testing.assert_array_equal(got.reference, rec.reference)  # the step, exactly
 
 
-def test_error_scope_alone_asks_unless_named(builtin, tmp_path):
-    """Parts (iii) and (iv) save the error e = r - y: without the voltage, P 10 and PI differ
-    only in how the error settles, which friction blurs, so the error alone is weak evidence;
-    a name that says the part settles it, and the position is r - e."""
-    rec = builtin["pi"]
+@pytest.mark.parametrize(
+    ("stem", "want", "why"),
+    [
+        ("pi", "pi", "then moves again toward e = 0 .* integral action"),
+        ("p10", "p_error", "no integral action .* P 10's Coulomb dead band"),
+    ],
+)
+def test_error_scope_alone_tells_p10_from_pi(builtin, tmp_path, stem, want, why):
+    """Parts (iii) and (iv) save the error e = r - y. Without the voltage the physics tells
+    them apart: under P control a cart at rest stays at rest, inside the dead band |e| <=
+    f_c/(k gamma), while a PI's integral grows until the cart moves again toward e = 0."""
+    rec = builtin[stem]
     e = rec.reference - rec.position
     scipy.io.savemat(tmp_path / "scope3.mat", {"Error": np.column_stack([rec.time, e])})
-    with pytest.raises(UserError, match=r"scope3\.mat: the evidence is weak .*--as PART"):
+    (run,) = matimport.scan([tmp_path / "scope3.mat"])
+    assert run.guess.experiment == want and run.guess.confident, run.lines()
+    assert any(re.search(why, x.text) and x.weight == 3 for x in run.guess.evidence)
+    got = read_experiment(tmp_path / "scope3.mat", check=False)
+    assert got.controller == rec.controller  # the handout's, no voltage to measure it
+    np.testing.assert_allclose(got.position, rec.position, atol=1e-15)  # y = r - e
+
+
+@pytest.mark.parametrize(("f_c", "B_eq"), [(0.3, 1.5), (0.45, 4.6), (0.6, 1.5)])
+def test_error_alone_recognised_on_other_carts(f_c, B_eq):
+    """P 10 and PI runs (step 0.2 m, 8 s) on carts unlike the built-in one, with stiction
+    (f_s = 1.8 f_c): the error alone, and with the position, names each."""
+    import jax
+
+    import jaxcart as jc
+    from jaxcart.plantspec import build_plant
+    from jaxcart.recognition import Traces, recognise
+    from jaxcart.synthetic import make_recording
+
+    plant = build_plant({"B_eq": B_eq, "f_c": f_c, "f_s": 1.8 * f_c, "v_sat": 6.0})
+    for pid, want in ((jc.PID(kp=10.0), "p_error"), (jc.PID(kp=10.0, ki=15.0), "pi")):
+        with jax.enable_x64(True):
+            rec = make_recording(plant, pid, jc.step(0.2, horizon=8.0), seed=7)
+        e = rec.reference - rec.position
+        for traces in (Traces(0.001, error=e), Traces(0.001, position=rec.position, error=e)):
+            guess = recognise(traces)
+            assert (guess.experiment, guess.confident) == (want, True), guess.lines()
+
+
+def test_error_that_has_not_settled_asks_unless_named(builtin, tmp_path):
+    """The PI's error cut off while the cart still moves shows neither integral action nor a
+    dead band: weak evidence, one line that asks; the part named (option or file name)
+    settles it."""
+    rec = builtin["pi"]
+    e = (rec.reference - rec.position)[:1200]
+    scipy.io.savemat(tmp_path / "scope3.mat", {"Error": np.column_stack([rec.time[:1200], e])})
+    with pytest.raises(UserError, match=r"^scope3\.mat: the evidence is weak .*--as PART") as err:
         read_experiment(tmp_path / "scope3.mat")
+    assert "\n" not in str(err.value)
     got = read_experiment(tmp_path / "scope3.mat", experiment="pi", check=False)
     assert got.controller.kp == 10.0 and got.controller.ki == 15.0  # the handout's PI
-    np.testing.assert_allclose(got.position, rec.position, atol=1e-15)
     shutil.copy(tmp_path / "scope3.mat", tmp_path / "part4_error.mat")
     named = read_experiment(tmp_path / "part4_error.mat", check=False)  # "part4": Part (iv)
     assert named.controller.ki == 15.0
@@ -277,7 +323,7 @@ def test_position_chosen_in_a_muxed_scope_on_the_command_line(tmp_path):
     other = np.rint(0.5 * y / Q) * Q  # a second cart's position, also in counts
     mux = _scope(np.column_stack([other, v, y]), t)
     scipy.io.savemat(tmp_path / "mux.mat", {"ScopeData": mux})
-    with pytest.raises(UserError, match=r"2 signals look like a position \(mux.mat:ScopeData\[1\]"):
+    with pytest.raises(UserError, match=r"2 different signals look like a position \(mux.mat:Scop"):
         read_experiment(tmp_path / "mux.mat")
     got = read_experiment(f"{tmp_path / 'mux.mat'}:ScopeData[3]", check=False)
     np.testing.assert_array_equal(got.position, y)
@@ -290,15 +336,87 @@ def test_position_chosen_in_a_muxed_scope_on_the_command_line(tmp_path):
 
 
 @pytest.fixture
-def real_folder(tmp_path):
-    """The lab's real .mat files as QUARC saved them, names included, and nothing else."""
-    if not REAL.is_dir():
-        pytest.skip(f"the lab's real recordings are not at {REAL}")
+def real_folder(realdata, tmp_path):
+    """The lab's real .mat files as QUARC saved them into one folder, names included, and
+    nothing else (the shared folder keeps the Part (v) and repeat runs in sub-folders)."""
+    real = Path(realdata)
     folder = tmp_path / "data"
     folder.mkdir()
-    for path in [*sorted(REAL.glob("*.mat")), REAL / "repeat" / "p50_repeat.mat"]:
+    for path in [*sorted(real.glob("*.mat")), real / "pd" / "5.1wksp_1.mat"]:
         shutil.copyfile(path, folder / path.name)
+    shutil.copyfile(real / "repeat" / "p50_repeat.mat", folder / "p50_repeat.mat")
     return folder
+
+
+def test_real_pd_workspace_holds_one_position(real_folder, realdata):
+    """The Part (v) workspace saves the position twice (Cartposition, y: the same values and
+    time) and the pendulum rod's sensor (ScopeData1, block 'labcartpid/rod': whole counts of
+    1.5e-3, not the cart's encoder): one position, the rod not used, and the controller the
+    voltage shows is the stated PD (realdata/pd/pd.toml: kp = 55, kd = 5, a pure difference)."""
+    (run,) = matimport.scan([real_folder / "5.1wksp_1.mat"])
+    assert run.problem is None and run.usable()
+    assert {k: s.source.split(":")[1] for k, s in run.signals.items()} == {
+        "y": "Cartposition",
+        "e": "e",
+        "v": "v",
+    }
+    assert [(a.source, b.source) for a, b in run.copies] == [
+        ("5.1wksp_1.mat:Cartposition", "5.1wksp_1.mat:y")
+    ]
+    assert [s.source for s in run.ignored] == ["5.1wksp_1.mat:ScopeData1"]
+    assert any("5.1wksp_1.mat:y is a copy of 5.1wksp_1.mat:Cartposition" in x for x in run.lines())
+    assert run.guess.experiment == "pid" and "a PD" in run.guess.evidence[1].text
+    got = read_experiment(real_folder / "5.1wksp_1.mat")
+    stated = read_experiment(Path(realdata) / "pd" / "pd.toml")
+    assert got.controller == stated.controller  # kp 55, kd 5, tau 0, v_limit 6, exactly
+    np.testing.assert_array_equal(got.position, stated.position)
+    np.testing.assert_array_equal(got.reference, stated.reference)  # r = y + e = 0.5 m
+    # Without the name, the rod is still no position: its counts are not the cart's.
+    rod = matimport.read_signals(real_folder / "5.1wksp_1.mat")
+    assert [s.role for s in rod if s.source.endswith("ScopeData1")] == ["?"]
+
+
+def test_copies_in_other_layouts_and_times_are_one_signal(tmp_path):
+    """A position saved as an N x 2 array, again as a structure with its time 5 s later and
+    again without time, and the voltage twice: one signal each; two different positions are
+    still a question, one line with the fix."""
+    t, y, v = _p50(900)
+    scipy.io.savemat(
+        tmp_path / "ws.mat",
+        {
+            "Cartposition": np.column_stack([t, y]),
+            "ScopeData": _scope(y, t + 5.0, block="lab/cart position"),
+            "y": _scope(y),
+            "v": _scope(v, t),
+            "u": v,
+        },
+    )
+    (run,) = matimport.scan([tmp_path / "ws.mat"])
+    assert run.problem is None and run.guess.experiment == "p_step" and run.usable()
+    assert sorted(b.source.split(":")[1] for _, b in run.copies) == ["ScopeData", "u", "y"]
+    got = read_experiment(tmp_path / "ws.mat")
+    np.testing.assert_array_equal(got.position, y)
+    np.testing.assert_array_equal(got.time, t)  # the first copy's time
+    scipy.io.savemat(tmp_path / "two.mat", {"a": np.column_stack([t, y]), "b": _scope(y + Q, t)})
+    with pytest.raises(UserError) as err:
+        read_experiment(tmp_path / "two.mat")
+    assert str(err.value) == (
+        "two.mat: 2 different signals look like a position (two.mat:a, two.mat:b); choose "
+        "the one to use: jaxcart import two.mat:a (or map it in an experiment file's [data] "
+        "table)"
+    )
+
+
+def test_a_non_finite_sample_is_one_line_not_a_traceback(tmp_path, capsys):
+    from tuning.commands.main import main
+
+    t, y, v = _p50(500)
+    v[100] = np.nan
+    scipy.io.savemat(tmp_path / "n.mat", {"y": _scope(y, t), "v": _scope(v, t)})
+    assert main(["--no-cache", "import", str(tmp_path / "n.mat")]) == 2
+    out = capsys.readouterr().out
+    assert "  n.mat:v holds nan at sample 101 (1 such); every sample must be a finite number" in out
+    assert "Traceback" not in out and not (tmp_path / "n.toml").exists()
 
 
 def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
@@ -308,14 +426,21 @@ def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
     assert {k: (r.experiment, r.guess.confident) for k, r in runs.items()} == {
         "part1.1.mat": ("tap", True),
         "2.1pos.mat + 2.1volt.mat": ("p_step", True),
+        "5.1wksp_1.mat": ("pid", True),
         "p50_repeat.mat": ("p_step", True),
     }
     inputs = find_inputs(real_folder)
     assert {s: Path(r.path).name for s, r in inputs.recordings.items()} == {
         "tap": "part1.1.mat",
         "p_step": "2.1pos.mat",
+        "pid": "5.1wksp_1.mat",
     }
-    assert [name for name, _ in inputs.unused] == ["p50_repeat.mat"]  # Part (ii) again
+    # Part (ii) again: the first by name is the part's, the other a repeat (the joint fit's).
+    assert {s: [Path(r.path).name for r in rs] for s, rs in inputs.repeats.items()} == {
+        "p_step": ["p50_repeat.mat"]
+    }
+    assert "chosen over p50_repeat.mat as the first by name" in inputs.how["p_step"]
+    assert inputs.unused == []
     p50 = inputs.recordings["p_step"]
     assert p50.controller.kp == 50.0 and p50.controller.v_limit == 6.0
     assert np.all(p50.reference == 0.4) and p50.sample_time == 0.001
@@ -323,7 +448,13 @@ def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
     report = tmp_path / "report"
     report.mkdir()
     written = write_used(inputs, report)
-    assert sorted(p.name for p in written) == ["2.1pos.toml", "lab.toml", "part1.1.toml"]
+    assert sorted(str(p.relative_to(report)) for p in written) == [
+        "2.1pos.toml",
+        "5.1wksp_1.toml",
+        "lab.toml",
+        "part1.1.toml",
+        "repeat/p50_repeat.toml",
+    ]
     again = find_inputs(report)  # the lab.toml written reproduces the assignment and data
     assert set(again.recordings) == set(inputs.recordings)
     for slot, rec in inputs.recordings.items():
@@ -333,6 +464,8 @@ def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
         np.testing.assert_array_equal(other.position, rec.position)
         np.testing.assert_array_equal(other.signal64(), rec.signal64())
         assert again.how[slot] == "named in lab.toml"
+    (repeat,) = again.repeats["p_step"]
+    np.testing.assert_array_equal(repeat.position, inputs.repeats["p_step"][0].position)
     # One line corrected: the repeat run instead (the written file offers it, commented).
     index = report / "lab.toml"
     lines = index.read_text().splitlines()
@@ -343,6 +476,97 @@ def test_real_lab_files_assigned_and_lab_toml_reproduces(real_folder, tmp_path):
     swapped = find_inputs(report)
     assert Path(swapped.recordings["p_step"].path).name == "p50_repeat.mat"
     assert swapped.recordings["p_step"].n_samples == 3135
+
+
+def _student_scopes(folder):
+    """The parts the real folder lacks, saved as a student's scopes would save them, made by
+    jaxcart.synthetic on a cart like the real one: the 0.1 V/s ramp as 3.1pos.mat + 3.1volt.mat
+    (structures without time, like 2.1pos/2.1volt), P 10 as run3.mat (Cartposition N x 2 and
+    the voltage u with time) and PI as run4.mat with only y and e (structures with time)."""
+    import jax
+
+    import jaxcart as jc
+    from jaxcart.plantspec import build_plant
+    from jaxcart.synthetic import make_recording
+
+    cart = build_plant({"B_eq": 1.6, "f_c": 0.44, "v_sat": 6.0})
+    with jax.enable_x64(True):
+        ramp = make_recording(cart, None, jc.voltage_ramp(0.1, horizon=6.0), seed=1)
+        p10 = make_recording(cart, jc.PID(kp=10.0), jc.step(0.2, horizon=8.0), seed=2)
+        pi = make_recording(cart, jc.PID(kp=10.0, ki=15.0), jc.step(0.2, horizon=10.0), seed=3)
+    block = "labcartol/cart position"
+    scipy.io.savemat(folder / "3.1pos.mat", {"y": _scope(ramp.position, block=block)})
+    block = "labcartol/voltage out"
+    scipy.io.savemat(folder / "3.1volt.mat", {"v": _scope(ramp.command, block=block)})
+    scipy.io.savemat(
+        folder / "run3.mat",
+        {
+            "Cartposition": np.column_stack([p10.time, p10.position]),
+            "u": _scope(p10.command, p10.time, block="labcartp/voltage out"),
+        },
+    )
+    e = pi.reference - pi.position
+    scipy.io.savemat(
+        folder / "run4.mat",
+        {
+            "y": _scope(pi.position, pi.time, block="labcartpi/cart position"),
+            "e": _scope(e, pi.time, block="labcartpi/error out"),
+        },
+    )
+    return {"ramp": ramp, "p_error": p10, "pi": pi}
+
+
+def test_a_whole_lab_of_raw_scopes_every_part_assigned(real_folder, tmp_path, capsys):
+    """A whole lab's folder of raw .mat files as QUARC saved them (the real tap, P 50, its
+    repeat and PD run; ramp, P 10 and a PI with only y and e from the generator): every
+    recording goes to its part (what jaxcart lab --data uses), the repeat as a second run of
+    Part (ii), each with its evidence, and jaxcart import says the same."""
+    from tuning.commands.main import main
+    from tuning.lab.inputs import find_inputs
+
+    made = _student_scopes(real_folder)
+    inputs = find_inputs(real_folder)
+    assert {s: run.label for s, run in inputs.imported.items()} == {
+        "tap": "part1.1.mat",
+        "p_step": "2.1pos.mat + 2.1volt.mat",
+        "ramp": "3.1pos.mat + 3.1volt.mat",
+        "p_error": "run3.mat",
+        "pi": "run4.mat",
+        "pid": "5.1wksp_1.mat",
+    }
+    assert [Path(r.path).name for r in inputs.repeats["p_step"]] == ["p50_repeat.mat"]
+    assert inputs.unused == [] and inputs.missing() == []
+    from tuning.lab.classroom import used_files  # the class table flags no file as unused
+
+    assert set(used_files(inputs)) >= {p.name for p in real_folder.glob("*.mat")}
+    recs = inputs.recordings
+    assert recs["ramp"].kind == "open_loop"
+    np.testing.assert_array_equal(recs["ramp"].command, made["ramp"].command)
+    assert (recs["p_error"].controller.kp, recs["p_error"].controller.ki) == (10.0, 0.0)
+    assert (recs["pi"].controller.kp, recs["pi"].controller.ki) == (10.0, 15.0)
+    np.testing.assert_allclose(recs["pi"].position, made["pi"].position, atol=1e-15)
+    np.testing.assert_allclose(recs["pi"].reference, 0.2, atol=1e-15)  # r = y + e
+    assert (recs["pid"].controller.kp, recs["pid"].controller.kd) == (55.0, 5.0)
+    # Each assignment with its evidence: what the physics showed, strong.
+    shown = "\n".join(inputs.summary_lines())
+    for phrase in (
+        "slows in proportion to its speed",
+        "P with the handout's k = 50 V/m [strong]",
+        "the voltage rises linearly with time, 0.1 V/s",
+        "P with the handout's k = 10 V/m [strong]",
+        "moves again toward e = 0",
+        "a PD [strong]",
+        "and a repeat: p50_repeat.mat",
+    ):
+        assert phrase in shown
+    out = tmp_path / "imported"
+    files = sorted(str(p) for p in real_folder.glob("*.mat"))
+    assert main(["--no-cache", "import", *files, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("(strong evidence)") == 7
+    assert "5.1wksp_1.mat:y is a copy of 5.1wksp_1.mat:Cartposition" in printed
+    assert "not used: 5.1wksp_1.mat:ScopeData1 (name 'rod'" in printed
+    assert len(list(out.glob("*.toml"))) == 7
 
 
 def test_weak_evidence_is_a_question_in_the_lab(real_folder):

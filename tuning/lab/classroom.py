@@ -204,7 +204,8 @@ def used_files(inputs) -> list[str]:
         path = Path(rec.path)
         used.add(path.name)
         used.update(_data_files(path))
-    for run in inputs.imported.values():
+    raw = [*inputs.imported.values(), *(r for rs in inputs.imported_repeats.values() for r in rs)]
+    for run in raw:
         used.update(Path(f).name for f in run.files)
     return sorted(used)
 

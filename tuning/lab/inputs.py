@@ -15,7 +15,8 @@ The folder may also hold raw .mat files as QUARC/Simulink scopes saved them, wit
 TOML: each run (a file, or files whose names differ only by the signal, "2.1pos.mat" +
 "2.1volt.mat") is recognised from its content and names (:mod:`jaxcart.recognition`), with
 its evidence; a run whose evidence is weak is left out with one line that asks the user to
-name its part. When any recording came from raw .mat files, :func:`write_used` writes the
+name its part, and a second run of a part is a repeat (the experiment file's, else the first
+by name, is the part's). When any recording came from raw .mat files, :func:`write_used` writes the
 lab.toml and the experiment files that were used beside the report, so that a user can correct
 one line and rerun (``jaxcart lab --data REPORT_DIR``).
 
@@ -42,6 +43,8 @@ import numpy as np
 from jaxcart.errors import UserError
 
 INDEX_NAME = "lab.toml"
+#: The sub-folder of a report where :func:`write_used` puts the experiment files of repeats.
+REPEAT_FOLDER = "repeat"
 
 #: slot -> (handout part, what the recording is)
 SLOTS = {
@@ -67,8 +70,9 @@ class Inputs:
     raw .mat files that the slot's recording came from; offers: (slot, run, why) of raw runs
     not used (a second run of a part, weak evidence), offered in the lab.toml written;
     written: what :func:`write_used` wrote, one line; repeats: slot -> further runs of that
-    part (more files of it, or files in a sub-folder such as ``repeat/``): the cart's joint
-    fit uses them, and the report shows them.
+    part (more files of it, raw .mat runs recognised as it, or files in a sub-folder such as
+    ``repeat/``): the cart's joint fit uses them, and the report shows them;
+    imported_repeats: slot -> the raw .mat runs among them.
     """
 
     folder: Path | None
@@ -80,6 +84,7 @@ class Inputs:
     offers: list = field(default_factory=list)
     written: str | None = None
     repeats: dict = field(default_factory=dict)
+    imported_repeats: dict = field(default_factory=dict)
 
     def runs(self) -> list:
         """Every recording of the lab: each part's, then the repeats (the joint fit's input)."""
@@ -104,6 +109,11 @@ class Inputs:
                 lines.append(f"Part ({part}) {what}: {Path(rec.path).name} ({self.how[slot]})")
             for again in self.repeats.get(slot, []):
                 lines.append(f"    and a repeat: {_shown(again, self.folder)}")
+                run = next(
+                    (r for r in self.imported_repeats.get(slot, []) if r.files[0] == again.path),
+                    None,
+                )
+                lines += [f"      {e.line()}" for e in run.guess.evidence] if run else []
         for name, reason in self.unused:
             lines.append(f"not used: {name} ({reason})")
         if self.written:
@@ -275,15 +285,16 @@ def _same_samples(a, b) -> bool:
     return ya.shape == yb.shape and bool(np.array_equal(ya, yb))
 
 
-def _add_repeat(inputs: Inputs, slot: str, recording) -> None:
-    """A further run of ``slot``; a copy of a run already used is not a repeat."""
+def _add_repeat(inputs: Inputs, slot: str, recording) -> bool:
+    """A further run of ``slot``; a copy of a run already used is not a repeat (False)."""
     for other in [inputs.recordings[slot], *inputs.repeats.get(slot, [])]:
         if _same_samples(recording, other):
             name = _shown(recording, inputs.folder)
             same = _shown(other, inputs.folder)
             inputs.unused.append((name, f"the same samples as {same}: not a second run"))
-            return
+            return False
     inputs.repeats.setdefault(slot, []).append(recording)
+    return True
 
 
 def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
@@ -404,21 +415,31 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
             spec = EXPERIMENTS[slot]
             inputs.unused.append((run.label, f"{spec.what}: no part of the report uses it"))
             continue
-        if slot in inputs.recordings:
-            used = inputs.recordings[slot].path
+        if inputs.how.get(slot) == f"named in {INDEX_NAME}":
             inputs.unused.append(
                 (
                     run.label,
-                    f"also Part ({SLOTS[slot][0]}) {SLOTS[slot][1]}; the report uses "
-                    f"{Path(used).name}; to use this one name it in {INDEX_NAME}: "
-                    f'[recordings] {slot} = "{run.files[0].name}"',
+                    f"also Part ({SLOTS[slot][0]}) {SLOTS[slot][1]}, but {slot} is named in "
+                    f"{INDEX_NAME}",
                 )
             )
             inputs.offers.append((slot, run, "another run of this part"))
             continue
-        inputs.recordings[slot] = check_recording(read_imported(run, quiet=True))
-        inputs.imported[slot] = run
-        inputs.how[slot] = "recognised, strong evidence"
+        recording = check_recording(read_imported(run, quiet=True))
+        if slot not in inputs.recordings:
+            inputs.recordings[slot] = recording
+            inputs.imported[slot] = run
+            inputs.how[slot] = "recognised, strong evidence"
+        elif _add_repeat(inputs, slot, recording):
+            # A second run of the part: the experiment file, else the first raw run by name,
+            # stays the part's; this one joins the cart's joint fit.
+            inputs.imported_repeats.setdefault(slot, []).append(run)
+            first = "the first by name" if slot in inputs.imported else "an experiment file"
+            inputs.how[slot] += (
+                f"; chosen over {run.label} as {first}, which is a repeat the cart's joint "
+                f"fit also uses; name another in {INDEX_NAME} to swap"
+            )
+            inputs.offers.append((slot, run, "another run of this part, used as a repeat"))
 
 
 def write_used(inputs: Inputs, out, final=None) -> list[Path]:
@@ -453,6 +474,8 @@ def write_used(inputs: Inputs, out, final=None) -> list[Path]:
             lines.append(f"{slot} = {toml_str(name)}   # Part ({part})")
         else:
             lines.append(f"# {slot} = ...   # Part ({part}) {what}: no recording")
+    for slot, runs in inputs.imported_repeats.items():
+        written += _write_repeats(out, final, slot, runs, lines)
     for slot, run, why in inputs.offers:
         files = [data_prefix(final, p.parent) + p.name for p in run.files]
         value = (
@@ -468,6 +491,21 @@ def write_used(inputs: Inputs, out, final=None) -> list[Path]:
         f"wrote {final / INDEX_NAME} and {len(written) - 1} experiment file(s) beside the "
         f"report: correct a line there and rerun with jaxcart lab --data {final}"
     )
+    return written
+
+
+def _write_repeats(out: Path, final: Path, slot: str, runs: list, lines: list) -> list[Path]:
+    """The experiment files of the raw runs that repeat ``slot``, in ``out/repeat/`` (a
+    sub-folder's runs of a part are its repeats when the lab reads the folder again), each
+    named in a comment of ``lines``. Returns their paths."""
+    folder, names, written = out / REPEAT_FOLDER, set(), []
+    folder.mkdir(exist_ok=True)
+    for run in runs:
+        name = _free_name(run.stem, names)
+        (folder / name).write_text(run.toml_text(final / REPEAT_FOLDER))
+        written.append(folder / name)
+        part = SLOTS[slot][0]
+        lines.append(f"# {REPEAT_FOLDER}/{name}: {run.label}, a further run of Part ({part})")
     return written
 
 
