@@ -263,3 +263,24 @@ def test_the_generator_shares_no_simulation_code_with_jaxcart():
             for module, name in names:
                 assert not module.startswith(banned), f"{path.name} imports {module}"
                 assert not (module == "hw.control_law" and name != "PID"), f"{path.name}: {name}"
+
+
+def test_the_suite_makes_its_cases_on_the_independent_generator(tmp_path):
+    """Several runs of one cart: each run draws its own drive limit (what the per-run rule is
+    judged against); a case of one drive limit keeps it; one recording keeps the cart's own."""
+    from tuning.estimation.diagnose.suite import CASES, make_recordings
+
+    by_name = {c.name: c for c in CASES}
+    varied = make_recordings(
+        by_name["tap + P and PD steps with the drive limit per run"], tmp_path / "a", "independent"
+    )
+    assert [read_experiment(p).kind for p, _ in varied] == ["tap", "closed_loop", "closed_loop"]
+    limits = [truth["v_sat"] for _, truth in varied[1:]]
+    assert limits[0] != 4.6 and limits[1] != 5.5
+    assert abs(limits[0] / 4.6 - 1) < 0.08 and abs(limits[1] / 5.5 - 1) < 0.08
+    shared = make_recordings(
+        by_name["tap + two P steps with one drive limit"], tmp_path / "b", "independent"
+    )
+    assert [truth["v_sat"] for _, truth in shared[1:]] == [5.0, 5.0]
+    ((_, alone),) = make_recordings(by_name["saturation plain"], tmp_path / "c", "independent")
+    assert alone["v_sat"] == 4.0 and "gamma_scale" not in alone
