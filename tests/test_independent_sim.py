@@ -284,3 +284,22 @@ def test_the_suite_makes_its_cases_on_the_independent_generator(tmp_path):
     assert [truth["v_sat"] for _, truth in shared[1:]] == [5.0, 5.0]
     ((_, alone),) = make_recordings(by_name["saturation plain"], tmp_path / "c", "independent")
     assert alone["v_sat"] == 4.0 and "gamma_scale" not in alone
+
+
+def test_the_drive_freed_per_run_is_no_false_alarm_where_the_runs_truths_differ():
+    """A cart whose runs drew their own current limit: freeing it per run is right; had their
+    truths shared one limit, it would be a false alarm."""
+    from tuning.estimation.diagnose.core import PER_RUN, Candidate, Diagnosis
+    from tuning.estimation.diagnose.suite import CASES, judge
+
+    name = "one cart (tap + P 50 + PD): current limit 1.2 A"
+    case = {c.name: c for c in CASES}[name].on("independent")
+    parts = ("coulomb", "current_limit", PER_RUN)
+    d = Diagnosis(["a"], "diagnosed", [], [], rms_before=1e-3, rms_after=1e-5,
+                  left_out=["coulomb", "current_limit"])  # fmt: skip
+    d.candidates = [Candidate("+".join(parts), parts, ("B_eq",))]
+    d.chosen = d.candidates[0].name
+    tap = {"motor_connected": False, "i_max": 1.2}
+    row = judge(case, d, [tap, {"i_max": 1.23}, {"i_max": 1.18}])
+    assert row["correct"] and not row["false_alarm"]
+    assert judge(case, d, [tap, {"i_max": 1.2}, {"i_max": 1.2}])["false_alarm"]

@@ -549,8 +549,9 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
     """The score row of diagnosis ``d`` of ``case`` (as its generator made it,
     :meth:`Case.on`): what was expected and named, whether that is right by the case's rule
     (:data:`RULES`), and whether it is a false alarm (an effect or a correction named on a
-    clean case, the drive freed per run where the runs share it). ``truths``: each
-    recording's own truth (:func:`make_recordings`; default: the case's)."""
+    clean case, the drive freed per run where the runs share it: where their truths give them
+    one limit). ``truths``: each recording's own truth (:func:`make_recordings`; default: the
+    case's)."""
     from tuning.estimation.diagnose.core import PER_RUN
 
     named = set(d.left_out)
@@ -566,7 +567,7 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
         "shared": lambda: named == expect and not per_run,
         "not_explained": lambda: not d.explained and any(case.suggest in s for s in d.suggestions),
     }[case.rule]
-    varies = case.rule == "per_run"
+    varies = case.rule == "per_run" or _limits_vary(truths)
     false_alarm = (case.group in ("clean", "parameter") and bool(named)) or (per_run and not varies)
     return {
         "case": case.name,
@@ -593,6 +594,16 @@ def _expected_text(case: Case) -> list:
         return [f"not explained ({case.suggest})"]
     extra = {"per_run": ["per_run"], "exact": ["only"]}.get(case.rule, [])
     return sorted(case.expect) + extra
+
+
+def _limits_vary(truths) -> bool:
+    """Whether the runs' drive limits differ in their truths (the independent generator draws
+    each run's anew): freeing them per run is then no false alarm."""
+    for name in ("v_sat", "i_max"):
+        values = {t[name] for t in truths or () if name in t and t.get("motor_connected", True)}
+        if len(values) > 1:
+            return True
+    return False
 
 
 def _own_limits_right(case: Case, d, truths=None) -> bool:
