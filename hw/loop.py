@@ -16,7 +16,8 @@ recorder writes a chunk of the CSV waits for the chunk's end, so no line is cut.
 Pacing (``clock``):
     "device"        the device's own clock: read() blocks until the next sample (a Quanser board's
                     hardware-timed encoder task); the loop only measures
-    "perf_counter"  absolute deadlines t0 + k Ts on time.perf_counter: sleep until shortly
+    "perf_counter"  absolute deadlines t0 + k Ts on the computer's clock (time.perf_counter,
+                    or the ``timer`` given: :class:`hw.pacing.Timer`): sleep until shortly
                     before, then spin the last stretch (no drift: a late sample does not move the
                     next deadline)
     "virtual"       no waiting: as fast as the machine allows, timestamps k Ts (simulated or
@@ -39,15 +40,15 @@ import gc
 import math
 import signal
 import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from hw import pacing
 from hw.control_law import PID, Floats, PIDState, float_clip, float_pid, pid_init, pid_stepper
 from hw.devices.base import DeviceError
-from hw.pacing import SPIN, timing_stats
+from hw.pacing import SPIN, Timer, timing_stats, wait_until
 from hw.recorder import MIN_SAMPLES, RecorderError, RunRecorder
 from hw.safety import Fault, Guard, Limits
 
@@ -200,6 +201,7 @@ class _Run:
 
     ts: float
     clock: str
+    timer: Timer
     rows: list = field(default_factory=list)  # [t, y, u, r, t_wall, compute]
     k: int = 0
     fault: str | None = None
@@ -231,6 +233,7 @@ def run_loop(
     sync_every: float = 1.0,
     files=None,
     signals: bool = True,
+    timer: Timer | None = None,
 ) -> RunResult:
     """Run ``pid`` on ``device`` for ``len(reference)`` samples of r_k [m]; record to ``out``.
 
@@ -240,7 +243,9 @@ def run_loop(
     "perf_counter" or "virtual" (default: the device's clock if it has one, else
     perf_counter); out: the recording's path (TOML; the CSV beside it), never overwritten, or
     None for no recording; notes: extra provenance for [notes]; flush_every [samples],
-    sync_every [s], files: see :mod:`hw.recorder`; signals: handle SIGINT, SIGTERM, SIGHUP.
+    sync_every [s], files: see :mod:`hw.recorder`; signals: handle SIGINT, SIGTERM, SIGHUP;
+    timer: where the time is read and slept (:class:`hw.pacing.Timer`; default the computer's,
+    :data:`hw.pacing.SYSTEM_TIMER`).
 
     A safety fault, a device error, a recording error or a stopping signal ends the run with
     ``status = "fault"`` and the reason; any other exception is recorded the same way and
@@ -254,7 +259,7 @@ def run_loop(
     ref = [float(r) for r in np.asarray(reference, dtype=float).ravel()]
     if len(ref) < 2:
         raise ValueError(f"the reference has {len(ref)} sample(s); give at least 2 (duration > Ts)")
-    run = _Run(ts=float(pid.sample_time), clock=clock)
+    run = _Run(ts=float(pid.sample_time), clock=clock, timer=timer or pacing.SYSTEM_TIMER)
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     run_table = {"status": "running", "started": started, "clock": clock}
     safety = {f"limit_{k}": v for k, v in limits.to_dict().items()}
@@ -309,7 +314,7 @@ def _drive(device, pid, ref, limits, recorder, stops, run) -> None:
     law = float_pid(pid)
     control = pid_stepper(law, Floats, float_clip)
     guard = Guard(limits, ts)
-    perf, sleep = time.perf_counter, time.sleep
+    perf = run.timer.now
     virtual = run.clock == "virtual"
     paced = run.clock == "perf_counter"
     rows = run.rows
@@ -321,12 +326,7 @@ def _drive(device, pid, ref, limits, recorder, stops, run) -> None:
         stops.check()
         kts = k * ts
         if paced:
-            deadline = t0 + kts
-            remaining = deadline - perf()
-            if remaining > SPIN:
-                sleep(remaining - SPIN)
-            while perf() < deadline:
-                pass
+            wait_until(t0 + kts, run.timer)
         y = float(device.read())
         t_read = perf()
         if k == 0 and not paced:
