@@ -546,6 +546,45 @@ def test_a_device_whose_stop_fails(monkeypatch, tmp_path, gains, capsys):
             assert "stop failed" in rec.meta["run"]["notes"]
 
 
+@pytest.mark.parametrize("lasting", [True, False])
+def test_a_device_that_disconnects_is_not_said_to_be_at_0_volts(
+    monkeypatch, tmp_path, gains, capsys, lasting
+):
+    """A USB cable pulled at sample 150: every write from there on raises, the 0 V of the
+    stop too. The last line says 0 V was not written and what the output may still hold, the
+    last voltage the device took, which is the recording's last voltage. A write that failed
+    once (not lasting) is followed by a 0 V that reached it, and the last line says that."""
+
+    failed = []
+
+    def write(k, volts):
+        if k >= 150 and (lasting or not failed):
+            failed.append(k)
+            raise DeviceError("USB: device disconnected")
+
+    rig = Rig(write=write)
+    status, out = _run(monkeypatch, tmp_path, gains, rig)
+    lines = capsys.readouterr().err.strip().splitlines()
+    rec = _promises("device disconnected", rig, status, out, ["disconnected"], capsys)
+    assert status == 1
+    run = rec.meta["run"]
+    assert lines[-1].startswith("hw run: stopped: device: USB: device disconnected; ")
+    if lasting:
+        held = rig.last_voltage
+        assert held != 0.0 and run["zero_written"] is False and run["last_voltage"] == held
+        assert rec.command[-1] == held and rec.command[-2] == held  # 149 held, 150 not taken
+        assert run["zero_failure"] == "USB: device disconnected"
+        assert lines[-1].endswith(
+            f"writing 0 V FAILED (USB: device disconnected): the output may still hold "
+            f"{held:.4g} V, the last voltage it took; switch the amplifier off"
+        )
+        assert not any("0 V written" in line for line in lines)
+    else:
+        assert rig.last_voltage == 0.0 and run["zero_written"] is True
+        assert rec.command[-1] == 0.0 and "zero_failure" not in run
+        assert lines[-1].endswith("; 0 V written and the device stopped")
+
+
 @pytest.mark.parametrize("value", ["nan", "inf", "jump"])
 def test_the_encoder_reads_nonsense(monkeypatch, tmp_path, gains, capsys, value):
     rng = _rng(f"encoder {value}")
