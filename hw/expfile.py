@@ -475,11 +475,15 @@ class Reader:
         back = np.nonzero(steps <= 0)[0]
         if back.size:
             i = back[0] + 1
-            self.fail(
+            self.time_fault(
                 f"time of {source.label} does not increase at {source.row(i)} "
-                f"(t = {float(time[i - 1])!r} then {float(time[i])!r} s); sort the samples or "
-                f"remove repeated rows"
+                f"(t = {float(time[i - 1])!r} then {float(time[i])!r} s)",
+                "sort the samples or remove repeated rows",
+                signals,
+                source,
+                ts,
             )
+        declared = ts
         if ts is None:
             ts = float(f"{(time[-1] - time[0]) / (n - 1):.12g}")
             where = f"the mean step of {source.label}"
@@ -488,12 +492,34 @@ class Reader:
         off = np.nonzero(np.abs(steps - ts) > TIME_TOLERANCE * ts)[0]
         if off.size:
             i = off[0] + 1
-            self.fail(
-                f"time of {source.label} steps by {steps[off[0]]:.6g} s at {source.row(i)}, "
-                f"more than 1 % from {where}; fix sample_time or resample the data to a "
-                f"uniform step"
+            step = float(steps[off[0]])
+            ms = abs(step / (1000 * ts) - 1) <= TIME_TOLERANCE  # every step 1000 times Ts
+            self.time_fault(
+                f"time of {source.label} steps by {step:.6g} s at {source.row(i)}, more than "
+                f"1 % from {where}",
+                "the time looks recorded in ms: give t in s (divide it by 1000)"
+                if ms and np.all(np.abs(steps / (1000 * ts) - 1) <= TIME_TOLERANCE)
+                else "fix sample_time or resample the data to a uniform step",
+                signals,
+                source,
+                declared,
             )
         return time, ts
+
+    def time_fault(self, said, fix, signals, source, ts):
+        """Fail on a time vector that is not one: ``said`` and ``fix``, or, where another
+        column is an even time base, that the columns look swapped."""
+        base = _time_base(signals, source, ts)
+        if base is None:
+            self.fail(f"{said}; {fix}")
+        name, other = base
+        time_name = next(n for n, s in signals.items() if s is source)
+        self.fail(
+            f"{said}, while {other.label} is an even time base "
+            f"({_median_step(other.values):.6g} s steps from {float(other.values[0]):.6g} s): "
+            f"the columns {time_name} and {name} look swapped; swap their names in the header, "
+            "or map them in [data]"
+        )
 
     # -- sections
 
@@ -614,6 +640,23 @@ def _portable_data(meta: dict) -> dict:
 
 def _line_of(lines):
     return lambda i: f"line {int(lines[i])}"
+
+
+def _time_base(signals, source, ts) -> tuple[str, Signal] | None:
+    """(name, signal) of another signal than ``source`` that is an even time base (strictly
+    increasing by one step, ``ts`` where given, within TIME_TOLERANCE), or None: the clue to
+    swapped columns."""
+    for name, signal in signals.items():
+        values = signal.values
+        if signal is source or values.size < 3:
+            continue
+        steps = np.diff(values)
+        step = _median_step(values)
+        if step <= 0 or (ts is not None and abs(step - ts) > TIME_TOLERANCE * ts):
+            continue
+        if np.all(np.abs(steps - step) <= TIME_TOLERANCE * step):
+            return name, signal
+    return None
 
 
 def _median_step(time):

@@ -161,6 +161,20 @@ def _check_sample_time(where, ts) -> list[str]:
     ]
 
 
+def time_unit_doubt(rec) -> str | None:
+    """Why a result from ``rec`` cannot be trusted because of its time base, said for the
+    error that ends a command (the reading's warning has scrolled away by then): a sample
+    time that is a lab one in milliseconds; None when the time base is plausible."""
+    low, high = SAMPLE_TIME_RANGE
+    ts = float(rec.sample_time)
+    if ts > high and low <= ts / 1000 <= high:
+        return (
+            f"its time looks recorded in milliseconds (sample time {ts:g} s, where the lab's "
+            f"loop runs at 0.001 s): give t in s (divide the column by 1000)"
+        )
+    return None
+
+
 def _voltage_range(rec, plant) -> float:
     """The largest voltage the cart can have received [V] (see the module docstring)."""
     limit = float(voltage_limit(plant, rec.controller))
