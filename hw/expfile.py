@@ -264,6 +264,7 @@ class Reader:
             controller = self.controller(ts)
             spec = self.signal_spec("reference", "r", signals)
             reference = self.signal_from_spec(spec, signals, "r", k * ts, y0)
+            self.check_reference_column(spec, reference, signals, time)
             signal = reference
         elif kind == "open_loop":
             spec = self.signal_spec("input", "v", signals)
@@ -580,6 +581,29 @@ class Reader:
                 f"it to the data or map it in [data]"
             )
         return table
+
+    def check_reference_column(self, spec, reference, signals, time):
+        """A recorded column r beside a [reference] step must be that step: one that moves
+        later says the step was recorded late (refused with the time it moves, where the data
+        would otherwise be fitted against a step that never was)."""
+        if spec["kind"] != "step" or "r" not in signals:
+            return
+        r = signals["r"].values
+        tol = 1e-9 + 1e-6 * max(abs(float(reference[0])), float(np.max(np.abs(r))))
+        off = np.nonzero(np.abs(r - reference) > tol)[0]
+        if not off.size:
+            return
+        stays = np.nonzero(np.abs(r - reference) > tol)[0][-1] + 1
+        when = (
+            f"reaches it only at t = {float(time[stays]):.6g} s (the step was recorded late)"
+            if stays < r.size
+            else f"holds {float(r[off[0]]):.6g} m at t = {float(time[off[0]]):.6g} s"
+        )
+        self.fail(
+            f"[reference] says a step to {float(reference[0]):g} m from t = 0, but "
+            f"{signals['r'].label} {when}; to use the recorded reference, give [reference] "
+            'kind = "column" (or no [reference])'
+        )
 
     def signal_from_spec(self, spec, signals, column, t, offset):
         kind = spec["kind"]

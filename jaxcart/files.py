@@ -249,10 +249,30 @@ def _recording(load, check: bool) -> Recording:
     )
     if not check:
         return rec
-    warnings = tuple(plausibility.check_recording(rec))
+    rec, found = _late_step(rec)
+    warnings = found + tuple(plausibility.check_recording(rec))
     for message in warnings:
         plausibility.warn(message)
     return dataclasses.replace(rec, warnings=warnings)
+
+
+def _late_step(rec) -> tuple[Recording, tuple[str, ...]]:
+    """The recording with its step where the data put it (:func:`plausibility.late_step`), and
+    the warning that says so; as it was, and no warning, when the step is at t = 0."""
+    k0 = plausibility.late_step(rec)
+    if k0 is None:
+        return rec, ()
+    r = np.where(np.arange(rec.n_samples) < k0, rec.position[0], rec.reference[-1])
+    t0 = k0 * rec.sample_time
+    said = (
+        f"{rec.path}: the step starts at t = {t0:.3f} s, not at t = 0 as [reference] says: the "
+        f"recorded command v stays at rest until then and follows [controller] stepped there "
+        f"({rec.command[k0]:.3g} V at t = {t0:.3f} s); the reference is taken to step at "
+        f"{t0:.3f} s (cut the rows before it, or give the reference as a column r, to say so "
+        "in the file)"
+    )
+    experiment = dataclasses.replace(rec.experiment, signal=jnp.asarray(r))
+    return dataclasses.replace(rec, reference=r, signal=r, experiment=experiment), (said,)
 
 
 def _read_mat(reader, name, variable, field):

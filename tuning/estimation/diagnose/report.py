@@ -91,6 +91,9 @@ def _fit_section(d) -> list:
             note.append(f"not settled: {_num(lo)} to {_num(hi)} (M or gamma_scale)")
         if p.get("stderr_widened"):
             note.append("widened for model error")
+        edge = _edge(n, p["value"])
+        if edge is not None:
+            note.append(f"at the {edge[0]} edge of its range ({_num(edge[1])}): no estimate")
         z = d.significance.get(n)
         if z is None:  # a parameter of an effect: the effect's z (0.0 is a value)
             z = d.significance.get(_item_of(n))
@@ -254,6 +257,16 @@ def _candidates_section(d, figure) -> list:
             "lab has, and other commands would use it.",
         ]
     return lines
+
+
+def _edge(name: str, value) -> tuple[str, float] | None:
+    """(side, bound) where a fitted value sits on an edge of its range (engine.parameters)."""
+    from tuning.estimation.engine.parameters import at_edge
+
+    try:
+        return at_edge(name, value) if value is not None and math.isfinite(value) else None
+    except KeyError:  # a name the engine has no range for
+        return None
 
 
 def _item_of(name: str) -> str:
