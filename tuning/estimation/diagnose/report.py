@@ -309,12 +309,14 @@ def plot_diagnosis(d, path) -> Path:
     fig, axes = plt.subplots(
         2, n, figsize=(6.5 * n, 6.6), squeeze=False, sharex="col", layout="constrained"
     )
+    # One label per model, the same in both panels, so the legend names each once.
+    corrected = f"corrected ({d.chosen})"
     for i, tr in enumerate(d.traces):
         top, bottom = axes[0, i], axes[1, i]
         t, measured = np.asarray(tr["time"]), np.asarray(tr["measured"])
         top.plot(t, measured, label="recording", **EXPERIMENT_STYLE)
         top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline", zorder=3)
-        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})", zorder=3)
+        top.plot(t, tr["after"], "C3--", lw=1, label=corrected, zorder=3)
         floor = d.floor if math.isfinite(d.floor) else 0.0
         top.fill_between(
             t,
@@ -327,7 +329,7 @@ def plot_diagnosis(d, path) -> Path:
             label="mismatch of the baseline (beyond the floor)",
         )
         bottom.plot(t, (tr["baseline"] - measured) * 1e3, "C0-", lw=0.8, label="baseline")
-        bottom.plot(t, (tr["after"] - measured) * 1e3, "C3-", lw=0.8, label="corrected")
+        bottom.plot(t, (tr["after"] - measured) * 1e3, "C3--", lw=0.8, label=corrected)
         if math.isfinite(d.floor) and d.floor > 0:
             bottom.axhspan(
                 -d.floor * 1e3,
@@ -352,7 +354,8 @@ def plot_diagnosis(d, path) -> Path:
         top.set_ylabel("position [m]")
         bottom.set_ylabel("residual model − recording [mm]")
         bottom.set_xlabel("time [s]")
-    figure_legend(fig, list(axes.flat), ncols=4)
+    # Two columns a recording's width holds; four from two recordings on.
+    figure_legend(fig, list(axes.flat), ncols=2 if n == 1 else 4)
     fig.suptitle(figure_title(d), fontsize=9, color="black" if d.explained else "darkred")
     path = save(fig, path, dpi=110)
     plt.close(fig)
