@@ -385,6 +385,8 @@ def _report(result, simulated, meta) -> int:
 
 def zero_volts(result) -> str:
     """Whether 0 V reached the device at the end, said as it is (the run's last line)."""
+    if result.zero_written and result.n_samples == 0:
+        return "nothing was driven (the device stopped before its first sample)"
     if result.zero_written:
         return "0 V written and the device stopped"
     held = (
