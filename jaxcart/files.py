@@ -164,6 +164,33 @@ def signal64(recording) -> np.ndarray:
 # ---------------------------------------------------------------- reading
 
 
+#: The built-in example recordings (synthetic; tuning/lab/data.py made them), shipped with
+#: the package. ``jaxcart examples`` copies them into a folder of the user's.
+BUILTIN_DATA = Path(__file__).resolve().parent / "data"
+#: Where ``jaxcart examples`` copies them when given no folder.
+EXAMPLES_DIR = "jaxcart-examples"
+
+
+def builtin_recording(name) -> Path | None:
+    """The built-in file of the same name as ``name`` (``tap.toml``, ``p50.csv``), or None."""
+    path = BUILTIN_DATA / Path(name).name
+    return path if Path(name).name and path.is_file() else None
+
+
+def _not_found_hint(path) -> None:
+    """A missing experiment file named like a built-in recording: where that one is, and how
+    to copy them all (raised as the one-line error)."""
+    path = Path(path)
+    builtin = builtin_recording(path.name)
+    if path.exists() or builtin is None or path.suffix.lower() != ".toml":
+        return
+    raise UserError(
+        f"experiment file {path} not found; the built-in recording {path.name} is {builtin}: "
+        f"jaxcart examples copies the built-in recordings into ./{EXAMPLES_DIR}/ (then cd "
+        f"{EXAMPLES_DIR}), or give the path of your own .toml file"
+    )
+
+
 def read_experiment(path, *, check: bool = True, experiment: str | None = None) -> Recording:
     """Read an experiment file (TOML + CSV/.mat data); see the module docstring for the format.
 
@@ -182,6 +209,7 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
     raw = split_source(path)  # "file.mat" or "file.mat:scope[1]": a raw scope file, no TOML
     if raw is not None:
         return read_imported(run_of(path, experiment), raw[0], check=check)
+    _not_found_hint(path)
     return _recording(
         lambda mat_reader: _expfile.read_experiment_data(path, mat_reader=mat_reader), check
     )

@@ -22,6 +22,7 @@ import sys
 #: class and the benchmark.
 COMMANDS = (
     "tuning.commands.lab",
+    "tuning.commands.examples",
     "tuning.commands.import_mat",
     "tuning.commands.simulate",
     "tuning.commands.app",
