@@ -82,6 +82,7 @@ def atomic_paths(*paths, force: bool = False):
         for path in paths:
             if path.exists():
                 raise OutputError(exists_message(path))
+    made = missing_folders(paths)
     current = paths[0] if paths else None
     temps = [temporary_name(p) for p in paths]
     done: list[Path] = []
@@ -97,9 +98,11 @@ def atomic_paths(*paths, force: bool = False):
             done.append(path)
     except OSError as exc:
         _remove(temps + done)
+        remove_empty(made)
         raise OutputError(describe(current, exc)) from None
     except BaseException:
         _remove(temps + done)
+        remove_empty(made)
         raise
 
 
@@ -143,14 +146,40 @@ def all_or_none(*paths):
     """Outputs of one command, kept together or not at all: when the block raises, each of
     ``paths`` (None entries are skipped) that did not exist as it began is removed, so a full
     disk at the last of three files leaves none of them to block the rerun. Each file is
-    still best written atomically (a failed write leaves no half file of its own)."""
+    still best written atomically (a failed write leaves no half file of its own). The folders
+    made on the way to them go too, where they are left empty."""
     paths = [Path(p) for p in paths if p is not None]
     new = [p for p in paths if not p.exists()]
+    made = missing_folders(paths)
     try:
         yield
     except BaseException:
         _remove([p for p in new if p.is_file()])
+        remove_empty(made)
         raise
+
+
+def missing_folders(paths) -> list[Path]:
+    """The folders on the way to ``paths`` (files) that do not exist yet, deepest first: what
+    writing them creates, and a command that fails removes again (an empty output folder left
+    behind reads as a result, and may block the rerun)."""
+    out: list[Path] = []
+    for path in paths:
+        folder = Path(path).parent
+        while not folder.exists() and folder != folder.parent and folder not in out:
+            out.append(folder)
+            folder = folder.parent
+    return sorted(out, key=lambda f: len(f.parts), reverse=True)
+
+
+def remove_empty(folders) -> None:
+    """Remove each of ``folders`` (deepest first) that exists and is empty; one that holds
+    anything stays, with what it holds."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, gone already, or not ours to remove
+            pass
 
 
 def _sync(tmp: Path) -> None:

@@ -303,7 +303,7 @@ def run_command(args) -> int:
             raise
         print(
             f"hw run: stopped by an error in the software: {type(exc).__name__}: "
-            f"{' '.join(str(exc).split())}; 0 V written and the device stopped",
+            f"{' '.join(str(exc).split())}; {zero_volts(result)}",
             file=sys.stderr,
         )
         if result.path is not None:
@@ -372,13 +372,31 @@ def _report(result, simulated, meta) -> int:
         sim = run_metrics(simulated) if simulated is not None else None
         for line in comparison_lines(run_metrics(result), sim, spec_of(meta)):
             print(f"hw run: {line}", file=sys.stderr)
-    if result.fault:
-        print(f"hw run: stopped: {result.fault} (0 V written)", file=sys.stderr)
     for note in result.notes:
         print(f"hw run: note: {note}", file=sys.stderr)
+    if result.fault:
+        print(f"hw run: stopped: {result.fault}; {zero_volts(result)}", file=sys.stderr)
+    elif not result.zero_written:
+        print(f"hw run: at the end: {zero_volts(result)}", file=sys.stderr)
     if result.path is not None:
         print(result.path)
     return exit_status(result)
+
+
+def zero_volts(result) -> str:
+    """Whether 0 V reached the device at the end, said as it is (the run's last line)."""
+    if result.zero_written and result.n_samples == 0:
+        return "nothing was driven (the device stopped before its first sample)"
+    if result.zero_written:
+        return "0 V written and the device stopped"
+    held = (
+        f"may still hold {result.last_voltage:.4g} V, the last voltage it took"
+        if math.isfinite(result.last_voltage)
+        else "holds an unknown voltage"
+    )
+    return (
+        f"writing 0 V FAILED ({result.zero_failure}): the output {held}; switch the amplifier off"
+    )
 
 
 def exit_status(result) -> int:

@@ -264,6 +264,7 @@ class Reader:
             controller = self.controller(ts)
             spec = self.signal_spec("reference", "r", signals)
             reference = self.signal_from_spec(spec, signals, "r", k * ts, y0)
+            self.check_reference_column(spec, reference, signals, time)
             signal = reference
         elif kind == "open_loop":
             spec = self.signal_spec("input", "v", signals)
@@ -475,11 +476,15 @@ class Reader:
         back = np.nonzero(steps <= 0)[0]
         if back.size:
             i = back[0] + 1
-            self.fail(
+            self.time_fault(
                 f"time of {source.label} does not increase at {source.row(i)} "
-                f"(t = {float(time[i - 1])!r} then {float(time[i])!r} s); sort the samples or "
-                f"remove repeated rows"
+                f"(t = {float(time[i - 1])!r} then {float(time[i])!r} s)",
+                "sort the samples or remove repeated rows",
+                signals,
+                source,
+                ts,
             )
+        declared = ts
         if ts is None:
             ts = float(f"{(time[-1] - time[0]) / (n - 1):.12g}")
             where = f"the mean step of {source.label}"
@@ -488,12 +493,34 @@ class Reader:
         off = np.nonzero(np.abs(steps - ts) > TIME_TOLERANCE * ts)[0]
         if off.size:
             i = off[0] + 1
-            self.fail(
-                f"time of {source.label} steps by {steps[off[0]]:.6g} s at {source.row(i)}, "
-                f"more than 1 % from {where}; fix sample_time or resample the data to a "
-                f"uniform step"
+            step = float(steps[off[0]])
+            ms = abs(step / (1000 * ts) - 1) <= TIME_TOLERANCE  # every step 1000 times Ts
+            self.time_fault(
+                f"time of {source.label} steps by {step:.6g} s at {source.row(i)}, more than "
+                f"1 % from {where}",
+                "the time looks recorded in ms: give t in s (divide it by 1000)"
+                if ms and np.all(np.abs(steps / (1000 * ts) - 1) <= TIME_TOLERANCE)
+                else "fix sample_time or resample the data to a uniform step",
+                signals,
+                source,
+                declared,
             )
         return time, ts
+
+    def time_fault(self, said, fix, signals, source, ts):
+        """Fail on a time vector that is not one: ``said`` and ``fix``, or, where another
+        column is an even time base, that the columns look swapped."""
+        base = _time_base(signals, source, ts)
+        if base is None:
+            self.fail(f"{said}; {fix}")
+        name, other = base
+        time_name = next(n for n, s in signals.items() if s is source)
+        self.fail(
+            f"{said}, while {other.label} is an even time base "
+            f"({_median_step(other.values):.6g} s steps from {float(other.values[0]):.6g} s): "
+            f"the columns {time_name} and {name} look swapped; swap their names in the header, "
+            "or map them in [data]"
+        )
 
     # -- sections
 
@@ -555,6 +582,29 @@ class Reader:
             )
         return table
 
+    def check_reference_column(self, spec, reference, signals, time):
+        """A recorded column r beside a [reference] step must be that step: one that moves
+        later says the step was recorded late (refused with the time it moves, where the data
+        would otherwise be fitted against a step that never was)."""
+        if spec["kind"] != "step" or "r" not in signals:
+            return
+        r = signals["r"].values
+        tol = 1e-9 + 1e-6 * max(abs(float(reference[0])), float(np.max(np.abs(r))))
+        off = np.nonzero(np.abs(r - reference) > tol)[0]
+        if not off.size:
+            return
+        stays = np.nonzero(np.abs(r - reference) > tol)[0][-1] + 1
+        when = (
+            f"reaches it only at t = {float(time[stays]):.6g} s (the step was recorded late)"
+            if stays < r.size
+            else f"holds {float(r[off[0]]):.6g} m at t = {float(time[off[0]]):.6g} s"
+        )
+        self.fail(
+            f"[reference] says a step to {float(reference[0]):g} m from t = 0, but "
+            f"{signals['r'].label} {when}; to use the recorded reference, give [reference] "
+            'kind = "column" (or no [reference])'
+        )
+
     def signal_from_spec(self, spec, signals, column, t, offset):
         kind = spec["kind"]
         if kind == "column":
@@ -614,6 +664,23 @@ def _portable_data(meta: dict) -> dict:
 
 def _line_of(lines):
     return lambda i: f"line {int(lines[i])}"
+
+
+def _time_base(signals, source, ts) -> tuple[str, Signal] | None:
+    """(name, signal) of another signal than ``source`` that is an even time base (strictly
+    increasing by one step, ``ts`` where given, within TIME_TOLERANCE), or None: the clue to
+    swapped columns."""
+    for name, signal in signals.items():
+        values = signal.values
+        if signal is source or values.size < 3:
+            continue
+        steps = np.diff(values)
+        step = _median_step(values)
+        if step <= 0 or (ts is not None and abs(step - ts) > TIME_TOLERANCE * ts):
+            continue
+        if np.all(np.abs(steps - step) <= TIME_TOLERANCE * step):
+            return name, signal
+    return None
 
 
 def _median_step(time):

@@ -16,7 +16,8 @@ recorder writes a chunk of the CSV waits for the chunk's end, so no line is cut.
 Pacing (``clock``):
     "device"        the device's own clock: read() blocks until the next sample (a Quanser board's
                     hardware-timed encoder task); the loop only measures
-    "perf_counter"  absolute deadlines t0 + k Ts on time.perf_counter: sleep until shortly
+    "perf_counter"  absolute deadlines t0 + k Ts on the computer's clock (time.perf_counter,
+                    or the ``timer`` given: :class:`hw.pacing.Timer`): sleep until shortly
                     before, then spin the last stretch (no drift: a late sample does not move the
                     next deadline)
     "virtual"       no waiting: as fast as the machine allows, timestamps k Ts (simulated or
@@ -39,15 +40,15 @@ import gc
 import math
 import signal
 import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from hw import pacing
 from hw.control_law import PID, Floats, PIDState, float_clip, float_pid, pid_init, pid_stepper
 from hw.devices.base import DeviceError
-from hw.pacing import SPIN, timing_stats
+from hw.pacing import SPIN, Timer, timing_stats, wait_until
 from hw.recorder import MIN_SAMPLES, RecorderError, RunRecorder
 from hw.safety import Fault, Guard, Limits
 
@@ -73,7 +74,9 @@ class RunResult:
     write [s]; timing: the statistics recorded in [timing]; path: the recording (TOML), or None
     (none asked, or the run never started and its files were removed); device: the device's
     description; signals: the stopping signals received ("SIGINT", ...), in order; notes: what
-    could not be written to the recording itself (one line each)
+    could not be written to the recording itself (one line each); zero_failure: why no write
+    of 0 V reached the device at the end (None: one did), when the output may still hold
+    ``last_voltage``, the last voltage the device took [V] (nan: not known)
     """
 
     status: str
@@ -89,6 +92,13 @@ class RunResult:
     device: dict
     signals: tuple = ()
     notes: tuple = ()
+    zero_failure: str | None = None
+    last_voltage: float = 0.0
+
+    @property
+    def zero_written(self) -> bool:
+        """0 V reached the device at the end."""
+        return self.zero_failure is None
 
     @property
     def n_samples(self) -> int:
@@ -200,12 +210,15 @@ class _Run:
 
     ts: float
     clock: str
+    timer: Timer
     rows: list = field(default_factory=list)  # [t, y, u, r, t_wall, compute]
     k: int = 0
     fault: str | None = None
     measured: bool = True  # the faulting sample's position is a measurement
     error: BaseException | None = None
     notes: list = field(default_factory=list)
+    zero_failure: str | None = None  # why 0 V never reached the device (None: it did)
+    last_voltage: float = 0.0  # what the device took last [V]
 
     def stop(self, reason: str, *, measured: bool = True, error=None) -> None:
         """The reason the run ends (the first one given stands; later ones become notes)."""
@@ -231,6 +244,7 @@ def run_loop(
     sync_every: float = 1.0,
     files=None,
     signals: bool = True,
+    timer: Timer | None = None,
 ) -> RunResult:
     """Run ``pid`` on ``device`` for ``len(reference)`` samples of r_k [m]; record to ``out``.
 
@@ -240,13 +254,17 @@ def run_loop(
     "perf_counter" or "virtual" (default: the device's clock if it has one, else
     perf_counter); out: the recording's path (TOML; the CSV beside it), never overwritten, or
     None for no recording; notes: extra provenance for [notes]; flush_every [samples],
-    sync_every [s], files: see :mod:`hw.recorder`; signals: handle SIGINT, SIGTERM, SIGHUP.
+    sync_every [s], files: see :mod:`hw.recorder`; signals: handle SIGINT, SIGTERM, SIGHUP;
+    timer: where the time is read and slept (:class:`hw.pacing.Timer`; default the computer's,
+    :data:`hw.pacing.SYSTEM_TIMER`).
 
     A safety fault, a device error, a recording error or a stopping signal ends the run with
     ``status = "fault"`` and the reason; any other exception is recorded the same way and
     raised again (with the result as its ``run_result``). In every case 0 V is written and the
-    device stopped before this returns. A run that stops before its second sample leaves no
-    recording (nothing to read; the name stays free for the retry).
+    device stopped before this returns; where the device itself fails so that no write of 0 V
+    reaches it, the result says so (``zero_failure``, and ``last_voltage`` what it holds). A
+    run that stops before its second sample leaves no recording (nothing to read; the name
+    stays free for the retry).
     """
     limits = limits or Limits()
     check_controller(pid, limits)
@@ -254,7 +272,7 @@ def run_loop(
     ref = [float(r) for r in np.asarray(reference, dtype=float).ravel()]
     if len(ref) < 2:
         raise ValueError(f"the reference has {len(ref)} sample(s); give at least 2 (duration > Ts)")
-    run = _Run(ts=float(pid.sample_time), clock=clock)
+    run = _Run(ts=float(pid.sample_time), clock=clock, timer=timer or pacing.SYSTEM_TIMER)
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     run_table = {"status": "running", "started": started, "clock": clock}
     safety = {f"limit_{k}": v for k, v in limits.to_dict().items()}
@@ -309,7 +327,7 @@ def _drive(device, pid, ref, limits, recorder, stops, run) -> None:
     law = float_pid(pid)
     control = pid_stepper(law, Floats, float_clip)
     guard = Guard(limits, ts)
-    perf, sleep = time.perf_counter, time.sleep
+    perf = run.timer.now
     virtual = run.clock == "virtual"
     paced = run.clock == "perf_counter"
     rows = run.rows
@@ -321,12 +339,7 @@ def _drive(device, pid, ref, limits, recorder, stops, run) -> None:
         stops.check()
         kts = k * ts
         if paced:
-            deadline = t0 + kts
-            remaining = deadline - perf()
-            if remaining > SPIN:
-                sleep(remaining - SPIN)
-            while perf() < deadline:
-                pass
+            wait_until(t0 + kts, run.timer)
         y = float(device.read())
         t_read = perf()
         if k == 0 and not paced:
@@ -373,15 +386,28 @@ def _line(exc) -> str:
 
 
 def _zero(device, run: _Run) -> None:
-    """0 V, then stop(): each runs whatever the other does (a signal does not raise here)."""
+    """0 V, then stop(): each runs whatever the other does (a signal does not raise here).
+    Whether 0 V reached the device is judged by what it says it took last (``last_voltage``:
+    a write that raises leaves it as it was), so that the run never claims a 0 V it did not
+    write."""
+    failure = None
     try:
         device.write(0.0)
     except BaseException as exc:  # noqa: BLE001 - stop() below writes 0 V again
-        run.notes.append(f"writing 0 V failed: {_line(exc)}")
+        failure = _line(exc)
     try:
         device.stop()
     except BaseException as exc:  # noqa: BLE001 - the recording must still be closed
         run.notes.append(f"stopping the device failed: {_line(exc)}")
+    try:
+        run.last_voltage = float(device.last_voltage)
+    except BaseException:  # noqa: BLE001 - not known: then 0 V is not claimed either
+        run.last_voltage = math.nan
+    if run.last_voltage == 0.0:
+        if failure is not None:
+            run.notes.append(f"the first write of 0 V failed ({failure}); stop() wrote it")
+    else:
+        run.zero_failure = failure or "the device did not take it"
 
 
 def _finish(device, ref, recorder, run: _Run, stops: _Signals, run_table: dict) -> RunResult:
@@ -389,6 +415,8 @@ def _finish(device, ref, recorder, run: _Run, stops: _Signals, run_table: dict) 
     rows = run.rows
     if rows and (not run.measured or not _finite(rows[-1][1])):
         rows.pop()  # the faulting read was not a position (nan, a glitch): not data
+    if rows and run.zero_failure is not None and _finite(run.last_voltage):
+        rows[-1][2] = run.last_voltage  # not the 0 V that never reached the device
     if recorder is not None and len(rows) > recorder.rows and recorder.error is None:
         try:  # the faulting sample: its position as read, the 0 V written
             recorder.row(*rows[-1])
@@ -431,6 +459,8 @@ def _finish(device, ref, recorder, run: _Run, stops: _Signals, run_table: dict) 
         device=device_table,
         signals=tuple(stops.received),
         notes=tuple(run.notes),
+        zero_failure=run.zero_failure,
+        last_voltage=run.last_voltage,
     )
 
 
@@ -495,10 +525,11 @@ def _final(recorder, run: _Run, run_table: dict, device) -> dict:
     stop_errors = getattr(device, "stop_errors", None)
     if stop_errors:
         final["stop_errors"] = "; ".join(stop_errors)
-    try:
-        final["last_voltage"] = float(device.last_voltage)
-    except BaseException:  # noqa: BLE001
-        pass
+    if _finite(run.last_voltage):
+        final["last_voltage"] = run.last_voltage
+    final["zero_written"] = run.zero_failure is None
+    if run.zero_failure is not None:
+        final["zero_failure"] = run.zero_failure
     return final
 
 

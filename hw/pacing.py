@@ -12,12 +12,19 @@ The loop's watchdog stops a run whose sample is read more than ``late_max`` afte
 deadline. Its default is chosen for the machine: a short probe of the same sleep-and-spin
 pacing measures how late this machine wakes up under its present load, and the watchdog is
 ``WATCHDOG_MARGIN`` times that, at least ``WATCHDOG_MIN`` and at most ``WATCHDOG_MAX``.
+
+The loop reads the time through a :class:`Timer` (the computer's: ``time.perf_counter`` and
+``time.sleep``), which a caller may replace: the tests drive one of their own, so that what the
+loop does with time (pacing, lateness, the watchdog) is checked without depending on the load
+of the machine that runs them; real-time behaviour itself is measured (``python -m hw bench``).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,6 +41,29 @@ WATCHDOG_MAX = 0.05
 WATCHDOG_MARGIN = 5.0
 #: Length of the probe [s].
 PROBE_SECONDS = 0.2
+
+
+@dataclass(frozen=True)
+class Timer:
+    """Where the loop reads the time and waits: ``now()`` [s, any origin], ``sleep(seconds)``."""
+
+    now: Callable[[], float] = time.perf_counter
+    sleep: Callable[[float], None] = time.sleep
+
+
+#: The computer's clock: what every run uses unless given another timer.
+SYSTEM_TIMER = Timer()
+
+
+def wait_until(deadline: float, timer: Timer = SYSTEM_TIMER) -> None:
+    """Sleep until shortly before ``deadline`` [s, on ``timer``], then spin the last stretch
+    (sleep overshoots by ~50-100 us; the spin does not)."""
+    now = timer.now
+    remaining = deadline - now()
+    if remaining > SPIN:
+        timer.sleep(remaining - SPIN)
+    while now() < deadline:
+        pass
 
 
 def timing_stats(t_wall, compute, sample_time: float, *, virtual: bool = False) -> dict:
@@ -108,20 +138,17 @@ def verdict(timing: dict) -> str:
     )
 
 
-def probe_lateness(sample_time: float, seconds: float = PROBE_SECONDS) -> float:
+def probe_lateness(
+    sample_time: float, seconds: float = PROBE_SECONDS, timer: Timer = SYSTEM_TIMER
+) -> float:
     """The worst lateness [s] of this machine's sleep-and-spin pacing over ``seconds``."""
-    perf, sleep = time.perf_counter, time.sleep
     n = max(10, int(round(seconds / sample_time)))
-    t0 = perf() + 2 * SPIN
+    t0 = timer.now() + 2 * SPIN
     worst = 0.0
     for k in range(n):
         deadline = t0 + k * sample_time
-        remaining = deadline - perf()
-        if remaining > SPIN:
-            sleep(remaining - SPIN)
-        while perf() < deadline:
-            pass
-        worst = max(worst, perf() - deadline)
+        wait_until(deadline, timer)
+        worst = max(worst, timer.now() - deadline)
     return worst
 
 

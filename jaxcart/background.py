@@ -8,6 +8,17 @@ thread is a daemon: a process that ends (an error elsewhere, Ctrl-C) does not wa
 from __future__ import annotations
 
 import threading
+import weakref
+
+#: Every Background not yet collected (:func:`running` looks for those still at work).
+_ALL: weakref.WeakSet = weakref.WeakSet()
+
+
+def running() -> list[str]:
+    """The names of the background threads still at work (work a failed command abandons:
+    inside XLA, such a thread aborts the interpreter's shutdown, so that the process's own
+    command line ends without one, :func:`tuning.commands.main.main`)."""
+    return [b._thread.name for b in list(_ALL) if b.alive()]
 
 
 class Background:
@@ -15,6 +26,7 @@ class Background:
 
     def __init__(self, func, *args, name: str = "jaxcart-background", **kwargs):
         self._box: dict = {}
+        _ALL.add(self)
 
         def work():
             try:

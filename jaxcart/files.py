@@ -164,6 +164,33 @@ def signal64(recording) -> np.ndarray:
 # ---------------------------------------------------------------- reading
 
 
+#: The built-in example recordings (synthetic; tuning/lab/data.py made them), shipped with
+#: the package. ``jaxcart examples`` copies them into a folder of the user's.
+BUILTIN_DATA = Path(__file__).resolve().parent / "data"
+#: Where ``jaxcart examples`` copies them when given no folder.
+EXAMPLES_DIR = "jaxcart-examples"
+
+
+def builtin_recording(name) -> Path | None:
+    """The built-in file of the same name as ``name`` (``tap.toml``, ``p50.csv``), or None."""
+    path = BUILTIN_DATA / Path(name).name
+    return path if Path(name).name and path.is_file() else None
+
+
+def _not_found_hint(path) -> None:
+    """A missing experiment file named like a built-in recording: where that one is, and how
+    to copy them all (raised as the one-line error)."""
+    path = Path(path)
+    builtin = builtin_recording(path.name)
+    if path.exists() or builtin is None or path.suffix.lower() != ".toml":
+        return
+    raise UserError(
+        f"experiment file {path} not found; the built-in recording {path.name} is {builtin}: "
+        f"jaxcart examples copies the built-in recordings into ./{EXAMPLES_DIR}/ (then cd "
+        f"{EXAMPLES_DIR}), or give the path of your own .toml file"
+    )
+
+
 def read_experiment(path, *, check: bool = True, experiment: str | None = None) -> Recording:
     """Read an experiment file (TOML + CSV/.mat data); see the module docstring for the format.
 
@@ -182,6 +209,7 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
     raw = split_source(path)  # "file.mat" or "file.mat:scope[1]": a raw scope file, no TOML
     if raw is not None:
         return read_imported(run_of(path, experiment), raw[0], check=check)
+    _not_found_hint(path)
     return _recording(
         lambda mat_reader: _expfile.read_experiment_data(path, mat_reader=mat_reader), check
     )
@@ -249,10 +277,30 @@ def _recording(load, check: bool) -> Recording:
     )
     if not check:
         return rec
-    warnings = tuple(plausibility.check_recording(rec))
+    rec, found = _late_step(rec)
+    warnings = found + tuple(plausibility.check_recording(rec))
     for message in warnings:
         plausibility.warn(message)
     return dataclasses.replace(rec, warnings=warnings)
+
+
+def _late_step(rec) -> tuple[Recording, tuple[str, ...]]:
+    """The recording with its step where the data put it (:func:`plausibility.late_step`), and
+    the warning that says so; as it was, and no warning, when the step is at t = 0."""
+    k0 = plausibility.late_step(rec)
+    if k0 is None:
+        return rec, ()
+    r = np.where(np.arange(rec.n_samples) < k0, rec.position[0], rec.reference[-1])
+    t0 = k0 * rec.sample_time
+    said = (
+        f"{rec.path}: the step starts at t = {t0:.3f} s, not at t = 0 as [reference] says: the "
+        f"recorded command v stays at rest until then and follows [controller] stepped there "
+        f"({rec.command[k0]:.3g} V at t = {t0:.3f} s); the reference is taken to step at "
+        f"{t0:.3f} s (cut the rows before it, or give the reference as a column r, to say so "
+        "in the file)"
+    )
+    experiment = dataclasses.replace(rec.experiment, signal=jnp.asarray(r))
+    return dataclasses.replace(rec, reference=r, signal=r, experiment=experiment), (said,)
 
 
 def _read_mat(reader, name, variable, field):

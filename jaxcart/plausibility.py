@@ -161,6 +161,20 @@ def _check_sample_time(where, ts) -> list[str]:
     ]
 
 
+def time_unit_doubt(rec) -> str | None:
+    """Why a result from ``rec`` cannot be trusted because of its time base, said for the
+    error that ends a command (the reading's warning has scrolled away by then): a sample
+    time that is a lab one in milliseconds; None when the time base is plausible."""
+    low, high = SAMPLE_TIME_RANGE
+    ts = float(rec.sample_time)
+    if ts > high and low <= ts / 1000 <= high:
+        return (
+            f"its time looks recorded in milliseconds (sample time {ts:g} s, where the lab's "
+            f"loop runs at 0.001 s): give t in s (divide the column by 1000)"
+        )
+    return None
+
+
 def _voltage_range(rec, plant) -> float:
     """The largest voltage the cart can have received [V] (see the module docstring)."""
     limit = float(voltage_limit(plant, rec.controller))
@@ -348,6 +362,39 @@ def _check_command(where, label, rec) -> list[str]:
         f" produce from the recorded y and r (median difference {best:.3g} V{hint}): wrong "
         f"gains or limit in [controller], or v in other units?"
     ]
+
+
+#: A step is recorded late when the recorded command stays at rest this many samples after
+#: t = 0 at least (a sample or two is the loop's own delay, which the command check allows).
+LATE_STEP_MIN_SAMPLES = 3
+
+
+def late_step(rec) -> int | None:
+    """The sample at which a closed-loop step really starts, where the file says t = 0 and
+    the data say later: ``[reference] kind = "step"``, and the recorded command v stays at the
+    rest command (the controller's on r = y, 0 V for P) for the first samples, then follows the
+    file's controller stepped there (:func:`controller_command`, within the command check's
+    tolerance). None when the step is at t = 0, or when the data say nothing clear (a
+    recording that fits neither is left to the command check's warning)."""
+    spec = rec.meta.get("reference") if isinstance(rec.meta, dict) else None
+    pid, u = rec.controller, rec.command
+    if rec.kind != "closed_loop" or pid is None or u is None or not isinstance(spec, dict):
+        return None
+    if spec.get("kind") != "step":
+        return None
+    u = np.asarray(u, dtype=float)
+    y = np.asarray(rec.position, dtype=float)
+    n = min(u.size, COMMAND_PREFIX)
+    tol = COMMAND_TOL_V + COMMAND_TOL_REL * float(np.max(np.abs(u[:n])))
+    rest = controller_command(pid, y[:n], y[:n])  # nothing to do before the step
+    moved = np.nonzero(np.abs(u[:n] - rest) > tol)[0]
+    k0 = int(moved[0]) if moved.size else n
+    if k0 < LATE_STEP_MIN_SAMPLES or k0 >= n - 1:
+        return None
+    stepped = np.where(np.arange(n) < k0, y[0], float(np.asarray(rec.reference)[-1]))
+    if _median_gap(u[k0:n], controller_command(pid, stepped, y[:n])[k0:], 0) > tol:
+        return None
+    return k0
 
 
 def _median_gap(a, b, shift):

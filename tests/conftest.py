@@ -1,5 +1,5 @@
 """Strict JAX for every test: float64, rank promotion raises, two CPU devices for the sharded
-path; figures are closed after each test."""
+path; every figure written is checked (tests/figcheck.py), and closed after each test."""
 
 import atexit
 import os
@@ -37,6 +37,29 @@ def realdata():
     if not os.path.isdir(path):
         pytest.skip("../shared/realdata is not beside this checkout")
     return path
+
+
+def _checked_savefig():
+    """Every figure a test writes is checked as written (tests/figcheck.py): nothing cut off
+    at the canvas's edges, no legend entry twice."""
+    from figcheck import figure_problems
+    from matplotlib.figure import Figure
+
+    savefig = Figure.savefig
+    if getattr(savefig, "checked", False):
+        return
+
+    def checked(self, *args, **kwargs):
+        out = savefig(self, *args, **kwargs)
+        problems = figure_problems(self)
+        assert not problems, "the figure written is wrong:\n" + "\n".join(problems)
+        return out
+
+    checked.checked = True
+    Figure.savefig = checked
+
+
+_checked_savefig()
 
 
 @pytest.fixture(autouse=True)

@@ -35,7 +35,8 @@ def _simulate(home: Path, *flags: str, **extra: str) -> None:
     env["HOME"] = str(home)
     env.update(extra)
     code = "import sys; from tuning.commands.main import main; sys.exit(main(sys.argv[1:]))"
-    args = [*flags, "simulate", "--horizon", "0.2", "--out", str(home / "run.csv")]
+    # --smooth: the jitted simulator, whose program is what the cache keeps.
+    args = [*flags, "simulate", "--smooth", "--horizon", "0.2", "--out", str(home / "run.csv")]
     done = subprocess.run(
         [sys.executable, "-c", code, *args], cwd=ROOT, env=env, capture_output=True, text=True
     )

@@ -123,3 +123,37 @@ def test_library_messages_with_inf_are_said_in_words():
     table = "  settling time [s]              inf            0.709\n  overshoot [%]   1   2"
     lines = _not_settled_in_words(table).splitlines()
     assert options.NOT_SETTLED in lines[0] and "0.709" in lines[0] and lines[1].endswith("2")
+
+
+def test_a_failed_command_ends_at_once_beside_work_it_abandons(tmp_path):
+    """The process's own command line (main() with no argv): a command that fails while
+    background work is inside XLA (a failed lab's diagnosis) ends with its status and one
+    error line; the interpreter's shutdown on that thread aborted it (status 134, "terminate
+    called after throwing ...") before."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, threading\n"
+        "import jax, jax.numpy as jnp\n"
+        "from jaxcart.background import Background\n"
+        "from tuning.commands.main import main\n"
+        "started = threading.Event()\n"
+        "def busy():  # many short calls into XLA, each leaving and taking the GIL\n"
+        "    f = jax.jit(lambda x: jnp.sin(x) + 1.0)\n"
+        "    x = jnp.ones(1000)\n"
+        "    while True:\n"
+        "        x = f(x)\n"
+        "        x.block_until_ready()\n"
+        "        started.set()\n"
+        "work = Background(busy)\n"
+        "started.wait()\n"
+        "sys.argv = ['jaxcart', 'simulate', 'nowhere.toml']\n"
+        "sys.exit(main())\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines()[-1].startswith("jaxcart simulate: error: "), done.stderr
+    assert "terminate" not in done.stderr

@@ -3,8 +3,6 @@ process: each 'process' a thread over an in-memory key-value store (tests/cluste
 order of the calls, the errors that travel in them and the keys left behind are checked without
 a runtime. A process that would wait for one that stopped fails the test after 20 s."""
 
-import time
-
 import numpy as np
 import pytest
 from cluster import in_threads
@@ -40,9 +38,8 @@ def test_an_error_on_one_process_is_raised_on_every_one(monkeypatch):
             ex.allgather({"x": np.ones(2)})
             ex.finish()
 
-    t0 = time.perf_counter()
     out = in_threads(monkeypatch, work)
-    assert time.perf_counter() - t0 < 5.0  # not the store's 20 s wait
+    # Not after the store's wait: that would end in its TimeoutError, not in the one line.
     for exc in out:
         assert type(exc) is UserError
         assert str(exc) == "RuntimeError in process 1 of 2: boom"

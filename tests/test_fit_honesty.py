@@ -128,3 +128,121 @@ def test_outputs_are_checked_before_fitting(tmp_path, tap, capsys):
         assert not any(line.startswith("fit:") for line in err.splitlines())  # not started
     assert main(["fit", str(toml), "--plot", str(tmp_path / "fit.xyz")]) == 2
     assert ".png" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- edges and late steps
+
+
+def _late_p50(folder, *, late_s=1.0, with_v=True):
+    """The built-in P 50 recording (truth B_eq 4.6, f_c 0.45) recorded ``late_s`` before its
+    step: that many seconds of y = 0, v = 0 in front, the file still saying a step at t = 0."""
+    from tuning.lab.data import builtin_dir
+
+    rows = np.loadtxt(builtin_dir() / "p50.csv", delimiter=",", skiprows=1)
+    n = int(round(late_s / 1e-3))
+    rows = np.vstack([np.zeros((n, 3)), rows])
+    rows[:, 0] = np.arange(len(rows)) * 1e-3
+    columns = "t,y,v" if with_v else "t,y"
+    np.savetxt(
+        folder / "late.csv",
+        rows[:, :3] if with_v else rows[:, :2],
+        delimiter=",",
+        header=columns,
+        comments="",
+        fmt="%.9g",
+    )
+    toml = (builtin_dir() / "p50.toml").read_text().replace("p50.csv", "late.csv")
+    (folder / "late.toml").write_text(toml)
+    return folder / "late.toml"
+
+
+def test_a_step_recorded_late_is_found_from_the_voltage_and_used(tmp_path, capsys):
+    """The issue's case: B_eq came out 30 +/- 0.934 kg/s (the upper edge of its range,
+    unmarked, exit 0) from a P 50 run recorded 1 s before its step. The voltage jumps at 1 s:
+    the step is taken there, said, and the fit finds the truth."""
+    from jaxcart.files import read_experiment
+    from tuning.commands.main import main
+
+    path = _late_p50(tmp_path)
+    rec = read_experiment(path)
+    assert rec.warnings[0].startswith(
+        f"{path}: the step starts at t = 1.000 s, not at t = 0 as [reference] says: the "
+        "recorded command v stays at rest until then"
+    )
+    np.testing.assert_array_equal(rec.reference[:1000], 0.0)
+    np.testing.assert_array_equal(rec.reference[1000:], 0.4)
+    np.testing.assert_array_equal(np.asarray(rec.experiment.signal), rec.reference)
+    assert "jaxcart: warning: " + rec.warnings[0] in capsys.readouterr().err  # said once
+    assert (
+        main(
+            [
+                "fit",
+                str(path),
+                "--params",
+                "B_eq,f_c",
+                "--quiet",
+                "--json",
+                str(tmp_path / "fit.json"),
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr()
+    assert "EDGE" not in out.out
+    import json
+
+    params = json.loads((tmp_path / "fit.json").read_text())["params"]
+    assert params["B_eq"]["value"] == pytest.approx(4.6, rel=0.005)  # the truth
+    assert params["f_c"]["value"] == pytest.approx(0.45, rel=0.01)
+    assert "at_edge" not in params["B_eq"]
+
+
+def test_a_step_at_t_0_is_left_where_it_is():
+    from jaxcart.files import read_experiment
+    from tuning.lab.data import builtin_dir
+
+    rec = read_experiment(builtin_dir() / "p50.toml")
+    assert not any("step starts" in w for w in rec.warnings)
+    np.testing.assert_array_equal(rec.reference, 0.4)
+
+
+def test_a_fitted_value_on_the_edge_of_its_range_is_said_and_exits_1(tmp_path, capsys):
+    """The issue's numbers, where nothing shows the step's real start (no column v): the fit
+    runs to B_eq = 30 kg/s, the upper edge of its range. The value is marked as no estimate in
+    the table, the warnings, the JSON and the plant file, and the command exits 1 (it is the
+    headline)."""
+    import json
+    import tomllib
+
+    from tuning.commands.main import main
+
+    path = _late_p50(tmp_path, with_v=False)
+    argv = ["fit", str(path), "--params", "B_eq,f_c", "--quiet"]
+    argv += ["--json", str(tmp_path / "f.json"), "--out", str(tmp_path / "plant.toml")]
+    assert main(argv) == 1
+    out = capsys.readouterr()
+    (row,) = [line for line in out.out.splitlines() if line.startswith("B_eq ")]
+    assert row.split()[1] == "30" and row.endswith("AT THE UPPER EDGE of its range: no estimate")
+    assert "warning: B_eq = 30 kg/s is at the upper edge of its allowed range [0.5, 30]" in out.out
+    assert out.err.splitlines()[-1].startswith("fit: B_eq at the edge of the allowed range")
+    doc = json.loads((tmp_path / "f.json").read_text())
+    assert doc["params"]["B_eq"]["at_edge"] == {"side": "upper", "bound": 30.0}
+    fit_table = tomllib.loads((tmp_path / "plant.toml").read_text())["fit"]
+    assert any("upper edge" in w for w in fit_table["warnings"])
+
+
+def test_an_edge_is_judged_relative_to_the_range_and_said_wherever_a_value_is_shown():
+    from tuning.estimation.diagnose.report import _edge
+    from tuning.estimation.engine.parameters import at_edge, bounds
+    from tuning.lab.fits import pm
+
+    lo, hi = bounds("B_eq")  # a logarithm: within 0.1 % of the bound
+    assert at_edge("B_eq", hi) == ("upper", hi) and at_edge("B_eq", hi * 0.9995) == ("upper", hi)
+    assert at_edge("B_eq", hi * 0.998) is None and at_edge("B_eq", lo) == ("lower", lo)
+    lo, hi = bounds("y_rest")  # linear: within 0.1 % of the range's width
+    assert at_edge("y_rest", lo + 0.0005 * (hi - lo)) == ("lower", lo)
+    assert at_edge("y_rest", 0.0) is None and at_edge("v_sat@1", 30.0) == ("upper", 30.0)
+    assert _edge("B_eq", 30.0) == ("upper", 30.0) and _edge("no_such", 1.0) is None
+    est = F.Estimate("B_eq", 30.0, 29.9, edge=("upper", 30.0))
+    assert pm(est, "kg/s") == "30 ± 30 kg/s (at the upper edge of its allowed range: no estimate)"
+    assert "upper edge of its allowed range [0.5, 30] kg/s" in est.edge_note

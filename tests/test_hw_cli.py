@@ -119,11 +119,22 @@ def test_every_hw_module_imports_without_jax_or_scipy():
     assert done.returncode == 0, done.stderr
 
 
+#: The child's loop on a clock the test drives (tests/fakeclock.py): paced as in real time,
+#: judged late or not by that clock alone, never by the load of the machine running the tests.
+FAKE_CLOCK = """
+sys.path.insert(0, 'tests')
+import hw.pacing, fakeclock
+hw.pacing.SYSTEM_TIMER = fakeclock.FakeClock().timer
+"""
+
+
 def test_python_m_hw_run_in_real_time_with_numpy_only(tmp_path):
     gains = _gains(tmp_path)
     out = tmp_path / "np.toml"
     code = (
-        BLOCKED + "sys.argv = ['hw'] + sys.argv[1:]\nrunpy.run_module('hw', run_name='__main__')\n"
+        BLOCKED
+        + FAKE_CLOCK
+        + "sys.argv = ['hw'] + sys.argv[1:]\nrunpy.run_module('hw', run_name='__main__')\n"
     )
     argv = [
         "run",
@@ -148,7 +159,7 @@ def test_python_m_hw_run_in_real_time_with_numpy_only(tmp_path):
     assert done.returncode == 0, done.stderr
     rec = read_experiment(out)
     assert rec.n_samples == 301 and rec.meta["device"]["clock"] == "perf_counter"
-    assert "real time kept" in done.stderr or "real time NOT kept" in done.stderr
+    assert "real time kept: every sample read within 500 us of its deadline" in done.stderr
     json.dumps(rec.meta["timing"])  # plain numbers
 
 
@@ -163,7 +174,9 @@ def test_bench_prints_both_loops(capsys):
 )
 def test_a_real_signal_from_outside_stops_a_numpy_only_run(tmp_path, signals, code):
     """`python -m hw run` in a child with numpy only, in real time, sent real signals while it
-    runs: 0 V, the recording finished with the reason, the conventional exit status."""
+    runs: 0 V, the recording finished with the reason, the conventional exit status. The
+    signals go once the recording holds samples (not after a guessed time), and the loop's
+    watchdog is off, so that a machine too busy for real time cannot stop the run first."""
     import signal
     import time
 
@@ -172,7 +185,7 @@ def test_a_real_signal_from_outside_stops_a_numpy_only_run(tmp_path, signals, co
     code_text = (
         BLOCKED + "sys.argv = ['hw'] + sys.argv[1:]\nrunpy.run_module('hw', run_name='__main__')\n"
     )
-    argv = ["run", gains, "--real-time", "--duration", "5", "--watchdog", "0.5"]
+    argv = ["run", gains, "--real-time", "--duration", "60", "--watchdog", "0"]
     child = subprocess.Popen(
         [sys.executable, "-c", code_text, *argv, "--out", str(out)],
         cwd=ROOT,
@@ -182,16 +195,18 @@ def test_a_real_signal_from_outside_stops_a_numpy_only_run(tmp_path, signals, co
     )
     first = child.stderr.readline()  # printed just before the loop starts
     assert "real time" in first, first
-    time.sleep(0.5)
+    csv = out.with_suffix(".csv")
+    while not (csv.exists() and csv.read_text().count("\n") >= 3) and child.poll() is None:
+        time.sleep(0.01)  # waiting for the first rows on disk (flushed every 100 samples)
     for name in signals:
         child.send_signal(getattr(signal, name))
         time.sleep(0.01)
-    stdout, stderr = child.communicate(timeout=60)
+    stdout, stderr = child.communicate(timeout=120)
     assert child.returncode == code, stderr
     rec = read_experiment(out)
     run = rec.meta["run"]
     assert run["status"] == "fault" and run["last_voltage"] == 0.0
     word = {"SIGINT": "Ctrl-C"}.get(signals[0], signals[0])
     assert word in run["fault"] and word in stderr
-    assert 100 < rec.n_samples < 5000 and "timing" in rec.meta
+    assert 100 <= rec.n_samples < 60001 and "timing" in rec.meta  # stopped by the signal
     assert "Traceback" not in stderr  # later signals never cut the stop or the report short

@@ -6,6 +6,7 @@ import types
 
 import numpy as np
 import pytest
+from fakeclock import FakeClock
 
 from hw.control_law import PID
 from hw.devices.base import Device, DeviceError
@@ -27,10 +28,15 @@ class HILError(Exception):
         return self.message
 
 
-def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=None, hook=None):
-    """A stand-in for ``quanser.hardware``; ``api.calls`` lists every call (name, args)."""
+def fake_api(
+    cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=None, hook=None, clock=None
+):
+    """A stand-in for ``quanser.hardware``; ``api.calls`` lists every call (name, args);
+    ``api.clock`` (:class:`fakeclock.FakeClock`) is the board's clock, each encoder read at
+    its sample's tick, for the loop's ``timer=api.clock.timer``."""
     calls = []
     cart = cart or SimCart(CartParams(quantization=0.0))
+    clock = clock or FakeClock()
 
     class HIL:
         def __init__(self, board, identifier):
@@ -49,6 +55,7 @@ def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=Non
                 if name == "write_analog":
                     cart.write(float(args[2][0]))
                 if name == "task_read_encoder":
+                    clock.at_sample(self.reads)
                     self.reads += 1
                     if hook is not None:
                         hook(self.reads)
@@ -57,6 +64,7 @@ def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=Non
                     return "task-1"
                 if name == "task_start":
                     cart.start(1.0 / args[2])
+                    clock.start_task(1.0 / args[2])
                 if name == "watchdog_reload":
                     return expire_at is None or self.reads < expire_at  # False: expired
                 return None
@@ -69,6 +77,7 @@ def fake_api(cart=None, *, watchdog=True, fail=None, fail_at=None, expire_at=Non
         Clock=types.SimpleNamespace(HARDWARE_CLOCK_0="HW0"),
         calls=calls,
         cart=cart,
+        clock=clock,
     )
     return api
 
@@ -81,7 +90,9 @@ def test_board_runs_the_loop_like_the_simulated_cart(tmp_path):
     api = fake_api()
     board = QuanserBoard("q2_usb", "0", api=api)
     assert isinstance(board, Device)
-    result = run_loop(board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "q2.toml")
+    result = run_loop(
+        board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "q2.toml", timer=api.clock.timer
+    )
     assert result.status == "completed", result.fault
     direct = run_loop(SimCart(), PID_LAB, np.full(1001, 0.3), clock="virtual")
     np.testing.assert_allclose(result.position, direct.position, rtol=0, atol=1e-12)
@@ -128,7 +139,9 @@ def _last_write(api):
 def test_board_errors_stop_with_zero_volts(tmp_path, fail, fail_at, words):
     api = fake_api(fail=fail, fail_at=fail_at)
     board = QuanserBoard("q8_usb", "1", api=api)
-    result = run_loop(board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "e.toml")
+    result = run_loop(
+        board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "e.toml", timer=api.clock.timer
+    )
     assert result.status == "fault" and words in result.fault and "q8_usb 1" in result.fault
     if fail != "open":
         assert _last_write(api) == 0.0 and _names(api)[-1] == "close"
@@ -143,7 +156,9 @@ def test_an_expired_board_watchdog_stops_the_run(tmp_path):
     the loop stops with that reason, and 0 V is written again once the watchdog is cleared."""
     api = fake_api(expire_at=300)
     board = QuanserBoard("q2_usb", "0", api=api)
-    result = run_loop(board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "w.toml")
+    result = run_loop(
+        board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "w.toml", timer=api.clock.timer
+    )
     assert result.status == "fault" and "watchdog expired" in result.fault
     assert result.n_samples == 299
     names = _names(api)
@@ -163,7 +178,9 @@ def test_a_signal_during_a_board_run_leaves_the_board_safe(tmp_path, name):
 
     api = fake_api(hook=hook)
     board = QuanserBoard("q2_usb", "0", api=api)
-    result = run_loop(board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "s.toml")
+    result = run_loop(
+        board, PID_LAB, np.full(1001, 0.3), out=tmp_path / "s.toml", timer=api.clock.timer
+    )
     assert result.status == "fault" and result.signals == (name,)
     names = _names(api)
     tail = names[names.index("task_stop") - 1 :]
@@ -177,10 +194,27 @@ def test_a_signal_during_a_board_run_leaves_the_board_safe(tmp_path, name):
 def test_board_without_watchdog_states_still_runs():
     api = fake_api(watchdog=False)
     board = QuanserBoard("q2_usb", "0", api=api)
-    result = run_loop(board, PID_LAB, np.full(50, 0.1))
+    result = run_loop(board, PID_LAB, np.full(50, 0.1), timer=api.clock.timer)
     assert result.status == "completed"
     assert "not supported" in result.device["watchdog"]
     assert "watchdog_reload" not in _names(api) and "watchdog_stop" not in _names(api)
+
+
+@pytest.mark.parametrize("stall, status", [(0.006, "fault"), (0.004, "completed")])
+def test_a_late_read_on_the_boards_clock_trips_the_loops_watchdog(stall, status):
+    """The board's clock is the loop's: a 6 ms stall before read 300 (the 5 ms watchdog)
+    stops the run on that sample with 0 V; 4 ms passes. Timed by the fake clock, not the
+    machine's load."""
+    clock = FakeClock()
+    api = fake_api(clock=clock, hook=lambda reads: reads == 300 and clock.stall(stall))
+    board = QuanserBoard("q2_usb", "0", api=api)
+    result = run_loop(board, PID_LAB, np.full(1001, 0.3), timer=clock.timer)
+    assert result.status == status, result.fault
+    if status == "fault":
+        assert "watchdog: sample 299 (t = 0.299 s) was read 6 ms late" in result.fault
+        assert result.n_samples == 300 and _last_write(api) == 0.0
+    else:
+        assert result.timing["late_max_us"] == pytest.approx(4000, abs=10)
 
 
 def test_board_without_the_sdk_says_what_to_install():

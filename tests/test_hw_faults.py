@@ -10,21 +10,22 @@ jaxcart's own reader reads, whose [run] fault names the fault and holds no nan, 
 stopped before 2 samples were saved) no file at all, so that a retry finds the name free. A
 file system that turns read-only is the documented limit: the CSV reads, the TOML cannot be
 finished (it says running), the reason is printed.
-Virtual time and 0.3 s runs keep it fast (stalls: real time, 0.08 s)."""
+Virtual time and 0.3 s runs keep it fast (stalls: real time on a clock the test drives, 0.08 s)."""
 
 import errno
 import math
 import os
 import signal
-import time
 import zlib
 from collections import Counter
 
 import numpy as np
 import pytest
+from fakeclock import FakeClock
 
 import hw.cli
 import hw.loop
+import hw.pacing
 import hw.recorder
 from hw.cli import main
 from hw.control_law import PID
@@ -545,6 +546,45 @@ def test_a_device_whose_stop_fails(monkeypatch, tmp_path, gains, capsys):
             assert "stop failed" in rec.meta["run"]["notes"]
 
 
+@pytest.mark.parametrize("lasting", [True, False])
+def test_a_device_that_disconnects_is_not_said_to_be_at_0_volts(
+    monkeypatch, tmp_path, gains, capsys, lasting
+):
+    """A USB cable pulled at sample 150: every write from there on raises, the 0 V of the
+    stop too. The last line says 0 V was not written and what the output may still hold, the
+    last voltage the device took, which is the recording's last voltage. A write that failed
+    once (not lasting) is followed by a 0 V that reached it, and the last line says that."""
+
+    failed = []
+
+    def write(k, volts):
+        if k >= 150 and (lasting or not failed):
+            failed.append(k)
+            raise DeviceError("USB: device disconnected")
+
+    rig = Rig(write=write)
+    status, out = _run(monkeypatch, tmp_path, gains, rig)
+    lines = capsys.readouterr().err.strip().splitlines()
+    rec = _promises("device disconnected", rig, status, out, ["disconnected"], capsys)
+    assert status == 1
+    run = rec.meta["run"]
+    assert lines[-1].startswith("hw run: stopped: device: USB: device disconnected; ")
+    if lasting:
+        held = rig.last_voltage
+        assert held != 0.0 and run["zero_written"] is False and run["last_voltage"] == held
+        assert rec.command[-1] == held and rec.command[-2] == held  # 149 held, 150 not taken
+        assert run["zero_failure"] == "USB: device disconnected"
+        assert lines[-1].endswith(
+            f"writing 0 V FAILED (USB: device disconnected): the output may still hold "
+            f"{held:.4g} V, the last voltage it took; switch the amplifier off"
+        )
+        assert not any("0 V written" in line for line in lines)
+    else:
+        assert rig.last_voltage == 0.0 and run["zero_written"] is True
+        assert rec.command[-1] == 0.0 and "zero_failure" not in run
+        assert lines[-1].endswith("; 0 V written and the device stopped")
+
+
 @pytest.mark.parametrize("value", ["nan", "inf", "jump"])
 def test_the_encoder_reads_nonsense(monkeypatch, tmp_path, gains, capsys, value):
     rng = _rng(f"encoder {value}")
@@ -567,20 +607,26 @@ def test_the_encoder_reads_nonsense(monkeypatch, tmp_path, gains, capsys, value)
 
 
 def test_a_stall_stops_on_the_watchdog(monkeypatch, tmp_path, gains, capsys):
-    """The device stalls 30 ms at a random sample of a real-time run (watchdog 10 ms)."""
+    """The device stalls 30 ms at a random sample of a real-time run (watchdog 10 ms), on a
+    clock the test drives (the machine's own load would stop runs at other samples)."""
     rng = _rng("stall")
     for i in range(RUNS):
         at = int(rng.integers(0, 60))
+        clock = FakeClock()
 
-        def read(k, y, at=at):
+        def read(k, y, at=at, clock=clock):
             if k == at:
-                time.sleep(0.03)
+                clock.stall(0.03)
             return y
 
         rig = Rig(read=read)
+        monkeypatch.setattr(hw.pacing, "SYSTEM_TIMER", clock.timer)
         monkeypatch.setattr(hw.cli, "make_device", lambda args, rig=rig: rig)
         out = tmp_path / f"stall{i}.toml"
         argv = ["run", gains, "--duration", "0.08", "--real-time", "--watchdog", "0.01"]
         status = main(argv + ["--out", str(out)])
         monkeypatch.undo()
-        _promises("stall", rig, status, out, ["watchdog"], capsys, exit_status=1)
+        rec = _promises("stall", rig, status, out, ["watchdog"], capsys, exit_status=1)
+        if rec is not None:  # stopped on the stalled sample itself, no other
+            assert f"watchdog: sample {at} " in rec.meta["run"]["fault"]
+            assert "was read 30 ms late" in rec.meta["run"]["fault"]

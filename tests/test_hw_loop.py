@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from fakeclock import FakeClock, Stalling
 
 import jaxcart as jc
 from hw.control_law import PID
@@ -80,32 +81,34 @@ def test_recording_reads_back_with_every_setting(tmp_path):
     assert header == "t,y,v,r,e,t_wall,compute"
 
 
-def test_real_time_loop_on_perf_counter(tmp_path):
-    pid = CONTROLLERS["pid"]
-    # A generous watchdog: a shared CI machine may pause the process for a few ms.
-    limits = Limits(late_max=0.1)
-    # A pause of the whole process (a loaded machine) is followed by the catch-up of an
-    # absolute schedule, back-to-back samples that pull the median period down (88 us once,
-    # under a parallel test run): such a run must say so, and cannot show the median, so it
-    # runs again.
+def test_real_time_loop_paces_on_absolute_deadlines(tmp_path):
+    """The perf_counter pacing on a clock the test drives (not the machine's: its load would
+    decide the outcome): every sample read at its deadline k Ts, however long the sleeps took
+    before; a stall of 3 ms at sample 100 makes that sample late and the next ones catch up
+    back-to-back, without moving the schedule. How well a real machine keeps time is measured
+    by ``python -m hw bench``, not asserted here."""
     from hw.pacing import verdict
 
-    for attempt in range(3):
-        out = tmp_path / f"rt{attempt}.toml"
-        result = run_loop(SimCart(), pid, np.full(201, 0.1), limits=limits, out=out)
-        assert result.status == "completed", result.fault
-        t = result.timing
-        if t["real_time"] == "kept":
-            break
-        assert t["late_samples"] > 0 and "NOT kept" in verdict(t)
-    if t["real_time"] == "kept":
-        # 200 periods in about 0.2 s: the schedule is absolute, so the mean period is Ts.
-        assert result.t_wall[-1] == pytest.approx(0.2, abs=0.0005)
-        assert 900 < t["period_median_us"] < 1100 and t["overruns"] >= 0
-        assert t["late_max_us"] <= 500 and "real time kept" in verdict(t)
+    pid = CONTROLLERS["pid"]
+    clock = FakeClock()
+    device = Stalling(clock, at=100, seconds=0.003)
+    out = tmp_path / "rt.toml"
+    result = run_loop(
+        device, pid, np.full(201, 0.1), limits=Limits(late_max=0.1), out=out, timer=clock.timer
+    )
+    assert result.status == "completed", result.fault
+    t = result.timing
+    late = result.t_wall - result.time
+    assert np.all(np.abs(late[:100] - 2e-6) < 1e-6)  # at the deadline, but for the spin's ticks
+    np.testing.assert_allclose(late[100:103], [0.003, 0.002, 0.001], atol=2e-5)
+    # Caught up by reading 101-103 back-to-back, then on the schedule again: the absolute
+    # deadlines do not drift.
+    assert np.all(late[104:] < 3e-6) and result.t_wall[-1] == pytest.approx(0.2, abs=3e-6)
+    assert t["late_samples"] == 3 and t["catch_up_periods"] == 3 and t["overruns"] == 3
+    assert t["real_time"] == "fell behind" and "NOT kept" in verdict(t)
     rec = read_experiment(result.path)
     assert rec.meta["device"]["clock"] == "perf_counter"
-    assert rec.meta["timing"]["period_max_us"] >= rec.meta["timing"]["period_median_us"]
+    assert rec.meta["timing"]["late_max_us"] == pytest.approx(3000, abs=5)
 
 
 def test_refuses_a_controller_it_cannot_run_as_tuned():

@@ -1,13 +1,17 @@
 """`jaxcart lab`: the whole report from the built-in (synthetic) recordings and from the real
 ones; the PI bound on k_i; which recording goes to which part; the built-in data themselves.
 
-The built-in run (about 40 s on 2 cores) is shared by the tests of this module.
+The built-in run (about 40 s on 2 cores) is shared by the tests of this module: it is the
+README's main job, `jaxcart lab` as written, run once in the whole suite; the real recordings'
+run is the README's figure caption, `jaxcart lab --data ../shared/realdata --no-diagnosis`
+(tests/test_docs_commands.py checks that both run here as written).
 """
 
 import json
 import math
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,11 +43,36 @@ FIGURES = {
 }
 
 
+def in_folder(folder, argv):
+    """``jaxcart ARGV`` in ``folder`` (as a user runs it there); its exit status."""
+    import os
+
+    from tuning.commands.main import main
+
+    here = os.getcwd()
+    os.chdir(folder)
+    try:
+        return main(argv)
+    finally:
+        os.chdir(here)
+
+
 @pytest.fixture(scope="module")
 def builtin_report(tmp_path_factory):
-    out = tmp_path_factory.mktemp("lab") / "report"
-    run_lab(None, out)
+    folder = tmp_path_factory.mktemp("lab")
+    assert in_folder(folder, ["lab"]) == 0  # the README's command, as written
+    out = folder / "jaxcart-lab"
     return out, json.loads((out / "results.json").read_text())
+
+
+def test_a_second_lab_writes_the_next_free_folder(tmp_path, monkeypatch):
+    """The README: a second `jaxcart lab` in the same folder writes jaxcart-lab-2/."""
+    monkeypatch.chdir(tmp_path)
+    assert output_dir() == Path("jaxcart-lab")
+    (tmp_path / "jaxcart-lab").mkdir()
+    assert output_dir() == Path("jaxcart-lab-2")
+    (tmp_path / "jaxcart-lab-2").mkdir()
+    assert output_dir() == Path("jaxcart-lab-3")
 
 
 # ---------------------------------------------------------------- the PI bound
@@ -408,7 +437,12 @@ def test_slider_moves_end_at_each_setpoint(builtin_report):
 def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
     # The diagnosis section is tested on the built-in report (and the real recordings'
     # diagnosis in tests/test_diagnose.py); leaving it out here halves this test.
-    out = run_lab(realdata, tmp_path / "real", diagnosis=False)
+    # The README's caption, as written, in a folder with ../shared beside it.
+    (tmp_path / "shared").symlink_to(Path(realdata).parent)
+    (tmp_path / "repository").mkdir()
+    argv = ["lab", "--data", "../shared/realdata", "--no-diagnosis"]
+    assert in_folder(tmp_path / "repository", argv) == 0
+    out = tmp_path / "repository" / "jaxcart-lab"
     results = json.loads((out / "results.json").read_text())
     recordings = results["data"]["recordings"]
     assert recordings["tap"] == "tap.toml" and recordings["p_step"] == "p50.toml"
@@ -423,6 +457,13 @@ def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
     fit = results["part_i"]["fit"]
     assert fit["rms_after"] < 0.5e-3
     assert 0.5 < values["B_eq_tap_fit"] < 10 and 0.05 < values["f_c_tap_fit"] < 2
+    # The README's caption: B_eq = 1.505 +/- 0.024 kg/s, f_c = 0.437 +/- 0.008 N, 0.21 mm RMS
+    # on the exact simulator; the handout's method 2.77 kg/s.
+    params = fit["params"]
+    assert f"{params['B_eq']['value']:.3f} {params['B_eq']['stderr']:.3f}" == "1.505 0.024"
+    assert f"{params['f_c']['value']:.3f} {params['f_c']['stderr']:.3f}" == "0.437 0.008"
+    assert f"{fit['rms_after'] * 1e3:.2f}" == "0.21"
+    assert f"{values['B_eq_tap_handout']:.2f}" == "2.77"
     # Part (ii) from the real recording: B_eq re-estimated, better than the tap's model.
     refit = results["part_ii"]["refit"]
     assert refit["rms_after"] < refit["rms_before"]

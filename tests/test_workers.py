@@ -36,12 +36,14 @@ def pid_of_helper(_x):
 def two_helpers(monkeypatch):
     monkeypatch.setenv(workers.VARIABLE, "2")
     workers.start()
-    # Wait until both have imported (the first map would otherwise run here alone).
+    # Wait until both have imported (the first map would otherwise run here alone), however
+    # long a busy machine takes: until each has said ready, or has died.
     import time
 
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and not all(h.is_ready() for h in workers._helpers()):
+    helpers = workers._helpers()
+    while not all(h.is_ready() or not h.alive for h in helpers):
         time.sleep(0.05)
+    assert all(h.ready for h in helpers), "a helper process died while importing"
     yield
     workers.shutdown()
 

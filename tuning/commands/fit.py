@@ -162,7 +162,21 @@ def run(args) -> int:
 
     with all_or_none(args.json_out, args.out, args.plot):  # all written, or none left
         _write_outputs(args, report, result, F)
-    return 0
+    return edge_status(result)
+
+
+def edge_status(result) -> int:
+    """1 where a fitted parameter (the command's headline) sits on an edge of its allowed
+    range, said in one line last, else 0."""
+    edges = [n for n, e in result.params.items() if e.edge is not None] if result else []
+    if not edges:
+        return 0
+    print(
+        f"fit: {', '.join(edges)} at the edge of the allowed range: no estimate (exit status 1; "
+        "see the warning above)",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def _write_outputs(args, report, result, F) -> None:
@@ -257,7 +271,10 @@ def format_result(result) -> str:
         if not e.identifiable:  # the note says why, and where the value held comes from
             lines.append(f"{name:<14}{e.note}")
             continue
-        lines.append(f"{name:<14}{e.value:>14.6g}{e.stderr:>12.3g}{e.stderr_naive:>12.3g}  {unit}")
+        edge = f"  AT THE {e.edge[0].upper()} EDGE of its range: no estimate" if e.edge else ""
+        lines.append(
+            f"{name:<14}{e.value:>14.6g}{e.stderr:>12.3g}{e.stderr_naive:>12.3g}  {unit}{edge}"
+        )
     for s in result.segments:
         for v, e in s.nuisance.items():
             unit = "m/s" if v == "yd0" else "m"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 #: Subcommand modules, in the order ``jaxcart --help`` lists them: a student's first (the lab
@@ -21,6 +22,7 @@ import sys
 #: class and the benchmark.
 COMMANDS = (
     "tuning.commands.lab",
+    "tuning.commands.examples",
     "tuning.commands.import_mat",
     "tuning.commands.simulate",
     "tuning.commands.app",
@@ -70,6 +72,23 @@ PLOTTING = {"tune", "lab", "class", "simulate", "diagnose", "grid"}
 
 
 def main(argv=None) -> int:
+    """Run the command ``argv`` (None: the process's own command line) and return its exit
+    status. On the process's own command line, work a failed command leaves running in the
+    background (the lab's diagnosis, inside XLA) does not outlive it: the process ends at once
+    with the status, since the interpreter's shutdown would abort on that thread (status 134,
+    "terminate called ...") after the one-line error."""
+    status = _main(argv)
+    if argv is None:
+        from jaxcart.background import running
+
+        if running():
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(status)
+    return status
+
+
+def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

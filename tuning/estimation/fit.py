@@ -216,9 +216,29 @@ class Estimate:
     stderr_naive: float | None = None
     note: str = ""
     held_at: float | None = None  # the value a parameter not identified is held at [SI]
+    #: ("upper" | "lower", bound [SI]) where the value sits on an edge of the range the fit
+    #: holds it in (engine.parameters.at_edge): then it is no estimate
+    edge: tuple | None = None
+
+    @property
+    def edge_note(self) -> str:
+        """One line saying the value is on an edge of its range ("" when it is not)."""
+        if self.edge is None:
+            return ""
+        side, _ = self.edge
+        lo, hi = P.bounds(canonical(base_name(self.name)))
+        unit = unit_of(self.name)
+        return (
+            f"{self.name} = {self.value:.4g} {unit} is at the {side} edge of its allowed range "
+            f"[{lo:.4g}, {hi:.4g}] {unit}: the data push it beyond what the fit allows, so it "
+            "is no estimate (a step recorded late, data in other units, or an effect left "
+            "out: jaxcart diagnose)"
+        )
 
     def to_json(self) -> dict:
         out = {"value": _finite(self.value), "stderr": _finite(self.stderr)}
+        if self.edge is not None:
+            out["at_edge"] = {"side": self.edge[0], "bound": self.edge[1]}
         if not self.identifiable:
             out["identifiable"] = False
             out["note"] = self.note
@@ -340,6 +360,7 @@ class FitResult:
         """One line for each thing the numbers do not show: a model that does not explain the
         data, a parameter held at its start value, an optimizer stopped at its cap."""
         out = [self.misfit] if self.misfit else []
+        out += [e.edge_note for e in self.params.values() if e.edge is not None]
         held = {n: e for n, e in self.params.items() if not e.identifiable}
         for n, e in held.items():
             out.append(f"{n}: {e.note}; the other errors are conditional on that value")
@@ -1294,7 +1315,11 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
             value = float(to_value(name, theta[i]))
             slope = P.value_slope(name, value)
             out[asked] = Estimate(
-                asked, value, slope * float(se_internal[i]), stderr_naive=slope * float(se_naive[i])
+                asked,
+                value,
+                slope * float(se_internal[i]),
+                stderr_naive=slope * float(se_naive[i]),
+                edge=P.at_edge(name, value),
             )
         else:
             held = float(to_value(name, problem.theta0[i]))

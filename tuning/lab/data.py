@@ -126,9 +126,32 @@ SPECS = (
 
 def builtin_dir() -> Path:
     """The folder of the built-in recordings inside the installed package."""
-    import jaxcart
+    from jaxcart.files import BUILTIN_DATA
 
-    return Path(jaxcart.__file__).resolve().parent / "data"
+    return BUILTIN_DATA
+
+
+def copy_examples(folder, *, force: bool = False) -> list[Path]:
+    """Copy the built-in recordings (every experiment file, its CSV, and lab.toml) into
+    ``folder`` (made if missing), each file atomically; an existing file is refused before
+    anything is written, unless ``force``. Returns the paths written."""
+    from hw.atomicio import all_or_none, exists_message, write_bytes
+
+    folder = Path(folder)
+    sources = sorted(p for p in builtin_dir().iterdir() if p.suffix in (".toml", ".csv"))
+    targets = [folder / p.name for p in sources]
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{folder} is a file, not a folder; give a folder name")
+    for target in targets:
+        if target.exists() and not force:
+            raise UserError(
+                exists_message(target) + " (nothing was copied; your own files are never "
+                "replaced without --force)"
+            )
+    with all_or_none(*targets):  # all of them, or none (a full disk: an OutputError)
+        for source, target in zip(sources, targets, strict=True):
+            write_bytes(target, source.read_bytes(), force=force)
+    return targets
 
 
 def true_plant(*, tap: bool = False):

@@ -47,7 +47,12 @@ def estimate(result, name):
 
 
 def pm(est, unit, digits=5) -> str:
-    """ "value ± stderr unit" for a table, or "not identifiable"."""
+    """ "value ± stderr unit" for a table, or "not identifiable"; a value on an edge of the
+    range the fit holds it in is said to be no estimate."""
     if est is None:
         return "not identifiable"
-    return f"{fmt(est.value, digits)} ± {fmt(est.stderr, 2)} {unit}"
+    text = f"{fmt(est.value, digits)} ± {fmt(est.stderr, 2)} {unit}"
+    edge = getattr(est, "edge", None)
+    if edge is not None:
+        text += f" (at the {edge[0]} edge of its allowed range: no estimate)"
+    return text

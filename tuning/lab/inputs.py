@@ -129,8 +129,11 @@ def _read_experiment(path):
 
 def check_recording(recording):
     """The lab's own sanity check of a recording before any part computes with it (the file
-    readers check the format): finite positions that fit on the track. Returns it."""
+    readers check the format): finite positions that fit on the track, a time base in
+    seconds (a tap in ms otherwise ends its part with a symptom: "B_eq cannot be determined").
+    Returns it."""
     from jaxcart.params import TRACK_LENGTH
+    from jaxcart.plausibility import time_unit_doubt
 
     y = np.asarray(recording.position, dtype=float)
     name = recording.path
@@ -145,6 +148,9 @@ def check_recording(recording):
             f"{name}: the positions y span {span:.4g} m, more than the {TRACK_LENGTH:g} m "
             f"track{unit}; give y in metres"
         )
+    doubt = time_unit_doubt(recording)
+    if doubt is not None:
+        raise UserError(f"{name}: {doubt}")
     return recording
 
 

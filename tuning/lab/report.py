@@ -85,10 +85,11 @@ def staged(final: Path):
     to ``final`` when the block completes; on any error or interrupt it is removed, so an
     interrupted lab leaves nothing that blocks a rerun. Into an existing, non-empty ``final``
     (``--force``) only the report's own files and figures/ are replaced; other files stay."""
-    from hw.atomicio import OutputError, describe
+    from hw.atomicio import OutputError, describe, missing_folders, remove_empty
 
     final = Path(final)
     parent = final.parent
+    made = missing_folders([final])  # removed again, empty, if the report is not written
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -115,6 +116,8 @@ def staged(final: Path):
         raise UserError(str(exc).replace(str(tmp), str(final))) from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        if not final.exists():
+            remove_empty(made)
 
 
 def _remove_stale(parent: Path, name: str) -> None:

@@ -91,6 +91,9 @@ def _fit_section(d) -> list:
             note.append(f"not settled: {_num(lo)} to {_num(hi)} (M or gamma_scale)")
         if p.get("stderr_widened"):
             note.append("widened for model error")
+        edge = _edge(n, p["value"])
+        if edge is not None:
+            note.append(f"at the {edge[0]} edge of its range ({_num(edge[1])}): no estimate")
         z = d.significance.get(n)
         if z is None:  # a parameter of an effect: the effect's z (0.0 is a value)
             z = d.significance.get(_item_of(n))
@@ -255,6 +258,16 @@ def _candidates_section(d, figure) -> list:
     return lines
 
 
+def _edge(name: str, value) -> tuple[str, float] | None:
+    """(side, bound) where a fitted value sits on an edge of its range (engine.parameters)."""
+    from tuning.estimation.engine.parameters import at_edge
+
+    try:
+        return at_edge(name, value) if value is not None and math.isfinite(value) else None
+    except KeyError:  # a name the engine has no range for
+        return None
+
+
 def _item_of(name: str) -> str:
     """The significance item of a strength parameter (the Markdown's z column): the effect that
     declares it, for a parameter that has a neutral value."""
@@ -295,12 +308,14 @@ def plot_diagnosis(d, path) -> Path:
     fig, axes = plt.subplots(
         2, n, figsize=(6.5 * n, 6.6), squeeze=False, sharex="col", layout="constrained"
     )
+    # One label per model, the same in both panels, so the legend names each once.
+    corrected = f"corrected ({d.chosen})"
     for i, tr in enumerate(d.traces):
         top, bottom = axes[0, i], axes[1, i]
         t, measured = np.asarray(tr["time"]), np.asarray(tr["measured"])
         top.plot(t, measured, label="recording", **EXPERIMENT_STYLE)
         top.plot(t, tr["baseline"], "C0-", lw=1, label="baseline", zorder=3)
-        top.plot(t, tr["after"], "C3--", lw=1, label=f"corrected ({d.chosen})", zorder=3)
+        top.plot(t, tr["after"], "C3--", lw=1, label=corrected, zorder=3)
         floor = d.floor if math.isfinite(d.floor) else 0.0
         top.fill_between(
             t,
@@ -313,7 +328,7 @@ def plot_diagnosis(d, path) -> Path:
             label="mismatch of the baseline (beyond the floor)",
         )
         bottom.plot(t, (tr["baseline"] - measured) * 1e3, "C0-", lw=0.8, label="baseline")
-        bottom.plot(t, (tr["after"] - measured) * 1e3, "C3-", lw=0.8, label="corrected")
+        bottom.plot(t, (tr["after"] - measured) * 1e3, "C3--", lw=0.8, label=corrected)
         if math.isfinite(d.floor) and d.floor > 0:
             bottom.axhspan(
                 -d.floor * 1e3,
@@ -338,7 +353,8 @@ def plot_diagnosis(d, path) -> Path:
         top.set_ylabel("position [m]")
         bottom.set_ylabel("residual model − recording [mm]")
         bottom.set_xlabel("time [s]")
-    figure_legend(fig, list(axes.flat), ncols=4)
+    # Two columns a recording's width holds; four from two recordings on.
+    figure_legend(fig, list(axes.flat), ncols=2 if n == 1 else 4)
     fig.suptitle(figure_title(d), fontsize=9, color="black" if d.explained else "darkred")
     path = save(fig, path, dpi=110)
     plt.close(fig)

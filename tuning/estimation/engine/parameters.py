@@ -88,6 +88,27 @@ def bounds(name: str) -> tuple[float, float]:
     return spec(b).fit_range
 
 
+#: A fitted value within this fraction of its range (of its bound, for a logarithm) of a
+#: bound sits on it: the optimizer was stopped by the range, not by the data.
+EDGE_FRACTION = 1e-3
+
+
+def at_edge(name: str, value: float) -> tuple[str, float] | None:
+    """("upper" | "lower", the bound [SI]) where ``value`` sits on an edge of the range a fit
+    holds ``name`` in (:func:`bounds`), else None. Such a value is the range's answer, not an
+    estimate: the data pushed it as far as the fit allows."""
+    lo, hi = bounds(name)
+    value = float(value)
+    if is_log(name):
+        if value >= hi * (1 - EDGE_FRACTION):
+            return "upper", hi
+        return ("lower", lo) if value <= lo * (1 + EDGE_FRACTION) else None
+    width = EDGE_FRACTION * (hi - lo)
+    if value >= hi - width:
+        return "upper", hi
+    return ("lower", lo) if value <= lo + width else None
+
+
 def neutral(name: str) -> float | None:
     """The value at which a parameter's effect does nothing (inf for a limit), or None."""
     return spec(name).neutral
