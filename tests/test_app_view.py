@@ -123,3 +123,26 @@ def test_notebook_gets_bokehjs_inline_not_from_a_cdn(monkeypatch):
     doc = Document()
     seen["app"](doc)
     assert doc.get_model_by_name("kp") is not None and len(doc.roots[0].children) == 2
+
+
+def test_a_busy_port_is_said_before_the_page_is_computed(monkeypatch, capsys):
+    """`jaxcart app --port P` with P taken: one line with the fix, before the files are read
+    and the region compiles (seconds that used to come first)."""
+    import socket
+
+    from tuning.commands.main import main
+
+    def never(*args, **kwargs):
+        raise AssertionError("the page was computed before the port was checked")
+
+    monkeypatch.setattr(app, "problem_from_files", never)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["app", "--port", str(port), "--no-browser"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--port {port}: cannot listen on 127.0.0.1:{port}" in err[0]
+    assert "another server listens there" in err[0] and "--port 0 picks a free one" in err[0]
+    assert main(["app", "--address", "192.0.2.1", "--port", "0", "--no-browser"]) == 2
+    assert "not an address of this machine" in capsys.readouterr().err
