@@ -32,8 +32,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--plant",
         metavar="PLANT.toml",
-        help="design on this plant (a plant file from fit or diagnose); the handout's plant "
-        "is drawn beside it",
+        help="design on this plant: a plant file (from fit or diagnose), or an experiment "
+        "file's own [plant] table; the handout's plant is drawn beside it",
     )
     p.add_argument(
         "--port", type=int, default=5006, help="port to serve on (5006; 0: any free port)"
