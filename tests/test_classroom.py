@@ -130,7 +130,7 @@ def test_the_page_is_self_contained_with_figures_and_links(ran):
 # ---------------------------------------------------------------- outliers, without a lab
 
 
-def _student(name, b_eq, *, missing=()):
+def _student(name, b_eq, *, missing=(), f_c_lower=None):
     s = Student(name, Path(name), status="complete")
     s.results = {
         "values": {
@@ -139,6 +139,14 @@ def _student(name, b_eq, *, missing=()):
         },
         "data": {"missing": list(missing)},
     }
+    if f_c_lower is not None:
+        s.results["values"]["f_c_lower_p_step"] = {
+            "value": f_c_lower,
+            "unit": "N",
+            "label": "f_c lower bound from the P-control steady state (p50.toml)",
+            "part": "iii",
+            "bound": "lower",
+        }
     return s
 
 
@@ -153,6 +161,34 @@ def test_a_b_eq_ten_times_the_median_is_flagged_and_two_times_is_not():
     low = Column("B_eq_tap_fit", "B_eq", "kg/s", "i")
     assert classroom.outlier(0.5, 5.0, low) is not None  # a tenth of it too
     assert classroom.outlier(0.51, 5.0, low) is None
+
+
+def test_a_bound_is_no_estimate_and_is_not_judged_an_outlier():
+    """A P-control run that stopped near its target bounds f_c from below by almost nothing
+    (0.029 N for the class's highest true f_c): a bound far below the others' is no outlier."""
+    lows = (0.28, 0.31, 0.25, 0.30, 0.029)
+    students = [_student(f"s{k}", 4.5, f_c_lower=f) for k, f in enumerate(lows)]
+    columns = classroom.columns_of(students)
+    assert {c.key: c.bound for c in columns}["f_c_lower_p_step"] == "lower"
+    classroom.flag(students, columns)
+    assert not any(s.flags for s in students)
+    assert "f_c_lower_p_step" not in classroom.class_medians(students, columns)
+
+
+def test_the_lab_marks_its_f_c_bound_as_a_bound():
+    """The lab's results.json says which numbers are bounds (tuning.lab.context.Value.bound):
+    Part (iii)'s lower bound on f_c from a P-control run."""
+    from types import SimpleNamespace
+
+    from tuning.lab import part_iii
+
+    bound = SimpleNamespace(error=None, name="p50.toml", slot="p_step", lower=0.029)
+    model = SimpleNamespace(f_c=0.6, f_c_source="fit to the ramp")
+    steady = SimpleNamespace(bound=0.01, e_sim=0.01, recording=None)
+    part = SimpleNamespace(ramp=SimpleNamespace(recording=None), steady=steady, model=model)
+    part.bounds = (bound,)
+    found = {v.key: v.as_json() for v in part_iii.values(part)}
+    assert found["f_c_lower_p_step"]["bound"] == "lower" and "bound" not in found["f_c"]
 
 
 def test_too_few_students_for_a_median_flag_no_outlier():

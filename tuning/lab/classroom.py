@@ -109,12 +109,14 @@ class Student:
 
 @dataclass(frozen=True)
 class Column:
-    """One handout number of the table: results.json key, label, unit (SI), part."""
+    """One handout number of the table: results.json key, label, unit (SI), part, and the
+    bound it is ("lower", "upper") when it bounds a quantity instead of estimating it."""
 
     key: str
     label: str
     unit: str
     part: str
+    bound: str | None = None
 
 
 @dataclass
@@ -395,6 +397,7 @@ def columns_of(students) -> list[Column]:
             common_label(v["labels"]),
             str(v["entry"].get("unit", "")),
             str(v["entry"].get("part", "")),
+            v["entry"].get("bound"),
         )
         for key, v in seen.items()
     ]
@@ -486,11 +489,13 @@ def flag(students, columns) -> None:
 
 
 def class_medians(students, columns) -> dict:
-    """{key: the class's median} of the cart's parameters (units :data:`PARAMETER_UNITS`)
-    over the complete students that have the value (at least :data:`MIN_FOR_MEDIAN`)."""
+    """{key: the class's median} of the estimates of the cart's parameters (units
+    :data:`PARAMETER_UNITS`; a bound on one is no estimate of it: a cart that stopped near its
+    target bounds f_c by almost nothing, whatever its f_c) over the complete students that
+    have the value (at least :data:`MIN_FOR_MEDIAN`)."""
     out = {}
     for c in columns:
-        if c.unit not in PARAMETER_UNITS:
+        if c.unit not in PARAMETER_UNITS or c.bound is not None:
             continue
         values = [v for s in students if s.complete and (v := s.value(c.key)) is not None]
         if len(values) >= MIN_FOR_MEDIAN:
