@@ -15,10 +15,11 @@ import pytest
 from tuning.lab import classdata, classroom
 from tuning.lab.classroom import Column, Student
 
-#: Five: the broken, the missing and the stray student and two plain ones, so four complete
+#: Five: the broken, the missing and the stray student and two plain ones, so that complete
 #: labs give the class's medians (classroom.MIN_FOR_MEDIAN is 3); each lab is a whole lab run.
+#: A sixth folder, EMPTY, holds no recording: its lab fails at once.
 N_STUDENTS = 5
-BROKEN, MISSING, STRAY = "student-05", "student-04", "student-03"
+BROKEN, MISSING, STRAY, EMPTY = "student-05", "student-04", "student-03", "student-06"
 
 
 @pytest.fixture(scope="module")
@@ -30,11 +31,17 @@ def ran(tmp_path_factory):
     root = tmp_path_factory.mktemp("class")
     folder = root / "class"
     carts = classdata.generate_class(folder, N_STUDENTS, seed=3, horizons=classdata.SHORT)
-    # Broken: a position that is not a number. Missing: no ramp (Part (iii)). Stray: notes.
+    # Broken: a position that is not a number (Part (i)'s tap), a .mat that is not one (a
+    # stray scope file), the PI step lab.toml names deleted (Part (iv)). Missing: no ramp
+    # (Part (iii)), unnamed. Stray: notes. Empty: nothing to run.
     tap = folder / BROKEN / "tap.csv"
     lines = tap.read_text().splitlines()
     lines[4] = lines[4].split(",")[0] + ",abc"
     tap.write_text("\n".join(lines) + "\n")
+    (folder / BROKEN / "pid_scope.mat").write_bytes(b"MATLAB 5.0? no: " + bytes(range(256)))
+    for suffix in (".toml", ".csv"):
+        (folder / BROKEN / f"pi{suffix}").unlink()
+    (folder / EMPTY).mkdir()
     for suffix in (".toml", ".csv"):
         (folder / MISSING / f"ramp{suffix}").unlink()
     index = folder / MISSING / "lab.toml"
@@ -63,12 +70,11 @@ def test_the_table_has_every_student_with_failures_isolated(ran):
     folder, out, carts, status, stdout, _ = ran
     assert status == 0
     rows = _rows(out)
-    assert sorted(rows) == sorted(carts)
-    assert rows[BROKEN]["status"] == "failed"
-    assert "tap.csv line 5" in rows[BROKEN]["error"] and "abc" in rows[BROKEN]["error"]
+    assert sorted(rows) == sorted([*carts, EMPTY])
+    assert rows[EMPTY]["status"] == "failed" and "no experiment files" in rows[EMPTY]["error"]
     complete = [n for n, r in rows.items() if r["status"] == "complete"]
-    assert len(complete) == N_STUDENTS - 1
-    assert f"{N_STUDENTS} students: {N_STUDENTS - 1} complete, 1 failed" in stdout
+    assert sorted(complete) == sorted(carts)
+    assert f"{N_STUDENTS + 1} students: {N_STUDENTS} complete, 1 failed" in stdout
     for name in complete:  # each complete student's own report, linked
         assert rows[name]["report"] == f"students/{name}/report.html"
         assert (out / rows[name]["report"]).is_file()
@@ -81,11 +87,36 @@ def test_missing_part_and_stray_file_are_flagged(ran):
     assert "missing Part (iii): open-loop voltage ramp" in rows[MISSING]["flags"]
     assert rows[MISSING]["f_c_ramp_fit [N]"] == ""
     assert "unrecognised file notes.txt" in rows[STRAY]["flags"]
-    assert "the lab failed" in rows[BROKEN]["flags"]
+    assert "the lab failed" in rows[EMPTY]["flags"]
     for name, row in rows.items():
-        if name not in (MISSING, STRAY, BROKEN):
+        if name not in (MISSING, STRAY, BROKEN, EMPTY):
             assert row["flags"] == "", (name, row["flags"])
     assert f"{MISSING}: missing Part (iii)" in stdout
+
+
+def test_a_broken_or_missing_file_costs_its_part_not_the_lab(ran):
+    """The broken student: a garbage .mat, a tap whose data has a word for a number and a PI
+    recording lab.toml names but the folder lacks. Each is flagged with the part it cost; the
+    lab completes and Parts (ii), (iii) and (v) recover the student's own cart."""
+    _, out, carts, _, stdout, _ = ran
+    row = _rows(out)[BROKEN]
+    assert row["status"] == "complete" and row["error"] == ""
+    flags = json.loads((out / "class.json").read_text())["students"][BROKEN]["flags"]
+    assert any(
+        f.startswith("Part (i) lost: tap test") and "tap.csv line 5" in f and "abc" in f
+        for f in flags
+    ), flags
+    assert any(f.startswith("Part (iv) lost: PI control") and "pi.toml" in f for f in flags)
+    assert any(f.startswith("file pid_scope.mat cannot be used (cannot read it") for f in flags)
+    assert len(flags) == 3, flags  # no "missing part" or "unrecognised file" said twice
+    assert row["B_eq_tap_fit [kg/s]"] == "" and row["pi_rms [m]"] == ""
+    cart = carts[BROKEN]
+    assert float(row["f_c_ramp_fit [N]"]) == pytest.approx(cart["f_c"], rel=0.02)
+    assert float(row["B_eq_p50 [kg/s]"]) > 0  # Part (ii) ran (its f_c held: no tap's)
+    assert row["pid_measured_settling_time [s]"] != "" and row["spec"] in ("pass", "fail")
+    report = (out / "students" / BROKEN / "report.md").read_text()
+    assert "Files that cannot be used (each costs only its part)" in report
+    assert f"{BROKEN}: Part (i) lost" in stdout
 
 
 def test_each_students_numbers_recover_its_own_cart(ran):
@@ -94,7 +125,7 @@ def test_each_students_numbers_recover_its_own_cart(ran):
     _, out, carts, _, _, _ = ran
     rows = _rows(out)
     for name, cart in carts.items():
-        if name == BROKEN:
+        if name == BROKEN:  # its tap is broken
             continue
         assert float(rows[name]["B_eq_tap_fit [kg/s]"]) == pytest.approx(cart["B_eq"], rel=0.01)
         if name != MISSING:
@@ -121,10 +152,10 @@ def test_the_page_is_self_contained_with_figures_and_links(ran):
     assert page.count("data:image/png;base64,") == 2
     assert "http://" not in page and "https://" not in page
     assert 'href="students/student-01/report.html"' in page
-    assert f'{BROKEN}</td><td class="bad">failed:' in page
+    assert f'{EMPTY}</td><td class="bad">failed:' in page
     for name in ("distributions.png", "overlays.png"):
         assert (out / "figures" / name).stat().st_size > 10_000
-    assert (out / "logs" / f"{BROKEN}.log").read_text().startswith("failed:")
+    assert (out / "logs" / f"{EMPTY}.log").read_text().startswith("failed:")
 
 
 # ---------------------------------------------------------------- outliers, without a lab

@@ -230,19 +230,21 @@ def _data_files(toml: Path) -> set[str]:
 
 def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
     """Run the lab on one student's folder into ``out``, its progress into the file ``log``;
-    returns {"status", "error", "seconds", "runs", "used"}. Never raises for the student's data: a
-    refused folder or a failure of the lab is the returned status and its one-line reason
-    (a traceback, for an internal error, goes to the log). Runs in a worker process."""
+    returns {"status", "error", "seconds", "cpu_seconds", "runs", "used"}. Never raises for the
+    student's data: a file that cannot be read costs its part (the lab reads the folder
+    partially), a refused folder or a failure of the lab is the returned status and its
+    one-line reason (a traceback, for an internal error, goes to the log). Runs in a worker
+    process."""
     from tuning.lab.inputs import find_inputs
     from tuning.lab.report import run_lab
 
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     outcome = {"status": "failed", "error": None, "runs": {}, "used": []}
     with open(log, "w") as stream, contextlib.redirect_stderr(stream):
         try:
             with contextlib.redirect_stdout(stream):
-                run_lab(folder, out, stream=stream, diagnosis=diagnosis)
-                inputs = find_inputs(folder)
+                run_lab(folder, out, stream=stream, diagnosis=diagnosis, partial=True)
+                inputs = find_inputs(folder, partial=True)
                 outcome["runs"], outcome["used"] = _runs(inputs), used_files(inputs)
             outcome["status"] = "complete"
         except UserError as exc:
@@ -254,6 +256,7 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
         if outcome["error"]:
             print(f"failed: {outcome['error']}", file=stream)
     outcome["seconds"] = time.perf_counter() - started
+    outcome["cpu_seconds"] = time.process_time() - cpu
     return outcome
 
 
@@ -380,7 +383,12 @@ def read_results(students, out: Path) -> None:
         except (OSError, ValueError) as exc:
             s.status, s.error = "failed", f"its report's {path.name} cannot be read ({exc})"
             continue
-        s.unrecognised = unrecognised_files(s.folder, s.results, s.used)
+        # A file the lab could not use is flagged as that (with the data it maps), not as
+        # unrecognised.
+        broken = {str(b.get("file")) for b in (s.results.get("data") or {}).get("broken") or ()}
+        for name in list(broken):
+            broken |= _data_files(s.folder / name)
+        s.unrecognised = unrecognised_files(s.folder, s.results, [*s.used, *sorted(broken)])
 
 
 def columns_of(students) -> list[Column]:
@@ -467,7 +475,8 @@ def _measured(student, key, results, metric):
 
 
 def flag(students, columns) -> None:
-    """Each student's flags: failure, missing parts, unrecognised files, outliers."""
+    """Each student's flags: failure, files that cannot be used (with the part each cost),
+    missing parts, unrecognised files, outliers."""
     from tuning.lab.inputs import SLOTS
 
     medians = class_medians(students, columns)
@@ -476,7 +485,17 @@ def flag(students, columns) -> None:
         if not s.complete:
             s.flags.append(f"the lab failed: {s.error}")
             continue
-        for slot in (s.results.get("data") or {}).get("missing") or ():
+        data = s.results.get("data") or {}
+        missing = list(data.get("missing") or ())
+        for entry in data.get("broken") or ():
+            slot, name, why = entry.get("slot"), entry.get("file"), entry.get("reason")
+            if slot in missing:  # the part it was named for has no recording: say so once
+                missing.remove(slot)
+                part, what = SLOTS[slot]
+                s.flags.append(f"Part ({part}) lost: {what}: {name} cannot be used ({why})")
+            else:
+                s.flags.append(f"file {name} cannot be used ({why})")
+        for slot in missing:
             part, what = SLOTS.get(slot, ("?", slot))
             s.flags.append(f"missing Part ({part}): {what}")
         for name, why in s.unrecognised:
