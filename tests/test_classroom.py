@@ -1,7 +1,9 @@
 """`jaxcart class` (tuning/lab/classroom.py, tuning/commands/classroom.py): the lab over a class
-of synthetic students made by the repository's generator (tuning/lab/classdata.py), one of
-them broken, one missing a part, one with a stray file; the table, page, figures and links;
-outliers against the class's median; a worker process that dies takes no one else with it.
+of synthetic students made by the repository's generator (tuning/lab/classdata.py), one with
+broken files (each costs its part only), one missing a part, one with a stray file, one with
+no recording at all (its lab fails, alone); the table, page, figures and links; outliers
+against the class's median, on estimates only; a worker process that dies takes no one else
+with it; the lead student's lab runs first, alone, so that the class compiles once.
 """
 
 import csv
@@ -248,28 +250,45 @@ def test_a_class_folder_without_sub_folders_is_one_clear_error(tmp_path):
 
 
 def _crash_or_complete(folder, out, log, *, diagnosis=False):
-    """A stand-in for the lab in the worker: the folder named "crasher" kills its process."""
+    """A stand-in for the lab in the worker: the folder named "crasher" kills its process;
+    each records when it ran in its log."""
+    started = time.time()
     if Path(folder).name == "crasher":
         os._exit(3)
+    time.sleep(0.2)
+    Path(log).write_text(f"{started} {time.time()}\n")
     return {"status": "complete", "error": None, "seconds": 0.0, "runs": {}}
 
 
-def test_a_worker_process_that_dies_fails_only_its_student(tmp_path):
-    students = [Student(n, tmp_path / n) for n in ("alice", "crasher", "bob")]
+def test_the_lead_runs_alone_first_and_a_worker_that_dies_fails_only_its_student(tmp_path):
+    """With the compilation cache on, the student with the most files (the one whose lab
+    compiles the most) runs alone before the others start; a process that dies is its
+    student's failure alone."""
+    (tmp_path / "logs").mkdir()
+    students = [Student(n, tmp_path / n) for n in ("alice", "bob", "crasher")]
+    for student, files in zip(students, (1, 3, 1), strict=True):
+        student.folder.mkdir()
+        for k in range(files):
+            (student.folder / f"run{k}.toml").write_text("")
+    assert classroom.lead(students).name == "bob"
     said = []
     classroom.run_all(
         students,
         tmp_path,
         workers=2,
         diagnosis=False,
-        cache=False,
+        cache=True,
         say=said.append,
         job=_crash_or_complete,
     )
     status = {s.name: s.status for s in students}
-    assert status == {"alice": "complete", "crasher": "failed", "bob": "complete"}
-    assert "process died" in students[1].error
-    assert len(said) == 3
+    assert status == {"alice": "complete", "bob": "complete", "crasher": "failed"}
+    assert "process died" in students[2].error
+    assert said[0] == "bob first, alone: its lab compiles the class's programs once"
+    assert said[1].startswith("[1/3] bob: complete") and len(said) == 4
+    bob_end = float((tmp_path / "logs" / "bob.log").read_text().split()[1])
+    alice_start = float((tmp_path / "logs" / "alice.log").read_text().split()[0])
+    assert bob_end <= alice_start
 
 
 def test_the_files_the_lab_used_and_those_it_did_not(tmp_path):

@@ -8,16 +8,25 @@ one table of every handout number, checks against the spec, outliers against the
 
 Each student's folder is given to the lab (:func:`tuning.lab.report.run_lab`) in a process of
 its own (a pool of ``workers``), and the class reads each report's ``results.json``: nothing of
-the lab is computed here. A folder the lab refuses (a broken file, no recordings) or a process
-that dies is one failed row of the table, with its one-line reason; the others complete.
+the lab is computed here. The lab reads a student's folder part by part (``partial``): a file
+that cannot be read (a broken data file, an unreadable .mat, a recording lab.toml names that
+is not there) costs its part, flagged, and the other parts complete. A folder the lab refuses
+as a whole (no recording at all) or a process that dies is one failed row of the table, with
+its one-line reason; the others complete.
 
-The table flags, for each student: a missing part (no recording for a slot), an unrecognised
-file (a file of the folder the lab did not use), and an outlier: a parameter of the cart (a
-value in kg/s or N, such as B_eq or f_c) at least :data:`OUTLIER_FACTOR` times the class's
-median or at most 1/:data:`OUTLIER_FACTOR` of it (carts of one model differ by tens of
-percent; a factor of ten is a unit slip or a wrong recording). Part (v)'s measured step is
-checked against the handout's specification (:class:`tuning.design.losses.Spec`: settling in
-the 2 % band under 1 s, overshoot under 5 %).
+Compilation is paid once for the class, not once per process: with the compilation cache on,
+one student's lab runs alone first (the one with the most files, so the most of the lab's
+programs), its programs compiled into the cache, and then the others, ``workers`` at once, in
+processes that read them from there.
+
+The table flags, for each student: a part lost to a file that cannot be used, a missing part
+(no recording for a slot), an unrecognised file (a file of the folder the lab did not use), and
+an outlier: an estimate of a parameter of the cart (a value in kg/s or N, such as B_eq or f_c;
+a bound on one, such as the P-control runs' lower bound on f_c, is not judged) at least
+:data:`OUTLIER_FACTOR` times the class's median or at most 1/:data:`OUTLIER_FACTOR` of it
+(carts of one model differ by tens of percent; a factor of ten is a unit slip or a wrong
+recording). Part (v)'s measured step is checked against the handout's specification
+(:class:`tuning.design.losses.Spec`: settling in the 2 % band under 1 s, overshoot under 5 %).
 
 >>> result = run_class("class/", "class-report/", workers=2)      # doctest: +SKIP
 >>> result.counts()                                                # doctest: +SKIP
@@ -58,7 +67,8 @@ class Student:
     """One student's (or group's) lab.
 
     name: the sub-folder's name; folder: it; status: "complete" or "failed"; error: the
-    one-line reason of a failure; seconds: the lab's wall time [s]; results: its results.json
+    one-line reason of a failure; seconds: the lab's wall time [s]; cpu_seconds: the CPU time
+    its process spent on it [s] (all threads); results: its results.json
     (None when failed); runs: {slot: (time [s], position [m], reference [m] or None)}, thinned,
     for the overlays; used: the files of the folder the lab used; unrecognised: the files it
     did not use, (name, why);
@@ -71,6 +81,7 @@ class Student:
     status: str = "failed"
     error: str | None = None
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
     results: dict | None = None
     runs: dict = field(default_factory=dict)
     used: list = field(default_factory=list)
@@ -292,10 +303,13 @@ def run_all(
     students, out: Path, *, workers: int, diagnosis: bool, cache: bool, say, job=None
 ) -> None:
     """Every student's lab, ``workers`` at once in processes of their own; fills each
-    :class:`Student` and says each completion. A process that dies (crash, out of memory)
-    takes the students it was running with it: each is then rerun alone in a fresh process,
-    so only the one that kills its process is reported failed. job: what runs in the worker
-    (default :func:`run_student`; a module-level function of the same signature)."""
+    :class:`Student` and says each completion. With the compilation cache on (``cache``) and
+    more than one process, the lab of :func:`lead` runs alone first: it compiles the lab's
+    programs into the cache, which the other processes then read instead of each compiling
+    them again. A process that dies (crash, out of memory) takes the students it was running
+    with it: each is then rerun alone in a fresh process, so only the one that kills its
+    process is reported failed. job: what runs in the worker (default :func:`run_student`; a
+    module-level function of the same signature)."""
     job = job or run_student
     jobs = {s.name: s for s in students}
     done = [0]
@@ -303,14 +317,25 @@ def run_all(
     def finish(student, outcome):
         student.status, student.error = outcome["status"], outcome["error"]
         student.seconds, student.runs = outcome["seconds"], outcome.get("runs") or {}
+        student.cpu_seconds = outcome.get("cpu_seconds") or 0.0
         student.used = outcome.get("used") or []
         done[0] += 1
-        how = f"complete in {student.seconds:.1f} s" if student.complete else student.error
+        how = student.error
+        if student.complete:
+            how = f"complete in {student.seconds:.1f} s ({student.cpu_seconds:.1f} s of CPU)"
         say(f"[{done[0]}/{len(jobs)}] {student.name}: {how}")
 
-    crashed = _pool(job, list(jobs.values()), out, workers, diagnosis, cache, finish)
+    order = list(jobs.values())
+    first = []
+    if cache and workers > 1 and len(order) > 1:
+        first = [lead(order)]
+        order.remove(first[0])
+        say(f"{first[0].name} first, alone: its lab compiles the class's programs once")
+    crashed, waiting = _pool(job, first, order, out, workers, diagnosis, cache, finish)
+    if waiting:  # the lead's process died and broke the pool: the others in a new one
+        crashed += _pool(job, [], waiting, out, workers, diagnosis, cache, finish)[0]
     for student in crashed:  # alone, each in a fresh process
-        lost = _pool(job, [student], out, 1, diagnosis, cache, finish)
+        lost = _pool(job, [], [student], out, 1, diagnosis, cache, finish)[0]
         if lost:
             _remove_partial(out / "students", student.name)
             finish(
@@ -323,9 +348,23 @@ def run_all(
             )
 
 
-def _pool(job, students, out, workers, diagnosis, cache, finish) -> list:
-    """Run ``students`` in a pool of ``workers`` processes; returns those lost to a process
-    that died."""
+def lead(students) -> Student:
+    """The student whose lab compiles the most of the class's programs: the one with the most
+    files (the most recordings), the first by name among equals."""
+
+    def files(student):
+        try:
+            return sum(1 for p in student.folder.iterdir() if p.is_file())
+        except OSError:
+            return 0
+
+    return min(students, key=lambda s: (-files(s), s.name))
+
+
+def _pool(job, first, students, out, workers, diagnosis, cache, finish) -> tuple[list, list]:
+    """Run ``first`` (alone), then ``students``, in one pool of ``workers`` processes;
+    returns (those lost to a process that died, those not started because it broke the pool
+    while ``first`` ran)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -338,25 +377,28 @@ def _pool(job, students, out, workers, diagnosis, cache, finish) -> list:
         initializer=_start_worker,
         initargs=(share, cache),
     ) as pool:
-        futures = {
-            pool.submit(
-                job,
-                s.folder,
-                out / "students" / s.name,
-                out / "logs" / f"{s.name}.log",
-                diagnosis=diagnosis,
-            ): s
-            for s in students
-        }
-        for future in as_completed(futures):
-            student = futures[future]
-            try:
-                outcome = future.result()
-            except BrokenProcessPool:
-                lost.append(student)
-                continue
-            finish(student, outcome)
-    return lost
+        for batch in (first, students):
+            if lost:  # the pool broke on the first: the others were never started
+                return lost, list(batch)
+            futures = {
+                pool.submit(
+                    job,
+                    s.folder,
+                    out / "students" / s.name,
+                    out / "logs" / f"{s.name}.log",
+                    diagnosis=diagnosis,
+                ): s
+                for s in batch
+            }
+            for future in as_completed(futures):
+                student = futures[future]
+                try:
+                    outcome = future.result()
+                except BrokenProcessPool:
+                    lost.append(student)
+                    continue
+                finish(student, outcome)
+    return lost, []
 
 
 def _remove_partial(folder: Path, name: str) -> None:
@@ -664,6 +706,7 @@ def as_json(result: ClassResult) -> dict:
                 "status": s.status,
                 "error": s.error,
                 "seconds": s.seconds,
+                "cpu_seconds": s.cpu_seconds,
                 "spec": s.verdict,
                 "checks": s.checks,
                 "flags": s.flags,
