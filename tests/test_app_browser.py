@@ -44,9 +44,9 @@ def _metric(page, name: str) -> str:
     return page.evaluate(
         "(name) => { const div = document.createElement('div');"
         " div.innerHTML = Bokeh.documents[0].get_model_by_name('metrics').text;"
-        " for (const tr of div.querySelectorAll('tr')) { const td = tr.querySelectorAll('td');"
-        " if (td.length && td[0].textContent === name) return td[2].textContent; }"
-        " return null; }",
+        " const row = [...div.querySelectorAll('tr[data-metric]')]"
+        ".find((tr) => tr.dataset.metric === name);"
+        " return row ? row.querySelector('td.sim').textContent : null; }",
         name,
     )
 
@@ -98,7 +98,7 @@ def test_a_recording_and_a_fitted_plant_are_drawn(tmp_path):
     truth = jc.build_plant({"B_eq": 4.6, "f_c": 0.45})
     rec = make_recording(truth, jc.PID(kp=60.0, ki=4.0, kd=6.0, v_limit=6.0), jc.step(0.5))
     data = write_recording(rec, tmp_path / "pid.toml")
-    plant = jc.write_plant_file(tmp_path / "P.toml", truth)
+    plant = jc.write_plant_file(tmp_path / "P.toml", truth, fit={"rms_mm": 0.2})
     with browser.served_app("--data", str(data), "--plant", str(plant)) as address:
         with browser.page_at(address) as page:
             assert browser.model_value(page, "kp") == 60.0  # the recording's gains
@@ -108,12 +108,74 @@ def test_a_recording_and_a_fitted_plant_are_drawn(tmp_path):
             assert len(nominal["y"]) == 3001
             labels = page.evaluate(
                 "() => { const f = Bokeh.documents[0].get_model_by_name('position_figure');"
-                " return [...f.center, ...f.right].find((m) => m.items !== undefined)"
+                " return [...f.center, ...f.above].find((m) => m.items !== undefined)"
                 ".items.map((item) => item.label.value); }"
             )
-            assert "fitted plant" in labels and "handout plant" in labels
+            assert "fitted plant (P.toml)" in labels and "handout plant" in labels
             assert "recorded (pid.toml)" in labels
             assert "<th>recorded</th>" in browser.model_value(page, "metrics", "text")
+            # Six legend entries and a fourth metric column still fit the laptop's screen.
+            _fits(page, browser.layout(page), 1280, 720)
+
+
+def _fits(page, plots, width: int, height: int) -> None:
+    """Nothing of the page beyond the window, nothing that scrolls; in each plot the title,
+    the legends and the tick labels inside its canvas, and the tick labels apart."""
+    scroll = page.evaluate(
+        "() => [document.documentElement.scrollWidth, document.documentElement.scrollHeight]"
+    )
+    assert scroll[0] <= width and scroll[1] <= height, scroll
+    assert len(plots) == 4
+    for plot in plots:
+        left, top, right, bottom = plot["page_box"]
+        assert 0 <= left and right <= width and 0 <= top and bottom <= height, plot["name"]
+        assert plot["title_width"] <= plot["title_room"], (plot["title"], plot["title_room"])
+        w, h = plot["size"]
+        boxes = list(plot["legends"])
+        for axis in plot["axes"]:
+            boxes += axis["labels"]
+            d = axis["dimension"]
+            # Along the axis: each label ends at least 4 px before the next begins.
+            spans = sorted((b[0], b[2]) if d == 0 else (b[1], b[3]) for b in axis["labels"])
+            assert len(spans) >= 3, (plot["name"], d, spans)
+            gaps = [b[0] - a[1] for a, b in zip(spans, spans[1:], strict=False)]
+            assert min(gaps) >= 4, (plot["name"], d, spans)
+        for b in boxes:
+            assert -0.5 <= b[0] and b[2] <= w + 0.5 and -0.5 <= b[1] and b[3] <= h + 0.5, (
+                plot["name"],
+                b,
+                (w, h),
+            )
+
+
+def test_the_page_fits_a_laptop_screen_and_wraps_on_a_narrower_one(url):
+    """At 1280 x 720 everything is on the screen with no scroll bar: the region's title and
+    legend (at 1410 px wide they were off it), the poles' tick labels apart (they ran
+    together). At 1000 px the right column wraps under the others, nothing off to the side."""
+    with browser.page_at(url, width=1280, height=720) as page:
+        plots = browser.layout(page)
+        _fits(page, plots, 1280, 720)
+        names = [p["name"] for p in plots]
+        assert names.count("region_figure") == names.count("poles_figure") == 1
+        # A click on the region lands between the sliders' steps: the gains snap to them.
+        region = next(p for p in plots if p["name"] == "region_figure")
+        x0, y0 = region["page_box"][:2]
+        left, top, right, bottom = region["frame"]
+        at_kp, at_kd = 0.613, 0.387  # fractions of the axes (kp 0-250 V/m, kd 0-20 V s/m)
+        page.mouse.click(x0 + left + at_kp * (right - left), y0 + bottom - at_kd * (bottom - top))
+        page.wait_for_function(
+            "() => Bokeh.documents[0].get_model_by_name('point').data.kp[0] !== 40"
+        )
+        kp, kd = browser.model_value(page, "kp"), browser.model_value(page, "kd")
+        assert kp == round(kp) and abs(kp - at_kp * 250) < 3
+        assert kd == round(kd, 1) and abs(kd - at_kd * 20) < 0.3
+        assert browser.model_value(page, "point", "data") == {"kp": [kp], "kd": [kd]}
+
+        page.set_viewport_size({"width": 1000, "height": 720})
+        page.wait_for_function("() => document.documentElement.scrollWidth <= 1000")
+        narrow = {p["name"]: p["page_box"] for p in browser.layout(page)}
+        assert all(box[2] <= 1000 for box in narrow.values())
+        assert narrow["region_figure"][1] >= narrow["position_figure"][3]  # under, not beside
 
 
 def test_ci_runs_the_readmes_test_command_which_provides_the_browser():

@@ -161,7 +161,7 @@ def test_recording_overlay_starts_the_sliders_at_its_gains(recording):
     assert o.info is not None and o.command is not None
     s = problem.start
     assert (s.kp, s.ki, s.kd) == (60.0, 4.0, 6.0) and abs(s.setpoint - 0.2) < 1e-4
-    assert not problem.fitted and problem.design(s).nominal is None
+    assert problem.plant_label is None and problem.design(s).nominal is None
 
 
 def test_recording_that_is_not_a_closed_loop_is_refused(tmp_path):
@@ -173,12 +173,74 @@ def test_recording_that_is_not_a_closed_loop_is_refused(tmp_path):
 
 def test_fitted_plant_is_the_design_plant(tmp_path):
     fitted = jc.build_plant({"B_eq": 4.6, "f_c": 0.45})
-    path = jc.write_plant_file(tmp_path / "P.toml", fitted)
+    path = jc.write_plant_file(tmp_path / "P.toml", fitted, fit={"rms_mm": 0.2})
     problem = app.problem_from_files(plant=path, region_points=POINTS)
-    assert problem.fitted
+    assert problem.plant_label == "fitted plant (P.toml)"
     s = app.Settings(kp=60.0, ki=4.0, kd=6.0)
     d = problem.design(s)
     ref = simulate_exact(fitted, s.controller(), jc.step(0.5, horizon=3.0))
     nominal = simulate_exact(jc.handout_plant(), s.controller(), jc.step(0.5, horizon=3.0))
     np.testing.assert_array_equal(d.response.position, ref.position)
     np.testing.assert_array_equal(d.nominal.position, nominal.position)
+
+
+def test_each_file_is_checked_for_what_it_is(recording, tmp_path):
+    """--plant given a recording without a [plant] table is refused with the fix (it holds no
+    plant: the handout's would have been drawn as the student's); a recording's own [plant]
+    table is used and named as such; a plant file given as --data is refused."""
+    with pytest.raises(UserError) as refused:
+        app.problem_from_files(plant=recording)
+    message = str(refused.value)
+    assert message.startswith(f"--plant {recording}: a recording (an experiment file) with no")
+    assert "jaxcart fit" in message and f"--data {recording}" in message
+    truth = jc.build_plant({"B_eq": 4.6, "f_c": 0.45})
+    rec = make_recording(truth, jc.PID(kp=60.0, ki=4.0, kd=6.0, v_limit=6.0), jc.step(0.5))
+    own = write_recording(rec, tmp_path / "own.toml", plant_overrides={"B_eq": 4.6, "f_c": 0.45})
+    problem = app.problem_from_files(plant=own, region_points=POINTS)
+    assert problem.plant_label == "[plant] of own.toml"
+    assert (problem.plant.B_eq, problem.plant.structure) == (4.6, ("coulomb",))
+    plant = jc.write_plant_file(tmp_path / "P.toml", truth)
+    assert app.problem_from_files(plant=plant).plant_label == "plant of P.toml"
+    with pytest.raises(UserError, match=r"^--data .*P\.toml: a plant file, not a recording; give"):
+        app.problem_from_files(data=plant)
+    with pytest.raises(UserError, match=r"^--plant .*nope\.toml: no such file"):
+        app.problem_from_files(plant=tmp_path / "nope.toml")
+
+
+def test_a_design_that_leaves_the_track_is_said(problem):
+    """The largest excursion |y - y0| of the exact run against the track's 0.814 m travel
+    (the lab's end stops), as jaxcart.plausibility.check_track judges a simulation."""
+    from jaxcart.params import TRAVEL
+    from jaxcart.plausibility import check_track
+
+    s = app.Settings(kp=200.0, ki=30.0, kd=0.0, setpoint=0.8)
+    d = problem.design(s)
+    ref = simulate_exact(jc.handout_plant(), s.controller(), jc.step(0.8, horizon=3.0))
+    assert d.excursion == float(np.max(np.abs(ref.position))) > TRAVEL
+    assert check_track(ref, "run")  # the library's own check says the same
+    assert not d.on_track and not d.meets
+    checks = {c.name: c for c in d.checks}
+    assert checks[app.EXCURSION].bound == TRAVEL and checks[app.EXCURSION].ok is False
+    within = problem.design(app.Settings(kp=150.0, ki=1.0, kd=10.0, setpoint=0.5))
+    assert within.on_track and within.meets and checks_names(within)[-1] == app.EXCURSION
+
+
+def checks_names(design):
+    return [c.name for c in design.checks]
+
+
+def test_the_error_at_the_end_of_the_run_is_named_for_what_it_is(problem):
+    """step_info's steady_state_error is |r - y| at the last sample: with ki > 0 the integral is
+    still closing it at 3 s (the slowest pole near -0.13 1/s), no steady state."""
+    d = problem.design(app.Settings())
+    assert checks_names(d) == [
+        "rise time",
+        "settling time",
+        "overshoot",
+        "error at t = 3 s",
+        "peak voltage",
+        "time at 6 V",
+        app.EXCURSION,
+    ]
+    error = d.checks[3].value
+    assert error == abs(0.5 - float(d.response.position[-1])) > 0.02

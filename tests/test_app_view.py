@@ -74,10 +74,22 @@ def test_poles_are_the_designs(page, problem):
     assert "stable" in page.figures.poles.title.text
 
 
-def test_a_click_on_the_region_moves_kp_and_kd(page):
-    page.figures.region._trigger_event(Tap(page.figures.region, x=123.4, y=7.5))
-    assert page.sliders["kp"].value == 123.4 and page.sliders["kd"].value == 7.5
-    assert page.point.data == {"kp": [123.4], "kd": [7.5]}
+def test_a_click_on_the_region_moves_kp_and_kd_to_the_sliders_steps(page):
+    """A click lands between the sliders' steps (kp 1 V/m, kd 0.1 V s/m): the gains the page
+    simulates are the ones the sliders show."""
+    page.figures.region._trigger_event(Tap(page.figures.region, x=168.508, y=7.5499))
+    assert page.sliders["kp"].value == 169.0 and page.sliders["kd"].value == 7.5
+    assert page.point.data == {"kp": [169.0], "kd": [7.5]}
+    assert page.settings() == app.Settings(kp=169.0, ki=5.0, kd=7.5)
+    page.figures.region._trigger_event(Tap(page.figures.region, x=-3.0, y=25.0))
+    assert page.sliders["kp"].value == 0.0 and page.sliders["kd"].value == 20.0
+
+
+def test_snap_puts_a_value_on_its_sliders_step():
+    assert app.snap("kp", 168.508) == 169.0
+    assert app.snap("kd", 0.1 * 75) == 7.5  # 7.500000000000001 in floating point
+    assert app.snap("tau", 0.01234) == 0.0125
+    assert app.snap("setpoint", -0.8049) == -0.8 and app.snap("setpoint", 2.0) == 0.8
 
 
 def test_overlays_appear_with_a_recording_and_a_plant(tmp_path):
@@ -92,7 +104,7 @@ def test_overlays_appear_with_a_recording_and_a_plant(tmp_path):
     assert recorded is not None and len(recorded.data["y"]) == 3001
     assert len(page.nominal.data["y"]) == 3001  # the handout plant beside the fitted one
     labels = [item.label.value for item in page.figures.position.legend.items]
-    assert "fitted plant" in labels and "handout plant" in labels
+    assert "plant of P.toml" in labels and "handout plant" in labels
     assert any(label.startswith("recorded (pid.toml") for label in labels)
     assert "<th>recorded</th>" in page.metrics.text
     # The sliders start at the recording's gains, so the fitted plant's run is its truth's.
@@ -123,3 +135,26 @@ def test_notebook_gets_bokehjs_inline_not_from_a_cdn(monkeypatch):
     doc = Document()
     seen["app"](doc)
     assert doc.get_model_by_name("kp") is not None and len(doc.roots[0].children) == 2
+
+
+def test_a_busy_port_is_said_before_the_page_is_computed(monkeypatch, capsys):
+    """`jaxcart app --port P` with P taken: one line with the fix, before the files are read
+    and the region compiles (seconds that used to come first)."""
+    import socket
+
+    from tuning.commands.main import main
+
+    def never(*args, **kwargs):
+        raise AssertionError("the page was computed before the port was checked")
+
+    monkeypatch.setattr(app, "problem_from_files", never)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["app", "--port", str(port), "--no-browser"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--port {port}: cannot listen on 127.0.0.1:{port}" in err[0]
+    assert "another server listens there" in err[0] and "--port 0 picks a free one" in err[0]
+    assert main(["app", "--address", "192.0.2.1", "--port", "0", "--no-browser"]) == 2
+    assert "not an address of this machine" in capsys.readouterr().err

@@ -31,6 +31,15 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"jaxcart {version('jaxcart')}"
 
 
+def test_every_help_says_percent_once(capsys):
+    """argparse %-formats options' help but prints a description as written: a "%%" there is
+    printed as "%%" (class said "overshoot < 5 %%")."""
+    commands = build_parser()._subparsers._group_actions[0].choices
+    for command in commands:
+        text = _help(capsys, command)
+        assert "%%" not in text, (command, text[text.index("%%") - 60 : text.index("%%") + 5])
+
+
 @pytest.mark.parametrize("command", ["tune", "grid", "fit", "diagnose"])
 def test_distributed_options_are_listed_last_under_advanced(capsys, command):
     text = _help(capsys, command)

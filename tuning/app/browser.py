@@ -9,6 +9,9 @@ Latency (:func:`timed_moves`): from the key press (a capture listener on ``keydo
 ``performance.now()``) to the animation frame after the new response reached the page (Bokeh
 paints the changed plot in the frame its data change requested, before ours).
 
+Layout (:func:`layout`): what each plot drew where, for the test that the page fits a screen:
+its place on the page, its title's width, its legends' boxes and every tick label's box.
+
 Chromium's flags keep it off the network: without the background-networking ones it keeps
 trying to reach Google's services, which floods a closed network.
 """
@@ -124,11 +127,12 @@ def _pump(stream, lines: queue.Queue) -> None:
 
 @contextlib.contextmanager
 def page_at(
-    url: str, *, width: int = 1420, height: int = 900, timeout: float = 120.0, requests=None
+    url: str, *, width: int = 1280, height: int = 720, timeout: float = 120.0, requests=None
 ):
-    """A Playwright page of Chromium (fresh profile, off the network) showing ``url``, once the
-    design page is built; ``requests``: a list that gets the URL of every request the page
-    makes."""
+    """A Playwright page of Chromium (fresh profile, off the network) showing ``url`` in a
+    window of ``width`` x ``height`` [px] (a laptop's 1280 x 720 by default: the page is made to
+    fit it), once the design page is built; ``requests``: a list that gets the URL of every
+    request the page makes."""
     from playwright.sync_api import sync_playwright
 
     profile = tempfile.mkdtemp(prefix="jaxcart-chromium-")
@@ -203,3 +207,72 @@ def timed_moves(page, name: str, keys, *, timeout: float = 30.0) -> list[float]:
         knob.press(key)
         page.wait_for_function(f"() => window.__jaxcart.lat.length > {i}", timeout=timeout * 1e3)
     return page.evaluate("() => window.__jaxcart.lat")
+
+
+# Tick labels are drawn on the canvas, not in the DOM: each axis's labelling policy (Bokeh calls
+# its filter with every label's box before drawing) is wrapped to keep the boxes, and the axis
+# is changed and changed back so that it is drawn again.
+_WATCH_LABELS = """() => {
+    const figures = [];
+    (function walk(view) {
+        if (view.renderer_views !== undefined) figures.push(view);
+        for (const child of (view.child_views || [])) walk(child);
+    })(...Bokeh.index.roots);
+    window.__jaxcart_layout = {figures, labels: new Map()};
+    for (const fig of figures) {
+        for (const view of fig.renderer_views.values()) {
+            if (!view.model.type.endsWith("Axis")) continue;
+            const policy = view.model.major_label_policy;
+            const filter = policy.filter;
+            policy.filter = function (indices, boxes, distance) {
+                window.__jaxcart_layout.labels.set(view, boxes.map(
+                    (b) => [b.left, b.top, b.right, b.bottom]));
+                return filter.call(this, indices, boxes, distance);
+            };
+            const tick = view.model.major_tick_out;
+            view.model.major_tick_out = tick + 1;
+            view.model.major_tick_out = tick;
+        }
+    }
+}"""
+_LAYOUT = """() => {
+    const {figures, labels} = window.__jaxcart_layout;
+    const measure = document.createElement("canvas").getContext("2d");
+    const box = (b) => [b.left, b.top, b.right, b.bottom];
+    return figures.map((fig) => {
+        const views = [...fig.renderer_views.values()];
+        const title = fig.model.title;
+        measure.font = `${title.text_font_style} ${title.text_font_size} ${title.text_font}`;
+        const titleView = views.find((v) => v.model === title);
+        const rect = fig.el.getBoundingClientRect();
+        return {
+            name: fig.model.name,
+            title: title.text,
+            title_width: measure.measureText(title.text).width,
+            title_room: titleView.bbox.width,
+            page_box: [rect.left, rect.top, rect.right, rect.bottom],
+            size: [fig.bbox.width, fig.bbox.height],
+            frame: box(fig.frame.bbox),
+            legends: views.filter((v) => v.model.type === "Legend").map((v) => box(v.bbox)),
+            axes: views.filter((v) => labels.has(v)).map(
+                (v) => ({dimension: v.dimension, labels: labels.get(v)})),
+        };
+    });
+}"""
+
+
+def layout(page, *, timeout: float = 30.0) -> list[dict]:
+    """Each plot of the page as drawn: name, title, title_width (its text [px]), title_room
+    (the width it has [px]), page_box (left, top, right, bottom on the page [px]), size (the
+    canvas's width and height [px]), frame (the data's box), legends and axes (each a
+    dimension, 0 for x, and the boxes of its tick labels); boxes are (left, top, right,
+    bottom) in the canvas's pixels."""
+    page.evaluate(_WATCH_LABELS)
+    expected = page.evaluate(
+        "() => window.__jaxcart_layout.figures.reduce((n, f) => n + [...f.renderer_views"
+        ".values()].filter((v) => v.model.type.endsWith('Axis')).length, 0)"
+    )
+    page.wait_for_function(
+        f"() => window.__jaxcart_layout.labels.size >= {expected}", timeout=timeout * 1e3
+    )
+    return page.evaluate(_LAYOUT)

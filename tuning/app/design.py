@@ -24,7 +24,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import tomllib
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -33,6 +35,7 @@ from hw.control_law import PID, setting_problem
 from jaxcart import control_systems
 from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
+from jaxcart.params import TRAVEL
 from jaxcart.plausibility import LAB_VOLTAGE
 from tuning.design.gridrun import feasible_mask
 from tuning.design.losses import Spec
@@ -56,6 +59,18 @@ RANGES = {
     "setpoint": (-0.8, 0.8, 0.01),
 }
 UNITS = {"kp": "V/m", "ki": "V/(m s)", "kd": "V s/m", "tau": "s", "setpoint": "m"}
+
+
+def snap(name: str, value: float) -> float:
+    """``value`` [SI] of the slider ``name`` as the slider can hold it: within its range, on its
+    step (a click on the region lands between steps; the page shows the slider's value)."""
+    lo, hi, step = RANGES[name]
+    on_step = lo + round((float(value) - lo) / step) * step
+    # Rounded to the step's decimals: 0.1 * 75 is 7.500000000000001.
+    decimals = max(0, -math.floor(math.log10(step))) + 1
+    return round(min(max(on_step, lo), hi), decimals)
+
+
 #: Points per axis of the feasible region: 32 x 32 runs of 3 s take about 10 ms (float32,
 #: 2 cores, measured), well inside the page's 100 ms for a slider move.
 REGION_POINTS = 32
@@ -123,6 +138,11 @@ class Design:
     poles: np.ndarray
     stable: bool
     nominal: object = None
+    excursion: float = 0.0
+
+    @property
+    def on_track(self) -> bool:
+        return self.excursion < TRAVEL
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,17 +183,28 @@ class Overlay:
     y0: float
 
 
-def checks_of(info: jc.StepInfo, spec: Spec = SPEC) -> tuple[Check, ...]:
-    """The page's metric table: rise time, settling time (< spec), overshoot (< spec),
-    steady-state error, peak voltage and the time spent at the 6 V limit."""
-    return (
+#: The metric table's row of the track's travel (its bound :data:`TRAVEL`).
+EXCURSION = "largest |y - y0|"
+
+
+def checks_of(
+    info: jc.StepInfo, spec: Spec = SPEC, excursion: float | None = None
+) -> tuple[Check, ...]:
+    """The page's metric table: rise time, settling time (< spec), overshoot (< spec), the
+    error at the end of the run (step_info's steady_state_error is |r - y| at the last sample:
+    with an integrator still closing it, no steady state), peak voltage, the time spent at the
+    6 V limit and, given ``excursion`` [m], the largest |y - y0| against the track's travel."""
+    checks = (
         Check("rise time", info.rise_time, "s"),
         Check("settling time", info.settling_time, "s", spec.settling_time),
         Check("overshoot", info.overshoot, "%", spec.overshoot),
-        Check("steady-state error", info.steady_state_error, "m"),
+        Check(f"error at t = {spec.horizon:g} s", info.steady_state_error, "m"),
         Check("peak voltage", info.peak_voltage, "V"),
-        Check(f"time at the {V_LIMIT:g} V limit", info.saturation_time, "s"),
+        Check(f"time at {V_LIMIT:g} V", info.saturation_time, "s"),
     )
+    if excursion is None:
+        return checks
+    return (*checks, Check(EXCURSION, excursion, "m", TRAVEL))
 
 
 def s_plane(z: np.ndarray, sample_time: float) -> np.ndarray:
@@ -221,28 +252,31 @@ def region_status(info: jc.StepInfo, spec: Spec = SPEC) -> np.ndarray:
 
 
 class DesignProblem:
-    """The design page's problem: the design plant (the handout's, or a fitted plant file), the
-    spec and, optionally, the student's recording to overlay.
+    """The design page's problem: the design plant (the handout's, or the student's), the spec
+    and, optionally, the student's recording to overlay.
 
-    plant: the design plant (default :func:`jaxcart.handout_plant`); fitted: the plant came from
-    the student's plant file (the handout plant's run is then drawn beside it); overlay: a
-    :class:`Overlay` or None; region_points: points per axis of the feasible region."""
+    plant: the design plant (default :func:`jaxcart.handout_plant`); plant_label: what that
+    plant is, as the page names it (e.g. "fitted plant (P.toml)"; None: the handout's; with a
+    label the handout plant's run is drawn beside it); overlay: a :class:`Overlay` or None;
+    region_points: points per axis of the feasible region."""
 
     def __init__(
         self,
         plant: jc.Plant | None = None,
         *,
-        fitted: bool = False,
+        plant_label: str | None = None,
         overlay: Overlay | None = None,
         spec: Spec = SPEC,
         region_points: int = REGION_POINTS,
     ):
+        if (plant is None) != (plant_label is None):
+            raise ValueError("give a design plant and its label together (or neither)")
         self.plant = jc.handout_plant() if plant is None else plant
-        self.fitted = fitted
+        self.plant_label = plant_label
         self.overlay = overlay
         self.spec = spec
         self.region_points = int(region_points)
-        self.nominal_plant = jc.handout_plant() if fitted else None
+        self.nominal_plant = jc.handout_plant() if plant_label is not None else None
         self.region = functools.lru_cache(maxsize=64)(self._region)
         self._plant_systems: dict = {}
 
@@ -272,7 +306,9 @@ class DesignProblem:
         info = None
         if settings.setpoint != 0:
             info = jc.step_info(response, v_limit=V_LIMIT, band=self.spec.band)
-        checks = checks_of(info, self.spec) if info is not None else ()
+        y = np.asarray(response.position, dtype=float)
+        excursion = float(np.max(np.abs(y - y[0]))) if np.all(np.isfinite(y)) else math.inf
+        checks = checks_of(info, self.spec, excursion) if info is not None else ()
         meets = info is not None and info.meets(self.spec.settling_time, self.spec.overshoot)
         z = loop_poles(self.plant, pid, self._plant_ss(pid.sample_time))
         nominal = None
@@ -283,10 +319,11 @@ class DesignProblem:
             response=response,
             info=info,
             checks=checks,
-            meets=bool(meets),
+            meets=bool(meets) and excursion < TRAVEL,
             poles=s_plane(z, pid.sample_time),
             stable=bool(np.all(np.abs(z) < 1.0)),
             nominal=nominal,
+            excursion=excursion,
         )
 
     def _plant_ss(self, sample_time: float):
@@ -367,21 +404,62 @@ def overlay_from(recording) -> Overlay:
 
 def problem_from_files(data=None, plant=None, *, region_points: int = REGION_POINTS):
     """The :class:`DesignProblem` of ``jaxcart app --data REC.toml --plant P.toml``: the
-    fitted plant (closed loop, motor connected) as the design plant, the recording overlaid."""
+    student's plant (closed loop, motor connected) as the design plant, the recording
+    overlaid. Each file is checked for what it is first (:func:`design_plant`)."""
     overlay = None
     if data is not None:
         from jaxcart.files import read_experiment
 
+        _refuse_plant_file(data)
         overlay = overlay_from(read_experiment(data))
-    design_plant = None
+    design = label = None
     if plant is not None:
-        from jaxcart.plantsource import load_plant
+        design, label = design_plant(plant)
+    return DesignProblem(design, plant_label=label, overlay=overlay, region_points=region_points)
 
-        # A plant fitted to a tap (motor unplugged) is the same cart: drive it.
-        design_plant = dataclasses.replace(load_plant(plant), motor_connected=True)
-    return DesignProblem(
-        design_plant,
-        fitted=plant is not None,
-        overlay=overlay,
-        region_points=region_points,
-    )
+
+def _toml_head(path) -> dict:
+    """The TOML of ``path`` ({} when it is not readable TOML: its reader says why)."""
+    try:
+        return tomllib.loads(Path(path).read_text(encoding="utf-8-sig"))
+    except (tomllib.TOMLDecodeError, OSError, UnicodeDecodeError):
+        return {}
+
+
+def _refuse_plant_file(path) -> None:
+    from jaxcart.plantspec import FORMAT
+
+    if _toml_head(path).get("format") == FORMAT:
+        raise UserError(
+            f"--data {path}: a plant file, not a recording; give it as --plant {path}, and a "
+            "closed-loop step recording (an experiment file) as --data"
+        )
+
+
+def design_plant(path) -> tuple[jc.Plant, str]:
+    """(plant, its label on the page) of ``--plant PATH``: a plant file (from ``jaxcart fit``
+    or ``diagnose``: "fitted plant (P.toml)"; without a [fit] table: "plant of P.toml"), or an
+    experiment file's own [plant] table ("[plant] of run.toml"). A recording without one
+    holds no plant (the handout's would be drawn under another name): refused with the fix."""
+    from jaxcart.files import read_experiment
+    from jaxcart.plantspec import FORMAT, read_plant_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"--plant {path}: no such file; give a plant file (.toml)")
+    head = _toml_head(path)
+    if head.get("format") == FORMAT or "kind" not in head:
+        # A plant file, or no experiment file either: the plant file's reader says what to fix.
+        plant = read_plant_file(path)[0]
+        label = f"fitted plant ({path.name})" if "fit" in head else f"plant of {path.name}"
+    elif head.get("plant"):
+        plant, label = read_experiment(path).plant(), f"[plant] of {path.name}"
+    else:
+        raise UserError(
+            f"--plant {path}: a recording (an experiment file) with no [plant] table, so no "
+            f"plant of its own; fit one to it (jaxcart fit {path} --params B_eq,f_c --out "
+            f"fitted.toml) and give --plant fitted.toml; to overlay the recording, give it as "
+            f"--data {path}"
+        )
+    # A plant fitted to a tap (motor unplugged) is the same cart: drive it.
+    return dataclasses.replace(plant, motor_connected=True), label

@@ -19,10 +19,10 @@ notebook gets BokehJS inline from the installed package, not from a CDN.
 
 from __future__ import annotations
 
-import socket
 import sys
 
 from tuning.app.design import DesignProblem, Settings, problem_from_files
+from tuning.app.port import free_port, port_problem
 from tuning.app.view import build
 
 #: The port ``jaxcart app`` asks for first (Bokeh's own default).
@@ -39,13 +39,6 @@ def warm(problem: DesignProblem) -> None:
     problem.region_at(Settings(ki=start.ki, tau=start.tau, setpoint=-start.setpoint))
 
 
-def free_port(address: str) -> int:
-    """A port the system has free on ``address`` now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((address, 0))
-        return s.getsockname()[1]
-
-
 def make_server(problem: DesignProblem, *, port: int = DEFAULT_PORT, address="127.0.0.1"):
     """A started-to-be :class:`bokeh.server.server.Server` of the page on ``address:port``
     (port 0: a free one), accepting pages opened from that address or localhost."""
@@ -60,18 +53,17 @@ def make_server(problem: DesignProblem, *, port: int = DEFAULT_PORT, address="12
 
 
 def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", browser=True):
-    """Serve the page until Ctrl-C (or SIGTERM); prints its address first. Returns 0."""
-    print("jaxcart app: preparing the page (the region's batch compiles once)...", flush=True)
-    warm(problem)
+    """Serve the page until Ctrl-C (or SIGTERM); prints its address first. Returns 0. The
+    port is taken before the page's first position is computed, so a busy one is said at
+    once."""
+    from jaxcart.errors import UserError
+
     try:
         server = make_server(problem, port=port, address=address)
     except OSError as exc:
-        from jaxcart.errors import UserError
-
-        raise UserError(
-            f"--port {port}: cannot listen on {address}:{port} ({exc.strerror}); give another "
-            "port (--port 0 picks a free one)"
-        ) from None
+        raise UserError(port_problem(address, port, exc)) from None
+    print("jaxcart app: preparing the page (the region's batch compiles once)...", flush=True)
+    warm(problem)
     url = f"http://{address}:{server.port}/"
     server.start()
     print(f"jaxcart app: the design page is at {url} (Ctrl-C to stop)", flush=True)

@@ -1,5 +1,7 @@
 """The design page drawn with Bokeh: sliders on the left, the step response and the voltage in
 the middle, the feasible region and the poles on the right, the metric table under the sliders.
+The three columns fit a 1280 x 720 screen (:data:`PAGE_WIDTH`) and wrap onto the next line on a
+narrower one.
 
 The numbers come from :mod:`tuning.app.design`; this module only turns them into Bokeh models.
 :func:`build` fills a :class:`bokeh.document.Document` (a server session's or a notebook's), so
@@ -18,26 +20,30 @@ from bokeh.events import Tap
 from bokeh.layouts import column, row
 from bokeh.models import (
     BoxAnnotation,
-    ColorBar,
     ColumnDataSource,
     Div,
-    FixedTicker,
+    Legend,
+    LegendItem,
     LinearColorMapper,
     Range1d,
+    SingleIntervalTicker,
     Slider,
     Span,
 )
 from bokeh.plotting import figure
 
 from tuning.app.design import (
+    EXCURSION,
     RANGES,
     STATUS_NAMES,
+    TRAVEL,
     V_LIMIT,
     Design,
     DesignProblem,
     Region,
     Settings,
     checks_of,
+    snap,
 )
 
 #: Slider order and titles: the handout writes the PID as kp, ki, kd. tau is shown in ms.
@@ -56,6 +62,11 @@ SCALE = {"tau": 1e3}
 REGION_COLOURS = ("#4daf4a", "#ff7f00", "#984ea3", "#bdbdbd", "#252525")
 #: The poles plot's window [1/s]: the dominant poles of the lab's gains; faster ones are counted.
 POLE_WINDOW = (-150.0, 20.0, -100.0, 100.0)
+#: Widths [px] of the three columns: sliders and metrics, the response and the voltage, the
+#: region and the poles. With Bokeh's 5 px margins they fill a 1280 px wide window
+#: (:data:`PAGE_WIDTH`) without a scroll bar; a narrower one wraps the right column under.
+CONTROLS_WIDTH, MIDDLE_WIDTH, RIGHT_WIDTH = 300, 550, 400
+PAGE_WIDTH = 1280
 SIM_COLOUR, REC_COLOUR, NOMINAL_COLOUR = "#1f77b4", "#d62728", "#7f7f7f"
 
 
@@ -90,21 +101,23 @@ class DesignPage:
         self.poles = ColumnDataSource(_empty("re", "im"), name="poles")
         self.spec = ColumnDataSource(_empty("t", "lo", "hi"), name="spec")
         self.bounds = ColumnDataSource(dict(xs=[], ys=[]), name="bounds")
-        self.metrics = Div(name="metrics", width=310)
-        self.pole_list = Div(name="pole_list", width=420)
+        self.metrics = Div(name="metrics", width=CONTROLS_WIDTH - 10)
+        self.pole_list = Div(name="pole_list", width=RIGHT_WIDTH)
         self.figures = _Figures(self)
         for slider in self.sliders.values():
             slider.on_change("value", self._moved)
         self.figures.region.on_event(Tap, self._tapped)
-        note = Div(text=_note(problem), width=310)
-        controls = column(*self.sliders.values(), self.metrics, note, width=320)
+        note = Div(text=_note(problem), width=CONTROLS_WIDTH - 10)
+        controls = column(*self.sliders.values(), self.metrics, note, width=CONTROLS_WIDTH)
         middle = column(self.figures.position, self.figures.voltage)
         if narrow:
             poles = column(self.figures.poles, self.pole_list)
             self.layout = column(row(controls, middle), row(self.figures.region, poles))
         else:
             right = column(self.figures.region, self.figures.poles, self.pole_list)
-            self.layout = row(controls, middle, right)
+            # A flex row that wraps: on a window narrower than the three columns the right one
+            # goes under the others instead of off the screen.
+            self.layout = row(controls, middle, right, styles={"flex-wrap": "wrap"})
         self.update()
 
     def settings(self) -> Settings:
@@ -127,11 +140,10 @@ class DesignPage:
         self.update()
 
     def _tapped(self, event):
-        """A click on the region moves kp and kd there."""
+        """A click on the region moves kp and kd there, to the sliders' nearest steps."""
         for name, value in (("kp", event.x), ("kd", event.y)):
-            lo, hi, _ = RANGES[name]
             if value is not None and math.isfinite(value):
-                self.sliders[name].value = float(min(max(value, lo), hi))
+                self.sliders[name].value = snap(name, value) * SCALE.get(name, 1.0)
 
     def update(self) -> Design:
         """Recompute at the sliders' position and push every changed number to the page (in
@@ -179,8 +191,8 @@ class _Figures:
             title="Step response (exact simulator, 6 V limit)",
             x_axis_label="time [s]",
             y_axis_label="position [m]",
-            width=660,
-            height=330,
+            width=MIDDLE_WIDTH,
+            height=340,
             tools=tools,
             x_range=Range1d(0.0, horizon),
             name="position_figure",
@@ -220,9 +232,9 @@ class _Figures:
             source=page.response,
             color=SIM_COLOUR,
             line_width=2,
-            legend_label="fitted plant" if problem.fitted else "simulated",
+            legend_label=problem.plant_label or "simulated",
         )
-        if problem.fitted:
+        if problem.plant_label is not None:
             p.line(
                 "t",
                 "y",
@@ -233,7 +245,7 @@ class _Figures:
                 legend_label="handout plant",
             )
         _recording(page, p, "position")
-        _legend_outside(p)
+        _legend_above(p)
         self.voltage = self._voltage_figure(page, tools, horizon)
         self.region = self._region_figure(page)
         self.poles = self._poles_figure(page)
@@ -243,8 +255,8 @@ class _Figures:
             title="Voltage",
             x_axis_label="time [s]",
             y_axis_label="voltage [V]",
-            width=660,
-            height=250,
+            width=MIDDLE_WIDTH,
+            height=260,
             tools=tools,
             x_range=self.position.x_range,
             y_range=Range1d(-1.25 * V_LIMIT, 1.25 * V_LIMIT),
@@ -267,7 +279,7 @@ class _Figures:
             legend_label="simulated",
         )
         _recording(page, v, "command")
-        _legend_outside(v)
+        _legend_above(v)
         return v
 
     def _region_figure(self, page):
@@ -277,8 +289,8 @@ class _Figures:
             title="Feasible region",
             x_axis_label="kp [V/m]",
             y_axis_label="kd [V s/m]",
-            width=420,
-            height=330,
+            width=RIGHT_WIDTH,
+            height=390,
             tools="tap,reset,save",
             x_range=Range1d(lo_kp, hi_kp),
             y_range=Range1d(lo_kd, hi_kd),
@@ -296,13 +308,16 @@ class _Figures:
             line_color="black",
             line_width=2,
         )
-        bar = ColorBar(
-            color_mapper=mapper,
-            ticker=FixedTicker(ticks=list(range(len(STATUS_NAMES)))),
-            major_label_overrides={i: name for i, name in enumerate(STATUS_NAMES)},
-            width=10,
-        )
-        f.add_layout(bar, "right")
+        # The statuses as a legend under the plot (a colour bar's labels beside it took a
+        # third of the column): one square per status, at NaN so that only its entry shows (a
+        # glyph without data draws no entry).
+        items = []
+        for colour, name in zip(REGION_COLOURS, STATUS_NAMES, strict=True):
+            swatch = f.scatter(x=[math.nan], y=[math.nan], marker="square", size=10, color=colour)
+            items.append(LegendItem(label=name, renderers=[swatch]))
+        legend = Legend(items=items, orientation="horizontal", ncols=2, name="region_legend")
+        _legend_style(legend)
+        f.add_layout(legend, "below")
         return f
 
     def _poles_figure(self, page):
@@ -311,12 +326,16 @@ class _Figures:
             title="Closed-loop poles",
             x_axis_label="Re s [1/s]",
             y_axis_label="Im s [rad/s]",
-            width=420,
+            width=RIGHT_WIDTH,
             height=250,
             tools="pan,wheel_zoom,reset,save",
             x_range=Range1d(x0, x1),
             y_range=Range1d(y0, y1),
+            name="poles_figure",
         )
+        # Bokeh's default ticker put a label every 10 1/s, run together; every 50 reads.
+        f.xaxis.ticker = SingleIntervalTicker(interval=50, num_minor_ticks=5)
+        f.yaxis.ticker = SingleIntervalTicker(interval=50, num_minor_ticks=5)
         f.add_layout(BoxAnnotation(left=0, fill_color="#d62728", fill_alpha=0.08))
         f.add_layout(Span(location=0, dimension="height", line_color="black"))
         f.scatter(
@@ -339,7 +358,7 @@ class _Figures:
         )
         self.region.title.text = (
             f"Feasible at ki = {region.ki:g}, tau = {1e3 * region.tau:g} ms: "
-            f"{region.n_feasible}/{region.status.size} points"
+            f"{region.n_feasible}/{region.status.size}"
         )
 
     def show(self, design: Design, region: Region) -> None:
@@ -356,8 +375,8 @@ class _Figures:
         p = design.poles
         outside = int(np.count_nonzero((p.real < x0) | (p.real > x1) | (abs(p.imag) > y1)))
         verdict = "stable" if design.stable else "UNSTABLE"
-        beyond = f", {outside} beyond the window" if outside else ""
-        self.poles.title.text = f"Closed-loop poles, linear loop: {verdict}{beyond}"
+        beyond = f", {outside} off the plot" if outside else ""
+        self.poles.title.text = f"Closed-loop poles: {verdict}{beyond}"
         page.pole_list.text = pole_text(p)
 
 
@@ -374,12 +393,23 @@ def pole_text(poles: np.ndarray) -> str:
     return "<p style='font-size:90%'>poles [1/s], slowest first: " + ", ".join(parts) + "</p>"
 
 
-def _legend_outside(fig) -> None:
-    """The legend right of the plot, off the data; a click on an entry hides its line."""
+def _legend_above(fig) -> None:
+    """The legend in a row above the plot, off the data and inside the column's width (beside
+    the plot it took a third of the width); a click on an entry hides its line."""
     legend = fig.legend[0]
     legend.click_policy = "hide"
+    legend.orientation = "horizontal"
+    legend.ncols = 4 if len(legend.items) <= 4 else 3
+    _legend_style(legend)
+    fig.add_layout(legend, "above")
+
+
+def _legend_style(legend) -> None:
     legend.label_text_font_size = "9pt"
-    fig.add_layout(legend, "right")
+    legend.padding = 2
+    legend.spacing = 8
+    legend.margin = 2
+    legend.border_line_alpha = 0.0
 
 
 def spec_lines(spec, setpoint: float) -> tuple[dict, dict]:
@@ -409,7 +439,7 @@ def _slider(name: str, value: float) -> Slider:
         name=name,
         css_classes=[f"slider-{name}"],
         format=fmt,
-        width=300,
+        width=CONTROLS_WIDTH - 20,
     )
 
 
@@ -455,27 +485,42 @@ def metrics_html(design: Design, problem: DesignProblem) -> str:
     with a recording, recorded."""
     if design.info is None:
         return "<p>setpoint 0 m: no step to measure; move the setpoint.</p>"
-    rec = problem.overlay.info if problem.overlay is not None else None
-    head = "<tr><th>metric</th><th>spec</th><th>simulated</th>"
+    overlay = problem.overlay
+    rec = overlay.info if overlay is not None else None
+    # The bound beside the metric's name (a column of its own made the table wider than the
+    # sliders' column); rows and cells named for the browser test.
+    head = "<tr><th>metric, spec</th><th>simulated</th>"
     head += "<th>recorded</th></tr>" if rec is not None else "</tr>"
     rows = [head]
-    recorded = {c.name: c for c in checks_of(rec, problem.spec)} if rec is not None else {}
+    recorded = {}
+    if rec is not None:
+        excursion = float(np.max(np.abs(overlay.position)))  # from its start y0
+        recorded = {c.name: c for c in checks_of(rec, problem.spec, excursion)}
     for check in design.checks:
-        bound = f"&lt; {check.bound:g} {check.unit}" if check.bound is not None else ""
+        name = html.escape(check.name)
+        bound = ""
+        if check.bound is not None:
+            shown, unit = (
+                (1e3 * check.bound, "mm") if check.unit == "m" else (check.bound, check.unit)
+            )
+            bound = f' <span style="color:#555;white-space:nowrap">&lt; {shown:g} {unit}</span>'
         colour = {True: "#1a7f37", False: "#cf222e", None: "inherit"}[check.ok]
         cell = html.escape(_number(check.value, check.unit, check.name))
-        line = f"<tr><td>{html.escape(check.name)}</td><td>{bound}</td>"
-        line += f'<td style="color:{colour};font-weight:bold">{cell}</td>'
+        line = f'<tr data-metric="{name}"><td style="white-space:normal">{name}{bound}</td>'
+        line += f'<td class="sim" style="color:{colour};font-weight:bold">{cell}</td>'
         if rec is not None:
-            mine = recorded[check.name]
-            line += f"<td>{html.escape(_number(mine.value, check.unit, check.name))}</td>"
+            mine = html.escape(_number(recorded[check.name].value, check.unit, check.name))
+            line += f'<td class="rec">{mine}</td>'
         rows.append(line + "</tr>")
-    missing = [c.name for c in design.checks if c.ok is False]
-    verdict = (
-        '<b style="color:#1a7f37">meets the spec</b>'
-        if design.meets
-        else f'<b style="color:#cf222e">misses: {", ".join(missing) or "the run diverged"}</b>'
-    )
+    missing = [c.name for c in design.checks if c.ok is False and c.name != EXCURSION]
+    if design.meets:
+        verdict = '<b style="color:#1a7f37">meets the spec</b>'
+    elif not missing and design.on_track:
+        verdict = '<b style="color:#cf222e">misses: the run diverged</b>'
+    elif not missing:
+        verdict = '<b style="color:#cf222e">meets the spec but leaves the track</b>'
+    else:
+        verdict = f'<b style="color:#cf222e">misses: {", ".join(missing)}</b>'
     spec = problem.spec
     step = design.settings.setpoint
     other = "" if step == spec.step else f"; the handout's step is {spec.step:g} m"
@@ -483,6 +528,12 @@ def metrics_html(design: Design, problem: DesignProblem) -> str:
         f"<p>{verdict} (step {step:.2f} m, settling &lt; {spec.settling_time:g} s, "
         f"overshoot &lt; {spec.overshoot:g} %, {V_LIMIT:g} V{other})</p>"
     )
+    if not design.on_track:
+        title += (
+            f'<p style="color:#cf222e">leaves the track: the cart would move '
+            f"{_number(design.excursion, 'm')} from its start, beyond the {1e3 * TRAVEL:g} mm "
+            "travel (it would hit the end stop)</p>"
+        )
     table = '<table style="border-spacing:6px 2px;font-size:90%;white-space:nowrap">'
     return title + table + "".join(rows) + "</table>"
 
@@ -490,12 +541,15 @@ def metrics_html(design: Design, problem: DesignProblem) -> str:
 def _note(problem: DesignProblem) -> str:
     lines = [
         "Exact simulator (event-exact friction, hard 6 V clip) over "
-        f"{problem.spec.horizon:g} s; region: {problem.region_points}x{problem.region_points} "
-        "hard-clip runs at the current ki (click it to move kp, kd there); poles: the linear "
-        "digital loop (no limit, no friction) as s = ln(z)/Ts."
+        f"{problem.spec.horizon:g} s, its run checked against the track's "
+        f"{1e3 * TRAVEL:g} mm travel; region: {problem.region_points}x{problem.region_points} "
+        "hard-clip runs at the current ki, settling and overshoot (click it to move kp, kd "
+        "there); poles: the linear digital loop (no limit, no friction) as s = ln(z)/Ts."
     ]
-    if problem.fitted:
-        lines.append("Design plant: the fitted plant file; grey: the handout's plant.")
+    if problem.plant_label is not None:
+        lines.append(
+            f"Design plant: the {html.escape(problem.plant_label)}; grey: the handout's plant."
+        )
     if problem.overlay is not None:
         o = problem.overlay
         lines.append(f"Red: {html.escape(o.name)}, from its start y0 = {o.y0:.4f} m.")

@@ -32,8 +32,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--plant",
         metavar="PLANT.toml",
-        help="design on this plant (a plant file from fit or diagnose); the handout's plant "
-        "is drawn beside it",
+        help="design on this plant: a plant file (from fit or diagnose), or an experiment "
+        "file's own [plant] table; the handout's plant is drawn beside it",
     )
     p.add_argument(
         "--port", type=int, default=5006, help="port to serve on (5006; 0: any free port)"
@@ -48,14 +48,17 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     from jaxcart.errors import UserError
-    from tuning.app.design import problem_from_files
-    from tuning.app.server import serve
+    from tuning.app.port import check_port
 
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port {args.port}: give a port from 1 to 65535 (0: any free port)")
+    check_port(args.address, args.port)  # before seconds of reading and compiling
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from tuning.app.design import problem_from_files
+    from tuning.app.server import serve
+
     problem = problem_from_files(args.data, args.plant)
     return serve(problem, port=args.port, address=args.address, browser=not args.no_browser)

@@ -19,10 +19,13 @@ def register(subparsers) -> None:
         description="Run the lab report (jaxcart lab) on every sub-folder of CLASS_DIR, in "
         "parallel processes, and write one table of every handout number per student "
         "(class.csv, a self-contained class.html, class.json) with Part (v)'s step checked "
-        "against the spec (settling < 1 s, overshoot < 5 %%), flags (a failed lab, a missing "
-        "part, a file the lab did not use, a B_eq or f_c ten times off the class's median), "
-        "the class's distributions and overlays of everyone's recordings, and a link to each "
-        "student's report. A folder the lab refuses is one failed row; the others complete.",
+        "against the spec (settling < 1 s, overshoot < 5 %), flags (a failed lab, a part "
+        "lost to a file that cannot be used, a missing part, a file the lab did not use, an "
+        "estimate of B_eq or f_c ten times off the class's median), the class's "
+        "distributions and overlays of everyone's recordings, and a link to each student's "
+        "report. A broken or missing file costs its part, not the student's lab; a folder the "
+        "lab refuses as a whole is one failed row; the others complete. With the compilation "
+        "cache on, one student's lab runs alone first and compiles the class's programs once.",
     )
     p.add_argument(
         "folder",

@@ -29,7 +29,21 @@ PREFERRED = (
 #: Most panels of the distributions figure.
 MAX_PANELS = 10
 #: Most students named in the overlays' legend (more: no legend).
-MAX_LEGEND = 24
+MAX_LEGEND = 40
+#: The overlays' line styles: ten colours (tab10, told apart by most colour vision) times
+#: four dash patterns tell 40 students apart; tab20's pairs of a dark and a light shade did
+#: not tell 20 apart.
+COLOURS = 10
+DASHES = ("-", "--", ":", "-.")
+
+
+def line_style(k: int) -> dict:
+    """The colour and dash of the ``k``-th student's lines (matplotlib keywords): the first ten
+    solid in tab10's colours, the next ten dashed in the same colours, and so on."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10"]
+    return {"color": cmap(k % COLOURS), "ls": DASHES[(k // COLOURS) % len(DASHES)]}
 
 
 def draw(result, folder) -> list[tuple[Path, str]]:
@@ -54,7 +68,8 @@ def draw(result, folder) -> list[tuple[Path, str]]:
             (
                 path,
                 "Every student's recordings overlaid, one panel per experiment of the handout "
-                "(positions as recorded; dashed grey: the reference of closed-loop steps).",
+                "(positions as recorded; a colour and a dash per student; flagged students "
+                "drawn thicker and named; dotted black: the reference of closed-loop steps).",
             )
         )
     return figures
@@ -143,8 +158,9 @@ def _box(ax, values) -> None:
 
 def overlays(result, path) -> Path:
     """A panel per experiment (slot): every complete student's recorded position against
-    time, one colour per student, and the reference of closed-loop steps."""
-    from matplotlib import colormaps
+    time, one colour and dash per student (:func:`line_style`), and the reference of
+    closed-loop steps. A flagged student's runs are drawn thicker and named at their end: in a
+    bundle of 20 runs no colour tells one apart, a name does."""
     from matplotlib.figure import Figure
 
     from tuning.lab.inputs import SLOTS
@@ -155,17 +171,22 @@ def overlays(result, path) -> Path:
     fig = Figure(figsize=(4.2 * cols + 1.8, 3.0 * rows + 0.5), layout="constrained")
     axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     students = [s for s in result.students if s.runs]
-    cmap = colormaps["tab10" if len(students) <= 10 else "tab20"]
     for ax, slot in zip(axes, slots, strict=False):
         drawn_ref = False
+        ends = []
         for k, student in enumerate(students):
             if slot not in student.runs:
                 continue
             t, y, ref = student.runs[slot]
-            ax.plot(t, y, lw=1.0, color=cmap(k % cmap.N), label=student.name)
+            hot = bool(student.flags)
+            ax.plot(t, y, lw=2.2 if hot else 1.2, label=student.name, **line_style(k))
+            if hot:
+                ends.append((student.name, t[-1], y[-1], line_style(k)["color"]))
             if ref is not None and not drawn_ref:
-                ax.plot(t, ref, color="0.5", ls="--", lw=0.9, label="_reference")
+                # Black (no student's colour) and dotted: tab10's grey dashed is a student's.
+                ax.plot(t, ref, color="black", ls=":", lw=1.0, label="_reference")
                 drawn_ref = True
+        _name_ends(ax, ends)
         part, what = SLOTS[slot]
         ax.set_title(f"Part ({part}): {what}", fontsize=9)
         ax.set_xlabel("time t [s]", fontsize=8)
@@ -175,10 +196,45 @@ def overlays(result, path) -> Path:
     for ax in axes[len(slots) :]:
         ax.set_visible(False)
     if len(students) <= MAX_LEGEND:
-        handles = [
-            axes[0].plot([], [], color=cmap(k % cmap.N), lw=1.5)[0] for k in range(len(students))
-        ]
-        fig.legend(handles, [s.name for s in students], loc="outside right upper", fontsize=8)
+        handles = [axes[0].plot([], [], lw=1.5, **line_style(k))[0] for k in range(len(students))]
+        fig.legend(
+            handles,
+            [s.name for s in students],
+            loc="outside right upper",
+            fontsize=8,
+            handlelength=3.0,  # long enough to show a dash pattern
+            ncols=1 if len(students) <= 20 else 2,
+        )
     fig.suptitle(f"jaxcart class: the recordings of {len(students)} students")
     fig.savefig(path, dpi=DPI)
     return Path(path)
+
+
+def _name_ends(ax, ends, gap: float = 0.075) -> None:
+    """Name the runs ``ends`` [(name, t, y, colour) of each run's last sample] inside the panel,
+    left of the runs' ends and in the order of their final positions, at least ``gap`` (of the
+    panel's height) apart, each tied to its run's end by a thin line: runs that end together
+    get names that do not."""
+    if not ends:
+        return
+    lo, hi = ax.get_ylim()  # autoscaled to the runs drawn
+    ends = sorted(ends, key=lambda e: e[2])
+    at = []
+    for _, _, y, _ in ends:
+        f = (y - lo) / (hi - lo) if hi > lo else 0.5
+        at.append(f if not at else max(f, at[-1] + gap))
+    shift = max(0.0, at[-1] - 0.92)  # the top name inside the panel
+    at = [max(0.04, f - shift) for f in at]
+    for (name, t, y, colour), f in zip(ends, at, strict=True):
+        ax.annotate(
+            name,
+            (t, y),
+            xytext=(0.86, f),
+            textcoords="axes fraction",
+            ha="right",
+            va="center",
+            fontsize=7,
+            color=colour,
+            bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+            arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.6},
+        )

@@ -126,8 +126,9 @@ def _flags(result) -> str:
         inner = "".join(f"<li>{html_text(f)}</li>" for f in s.flags)
         items.append(f"<li><b>{html_text(s.name)}</b><ul>{inner}</ul></li>")
     return (
-        "<h2>Flags</h2><p>Failed labs, missing parts, files the lab did not use, and cart "
-        "parameters (kg/s, N) ten times off the class's median or more:</p>"
+        "<h2>Flags</h2><p>Failed labs, parts lost to a file that cannot be used, missing "
+        "parts, files the lab did not use, and estimates of cart parameters (kg/s, N) ten "
+        "times off the class's median or more:</p>"
         f"<ul>{''.join(items)}</ul>"
     )
 

@@ -8,16 +8,25 @@ one table of every handout number, checks against the spec, outliers against the
 
 Each student's folder is given to the lab (:func:`tuning.lab.report.run_lab`) in a process of
 its own (a pool of ``workers``), and the class reads each report's ``results.json``: nothing of
-the lab is computed here. A folder the lab refuses (a broken file, no recordings) or a process
-that dies is one failed row of the table, with its one-line reason; the others complete.
+the lab is computed here. The lab reads a student's folder part by part (``partial``): a file
+that cannot be read (a broken data file, an unreadable .mat, a recording lab.toml names that
+is not there) costs its part, flagged, and the other parts complete. A folder the lab refuses
+as a whole (no recording at all) or a process that dies is one failed row of the table, with
+its one-line reason; the others complete.
 
-The table flags, for each student: a missing part (no recording for a slot), an unrecognised
-file (a file of the folder the lab did not use), and an outlier: a parameter of the cart (a
-value in kg/s or N, such as B_eq or f_c) at least :data:`OUTLIER_FACTOR` times the class's
-median or at most 1/:data:`OUTLIER_FACTOR` of it (carts of one model differ by tens of
-percent; a factor of ten is a unit slip or a wrong recording). Part (v)'s measured step is
-checked against the handout's specification (:class:`tuning.design.losses.Spec`: settling in
-the 2 % band under 1 s, overshoot under 5 %).
+Compilation is paid once for the class, not once per process: with the compilation cache on,
+one student's lab runs alone first (the one with the most files, so the most of the lab's
+programs), its programs compiled into the cache, and then the others, ``workers`` at once, in
+processes that read them from there.
+
+The table flags, for each student: a part lost to a file that cannot be used, a missing part
+(no recording for a slot), an unrecognised file (a file of the folder the lab did not use), and
+an outlier: an estimate of a parameter of the cart (a value in kg/s or N, such as B_eq or f_c;
+a bound on one, such as the P-control runs' lower bound on f_c, is not judged) at least
+:data:`OUTLIER_FACTOR` times the class's median or at most 1/:data:`OUTLIER_FACTOR` of it
+(carts of one model differ by tens of percent; a factor of ten is a unit slip or a wrong
+recording). Part (v)'s measured step is checked against the handout's specification
+(:class:`tuning.design.losses.Spec`: settling in the 2 % band under 1 s, overshoot under 5 %).
 
 >>> result = run_class("class/", "class-report/", workers=2)      # doctest: +SKIP
 >>> result.counts()                                                # doctest: +SKIP
@@ -58,7 +67,8 @@ class Student:
     """One student's (or group's) lab.
 
     name: the sub-folder's name; folder: it; status: "complete" or "failed"; error: the
-    one-line reason of a failure; seconds: the lab's wall time [s]; results: its results.json
+    one-line reason of a failure; seconds: the lab's wall time [s]; cpu_seconds: the CPU time
+    its process spent on it [s] (all threads); results: its results.json
     (None when failed); runs: {slot: (time [s], position [m], reference [m] or None)}, thinned,
     for the overlays; used: the files of the folder the lab used; unrecognised: the files it
     did not use, (name, why);
@@ -71,6 +81,7 @@ class Student:
     status: str = "failed"
     error: str | None = None
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
     results: dict | None = None
     runs: dict = field(default_factory=dict)
     used: list = field(default_factory=list)
@@ -109,12 +120,14 @@ class Student:
 
 @dataclass(frozen=True)
 class Column:
-    """One handout number of the table: results.json key, label, unit (SI), part."""
+    """One handout number of the table: results.json key, label, unit (SI), part, and the
+    bound it is ("lower", "upper") when it bounds a quantity instead of estimating it."""
 
     key: str
     label: str
     unit: str
     part: str
+    bound: str | None = None
 
 
 @dataclass
@@ -229,19 +242,21 @@ def _data_files(toml: Path) -> set[str]:
 
 def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
     """Run the lab on one student's folder into ``out``, its progress into the file ``log``;
-    returns {"status", "error", "seconds", "runs", "used"}. Never raises for the student's data: a
-    refused folder or a failure of the lab is the returned status and its one-line reason
-    (a traceback, for an internal error, goes to the log). Runs in a worker process."""
+    returns {"status", "error", "seconds", "cpu_seconds", "runs", "used"}. Never raises for the
+    student's data: a file that cannot be read costs its part (the lab reads the folder
+    partially), a refused folder or a failure of the lab is the returned status and its
+    one-line reason (a traceback, for an internal error, goes to the log). Runs in a worker
+    process."""
     from tuning.lab.inputs import find_inputs
     from tuning.lab.report import run_lab
 
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     outcome = {"status": "failed", "error": None, "runs": {}, "used": []}
     with open(log, "w") as stream, contextlib.redirect_stderr(stream):
         try:
             with contextlib.redirect_stdout(stream):
-                run_lab(folder, out, stream=stream, diagnosis=diagnosis)
-                inputs = find_inputs(folder)
+                run_lab(folder, out, stream=stream, diagnosis=diagnosis, partial=True)
+                inputs = find_inputs(folder, partial=True)
                 outcome["runs"], outcome["used"] = _runs(inputs), used_files(inputs)
             outcome["status"] = "complete"
         except UserError as exc:
@@ -253,6 +268,7 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
         if outcome["error"]:
             print(f"failed: {outcome['error']}", file=stream)
     outcome["seconds"] = time.perf_counter() - started
+    outcome["cpu_seconds"] = time.process_time() - cpu
     return outcome
 
 
@@ -288,10 +304,13 @@ def run_all(
     students, out: Path, *, workers: int, diagnosis: bool, cache: bool, say, job=None
 ) -> None:
     """Every student's lab, ``workers`` at once in processes of their own; fills each
-    :class:`Student` and says each completion. A process that dies (crash, out of memory)
-    takes the students it was running with it: each is then rerun alone in a fresh process,
-    so only the one that kills its process is reported failed. job: what runs in the worker
-    (default :func:`run_student`; a module-level function of the same signature)."""
+    :class:`Student` and says each completion. With the compilation cache on (``cache``) and
+    more than one process, the lab of :func:`lead` runs alone first: it compiles the lab's
+    programs into the cache, which the other processes then read instead of each compiling
+    them again. A process that dies (crash, out of memory) takes the students it was running
+    with it: each is then rerun alone in a fresh process, so only the one that kills its
+    process is reported failed. job: what runs in the worker (default :func:`run_student`; a
+    module-level function of the same signature)."""
     job = job or run_student
     jobs = {s.name: s for s in students}
     done = [0]
@@ -299,14 +318,25 @@ def run_all(
     def finish(student, outcome):
         student.status, student.error = outcome["status"], outcome["error"]
         student.seconds, student.runs = outcome["seconds"], outcome.get("runs") or {}
+        student.cpu_seconds = outcome.get("cpu_seconds") or 0.0
         student.used = outcome.get("used") or []
         done[0] += 1
-        how = f"complete in {student.seconds:.1f} s" if student.complete else student.error
+        how = student.error
+        if student.complete:
+            how = f"complete in {student.seconds:.1f} s ({student.cpu_seconds:.1f} s of CPU)"
         say(f"[{done[0]}/{len(jobs)}] {student.name}: {how}")
 
-    crashed = _pool(job, list(jobs.values()), out, workers, diagnosis, cache, finish)
+    order = list(jobs.values())
+    first = []
+    if cache and workers > 1 and len(order) > 1:
+        first = [lead(order)]
+        order.remove(first[0])
+        say(f"{first[0].name} first, alone: its lab compiles the class's programs once")
+    crashed, waiting = _pool(job, first, order, out, workers, diagnosis, cache, finish)
+    if waiting:  # the lead's process died and broke the pool: the others in a new one
+        crashed += _pool(job, [], waiting, out, workers, diagnosis, cache, finish)[0]
     for student in crashed:  # alone, each in a fresh process
-        lost = _pool(job, [student], out, 1, diagnosis, cache, finish)
+        lost = _pool(job, [], [student], out, 1, diagnosis, cache, finish)[0]
         if lost:
             _remove_partial(out / "students", student.name)
             finish(
@@ -319,9 +349,23 @@ def run_all(
             )
 
 
-def _pool(job, students, out, workers, diagnosis, cache, finish) -> list:
-    """Run ``students`` in a pool of ``workers`` processes; returns those lost to a process
-    that died."""
+def lead(students) -> Student:
+    """The student whose lab compiles the most of the class's programs: the one with the most
+    files (the most recordings), the first by name among equals."""
+
+    def files(student):
+        try:
+            return sum(1 for p in student.folder.iterdir() if p.is_file())
+        except OSError:
+            return 0
+
+    return min(students, key=lambda s: (-files(s), s.name))
+
+
+def _pool(job, first, students, out, workers, diagnosis, cache, finish) -> tuple[list, list]:
+    """Run ``first`` (alone), then ``students``, in one pool of ``workers`` processes;
+    returns (those lost to a process that died, those not started because it broke the pool
+    while ``first`` ran)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -334,25 +378,28 @@ def _pool(job, students, out, workers, diagnosis, cache, finish) -> list:
         initializer=_start_worker,
         initargs=(share, cache),
     ) as pool:
-        futures = {
-            pool.submit(
-                job,
-                s.folder,
-                out / "students" / s.name,
-                out / "logs" / f"{s.name}.log",
-                diagnosis=diagnosis,
-            ): s
-            for s in students
-        }
-        for future in as_completed(futures):
-            student = futures[future]
-            try:
-                outcome = future.result()
-            except BrokenProcessPool:
-                lost.append(student)
-                continue
-            finish(student, outcome)
-    return lost
+        for batch in (first, students):
+            if lost:  # the pool broke on the first: the others were never started
+                return lost, list(batch)
+            futures = {
+                pool.submit(
+                    job,
+                    s.folder,
+                    out / "students" / s.name,
+                    out / "logs" / f"{s.name}.log",
+                    diagnosis=diagnosis,
+                ): s
+                for s in batch
+            }
+            for future in as_completed(futures):
+                student = futures[future]
+                try:
+                    outcome = future.result()
+                except BrokenProcessPool:
+                    lost.append(student)
+                    continue
+                finish(student, outcome)
+    return lost, []
 
 
 def _remove_partial(folder: Path, name: str) -> None:
@@ -379,7 +426,12 @@ def read_results(students, out: Path) -> None:
         except (OSError, ValueError) as exc:
             s.status, s.error = "failed", f"its report's {path.name} cannot be read ({exc})"
             continue
-        s.unrecognised = unrecognised_files(s.folder, s.results, s.used)
+        # A file the lab could not use is flagged as that (with the data it maps), not as
+        # unrecognised.
+        broken = {str(b.get("file")) for b in (s.results.get("data") or {}).get("broken") or ()}
+        for name in list(broken):
+            broken |= _data_files(s.folder / name)
+        s.unrecognised = unrecognised_files(s.folder, s.results, [*s.used, *sorted(broken)])
 
 
 def columns_of(students) -> list[Column]:
@@ -396,6 +448,7 @@ def columns_of(students) -> list[Column]:
             common_label(v["labels"]),
             str(v["entry"].get("unit", "")),
             str(v["entry"].get("part", "")),
+            v["entry"].get("bound"),
         )
         for key, v in seen.items()
     ]
@@ -465,7 +518,8 @@ def _measured(student, key, results, metric):
 
 
 def flag(students, columns) -> None:
-    """Each student's flags: failure, missing parts, unrecognised files, outliers."""
+    """Each student's flags: failure, files that cannot be used (with the part each cost),
+    missing parts, unrecognised files, outliers."""
     from tuning.lab.inputs import SLOTS
 
     medians = class_medians(students, columns)
@@ -474,7 +528,17 @@ def flag(students, columns) -> None:
         if not s.complete:
             s.flags.append(f"the lab failed: {s.error}")
             continue
-        for slot in (s.results.get("data") or {}).get("missing") or ():
+        data = s.results.get("data") or {}
+        missing = list(data.get("missing") or ())
+        for entry in data.get("broken") or ():
+            slot, name, why = entry.get("slot"), entry.get("file"), entry.get("reason")
+            if slot in missing:  # the part it was named for has no recording: say so once
+                missing.remove(slot)
+                part, what = SLOTS[slot]
+                s.flags.append(f"Part ({part}) lost: {what}: {name} cannot be used ({why})")
+            else:
+                s.flags.append(f"file {name} cannot be used ({why})")
+        for slot in missing:
             part, what = SLOTS.get(slot, ("?", slot))
             s.flags.append(f"missing Part ({part}): {what}")
         for name, why in s.unrecognised:
@@ -487,11 +551,13 @@ def flag(students, columns) -> None:
 
 
 def class_medians(students, columns) -> dict:
-    """{key: the class's median} of the cart's parameters (units :data:`PARAMETER_UNITS`)
-    over the complete students that have the value (at least :data:`MIN_FOR_MEDIAN`)."""
+    """{key: the class's median} of the estimates of the cart's parameters (units
+    :data:`PARAMETER_UNITS`; a bound on one is no estimate of it: a cart that stopped near its
+    target bounds f_c by almost nothing, whatever its f_c) over the complete students that
+    have the value (at least :data:`MIN_FOR_MEDIAN`)."""
     out = {}
     for c in columns:
-        if c.unit not in PARAMETER_UNITS:
+        if c.unit not in PARAMETER_UNITS or c.bound is not None:
             continue
         values = [v for s in students if s.complete and (v := s.value(c.key)) is not None]
         if len(values) >= MIN_FOR_MEDIAN:
@@ -641,6 +707,7 @@ def as_json(result: ClassResult) -> dict:
                 "status": s.status,
                 "error": s.error,
                 "seconds": s.seconds,
+                "cpu_seconds": s.cpu_seconds,
                 "spec": s.verdict,
                 "checks": s.checks,
                 "flags": s.flags,

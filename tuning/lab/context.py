@@ -28,8 +28,9 @@ FIGURE_FORMATS = ("png", "svg", "pdf")
 
 @dataclass(frozen=True)
 class Value:
-    """One number of the report's summary: value [unit], what it is, which part found it, and
-    the key of its true value among the synthetic data's parameters (None: no truth)."""
+    """One number of the report's summary: value [unit], what it is, which part found it, the
+    key of its true value among the synthetic data's parameters (None: no truth), and whether
+    it only bounds that quantity ("lower" or "upper"; None: an estimate of it)."""
 
     key: str
     value: float | None
@@ -37,6 +38,7 @@ class Value:
     label: str
     part: str
     true_key: str | None = None
+    bound: str | None = None
 
     def true(self, synthetic: dict | None) -> float | None:
         """The true value [unit] when the data are synthetic and know it, else None."""
@@ -51,6 +53,8 @@ class Value:
             "label": self.label,
             "part": self.part,
         }
+        if self.bound is not None:  # a class judges outliers on estimates only
+            out["bound"] = self.bound
         true = self.true(synthetic)
         if true is not None:
             out["true"] = true
@@ -58,9 +62,9 @@ class Value:
         return out
 
 
-def value(key, x, unit, label, part, *, true_key=None) -> Value:
+def value(key, x, unit, label, part, *, true_key=None, bound=None) -> Value:
     """A :class:`Value` with ``x`` as a float (None stays None)."""
-    return Value(key, None if x is None else float(x), unit, label, part, true_key)
+    return Value(key, None if x is None else float(x), unit, label, part, true_key, bound)
 
 
 def relative_error(value, true):

@@ -30,10 +30,17 @@ An optional index ``lab.toml`` in the folder names the files and wins over the g
 
 and may carry a ``[synthetic]`` table: the true parameters that generated synthetic data (the
 built-in example recordings use it; the report prints it and compares the fits with it).
+
+A file that cannot be read (a broken data file, an unreadable .mat, a recording lab.toml names
+that is not there) refuses the lab with its one line, so that ``jaxcart lab`` says what to fix.
+With ``partial=True`` (``jaxcart class``: one student's broken file must not cost the whole lab)
+it costs only its part instead: the file is listed in ``Inputs.broken`` with the reason, its
+part has no recording (simulation only) and every other part is computed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,7 +79,9 @@ class Inputs:
     written: what :func:`write_used` wrote, one line; repeats: slot -> further runs of that
     part (more files of it, raw .mat runs recognised as it, or files in a sub-folder such as
     ``repeat/``): the cart's joint fit uses them, and the report shows them;
-    imported_repeats: slot -> the raw .mat runs among them.
+    imported_repeats: slot -> the raw .mat runs among them; broken: (file name, the slot
+    lab.toml named it for or None, why it cannot be used) of the files a partial read left
+    out; partial: such files cost their part instead of the lab.
     """
 
     folder: Path | None
@@ -85,6 +94,21 @@ class Inputs:
     written: str | None = None
     repeats: dict = field(default_factory=dict)
     imported_repeats: dict = field(default_factory=dict)
+    broken: list = field(default_factory=list)
+    partial: bool = False
+
+    @contextlib.contextmanager
+    def reading(self, name: str, slot: str | None = None):
+        """Read the file ``name`` (for ``slot`` when lab.toml names it) inside this block: a
+        :class:`UserError` refuses the lab, or, partial, lists the file as broken and ends only
+        the block."""
+        try:
+            yield
+        except UserError as exc:
+            if not self.partial:
+                raise
+            why = _without_folder(str(exc), self.folder)
+            self.broken.append((name, slot, why.removeprefix(f"{name}: ")))
 
     def runs(self) -> list:
         """Every recording of the lab: each part's, then the repeats (the joint fit's input)."""
@@ -116,9 +140,19 @@ class Inputs:
                 lines += [f"      {e.line()}" for e in run.guess.evidence] if run else []
         for name, reason in self.unused:
             lines.append(f"not used: {name} ({reason})")
+        for name, slot, reason in self.broken:
+            part = f" (Part ({SLOTS[slot][0]}) in {INDEX_NAME})" if slot in SLOTS else ""
+            lines.append(f"cannot be used: {name}{part}: {reason}")
         if self.written:
             lines.append(self.written)
         return lines
+
+
+def _without_folder(text: str, folder) -> str:
+    """A message about a file of the data folder, the folder's path left out."""
+    if folder is None:
+        return text
+    return text.replace(f"{Path(folder)}/", "").replace(str(Path(folder)), "the data folder")
 
 
 def _read_experiment(path):
@@ -208,9 +242,10 @@ def _is_ramp(u) -> bool:
     return bool(np.all(slope >= 0) and u[-1] > u[0])
 
 
-def find_inputs(folder) -> Inputs:
+def find_inputs(folder, *, partial: bool = False) -> Inputs:
     """Read every experiment file of ``folder`` and give each its slot (lab.toml first), then
-    recognise the runs of the raw .mat files that no experiment file maps."""
+    recognise the runs of the raw .mat files that no experiment file maps. partial: a file
+    that cannot be read costs its part, listed in ``broken``, instead of refusing the lab."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise UserError(
@@ -221,14 +256,18 @@ def find_inputs(folder) -> Inputs:
         raise UserError(
             f"--data {folder}: no such folder; give a folder of experiment files (TOML + data)"
         )
-    inputs = Inputs(folder=folder)
+    inputs = Inputs(folder=folder, partial=partial)
     index_path = folder / INDEX_NAME
-    named, named_raw = _read_index(inputs, index_path)
+    named, named_raw = {}, {}
+    with inputs.reading(INDEX_NAME):
+        named, named_raw = _read_index(inputs, index_path)
     for slot, path in named.items():
-        inputs.recordings[slot] = _read_experiment(path)
-        inputs.how[slot] = f"named in {INDEX_NAME}"
+        with inputs.reading(path.name, slot):
+            inputs.recordings[slot] = _read_experiment(path)
+            inputs.how[slot] = f"named in {INDEX_NAME}"
     for slot, paths in named_raw.items():
-        _use_raw(inputs, slot, paths, index_path)
+        with inputs.reading(" + ".join(p.name for p in paths), slot):
+            _use_raw(inputs, slot, paths, index_path)
 
     taken = {p.resolve() for p in named.values()}
     mats = {p.resolve() for paths in named_raw.values() for p in paths}
@@ -238,14 +277,20 @@ def find_inputs(folder) -> Inputs:
         if path.is_dir():
             inputs.unused.append((path.name, "a folder, not an experiment file"))
             continue
-        meta = _load_toml(path)
-        mats |= _mat_files(meta, folder)
-        if path.resolve() in taken:
+        if path.resolve() in taken:  # read as the part lab.toml names (or said broken there)
+            with contextlib.suppress(UserError):
+                mats |= _mat_files(_load_toml(path), folder)
             continue
-        if "kind" not in meta:
-            inputs.unused.append((path.name, "not an experiment file (no kind)"))
+        recording = None
+        with inputs.reading(path.name):
+            meta = _load_toml(path)
+            mats |= _mat_files(meta, folder)
+            if "kind" not in meta:
+                inputs.unused.append((path.name, "not an experiment file (no kind)"))
+                continue
+            recording = _read_experiment(path)
+        if recording is None:
             continue
-        recording = _read_experiment(path)
         slot, reason = guess_slot(recording)
         if slot is None:
             inputs.unused.append((path.name, reason))
@@ -267,6 +312,11 @@ def find_inputs(folder) -> Inputs:
 
     raw = sorted(p for p in folder.glob("*.mat") if p.is_file() and p.resolve() not in mats)
     _recognise_raw(inputs, raw)
+    if not inputs.recordings and inputs.broken:
+        raise UserError(
+            f"--data {folder}: no recording can be used: "
+            + "; ".join(f"{name}: {why}" for name, _, why in inputs.broken)
+        )
     if not inputs.recordings:
         raise UserError(
             f'--data {folder}: no experiment files found (TOML files with kind = "tap", '
@@ -315,7 +365,11 @@ def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
                 continue
             if "kind" not in meta:
                 continue
-            recording = _read_experiment(path)
+            recording = None
+            with inputs.reading(str(path.relative_to(folder))):
+                recording = _read_experiment(path)
+            if recording is None:
+                continue
             slot, _reason = guess_slot(recording)
             if slot in inputs.recordings:
                 _add_repeat(inputs, slot, recording)
@@ -330,41 +384,47 @@ def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:
     named, named_raw = {}, {}
     if not index_path.is_file():
         return named, named_raw
-    folder = index_path.parent
     index = _load_toml(index_path)
     table = index.get("recordings", {})
     if not isinstance(table, dict):
         raise UserError(f'{index_path}: [recordings] must be a table of slot = "file.toml"')
     for slot, name in table.items():
-        if slot not in SLOTS:
-            raise UserError(
-                f"{index_path}: [recordings] {slot} is not a slot of the lab; use one of "
-                f"{', '.join(SLOTS)}"
-            )
         names = name if isinstance(name, list) else [name]
-        paths = [folder / str(n) for n in names]
-        for n, path in zip(names, paths, strict=True):
-            if path.is_dir():
+        # Each entry on its own: a partial read loses only the part of an entry it cannot use.
+        with inputs.reading(", ".join(map(str, names)), slot if slot in SLOTS else None):
+            paths = _named_paths(index_path, slot, names)
+            if all(p.suffix.lower() == ".mat" for p in paths):
+                named_raw[slot] = paths
+            elif len(paths) == 1:
+                named[slot] = paths[0]
+            else:
                 raise UserError(
-                    f"{index_path}: [recordings] {slot} = {n!r} is a folder; name the "
-                    f"experiment file (TOML) inside it"
+                    f"{index_path}: [recordings] {slot} = {name!r}: a list names the .mat files "
+                    f'of one run; name an experiment file as {slot} = "file.toml"'
                 )
-            if not path.is_file():
-                raise UserError(
-                    f"{index_path}: [recordings] {slot} = {n!r}: no such file in {folder}"
-                )
-        if all(p.suffix.lower() == ".mat" for p in paths):
-            named_raw[slot] = paths
-        elif len(paths) == 1:
-            named[slot] = paths[0]
-        else:
-            raise UserError(
-                f"{index_path}: [recordings] {slot} = {name!r}: a list names the .mat files "
-                f'of one run; name an experiment file as {slot} = "file.toml"'
-            )
     synthetic = index.get("synthetic")
     inputs.synthetic = dict(synthetic) if isinstance(synthetic, dict) else None
     return named, named_raw
+
+
+def _named_paths(index_path: Path, slot: str, names: list) -> list[Path]:
+    """The files one entry of lab.toml's [recordings] names, each checked to be there."""
+    folder = index_path.parent
+    if slot not in SLOTS:
+        raise UserError(
+            f"{index_path}: [recordings] {slot} is not a slot of the lab; use one of "
+            f"{', '.join(SLOTS)}"
+        )
+    paths = [folder / str(n) for n in names]
+    for n, path in zip(names, paths, strict=True):
+        if path.is_dir():
+            raise UserError(
+                f"{index_path}: [recordings] {slot} = {n!r} is a folder; name the "
+                f"experiment file (TOML) inside it"
+            )
+        if not path.is_file():
+            raise UserError(f"{index_path}: [recordings] {slot} = {n!r}: no such file in {folder}")
+    return paths
 
 
 def _mat_files(meta: dict, folder: Path) -> set:
@@ -401,10 +461,9 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
     if not paths:
         return
     from jaxcart.files import read_imported
-    from jaxcart.matimport import scan
     from jaxcart.recognition import EXPERIMENTS
 
-    for run in sorted(scan(paths), key=lambda r: r.label):
+    for run in sorted(_scan(inputs, paths), key=lambda r: r.label):
         guess = run.guess
         if run.problem:
             inputs.unused.append((run.label, run.problem))
@@ -431,7 +490,11 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
             )
             inputs.offers.append((slot, run, "another run of this part"))
             continue
-        recording = check_recording(read_imported(run, quiet=True))
+        recording = None  # a file that cannot be read, partial: its part is lost, said so
+        with inputs.reading(run.label):
+            recording = check_recording(read_imported(run, quiet=True))
+        if recording is None:
+            continue
         if slot not in inputs.recordings:
             inputs.recordings[slot] = recording
             inputs.imported[slot] = run
@@ -446,6 +509,25 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
                 f"fit also uses; name another in {INDEX_NAME} to swap"
             )
             inputs.offers.append((slot, run, "another run of this part, used as a repeat"))
+
+
+def _scan(inputs: Inputs, paths: list) -> list:
+    """The runs of the raw .mat files ``paths`` (:func:`jaxcart.matimport.scan`, which refuses
+    them all for one file that does not load); partial, such a file is said broken and the
+    others are scanned."""
+    from jaxcart.matimport import read_signals, scan
+
+    try:
+        return scan(paths)
+    except UserError:
+        if not inputs.partial:
+            raise
+    readable = []
+    for path in paths:  # which one: each read once more, only on this path
+        with inputs.reading(path.name):
+            read_signals(path)
+            readable.append(path)
+    return scan(readable) if readable else []
 
 
 def write_used(inputs: Inputs, out, final=None) -> list[Path]:

@@ -292,7 +292,7 @@ def values(p: Part3) -> list:
     for b in p.bounds:
         if b.error is None:
             label = f"f_c lower bound from the P-control steady state ({b.name})"
-            out.append(value(f"f_c_lower_{b.slot}", b.lower, "N", label, "iii"))
+            out.append(value(f"f_c_lower_{b.slot}", b.lower, "N", label, "iii", bound="lower"))
     label = f"f_c used from here on ({model.f_c_source})"
     out.append(value("f_c", model.f_c, "N", label, "iii", true_key="f_c"))
     out.append(value("e_bound", s.bound, "m", "dead band b = f_c / (k γ), k = 10 V/m", "iii"))

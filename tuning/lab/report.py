@@ -156,6 +156,7 @@ def run_lab(
     plant=None,
     diagnosis: bool = True,
     fmt: str = "png",
+    partial: bool = False,
 ) -> Path:
     """Write the lab report; returns its folder.
 
@@ -165,21 +166,33 @@ def run_lab(
     :class:`jaxcart.Plant`, e.g. from a plant file): its B_eq, f_c and effects start the lab's
     model, and the parts refit B_eq and f_c from the recordings as usual; diagnosis: add the
     section that diagnoses each recording (most of the run time); fmt: the figures' format,
-    "png", "svg" or "pdf" (report.html embeds PNG and SVG; with PDF it embeds a PNG copy).
+    "png", "svg" or "pdf" (report.html embeds PNG and SVG; with PDF it embeds a PNG copy);
+    partial: a file that cannot be read costs only its part, said in the report and in
+    results.json's ``data.broken`` (``jaxcart class``), instead of refusing the lab.
     """
     import jax
 
     fmt = check_format(fmt)
     with jax.enable_x64(True):  # fits and exact checks need float64
         return _run_lab(
-            data, out, force=force, stream=stream, plant=plant, diagnosis=diagnosis, fmt=fmt
+            data,
+            out,
+            force=force,
+            stream=stream,
+            plant=plant,
+            diagnosis=diagnosis,
+            fmt=fmt,
+            partial=partial,
         )
 
 
-def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True, fmt="png") -> Path:
+def _run_lab(
+    data, out, *, force, stream, plant=None, diagnosis=True, fmt="png", partial=False
+) -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
-    inputs = find_inputs(folder)  # every input read and checked before anything is computed
+    # Every input read and checked before anything is computed.
+    inputs = find_inputs(folder, partial=partial)
     final = output_dir(out, force=force)
     with staged(final) as tmp:
         write_used(inputs, tmp, final)  # raw .mat data: the lab.toml and experiment files used
@@ -353,6 +366,12 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
     ]
     if doubts:
         doc.note("What looks physically doubtful in the recordings: " + "; ".join(doubts) + ".")
+    if inputs.broken:
+        doc.note(
+            "Files that cannot be used (each costs only its part): "
+            + "; ".join(f"{name}: {why}" for name, _, why in inputs.broken)
+            + ". Fix them and run the lab again."
+        )
     missing = inputs.missing()
     if missing:
         parts_missing = sorted(
@@ -376,6 +395,7 @@ def _introduction(lab: Lab, folder: Path, builtin: bool) -> None:
         "how": dict(inputs.how),
         "missing": missing,
         "unused": [{"file": n, "reason": r} for n, r in inputs.unused],
+        "broken": [{"file": n, "slot": s, "reason": r} for n, s, r in inputs.broken],
         "warnings": doubts,
     }
 
