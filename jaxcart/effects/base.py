@@ -80,6 +80,11 @@ class Param:
     #: the least value worth naming an effect for [unit]: a strength below it is too small
     #: to matter physically, however significant (None: any significant value)
     min_size: float | None = None
+    #: what a fit starts it at where the recordings show it, rather than at ``start``:
+    #: "held", the largest drive force [N] the recordings held the cart at rest with (a
+    #: breakaway level: from a start below it the cart breaks away early and the fit stalls
+    #: in another basin), or None
+    starts_at: str | None = None
 
     @property
     def log(self) -> bool:

@@ -50,6 +50,7 @@ class Stiction(Effect):
             plausible=(0.0, 5.0),
             neutral=0.0,
             min_size=0.03,
+            starts_at="held",
         ),
     )
 

@@ -500,29 +500,6 @@ def pair(a: Candidate, b: Candidate) -> Candidate:
     return _structure(tuple(dict.fromkeys(a.parts + b.parts)), a.runs or b.runs)
 
 
-def _start_values(segments, recs, base_plants, free):
-    """Start values of free parameters, from the data where a default would not act."""
-    u_max = 0.0
-    for rec, seg in zip(recs, segments, strict=True):
-        if rec.command is not None:
-            u_max = max(u_max, float(np.max(np.abs(rec.command))))
-        elif seg.motor:
-            from jaxcart.exact import simulate_exact
-
-            res = simulate_exact(base_plants[0], seg.controller, seg.experiment)
-            u_max = max(u_max, float(np.nanmax(np.abs(res.command))))
-    u_max = max(u_max, 0.5)
-    ymean = float(np.mean(np.concatenate([s.target for s in segments])))
-    motor = any(s.motor for s in segments)
-    # A limit starts below the runs' largest command (engine.parameters.start_for).
-    peaks = {"command": u_max, "current": u_max / float(base_plants[0].Rm)}
-    start = {"B_eq": 5.4 if motor else 2.0, "M": 0.94, "gamma_scale": 1.0}
-    for n in free:
-        if n not in start:
-            start[n] = P.start_for(n, peaks, ymean)
-    return {k: start[k] for k in free}
-
-
 # ---------------------------------------------------------------- exact re-check
 
 

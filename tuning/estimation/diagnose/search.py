@@ -40,6 +40,7 @@ from tuning.estimation.diagnose.core import (
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
 from tuning.estimation.engine.noise import RecordingNoise
+from tuning.estimation.engine.starts import start_values
 
 
 def diagnose(
@@ -156,7 +157,7 @@ class Search:
         workers.start()  # the exact runs' helpers import while the batch fit runs
         self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
         self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
-        self.starts_all = C._start_values(segments, recordings, self.base_plants, P.superset())
+        self.starts_all = start_values(segments, recordings, self.base_plants, P.superset())
         motor = [p for p, s in zip(self.base_plants, segments, strict=True) if s.motor]
         self.ref_plant = motor[0] if motor else self.base_plants[0]
         # A parameter correction is measured from the start plant's value.

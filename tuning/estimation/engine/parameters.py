@@ -203,8 +203,12 @@ def start_for(name: str, peaks: dict | None = None, y_mean: float = 0.0) -> floa
     """A fit's start value of a parameter [SI] from the data where its declared start would
     not act: a limit below the run's largest command (current), ``peaks`` {"command" [V],
     "current" [A]} (from its declared start a limit above them never acts and its gradient is
-    zero); a position (a spring's rest) where the cart was, ``y_mean`` [m]; else declared."""
+    zero); a breakaway level at the largest force the drive held the cart at rest with,
+    ``peaks["held"]`` [N] (``Param.starts_at``); a position (a spring's rest) where the cart
+    was, ``y_mean`` [m]; else declared."""
     decl = spec(name)
+    if decl.starts_at and (peaks or {}).get(decl.starts_at):
+        return float(peaks[decl.starts_at])
     cls = plantspec.effect_of_param(base_name(name))
     top = (peaks or {}).get(cls.limits) if cls is not None and cls.limits else None
     if top:
