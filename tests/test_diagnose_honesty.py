@@ -324,7 +324,7 @@ def test_a_recording_no_candidate_explains_says_so(tmp_path):
     d = diagnose([rec], progress=False)
     assert not d.explained and d.floor_ratio > MISFIT_RATIO
     assert d.verdict.startswith("not explained: the best approximation")
-    assert " times the encoder floor" in d.verdict
+    assert " times its encoder floor" in d.verdict and "fitted to" in d.verdict
     assert any("along the track" in s for s in d.suggestions)  # its residual follows position
     assert "physics outside the effects library" in d.suggestions
     # The standard errors: the fit's widening of the robust ones.

@@ -318,8 +318,9 @@ def cross_validate(search, best, names, levels) -> dict:
     "predicted_rms" over the recordings [m], "ratio", "predicted_range" [m], "not_held_out"
     (names), "text" (one sentence), "explained" (every recording within its level) and
     "folds": per recording its "fitted_rms", "predicted_rms" [m], "held_out" (False: a value
-    only it determines stayed at the joint fit's, "why" says which), "level" [m] (what it is
-    judged against), "repeat" [m] or None, "explained"."""
+    only it determines stayed at the joint fit's, "why" says which), "floor" [m], "level" [m]
+    (what it is judged against), "repeat" [m] or None, "judged_by" ("held out"; "fit" for a
+    single recording), "judged_rms" [m] and "explained"."""
     t0 = _time.perf_counter()
     search.held_score(best)
     predicted = best.held["residuals"]
@@ -344,6 +345,8 @@ def cross_validate(search, best, names, levels) -> dict:
                 "floor": floor,
                 "repeat": repeat,
                 "level": level,
+                "judged_rms": C._rms([judged]),
+                "judged_by": "fit" if len(segments) == 1 else "held out",
                 "explained": C._rms([judged]) <= level,
             }
         )

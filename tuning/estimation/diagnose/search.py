@@ -746,13 +746,18 @@ class Search:
         left = locate.residual_tests(self.segments, best.residuals, self.commands, self.noise.total)
         beyond = [f for f in cv["folds"] if not f["explained"]]
         text = f"the best structure ({best.name}) leaves " + "; ".join(
-            f"{f['recording']} predicted to {f['predicted_rms'] * 1e3:.3g} mm held out "
-            f"(fitted {f['fitted_rms'] * 1e3:.3g} mm), "
+            (
+                f"{f['recording']} predicted to {f['predicted_rms'] * 1e3:.3g} mm held out "
+                f"(fitted {f['fitted_rms'] * 1e3:.3g} mm), "
+                if f["judged_by"] == "held out"
+                else f"{f['recording']} fitted to {f['fitted_rms'] * 1e3:.3g} mm (held out "
+                f"stretch by stretch {f['predicted_rms'] * 1e3:.3g} mm), "
+            )
             + (
-                f"{f['predicted_rms'] / f['repeat']:.2g} times what that run repeats "
+                f"{f['judged_rms'] / f['repeat']:.2g} times what that run repeats "
                 f"({f['repeat'] * 1e3:.3g} mm)"
                 if f["repeat"]
-                else f"{C._times(f['predicted_rms'] / f['floor'])} times its encoder floor "
+                else f"{C._times(f['judged_rms'] / f['floor'])} times its encoder floor "
                 f"{f['floor'] * 1e3:.2g} mm, and no repeat of that run to compare with"
             )
             for f in beyond
