@@ -124,7 +124,7 @@ if os.environ["JAXCART_PROCESS_ID"] == "1":
 """
 #: The tuner's 4th iteration fails on process 1 (a bug's exception, not a UserError).
 TUNE_FAILS = FAIL_ON_1.format(
-    """    import tuning.design.tune as T
+    """    import tuning.design.iteration as T
     cosine = T._cosine
     def _cosine(lr, k, n, *rest):
         if k == 3:

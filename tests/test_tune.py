@@ -1,4 +1,4 @@
-"""Gradient PID tuning (tuning/design/tune.py, tuning/design/losses.py, tuning/commands/tune.py).
+"""Gradient PID tuning (tuning/design/: tune.py, its modules, losses.py; tuning/commands/tune.py).
 
 Every claim about a tuned controller is re-checked here on the exact simulator
 (jaxcart.exact.simulate_exact + jaxcart.metrics.step_info), independently of the tuner's own
@@ -18,11 +18,13 @@ from hw.gains import read_gains
 from jaxcart.errors import UserError
 from jaxcart.exact import simulate_exact
 from jaxcart.metrics import step_info
+from tuning.benchmark.tuners import compare_tuners
 from tuning.design.losses import LossSettings, Spec, make_loss
-from tuning.design.tune import DEFAULT_BOUNDS, compare_tuners, tune
+from tuning.design.problem import DEFAULT_BOUNDS
+from tuning.design.tune import tune
 
 STEP = jc.step(0.5, horizon=3.0)
-tune_module = importlib.import_module("tuning.design.tune")
+iteration_module = importlib.import_module("tuning.design.iteration")
 
 
 def exact_metrics(plant, pid, experiment=STEP):
@@ -81,7 +83,7 @@ def test_pd_keeps_ki_zero():
     info = exact_metrics(jc.handout_plant(), res.gains)
     assert res.meets and info.settling_time < 1.0 and info.overshoot < 5.0
     # Other starts, free gains (as many) and bounds reuse the one compiled iteration.
-    update, _ = tune_module._CACHE[next(reversed(tune_module._CACHE))]
+    update, _ = iteration_module._CACHE[next(reversed(iteration_module._CACHE))]
     traced = update.cache_size()
     tune(
         start=(60.0, 4.0, 1.0),
@@ -259,7 +261,7 @@ def test_initial_adam_state_is_optax_init_placed_like_the_update_output():
     import optax
 
     from jaxcart.parallel import batch_sharding
-    from tuning.design.tune import initial_state
+    from tuning.design.iteration import initial_state
 
     adam = optax.scale_by_adam()
     theta = jnp.asarray(np.random.default_rng(1).normal(size=(8, 6)))

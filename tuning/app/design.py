@@ -36,7 +36,7 @@ from jaxcart.errors import UserError
 from jaxcart.plausibility import LAB_VOLTAGE
 from tuning.design.gridrun import feasible_mask
 from tuning.design.losses import Spec
-from tuning.design.tune import HANDOUT_START
+from tuning.design.problem import HANDOUT_START
 
 #: The page's simulator: the exact one (event-exact friction, hard clip at the 6 V limit).
 EXACT = jc.Exact()

@@ -285,7 +285,7 @@ def _check_memory(n_points: int) -> None:
 
 def _plants(args, plant):
     """The plant, or the robust plant set of --robust / --range (as tune builds it)."""
-    from tuning.design.tune import robust_plants
+    from tuning.design.problem import robust_plants
 
     robust = robust_ranges(args)
     if robust is False:

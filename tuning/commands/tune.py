@@ -316,7 +316,7 @@ def _problem(args) -> dict:
 
 def _compare(args, problem) -> int:
     """--compare: this tuner against Nelder-Mead (and a grid) on each problem; prints tables."""
-    from tuning.design.tune import compare_tuners
+    from tuning.benchmark.tuners import compare_tuners
 
     if problem["robust"] is not False:
         raise UserError(

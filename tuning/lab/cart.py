@@ -45,7 +45,7 @@ class JointCart:
 
     @property
     def tuned(self):
-        """The re-tune's :class:`tuning.design.tune.TuneResult` (``retune`` runs it in a
+        """The re-tune's :class:`tuning.design.result.TuneResult` (``retune`` runs it in a
         :class:`jaxcart.background.Background` beside Part (v); this waits for it)."""
         return self.retune.result()
 

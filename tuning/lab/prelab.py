@@ -229,7 +229,7 @@ def gains_on_bounds(result) -> dict:
 class Prelab:
     """The pre-lab's answers: the appendix constants (:func:`appendix`), the PI bound on the
     handout's model, and the PID tuned on it with its exact step response (0.5 m, 3 s) and
-    metrics; ``tuned``: the :class:`tuning.design.tune.TuneResult`."""
+    metrics; ``tuned``: the :class:`tuning.design.result.TuneResult`."""
 
     appendix: dict
     bound: KiBound
