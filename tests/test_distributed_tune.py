@@ -125,12 +125,12 @@ if os.environ["JAXCART_PROCESS_ID"] == "1":
 #: The tuner's 4th iteration fails on process 1 (a bug's exception, not a UserError).
 TUNE_FAILS = FAIL_ON_1.format(
     """    import tuning.design.iteration as T
-    cosine = T._cosine
-    def _cosine(lr, k, n, *rest):
-        if k == 3:
+    entry = T._history_entry
+    def _history_entry(it, *rest):
+        if it == 3:
             raise RuntimeError("injected at iteration 3")
-        return cosine(lr, k, n, *rest)
-    T._cosine = _cosine"""
+        return entry(it, *rest)
+    T._history_entry = _history_entry"""
 )
 #: Process 1's exact polishes fail (after the first batch fit and exact re-checks).
 DIAGNOSE_FAILS = FAIL_ON_1.format(

@@ -83,7 +83,7 @@ def test_pd_keeps_ki_zero():
     info = exact_metrics(jc.handout_plant(), res.gains)
     assert res.meets and info.settling_time < 1.0 and info.overshoot < 5.0
     # Other starts, free gains (as many) and bounds reuse the one compiled iteration.
-    update, _ = iteration_module._CACHE[next(reversed(iteration_module._CACHE))]
+    update = iteration_module._CACHE[next(reversed(iteration_module._CACHE))]
     traced = update.cache_size()
     tune(
         start=(60.0, 4.0, 1.0),
@@ -255,21 +255,31 @@ def test_compare_tuners_runs_all_three_and_rechecks_on_the_exact_simulator():
     print("\n" + report["table"])
 
 
-def test_initial_adam_state_is_optax_init_placed_like_the_update_output():
-    """tune builds adam's state on the host (no eager compiles): it equals optax's own init,
-    leaf by leaf in value, dtype and shape."""
+def test_the_optimizer_is_optax_adam_on_optax_cosine_decay_placed_like_the_update_output():
+    """The tuner's optimizer, whose learning rate and iteration count are arguments of the
+    compiled update, steps as optax.adam on optax.cosine_decay_schedule (to rounding), past the
+    end of the decay too; its initial state is optax's, the moments placed by start (where
+    the update puts them, so the second step compiles nothing)."""
     import optax
 
     from jaxcart.parallel import batch_sharding
-    from tuning.design.iteration import initial_state
+    from tuning.design.iteration import ALPHA, initial_state, optimizer
 
-    adam = optax.scale_by_adam()
-    theta = jnp.asarray(np.random.default_rng(1).normal(size=(8, 6)))
+    rng = np.random.default_rng(1)
+    lr, n = 0.25, 7
+    ours = optimizer(lr, float(n))
+    theirs = optax.adam(optax.cosine_decay_schedule(lr, n, alpha=ALPHA))
+    theta = jnp.asarray(rng.normal(size=(8, 6)))
     rows = batch_sharding()
-    ours, theirs = initial_state(adam, theta, rows), adam.init(theta)
-    assert jax.tree.structure(ours) == jax.tree.structure(theirs)
-    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+    state, expected = initial_state(theta, rows), theirs.init(theta)
+    assert jax.tree.structure(state) == jax.tree.structure(expected)
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(expected), strict=True):
         assert a.dtype == b.dtype and a.shape == b.shape
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         if a.ndim == 2:
             assert a.sharding == rows
+    for _ in range(n + 2):
+        grad = jnp.asarray(rng.normal(size=(8, 6)))
+        step, state = ours.update(grad, state)
+        want, expected = theirs.update(grad, expected)
+        np.testing.assert_allclose(np.asarray(step), np.asarray(want), rtol=1e-13, atol=0)

@@ -9,7 +9,6 @@ small eager operations or a second checking program.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -37,6 +36,8 @@ from tuning.design.problem import TuningProblem, stack_plants
 
 #: Continuation: the smoothing widths are multiplied by these factors, stage by stage.
 SCALES = continuation(0.125, 4)  # 1, 0.5, 0.25, 0.125
+#: The step size ends at this fraction of the learning rate (cosine decay).
+ALPHA = 0.1
 
 
 class Schedule(NamedTuple):
@@ -69,23 +70,34 @@ class Descent:
 _CACHE: dict = {}
 
 
-def compiled_update(template, spec, settings, robust, substeps, treedef):
-    """(update, adam) for a static configuration, jitted once.
+def optimizer(learning_rate, iterations) -> optax.GradientTransformation:
+    """The tuner's optimizer: optax's adam, its step decayed by optax's cosine schedule from
+    ``learning_rate`` [log parameter: 0.25 is a 25 % step] to :data:`ALPHA` times it over
+    ``iterations``. Both may be traced (arguments of the compiled update, so that another
+    learning rate or iteration count compiles nothing): the schedule runs on the fraction of
+    the iterations done, which optax's count gives."""
+    decay = optax.cosine_decay_schedule(1.0, 1, alpha=ALPHA)
+    return optax.adam(lambda count: learning_rate * decay(count / iterations))
 
-    update(theta, opt_state, lr, free, fixed, mask, plants, scale, lo, hi) -> (params, theta,
-        opt_state, per-start losses, LossInfo, StepInfo): the parameters at ``theta``, one adam
-        step (lr [log parameter]) on the batch of starts projected into [lo, hi] (logs), the
-        loss, its smooth metrics and the exact-threshold step metrics of the same smooth runs
-        (robust: the worst over the plants), all from one forward-mode pass.
+
+def compiled_update(template, spec, settings, robust, substeps, treedef):
+    """(update, init) for a static configuration, jitted once.
+
+    update(theta, opt_state, learning_rate, iterations, free, fixed, mask, plants, scale, lo,
+        hi) -> (params, theta, opt_state, per-start losses, LossInfo, StepInfo): the
+        parameters at ``theta``, one step of :func:`optimizer` on the batch of starts projected
+        into [lo, hi] (logs), the loss, its smooth metrics and the exact-threshold step metrics
+        of the same smooth runs (robust: the worst over the plants), all from one forward-mode
+        pass. init(theta, rows): the optimizer's state (:func:`initial_state`).
     """
     key = (template, spec, settings, robust, substeps, treedef)
     if key not in _CACHE:
         experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
         loss = make_loss(template, experiment, spec, settings, robust=robust, substeps=substeps)
         value_and_grad = batched_value_and_jacfwd(loss)
-        adam = optax.scale_by_adam()
 
-        def update(theta, opt_state, lr, free, fixed, mask, plants, scale, lo, hi):
+        def update(theta, opt_state, learning_rate, iterations, *rest):
+            free, fixed, mask, plants, scale, lo, hi = rest
             values, aux, grad = value_and_grad(theta, free, fixed, mask, plants, scale)
             info = aux[1] if robust else aux
             metrics = info.metrics
@@ -97,24 +109,24 @@ def compiled_update(template, spec, settings, robust, substeps, treedef):
                     )
                 )
             grad = jnp.where(jnp.isfinite(grad), grad, 0.0)  # a blown-up run teaches nothing
-            direction, opt_state = adam.update(grad, opt_state, theta)
+            steps, opt_state = optimizer(learning_rate, iterations).update(grad, opt_state)
             params = gains_from_theta(theta, fixed[None], mask[None])
-            theta = jnp.clip(theta - lr * direction, lo, hi) * mask[None]
+            theta = jnp.clip(optax.apply_updates(theta, steps), lo, hi) * mask[None]
             return params, theta, opt_state, values, info, metrics
 
-        _CACHE[key] = (aot.jit(update, "tune-update", key), adam)
+        _CACHE[key] = aot.jit(update, "tune-update", key)
     return _CACHE[key]
 
 
-def initial_state(adam, theta, rows):
-    """``adam.init(theta)`` built on the host and placed where the update puts it (``rows``
-    for the per-start moments, a copy on every device for the step count): ``init``'s eager
-    zeros compile a small program per shape in every new process. optax's adam state is all
-    zeros (a test compares this with ``adam.init``)."""
-    return jax.tree.map(
-        lambda x: put(np.zeros(x.shape, x.dtype), None, rows if x.ndim == 2 else replicated()),
-        jax.eval_shape(adam.init, theta),
+def initial_state(theta, rows):
+    """The optimizer's state for the batch of starts ``theta`` (optax's init), placed where
+    the update puts it: ``rows`` for the per-start moments, a copy on every device for the
+    step counts (elsewhere the second step would compile the update again)."""
+    init = optimizer(1.0, 1.0).init  # (the state does not depend on the schedule)
+    shardings = jax.tree.map(
+        lambda x: rows if x.ndim == 2 else replicated(), jax.eval_shape(init, theta)
     )
+    return jax.jit(init, out_shardings=shardings)(theta)
 
 
 def descend(update, p: TuningProblem, theta, opt_state, schedule: Schedule, report, t0) -> Descent:
@@ -128,12 +140,12 @@ def descend(update, p: TuningProblem, theta, opt_state, schedule: Schedule, repo
     candidates = Candidates(p.spec, t0)
     history: list[dict] = []
     stage = Stage(np.asarray(theta))
+    rate = (float(schedule.learning_rate), float(schedule.max_iterations))
     it = 0
     for it in range(schedule.max_iterations):  # noqa: B007 (it is used after the loop)
         scale = put(SCALES[stage.index], theta.dtype)
-        lr = _cosine(schedule.learning_rate, it, schedule.max_iterations)
         params, theta, opt_state, values_now, info, metrics = update(
-            theta, opt_state, lr, free_idx, fixed, mask, p.plants_arg, scale, lo_j, hi_j
+            theta, opt_state, *rate, free_idx, fixed, mask, p.plants_arg, scale, lo_j, hi_j
         )
         if it % schedule.check_every == 0:
             candidates.record(params, metrics, it, SCALES[stage.index], ts)
@@ -188,11 +200,6 @@ class Stage:
         return False
 
 
-def _cosine(lr0: float, k: int, n: int, alpha: float = 0.1) -> float:
-    """Learning rate at iteration k of n: cosine decay from lr0 to alpha lr0 (optax's form)."""
-    return lr0 * ((1 - alpha) * 0.5 * (1 + math.cos(math.pi * min(k, n) / n)) + alpha)
-
-
 def smooth_metrics(update, p: TuningProblem, descent: Descent, gains) -> StepInfo:
     """StepInfo of ``gains`` on the nominal plant, smooth loop at the finest width of the
     continuation, through the compiled update (every row the fixed ``gains``, same shapes:
@@ -215,7 +222,7 @@ def smooth_metrics(update, p: TuningProblem, descent: Descent, gains) -> StepInf
     theta = descent.theta
     scale = put(SCALES[-1], theta.dtype)
     args = (descent.free_idx, fixed, mask, plants_arg, scale, *descent.box)
-    info = update(theta, descent.opt_state, 0.0, *args)[4]
+    info = update(theta, descent.opt_state, 0.0, 1.0, *args)[4]
     metrics = info.metrics
     if p.robust:
         metrics = StepInfo(*(np.asarray(x)[:, 0] for x in metrics))

@@ -125,11 +125,11 @@ def tune(
     n_starts = max(1, n_starts)
     theta, rows = starts(p, n_starts, spread, seed)
     treedef = jax.tree.structure(p.plants_arg)
-    update, adam = compiled_update(p.template, p.spec, p.settings, p.robust, p.substeps, treedef)
+    update = compiled_update(p.template, p.spec, p.settings, p.robust, p.substeps, treedef)
     if processes is not None:  # this process's starts computed, the whole batch returned
         update = processes.wrap(update)
     # The optimizer state lives where the update puts it (else the second step recompiles).
-    opt_state = initial_state(adam, theta, rows)
+    opt_state = initial_state(theta, rows)
     schedule = Schedule(max_iterations, learning_rate, patience, stage_iterations, check_every)
     descent = descend(update, p, theta, opt_state, schedule, progress_printer(progress), t0)
     if processes is not None and not processes.finish():
