@@ -95,6 +95,34 @@ def test_results_are_frozen_and_the_model_travels_explicitly(computed):
     assert r.part_v.tuned is r.prelab.gains
 
 
+def test_the_prelab_and_jaxcart_tune_give_one_answer(computed, tmp_path):
+    """One tuner, one answer (issue 34): the pre-lab's PID is the one ``jaxcart tune`` writes
+    for the same problem, bit for bit, and the cart's re-tune searches alike: the same tuner
+    with the same settings (:data:`tuning.design.settings.DEFAULT`, the command's defaults)."""
+    import json
+
+    from tuning.commands.main import build_parser, main
+    from tuning.design.settings import DEFAULT
+
+    args = build_parser().parse_args(["tune"])
+    assert (args.starts, args.iterations, args.seed) == (
+        DEFAULT.n_starts,
+        DEFAULT.max_iterations,
+        DEFAULT.seed,
+    )
+    _, r, _ = computed
+    gains = tmp_path / "gains.json"
+    assert main(["tune", "--quiet", "--out", str(gains), "--json", str(tmp_path / "t.json")]) == 0
+    written = json.loads(gains.read_text())["controller"]
+    assert [written[n] for n in ("kp", "ki", "kd")] == [
+        r.prelab.gains.kp,
+        r.prelab.gains.ki,
+        r.prelab.gains.kd,
+    ]
+    for tuned in (r.prelab.tuned, r.cart.tuned):
+        assert tuned.n_starts == DEFAULT.n_starts and tuned.iterations <= DEFAULT.max_iterations
+
+
 def test_a_part_is_a_function_of_its_inputs(computed):
     """Part (iii)'s steady state from the same model and recording gives the same numbers;
     from another model, other numbers, and the first result is unchanged."""

@@ -27,6 +27,7 @@ from tuning.commands.options import (
     seconds_text,
     timed,
 )
+from tuning.design.settings import DEFAULT  # (no jax: read while the parser is built)
 
 #: What --free may name (tuning.design.losses.PARAM_NAMES, without importing jax for --help),
 #: the gains in the handout's order.
@@ -209,16 +210,19 @@ def _run_options(run_) -> None:
     run_.add_argument(
         "--starts",
         type=int,
-        default=8,
-        help="multi-start batch size (8; rounded up to a multiple of the device count)",
+        default=DEFAULT.n_starts,
+        help=f"multi-start batch size ({DEFAULT.n_starts}; rounded up to a multiple of the "
+        "device count)",
     )
     run_.add_argument(
         "--iterations",
         type=int,
-        default=400,
-        help="most optimizer iterations (400; it stops earlier when done)",
+        default=DEFAULT.max_iterations,
+        help=f"most optimizer iterations ({DEFAULT.max_iterations}; it stops earlier when done)",
     )
-    run_.add_argument("--seed", type=int, default=0, help="seed of the multi-start (0)")
+    run_.add_argument(
+        "--seed", type=int, default=DEFAULT.seed, help=f"seed of the multi-start ({DEFAULT.seed})"
+    )
     run_.add_argument(
         "--compare",
         action="store_true",

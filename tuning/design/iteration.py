@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,21 +32,12 @@ from tuning.design.losses import (
     params_of,
 )
 from tuning.design.problem import TuningProblem, stack_plants
+from tuning.design.settings import TuneSettings
 
 #: Continuation: the smoothing widths are multiplied by these factors, stage by stage.
 SCALES = continuation(0.125, 4)  # 1, 0.5, 0.25, 0.125
 #: The step size ends at this fraction of the learning rate (cosine decay).
 ALPHA = 0.1
-
-
-class Schedule(NamedTuple):
-    """The iterations of :func:`tuning.design.tune.tune` (see its arguments)."""
-
-    max_iterations: int
-    learning_rate: float
-    patience: int
-    stage_iterations: int
-    check_every: int
 
 
 @dataclass
@@ -129,9 +119,9 @@ def initial_state(theta, rows):
     return jax.jit(init, out_shardings=shardings)(theta)
 
 
-def descend(update, p: TuningProblem, theta, opt_state, schedule: Schedule, report, t0) -> Descent:
+def descend(update, p: TuningProblem, theta, opt_state, search: TuneSettings, report, t0):
     """The adam iterations over the batch of starts, with the continuation of the smoothing
-    widths (:data:`SCALES`) and the early stop."""
+    widths (:data:`SCALES`) and the early stop; returns the :class:`Descent`."""
     ts = p.template.sample_time
     free_idx = put(np.flatnonzero(p.free_mask), np.int32)
     fixed = put(np.where(np.isfinite(p.start_params), p.start_params, 1e30), float)
@@ -140,20 +130,20 @@ def descend(update, p: TuningProblem, theta, opt_state, schedule: Schedule, repo
     candidates = Candidates(p.spec, t0)
     history: list[dict] = []
     stage = Stage(np.asarray(theta))
-    rate = (float(schedule.learning_rate), float(schedule.max_iterations))
+    rate = (float(search.learning_rate), float(search.max_iterations))
     it = 0
-    for it in range(schedule.max_iterations):  # noqa: B007 (it is used after the loop)
+    for it in range(search.max_iterations):  # noqa: B007 (it is used after the loop)
         scale = put(SCALES[stage.index], theta.dtype)
         params, theta, opt_state, values_now, info, metrics = update(
             theta, opt_state, *rate, free_idx, fixed, mask, p.plants_arg, scale, lo_j, hi_j
         )
-        if it % schedule.check_every == 0:
+        if it % search.check_every == 0:
             candidates.record(params, metrics, it, SCALES[stage.index], ts)
         entry = _history_entry(it, t0, scale, values_now, info, candidates.key)
         history.append(entry)
         report(entry)
-        stage.advance(it, theta, schedule.stage_iterations)
-        if stage.finished(it, schedule.patience, candidates.improved_at):
+        stage.advance(it, theta, search.stage_iterations)
+        if stage.finished(it, search.patience, candidates.improved_at):
             break
     report(None)
     return Descent(theta, opt_state, candidates, history, it + 1, free_idx, (lo_j, hi_j))

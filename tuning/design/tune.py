@@ -33,10 +33,11 @@ import jax
 
 from hw.control_law import PID
 from jaxcart.params import Plant
-from tuning.design.iteration import Schedule, compiled_update, descend, initial_state
+from tuning.design.iteration import compiled_update, descend, initial_state
 from tuning.design.losses import GAIN_NAMES, LossSettings, Spec
 from tuning.design.problem import starts, tuning_problem
 from tuning.design.result import TuneResult, conclude
+from tuning.design.settings import DEFAULT, TuneSettings
 from tuning.design.wording import progress_printer
 
 
@@ -48,18 +49,18 @@ def tune(
     free: Sequence[str] = GAIN_NAMES,
     controller: PID | None = None,
     robust=False,
-    n_starts: int = 8,
-    spread: float = 0.5,
-    max_iterations: int = 400,
-    learning_rate: float = 0.25,
-    patience: int = 8,
-    stage_iterations: int = 10,
-    check_every: int = 1,
+    n_starts: int = DEFAULT.n_starts,
+    spread: float = DEFAULT.spread,
+    max_iterations: int = DEFAULT.max_iterations,
+    learning_rate: float = DEFAULT.learning_rate,
+    patience: int = DEFAULT.patience,
+    stage_iterations: int = DEFAULT.stage_iterations,
+    check_every: int = DEFAULT.check_every,
     bounds: Mapping | None = None,
     settings: LossSettings | None = None,
     substeps: int | None = None,
     n_check: int = 16,
-    seed: int = 0,
+    seed: int = DEFAULT.seed,
     progress: bool | Callable[[dict], None] | None = None,
     processes=None,
 ) -> TuneResult | None:
@@ -81,6 +82,9 @@ def tune(
         within +/-10 %); a {name: (lo, hi)} dict (M as a fraction of nominal); or a list of
         Plants. The loss is then the soft maximum over the set (vmapped), and the result is
         checked on the set plus ``n_check`` random plants of the box (a list: on itself).
+    The search (n_starts, spread, max_iterations, learning_rate, stage_iterations, patience,
+    check_every, seed) defaults to :data:`tuning.design.settings.DEFAULT`, the one set of
+    settings that ``jaxcart tune`` and the lab use too.
     n_starts: starts in the vmapped batch: the given one and log-normal perturbations of the
         free parameters (``spread``: standard deviation of their logs); sharded over the
         devices (jaxcart.parallel), padded with copies of the first start to a multiple of
@@ -130,8 +134,10 @@ def tune(
         update = processes.wrap(update)
     # The optimizer state lives where the update puts it (else the second step recompiles).
     opt_state = initial_state(theta, rows)
-    schedule = Schedule(max_iterations, learning_rate, patience, stage_iterations, check_every)
-    descent = descend(update, p, theta, opt_state, schedule, progress_printer(progress), t0)
+    search = TuneSettings(
+        n_starts, spread, max_iterations, learning_rate, patience, stage_iterations, check_every
+    )
+    descent = descend(update, p, theta, opt_state, search, progress_printer(progress), t0)
     if processes is not None and not processes.finish():
         return None  # another process of a distributed run: process 0 verifies and reports
     return conclude(p, update, descent, n_starts, t0)

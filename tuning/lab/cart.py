@@ -86,7 +86,6 @@ def compute(
     (:func:`tuning.lab.fits.fit`). None without a driven run."""
     from jaxcart.background import Background
     from tuning.design.tune import tune
-    from tuning.lab.prelab import TUNE_OPTIONS
 
     runs = inputs.runs()
     if not any(r.kind != "tap" for r in runs):
@@ -99,7 +98,7 @@ def compute(
         source = "a joint fit of its own (no diagnosis)"
     say("the cart: the PID re-tuned on the fitted cart")
     # Beside Part (v) and the report's figures, which do not need it.
-    retune = Background(tune, _design_plant(joint), progress=False, **TUNE_OPTIONS)
+    retune = Background(tune, _design_plant(joint), progress=False)  # jaxcart tune's settings
     names = tuple(s.name for s in joint.segments)
     return JointCart(joint, alone, tap_b_eq, retune, names, source)
 
