@@ -33,8 +33,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 #: Name of the one mesh axis: the batch.
 AXIS = "batch"
@@ -75,12 +74,12 @@ def mesh(devs: list | None = None) -> Mesh:
 
 def batch_sharding(m: Mesh | None = None) -> NamedSharding:
     """Leading axis split over the mesh."""
-    return NamedSharding(m or mesh(), P(AXIS))
+    return NamedSharding(m or mesh(), PartitionSpec(AXIS))
 
 
 def replicated(m: Mesh | None = None) -> NamedSharding:
     """A copy on every device of the mesh."""
-    return NamedSharding(m or mesh(), P())
+    return NamedSharding(m or mesh(), PartitionSpec())
 
 
 def put(x, dtype=None, sharding=None):
@@ -233,8 +232,8 @@ def sharded_map(
             mapped = jax.shard_map(
                 local,
                 mesh=m,
-                in_specs=(P(AXIS),) + (P(),) * n_shared,
-                out_specs=P(AXIS),
+                in_specs=(PartitionSpec(AXIS),) + (PartitionSpec(),) * n_shared,
+                out_specs=PartitionSpec(AXIS),
                 check_vma=False,
             )
             if name is None:

@@ -158,10 +158,10 @@ def test_rendering_reads_results_only(computed, tmp_path):
     assert values["f_c"].value == r.part_iii.model.f_c
     assert values["B_eq_tap_fit"].true(found.synthetic) == found.synthetic["B_eq"]
     assert (
-        part_ii.as_json(r.part_ii, r.agreement, diagnosis=False)["B_eq_agreement"]["text"]
+        part_ii.to_json(r.part_ii, r.agreement, diagnosis=False)["B_eq_agreement"]["text"]
         in texts[0]
     )
-    assert part_i.as_json(r.part_i)["c"] == pytest.approx(r.part_i.model.B_eq + 7.7236, abs=1e-4)
+    assert part_i.to_json(r.part_i)["c"] == pytest.approx(r.part_i.model.B_eq + 7.7236, abs=1e-4)
 
 
 def test_cart_model_builds_the_plant_it_names():

@@ -72,7 +72,7 @@ def test_default_problem_keeps_every_controller_setting(lab):
     # The smooth simulator at the final widths agrees with the exact one to a few samples.
     assert lab.smooth.settling_time == pytest.approx(lab.exact.settling_time, abs=0.01)
     assert lab.smooth.overshoot == pytest.approx(lab.exact.overshoot, abs=0.2)
-    doc = lab.as_json()
+    doc = lab.to_json()
     assert set(doc["exact"]) == {"settling_time", "overshoot", "rise_time", "steady_state_error"}
     json.dumps(doc, allow_nan=False)
 

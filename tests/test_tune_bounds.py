@@ -44,7 +44,7 @@ def test_result_names_every_gain_on_a_bound(short_run):
         elif value <= 1.01 * lo:
             expected[name] = "lower"
     assert {n: side for n, (side, _) in res.on_bound.items()} == expected
-    doc = res.as_json()
+    doc = res.to_json()
     assert set(doc["on_bound"]) == set(expected)
     json.dumps(doc, allow_nan=False)
     if expected:  # the lab's optimum pushes kp to its 250 V/m cap

@@ -34,7 +34,7 @@ from jaxcart import control_systems
 from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
 from jaxcart.plausibility import LAB_VOLTAGE
-from tuning.design.gridrun import feasible_mask
+from tuning.design.grid_blocks import feasible_mask
 from tuning.design.losses import Spec
 from tuning.design.problem import HANDOUT_START
 

@@ -80,7 +80,7 @@ def run(args) -> int:
     out = _check_outputs(args) if checked else None
     if not parallel.init_distributed(settings):
         return _run(args, None, out)
-    from tuning.design.tunerun import Exchange
+    from tuning.distributed import Exchange
 
     share = Exchange()
     # An error one process meets from here on (a recording only some hosts have, a failure
@@ -90,7 +90,7 @@ def run(args) -> int:
 
 
 def _run(args, share, out) -> int:
-    """Diagnose and write the outputs. share: the :class:`tuning.design.tunerun.Exchange` of a
+    """Diagnose and write the outputs. share: the :class:`tuning.distributed.Exchange` of a
     distributed run (else None); out: the report folder, where checked before joining."""
     from jaxcart import parallel
     from jaxcart.files import read_experiment

@@ -88,10 +88,10 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from jaxcart import parallel
     from jaxcart.files import read_experiment
-    from tuning.estimation import fit as F
     from tuning.estimation import fitrun
+    from tuning.estimation.fit import fit, parse_params
 
-    params = F.parse_params(args.params)
+    params = parse_params(args.params)
     if not params:
         raise UserError("--params: name at least one parameter, e.g. --params B_eq,f_c")
     if args.cross and len(args.experiments) < 2:
@@ -107,7 +107,7 @@ def run(args) -> int:
         check_outputs(args)
     share = None
     if parallel.init_distributed(settings):
-        from tuning.design.tunerun import Exchange
+        from tuning.distributed import Exchange
 
         share = Exchange()
     me = parallel.process_index()
@@ -122,7 +122,7 @@ def run(args) -> int:
             initial = _initial(args.plant_file)
             # The joint fit is one problem: process 0 alone computes it (the others fit their
             # rows of --cross meanwhile) and reports it.
-            result = F.fit(
+            result = fit(
                 recordings,
                 params,
                 per_recording=args.per_recording,
@@ -139,7 +139,7 @@ def run(args) -> int:
     except Exception as exc:
         if share is None:
             raise
-        # Sent in the exchange (tuning.design.tunerun.Exchange.allgather: a UserError as it is, any
+        # Sent in the exchange (tuning.distributed.Exchange.allgather: a UserError as it is, any
         # other as one line naming its type and process) and raised on every process.
         failure = exc
     cross = None
@@ -161,11 +161,13 @@ def run(args) -> int:
     from hw.atomicio import all_or_none
 
     with all_or_none(args.json_out, args.out, args.plot):  # all written, or none left
-        _write_outputs(args, report, result, F)
+        _write_outputs(args, report, result)
     return 0
 
 
-def _write_outputs(args, report, result, F) -> None:
+def _write_outputs(args, report, result) -> None:
+    from tuning.estimation.fit import plot_fit, write_fitted_plant
+
     if args.json_out and str(args.json_out).lower().endswith(".mat"):
         from jaxcart.matfile import write_mat_report
 
@@ -177,10 +179,10 @@ def _write_outputs(args, report, result, F) -> None:
         write_json(args.json_out, report, force=args.force)
         print(f"report: {args.json_out}")
     if args.out:
-        F.write_fitted_plant(args.out, result, sources=args.experiments, force=args.force)
+        write_fitted_plant(args.out, result, sources=args.experiments, force=args.force)
         print(f"fitted plant: {args.out}")
     if args.plot:
-        F.plot_fit(result, args.plot)
+        plot_fit(result, args.plot)
         print(f"plot: {args.plot}")
 
 

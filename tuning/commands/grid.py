@@ -348,7 +348,7 @@ def _points(args) -> dict:
     kp, kd, ki axes of the grid (the design library's order); "n": points; "shape": text}."""
     import numpy as np
 
-    from tuning.design import gridrun
+    from tuning.design import grid_blocks
 
     if args.gains_file is not None:
         given = [f"--{n}" for n in GAINS if getattr(args, n) is not None]
@@ -364,7 +364,7 @@ def _points(args) -> dict:
         sizes = dict(zip(LIBRARY_ORDER, (a.size for a in axes), strict=True))
         shape = " x ".join(f"{sizes[g]} {g}" for g in GAINS) + f" = {n} points"
         points = {"axes": axes, "shape": shape}
-    if args.gains_file is not None or n <= gridrun.FULL_LIMIT:
+    if args.gains_file is not None or n <= grid_blocks.FULL_LIMIT:
         _check_memory(n)  # a larger grid streams: summaries only, bounded memory
     points["n"] = n
     return points
@@ -405,7 +405,7 @@ def _evaluate(args, points, problem, checkpoint, distributed):
     import numpy as np
 
     from jaxcart import parallel
-    from tuning.design import grid, gridrun
+    from tuning.design import grid, grid_blocks
 
     dtype = jnp.float64 if args.float64 else jnp.float32
     where_run = f"{len(parallel.devices())} device(s)"
@@ -416,7 +416,7 @@ def _evaluate(args, points, problem, checkpoint, distributed):
         progress=grid.progress_line("grid", devices=where_run),
         smoothing=problem["smoothing"],
         checkpoint=checkpoint,
-        block=args.block or gridrun.BLOCK,
+        block=args.block or grid_blocks.BLOCK,
         say=lambda text: print(text, file=sys.stderr),
         settling_time=args.settling,
         overshoot=args.overshoot,

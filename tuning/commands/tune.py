@@ -253,7 +253,7 @@ def run(args) -> int:
         outputs = (*_outputs(args), _json_path(args))
     if not parallel.init_distributed(settings):
         return _run(args, None, outputs)
-    from tuning.design.tunerun import StartShare
+    from tuning.design.start_share import StartShare
 
     share = StartShare(args.starts)
     # An error one process meets from here on (an input only some hosts have, a failure
@@ -263,8 +263,9 @@ def run(args) -> int:
 
 
 def _run(args, share, outputs) -> int:
-    """Tune and write the outputs. share: this process's :class:`tuning.design.tunerun.StartShare`
-    in a distributed run (else None); outputs: process 0's paths checked before it joined."""
+    """Tune and write the outputs. share: this process's
+    :class:`tuning.design.start_share.StartShare` in a distributed run (else None); outputs:
+    process 0's paths checked before it joined."""
     import jax
 
     from jaxcart import parallel
@@ -382,7 +383,7 @@ def _write_outputs(args, result, problem, paths) -> None:
     sample_time = problem["controller"].sample_time
     _plot(png_path, result, step(spec.step, horizon=spec.horizon, sample_time=sample_time))
     if json_path is not None:
-        _write_json(json_path, result.as_json())
+        _write_json(json_path, result.to_json())
     written = ", ".join(
         str(p) for p in (gains_path, png_path, json_path) if p is not None and str(p) != "-"
     )

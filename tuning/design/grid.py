@@ -9,11 +9,11 @@ overshoot < ``overshoot``, not diverged: :meth:`jaxcart.StepInfo.meets`).
 Memory stays bounded for any grid: the gains of a block of points are generated from the axes
 when the block is evaluated (the (B, 3) gain array of the whole grid is never built), each block
 goes through :func:`jaxcart.batch_metrics.step_metrics_batch` (chunked, sharded over every local
-device) and is kept by :mod:`tuning.design.gridrun` (checkpoint files, the share of each process of
-a
-distributed run, the streaming reduction). A grid of up to :data:`tuning.design.gridrun.FULL_LIMIT`
-points also keeps its metric arrays (about 30 bytes per point); a larger one keeps summaries.
-With a plant set (a list of plants) every metric is the worst over the set.
+device) and is kept by :mod:`tuning.design.grid_blocks` (checkpoint files, the share of each process
+of a distributed run, the streaming reduction). A grid of up to
+:data:`tuning.design.grid_blocks.FULL_LIMIT` points also keeps its metric arrays (about 30 bytes per
+point); a larger one keeps summaries. With a plant set (a list of plants) every metric is the worst
+over the set.
 
 >>> import numpy as np, jaxcart as jc
 >>> res = grid_search(jc.handout_plant(), jc.PID(v_limit=6.0), jc.step(0.5, horizon=1.5),
@@ -39,8 +39,8 @@ from jaxcart.chunked_sim import duration_text
 from jaxcart.errors import UserError
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth_sim import EXACT_FORMS
-from tuning.design import gridrun
-from tuning.design.gridrun import feasible_mask
+from tuning.design import grid_blocks
+from tuning.design.grid_blocks import feasible_mask
 
 #: Metric names with their units, in the order they are reported.
 METRICS = {
@@ -61,7 +61,7 @@ class GridResult:
     info: :class:`jaxcart.StepInfo` of arrays, each of ``shape`` ((nkp, nkd, nki) for a grid,
         (B,) for a list): rise/settling/saturation time [s], overshoot [%], steady-state
         error [m], peak voltage [V], diverged (bool); None for a grid too large to hold
-        (:data:`tuning.design.gridrun.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
+        (:data:`tuning.design.grid_blocks.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
         blocks back from ``store``
     feasible: bool array of ``shape``, True where the point meets the specification (None
         with ``info``)
@@ -78,7 +78,7 @@ class GridResult:
     ki_feasible: feasible points in each k_i slice (grids)
     settling_range: (min, max) finite settling time of any point [s] (nan, nan if none)
     n_plants: plants of the set the metrics are the worst over (1: one plant)
-    store: the :class:`tuning.design.gridrun.BlockStore` of the blocks; block: points per block
+    store: the :class:`tuning.design.grid_blocks.BlockStore` of the blocks; block: points per block
     n_computed: points this process computed in this call (fewer when it resumed from a
         checkpoint or shared the work with other processes)
     """
@@ -100,7 +100,7 @@ class GridResult:
     settling_range: tuple[float, float] = (float("nan"), float("nan"))
     n_plants: int = 1
     store: object = None
-    block: int = gridrun.BLOCK
+    block: int = grid_blocks.BLOCK
     n_computed: int = 0
 
     @property
@@ -147,7 +147,7 @@ class GridResult:
         ts = np.full((nkp * nkd, len(ks)), np.nan)
         ok = np.zeros((nkp * nkd, len(ks)), bool)
         needs = ("settling_time", "overshoot", "diverged")
-        for start, flat in gridrun.blocks(self.store, self.n_points, self.block, needs):
+        for start, flat in grid_blocks.blocks(self.store, self.n_points, self.block, needs):
             idx = start + np.arange(flat["settling_time"].size)
             col = where[idx % nki]
             pick = col >= 0
@@ -182,7 +182,7 @@ def grid_search(
     progress=None,
     checkpoint=None,
     keep_full: bool | None = None,
-    block: int = gridrun.BLOCK,
+    block: int = grid_blocks.BLOCK,
     say=None,
 ) -> GridResult | None:
     """Evaluate every point of the grid kp x kd x ki (1-D axes [V/m], [V s/m], [V/(m s)]).
@@ -194,10 +194,10 @@ def grid_search(
     that precision whatever ``jax_enable_x64`` says. smoothing: default the exact forms (hard
     clip), right for plants without friction. ``progress(done, total)`` after each block.
     checkpoint: a folder for the block files (a rerun of the same problem resumes from them;
-    ``say(text)`` is told so);
-    keep_full: hold every metric array (default: when the grid has at most
-    :data:`tuning.design.gridrun.FULL_LIMIT` points). Metric arrays are shaped (len(kp), len(kd),
-    len(ki)). In a distributed run (:func:`jaxcart.parallel.init_distributed`) every process
+    ``say(text)`` is told so); keep_full: hold every metric array (default: when the grid has at
+    most :data:`tuning.design.grid_blocks.FULL_LIMIT` points). Metric arrays are shaped (len(kp),
+    len(kd), len(ki)). In a distributed run (:func:`jaxcart.parallel.init_distributed`) every
+    process
     computes its share of the blocks; process 0 returns the result, the others None.
     """
     _check_spec(settling_time, overshoot)
@@ -241,7 +241,7 @@ def evaluate_list(
     chunk: int | None = None,
     progress=None,
     checkpoint=None,
-    block: int = gridrun.BLOCK,
+    block: int = grid_blocks.BLOCK,
     say=None,
 ) -> GridResult | None:
     """Evaluate each row (kp [V/m], kd [V s/m], ki [V/(m s)]) of ``gains`` (shape (B, 3)).
@@ -315,11 +315,11 @@ def _evaluate(
     n = int(np.prod(shape))
     # Same block size on every call (the last one padded) so the evaluator compiles once.
     block = int(min(n, block))
-    keep_full = n <= gridrun.FULL_LIMIT if keep_full is None else bool(keep_full)
+    keep_full = n <= grid_blocks.FULL_LIMIT if keep_full is None else bool(keep_full)
     where = plants if len(plants) > 1 else plants[0]
     # The chunk is not part of the problem: it moves a metric by rounding at most, and the
     # processes of one distributed run (a GPU host beside CPU hosts) may choose different ones.
-    key = gridrun.problem_key(
+    key = grid_blocks.problem_key(
         where,
         controller,
         experiment,
@@ -344,14 +344,14 @@ def _evaluate(
     # Exactly the requested precision whatever jax_enable_x64 says globally: float64 needs it
     # on (the command line runs with it off); float32 must not pick up the default float64.
     with jax.enable_x64(dtype == np.float64):
-        first, computed = gridrun.fill(store, n, block, compute, progress=progress, say=say)
+        first, computed = grid_blocks.fill(store, n, block, compute, progress=progress, say=say)
         if not first:
             return None  # another process of a distributed run: process 0 reports
     elapsed = time.perf_counter() - start_time
-    reducer = gridrun.Reducer(
+    reducer = grid_blocks.Reducer(
         n, dtype, *spec, keep_full=keep_full, nki=shape[2] if axes is not None else None
     )
-    for start, flat in gridrun.blocks(store, n, block):
+    for start, flat in grid_blocks.blocks(store, n, block):
         reducer.add(start, flat)
     if reducer.full is not None and store.dir is None:
         store.remove()  # the full arrays hold it all: no second copy in memory
@@ -388,14 +388,14 @@ def _checked_problem(plant, experiment, smoothing, dtype) -> tuple[list, np.dtyp
     return plants, dtype
 
 
-def _store(checkpoint, keep_full: bool, key: str) -> gridrun.BlockStore:
+def _store(checkpoint, keep_full: bool, key: str) -> grid_blocks.BlockStore:
     """Block files in ``checkpoint``, else memory when the full arrays are kept anyway, else a
     temporary folder."""
     if checkpoint is not None:
-        return gridrun.BlockStore(checkpoint, key)
+        return grid_blocks.BlockStore(checkpoint, key)
     if keep_full:
-        return gridrun.BlockStore(None, key)
-    return gridrun.temporary_store(key)
+        return grid_blocks.BlockStore(None, key)
+    return grid_blocks.temporary_store(key)
 
 
 def _block_metrics(where, controller, experiment, rows, n, block, smoothing, chunk, dtype):
@@ -634,7 +634,7 @@ def _stream_member(zf, name, result) -> None:
     with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
         np.lib.format.write_array_header_2_0(member, header)
         needs = ("settling_time", "overshoot", "diverged") if name == "feasible" else (name,)
-        for _start, flat in gridrun.blocks(result.store, result.n_points, result.block, needs):
+        for _start, flat in grid_blocks.blocks(result.store, result.n_points, result.block, needs):
             if name == "feasible":
                 values = feasible_mask(flat, result.settling_spec, result.overshoot_spec)
             else:

@@ -63,7 +63,7 @@ class TuneResult:
         argument of :func:`tuning.design.tune.tune`); None when there is none."""
         return bound_note(self.gains, self.on_bound, self.bounds, widen)
 
-    def as_json(self) -> dict:
+    def to_json(self) -> dict:
         """The ``--json`` document: gains, exact and smooth metrics, wall time [s], ..."""
         keys = ("settling_time", "overshoot", "rise_time", "steady_state_error")
         doc = {

@@ -99,11 +99,11 @@ def tune(
     substeps: sub-steps per sample of the smooth simulator (default
         :func:`jaxcart.substeps.substeps_per_sample`: 1 without force effects, 2 with).
     progress: True for a status line on stderr, or a callable receiving each history dict.
-    processes: a :class:`tuning.design.tunerun.StartShare` for a jax.distributed run: this process
-        iterates its share of the starts and every process sees the whole batch, so the result
-        is the single-process one; it is returned on process 0 only (None on the others).
-        Inside ``processes.carry()`` (as ``jaxcart tune`` calls it), an exception one process
-        meets is raised on every process at its next exchange, none waiting for another.
+    processes: a :class:`tuning.design.start_share.StartShare` for a jax.distributed run: this
+        process iterates its share of the starts and every process sees the whole batch, so the
+        result is the single-process one; it is returned on process 0 only (None on the others).
+        Inside ``processes.carry()`` (as ``jaxcart tune`` calls it), an exception one process meets
+        is raised on every process at its next exchange, none waiting for another.
 
     Gradients are forward-mode (one tangent per free parameter, the loss summed inside the
     simulation loop) and one compiled function does the whole iteration: loss, gradient, adam

@@ -183,7 +183,7 @@ def values(c: JointCart | None) -> list:
     return out
 
 
-def as_json(c: JointCart | None) -> dict | None:
+def to_json(c: JointCart | None) -> dict | None:
     if c is None:
         return None
     agree = c.agreement()

@@ -621,10 +621,10 @@ def _write(result: ClassResult, tmp: Path) -> None:
     figures = classfigures.draw(result, tmp / "figures")
     (tmp / "class.csv").write_text(csv_text(result))
     (tmp / "class.html").write_text(classpage.page(result, figures))
-    write_json(tmp / "class.json", as_json(result), force=True)
+    write_json(tmp / "class.json", to_json(result), force=True)
 
 
-def as_json(result: ClassResult) -> dict:
+def to_json(result: ClassResult) -> dict:
     """The class as JSON: per student its status, checks, flags, report and every number."""
     return {
         "folder": str(result.folder),

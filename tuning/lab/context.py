@@ -44,7 +44,7 @@ class Value:
             return None
         return float(synthetic[self.true_key])
 
-    def as_json(self, synthetic: dict | None = None) -> dict:
+    def to_json(self, synthetic: dict | None = None) -> dict:
         out = {
             "value": _plain(self.value),
             "unit": self.unit,

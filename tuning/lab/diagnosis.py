@@ -27,7 +27,7 @@ def compute(inputs, say=lambda text: None):
     return diagnose(runs, progress=False)
 
 
-def as_json(d) -> dict | None:
+def to_json(d) -> dict | None:
     return None if d is None else d.to_json()
 
 

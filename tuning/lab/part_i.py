@@ -110,7 +110,7 @@ def values(r: TapResult) -> list:
     return out + [value("c", r.c, "kg/s", "c = B_eq + B_emf (Part (i))", "i")]
 
 
-def as_json(r: TapResult) -> dict:
+def to_json(r: TapResult) -> dict:
     out = {"recording": r.source}
     if r.recording is not None:
         out["handout_method"] = {k: v for k, v in r.classic.items() if k not in ("curve", "points")}

@@ -168,7 +168,7 @@ class Agreement:
             f"shows. The later parts keep the tap's value. {where}"
         )
 
-    def as_json(self, diagnosis: bool) -> dict:
+    def to_json(self, diagnosis: bool) -> dict:
         return {
             "B_eq_tap": self.B_eq_tap,
             "B_eq_step": self.B_eq_step,
@@ -220,7 +220,7 @@ def values(r: P50Result) -> list:
     return out
 
 
-def as_json(r: P50Result, agreed: Agreement | None, *, diagnosis: bool) -> dict:
+def to_json(r: P50Result, agreed: Agreement | None, *, diagnosis: bool) -> dict:
     out = {
         "recording": r.source,
         "controller": r.controller.to_dict(),
@@ -232,7 +232,7 @@ def as_json(r: P50Result, agreed: Agreement | None, *, diagnosis: bool) -> dict:
         if r.refit_coulomb is not None:
             out["refit_with_coulomb"] = r.refit_coulomb.to_json()
         out["final_error_measured"] = r.final_error_measured
-        out["B_eq_agreement"] = None if agreed is None else agreed.as_json(diagnosis)
+        out["B_eq_agreement"] = None if agreed is None else agreed.to_json(diagnosis)
     out["simulations"] = {
         "without_saturation": r.info_free.as_dict(),
         "with_saturation": r.info_sat.as_dict(),

@@ -115,7 +115,7 @@ class PBound:
     q: float = 0.0
     error: str | None = None
 
-    def as_json(self) -> dict:
+    def to_json(self) -> dict:
         est = self.estimate
         return {**est.to_json(), "lower": self.lower, "lower_without_count": est.lower, "q": self.q}
 
@@ -302,12 +302,12 @@ def values(p: Part3) -> list:
     return out
 
 
-def as_json(p: Part3) -> dict:
+def to_json(p: Part3) -> dict:
     r, s, model = p.ramp, p.steady, p.model
     ramp_out = {"recording": r.source}
     if r.recording is not None:
         ramp_out.update({"handout_method": r.classic, "fit": r.fit.to_json()})
-    bounds = {b.slot: b.as_json() for b in p.bounds if b.error is None}
+    bounds = {b.slot: b.to_json() for b in p.bounds if b.error is None}
     if p.bounds:
         bounds["outside_bounds"] = [b.name for b in p.bounds if b.outside(model.f_c)]
     out = {"ramp": ramp_out, "p_control_bounds": bounds}

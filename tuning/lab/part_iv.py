@@ -81,13 +81,13 @@ def values(r: PIResult) -> list:
     return out + r.bound.values("ki_max_fitted", "iv")
 
 
-def as_json(r: PIResult) -> dict:
+def to_json(r: PIResult) -> dict:
     out = {"recording": r.source, "controller": r.controller.to_dict()}
     if r.recording is not None:
         out["final_error_measured"] = final_error(r.recording.time, r.e_recorded)
         out["rms_difference"] = r.rms
     out["final_error_simulated"] = final_error(r.sim.time, r.sim.error)
-    out["pi_bound"] = r.bound.as_json()
+    out["pi_bound"] = r.bound.to_json()
     return out
 
 

@@ -147,7 +147,7 @@ def values(r: PIDResult) -> list:
     return out
 
 
-def as_json(r: PIDResult) -> dict:
+def to_json(r: PIDResult) -> dict:
     out = {"recording": r.source, "controller": r.controller.to_dict()}
     if r.info_rec is not None:
         out["measured"] = r.info_rec.as_dict()

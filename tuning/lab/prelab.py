@@ -121,7 +121,7 @@ class KiBound:
     poles: tuple
     locus: object = field(repr=False, compare=False)
 
-    def as_json(self) -> dict:
+    def to_json(self) -> dict:
         return {
             "k": self.k,
             "m": self.m,
@@ -291,10 +291,10 @@ def values(p: Prelab) -> list:
     return out
 
 
-def as_json(p: Prelab) -> dict:
+def to_json(p: Prelab) -> dict:
     return {
         "appendix": p.appendix,
-        "pi_bound": p.bound.as_json(),
+        "pi_bound": p.bound.to_json(),
         "pid": {
             "gains": p.gains.to_dict(),
             "metrics": p.info.as_dict(),

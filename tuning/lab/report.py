@@ -283,19 +283,19 @@ def render(lab: Lab, r: LabResults) -> None:
     part_v_render.render(lab, r.part_v)
     lab.results.update(
         {
-            "prelab": prelab.as_json(r.prelab),
-            "part_i": part_i.as_json(r.part_i),
-            "part_ii": part_ii.as_json(r.part_ii, r.agreement, diagnosis=lab.diagnosis),
-            "part_iii": part_iii.as_json(r.part_iii),
-            "part_iv": part_iv.as_json(r.part_iv),
-            "part_v": part_v.as_json(r.part_v),
+            "prelab": prelab.to_json(r.prelab),
+            "part_i": part_i.to_json(r.part_i),
+            "part_ii": part_ii.to_json(r.part_ii, r.agreement, diagnosis=lab.diagnosis),
+            "part_iii": part_iii.to_json(r.part_iii),
+            "part_iv": part_iv.to_json(r.part_iv),
+            "part_v": part_v.to_json(r.part_v),
         }
     )
     if r.diagnosis is not None:
         diagnosis_section.render(lab, r.diagnosis, r.agreement)
-        lab.results["diagnosis"] = diagnosis_section.as_json(r.diagnosis)
+        lab.results["diagnosis"] = diagnosis_section.to_json(r.diagnosis)
     cart.render(lab, r.cart)
-    lab.results["cart"] = cart.as_json(r.cart)
+    lab.results["cart"] = cart.to_json(r.cart)
     lab.gains = r.prelab.gains
     lab.gains_metrics = lab.results["prelab"]["pid"]["metrics"]
     if r.cart is not None:  # the gains to run on this cart: re-tuned on it
@@ -391,7 +391,7 @@ def _summary(lab: Lab, numbers: list) -> None:
         "MATLAB struct `results`); the tuned gains are in "
         "`gains.json` (jaxcart gains-file format, every PID setting)."
     )
-    lab.results["values"] = {v.key: v.as_json(synthetic) for v in numbers}
+    lab.results["values"] = {v.key: v.to_json(synthetic) for v in numbers}
 
 
 def _summary_row(v, synthetic) -> list:

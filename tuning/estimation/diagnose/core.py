@@ -1370,7 +1370,7 @@ def _suggestions(tests, best) -> list:
 
 def _spread(processes, items, compute):
     """``[compute(item) for item in items]``, each a ({name: float}, [arrays]) pair; with
-    ``processes`` (a :class:`tuning.design.tunerun.Exchange`) each item computed by one process and
+    ``processes`` (a :class:`tuning.distributed.Exchange`) each item computed by one process and
     every result gathered on every process."""
     if processes is None:
         return [compute(item) for item in items]

@@ -54,7 +54,7 @@ def diagnose(
     Several driven runs of one cart share the mechanics; each may have its own drive limits
     (the structures with PER_RUN free v_sat, i_max per run).
 
-    processes: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: the candidates'
+    processes: a :class:`tuning.distributed.Exchange` of a jax.distributed run: the candidates'
     batch fits, exact re-checks and exact polishes are split over the processes and every
     result gathered on every one, which then all hold the same diagnosis (process 0 reports).
     Inside ``processes.carry()`` (as ``jaxcart diagnose`` calls it), an exception one process

@@ -397,8 +397,8 @@ class BatchFitter:
         """LM on every problem at once. problems: list of (free names, start values dict,
         base values dict). Returns list of (values dict, smooth cost, jac, r).
 
-        share: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: this process fits
-        its :meth:`~tuning.design.tunerun.Exchange.items` of the problems and every process gets
+        share: a :class:`tuning.distributed.Exchange` of a jax.distributed run: this process fits
+        its :meth:`~tuning.distributed.Exchange.items` of the problems and every process gets
         every result (each problem's LM is independent of the others)."""
         jnp = self._jnp
         lay = self.layout
@@ -504,13 +504,13 @@ class BatchFitter:
 
     def _gathered(self, share, problems, arrays, progress, widths):
         """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
-        from tuning.design.tunerun import assemble
+        from tuning.distributed import gather_rows
 
         n = len(problems)
         parts = share.allgather({k: np.asarray(v) for k, v in arrays.items()})
         # A process without problems sent nothing.
         owners = [o for o, p in zip(share.owners(n), parts, strict=True) if p]
-        full = assemble([p for p in parts if p], owners, n)
+        full = gather_rows([p for p in parts if p], owners, n)
         if progress:  # only the final costs are gathered: one line, at the last width
             progress(widths[-1], full["cost"])
         return self._unpack(problems, full["theta"], full["cost"], full["jac"], full["r"])
