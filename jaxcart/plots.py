@@ -17,6 +17,7 @@ off the data.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from itertools import cycle
 from pathlib import Path
@@ -78,11 +79,11 @@ def reference_run(time, reference, label: str = "reference r") -> Run:
     return Run(label, np.asarray(time), np.asarray(reference), None, "reference")
 
 
-def preload() -> None:
+def preload() -> threading.Thread:
     """Import matplotlib's figure and PNG writer in a background thread, so that a command
     which plots at its end finds them loaded: the import (about half a second) overlaps the
-    computation, which runs in XLA outside the interpreter lock."""
-    import threading
+    computation, which runs in XLA outside the interpreter lock. Returns the thread (the
+    command joins it before it returns)."""
 
     def work():
         try:
@@ -93,7 +94,9 @@ def preload() -> None:
 
     # Not a daemon: an exit mid-import waits for it (killed there, matplotlib's font-cache
     # lock file could be left behind).
-    threading.Thread(target=work, name="matplotlib-preload").start()
+    thread = threading.Thread(target=work, name="matplotlib-preload")
+    thread.start()
+    return thread
 
 
 def plot_runs(

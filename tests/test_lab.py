@@ -15,6 +15,7 @@ import pytest
 from jaxcart.errors import UserError
 from jaxcart.params import Plant
 from jaxcart.plantspec import read_plant_file
+from jaxcart.workers import Helpers
 from tuning.lab import data, inputs, prelab
 from tuning.lab.html import Document
 from tuning.lab.report import output_dir, run_lab
@@ -42,7 +43,8 @@ FIGURES = {
 @pytest.fixture(scope="module")
 def builtin_report(tmp_path_factory):
     out = tmp_path_factory.mktemp("lab") / "report"
-    run_lab(None, out)
+    with Helpers() as helpers:  # as jaxcart lab runs it: the exact runs several at a time
+        run_lab(None, out, executor=helpers)
     return out, json.loads((out / "results.json").read_text())
 
 

@@ -123,6 +123,23 @@ def test_the_prelab_and_jaxcart_tune_give_one_answer(computed, tmp_path):
         assert tuned.n_starts == DEFAULT.n_starts and tuned.iterations <= DEFAULT.max_iterations
 
 
+def test_results_hold_results_never_a_thread(computed):
+    """The lab's diagnosis and re-tune run in threads beside the parts: each is collected
+    before the result that holds it is built, and no thread outlives the computation."""
+    import threading
+    from concurrent.futures import Future
+
+    from jaxcart.background import Background
+
+    _, r, _ = computed
+    assert r.cart.tuned is not None and r.cart.tuned.meets
+    for result in (r, r.prelab, r.part_v, r.cart):
+        for field in dataclasses.fields(result):
+            value = getattr(result, field.name)
+            assert not isinstance(value, Background | Future | threading.Thread), field.name
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("jaxcart-")]
+
+
 def test_a_part_is_a_function_of_its_inputs(computed):
     """Part (iii)'s steady state from the same model and recording gives the same numbers;
     from another model, other numbers, and the first result is unchanged."""

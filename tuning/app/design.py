@@ -26,6 +26,7 @@ import functools
 import math
 from dataclasses import dataclass
 
+import jax
 import numpy as np
 
 import jaxcart as jc
@@ -265,7 +266,12 @@ class DesignProblem:
         return _experiment(float(setpoint), float(self.spec.horizon))
 
     def design(self, settings: Settings) -> Design:
-        """The exact run, metrics, checks and poles at one slider position."""
+        """The exact run, metrics, checks and poles at one slider position (in float64,
+        whatever the process has set: a page in a notebook computes as the command's does)."""
+        with jax.enable_x64(True):
+            return self._design(settings)
+
+    def _design(self, settings: Settings) -> Design:
         pid = settings.controller()
         experiment = self.experiment(settings.setpoint)
         response = jc.simulate(self.plant, pid, experiment, solver=EXACT)
@@ -334,7 +340,8 @@ class DesignProblem:
 
 @functools.lru_cache(maxsize=32)
 def _experiment(setpoint: float, horizon: float):
-    return jc.step(setpoint, horizon=horizon)
+    with jax.enable_x64(True):  # the reference in float64 (the grid casts it to its dtype)
+        return jc.step(setpoint, horizon=horizon)
 
 
 def overlay_from(recording) -> Overlay:
@@ -367,7 +374,13 @@ def overlay_from(recording) -> Overlay:
 
 def problem_from_files(data=None, plant=None, *, region_points: int = REGION_POINTS):
     """The :class:`DesignProblem` of ``jaxcart app --data REC.toml --plant P.toml``: the
-    fitted plant (closed loop, motor connected) as the design plant, the recording overlaid."""
+    fitted plant (closed loop, motor connected) as the design plant, the recording overlaid
+    (read in float64, whatever the process has set)."""
+    with jax.enable_x64(True):
+        return _problem_from_files(data, plant, region_points)
+
+
+def _problem_from_files(data, plant, region_points) -> DesignProblem:
     overlay = None
     if data is not None:
         from jaxcart.files import read_experiment

@@ -90,10 +90,8 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
 
 def show_in_notebook(data=None, plant=None, *, notebook_url="localhost:8888"):
     """Show the page in the running Jupyter notebook (a Bokeh server inside the kernel);
-    ``notebook_url``: the host:port the notebook's page was opened at."""
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
+    ``notebook_url``: the host:port the notebook's page was opened at. The page computes in
+    float64 (:class:`tuning.app.design.DesignProblem`), whatever the kernel has set."""
     from bokeh.io import output_notebook, show
     from bokeh.resources import INLINE
 

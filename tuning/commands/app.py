@@ -48,9 +48,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     from jaxcart.errors import UserError
     from tuning.app.design import problem_from_files
     from tuning.app.server import serve

@@ -34,8 +34,9 @@ def register(subparsers) -> None:
     add_format_option(p)
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
     p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
-    from tuning.commands.options import add_cluster_options
+    from tuning.commands.options import add_cluster_options, add_helpers_option
 
+    add_helpers_option(p)
     add_cluster_options(p)
     p.set_defaults(func=run)
 
@@ -78,20 +79,24 @@ def run(args) -> int:
     # fails at once instead of leaving the other processes waiting for it.
     checked = settings is None or (settings != "auto" and settings[2] == 0)
     out = _check_outputs(args) if checked else None
+    from tuning.commands.options import helpers
+
     if not parallel.init_distributed(settings):
-        return _run(args, None, out)
+        with helpers(args) as pool:
+            return _run(args, None, out, pool)
     from tuning.distributed import Exchange
 
     share = Exchange()
     # An error one process meets from here on (a recording only some hosts have, a failure
     # mid-run) is raised on every process, none waiting for a partner that has stopped.
     with share.carry():
-        return _run(args, share, out)
+        return _run(args, share, out, helpers(args, distributed=True))
 
 
-def _run(args, share, out) -> int:
+def _run(args, share, out, pool) -> int:
     """Diagnose and write the outputs. share: the :class:`tuning.distributed.Exchange` of a
-    distributed run (else None); out: the report folder, where checked before joining."""
+    distributed run (else None); out: the report folder, where checked before joining; pool:
+    the command's helper processes for the exact runs."""
     from jaxcart import parallel
     from jaxcart.files import read_experiment
     from tuning.estimation.diagnose import diagnose, write_outputs
@@ -107,7 +112,8 @@ def _run(args, share, out) -> int:
         start = load_plant(args.plant_file)
     if share is not None:
         share.sync()  # every process has its inputs: an error reading them stops all now
-    d = diagnose(recordings, start=start, progress=not args.quiet and me == 0, processes=share)
+    progress = not args.quiet and me == 0
+    d = diagnose(recordings, start=start, progress=progress, processes=share, executor=pool)
     if share is not None and not share.finish():
         print(f"process {me} of {share.count}: done, results sent to process 0")
         return 0 if d.status == "diagnosed" else 1

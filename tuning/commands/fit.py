@@ -77,8 +77,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    from tuning.commands.options import add_cluster_options
+    from tuning.commands.options import add_cluster_options, add_helpers_option
 
+    add_helpers_option(p)
     # With --cross, each process fits its share of the recordings alone; process 0 alone runs
     # the joint fit and writes the outputs.
     add_cluster_options(p)
@@ -87,9 +88,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from jaxcart import parallel
-    from jaxcart.files import read_experiment
-    from tuning.estimation import fitrun
-    from tuning.estimation.fit import fit, parse_params
+    from tuning.estimation.fit import parse_params
 
     params = parse_params(args.params)
     if not params:
@@ -110,6 +109,21 @@ def run(args) -> int:
         from tuning.distributed import Exchange
 
         share = Exchange()
+    from tuning.commands.options import helpers
+
+    with helpers(args, distributed=share is not None) as pool:
+        return _run(args, params, share, checked, pool)
+
+
+def _run(args, params, share, checked, pool) -> int:
+    """Fit (and cross-predict), print and write; share: the distributed run's exchange (else
+    None); checked: process 0's outputs were checked before it joined; pool: the command's
+    helper processes, which make the fits' exact runs several at a time."""
+    from jaxcart import parallel
+    from jaxcart.files import read_experiment
+    from tuning.estimation import fitrun
+    from tuning.estimation.fit import fit
+
     me = parallel.process_index()
     progress = not args.quiet and me == 0
     recordings, result, failure, report = [], None, None, None
@@ -128,6 +142,7 @@ def run(args) -> int:
                 per_recording=args.per_recording,
                 initial=initial,
                 progress=progress,
+                executor=pool,
             )
         if result is not None:
             print(format_result(result))
@@ -145,7 +160,7 @@ def run(args) -> int:
     cross = None
     if args.cross:
         cross = fitrun.cross_table(
-            recordings, params, progress=progress, processes=share, failure=failure
+            recordings, params, progress=progress, processes=share, failure=failure, executor=pool
         )
     elif share is not None:
         fitrun.share(share, {}, failure)

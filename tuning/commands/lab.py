@@ -61,13 +61,14 @@ def register(subparsers) -> None:
     from jaxcart.plots import add_format_option
 
     add_format_option(p)
+    from tuning.commands.options import add_helpers_option
+
+    add_helpers_option(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)  # fits and checks need float64
+    from tuning.commands.options import helpers
     from tuning.lab.report import run_lab
 
     plant = None
@@ -75,7 +76,8 @@ def run(args) -> int:
         from jaxcart.plantsource import load_plant
 
         plant = load_plant(args.plant)
-    with _terminate_as_interrupt():  # a killed job removes its half-written report too
+    # A killed job removes its half-written report too; the helpers stop with the command.
+    with _terminate_as_interrupt(), helpers(args) as pool:
         run_lab(
             args.data,
             args.out,
@@ -83,6 +85,7 @@ def run(args) -> int:
             plant=plant,
             diagnosis=not args.no_diagnosis,
             fmt=args.format or "png",
+            executor=pool,
         )
     return 0
 

@@ -75,8 +75,13 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    # A command runs: the compilation cache and one XLA device per core, both set before jax
-    # starts a backend, so later runs skip compiling and batches shard over every core.
+    # A command runs: on the user's behalf, before jax starts a backend, loops compiled whole on
+    # a CPU (jaxcart.xlaflags; JAXCART_XLA_FLAGS=0 leaves XLA_FLAGS alone), the compilation
+    # cache (--no-cache: none) and one XLA device per core, so that the loops run as kernels,
+    # later runs skip compiling and batches shard over every core.
+    from jaxcart import xlaflags
+
+    xlaflags.request()
     if not args.no_cache:
         from jaxcart.cache import enable_persistent_cache
 
@@ -84,10 +89,20 @@ def main(argv=None) -> int:
     from jaxcart.parallel import use_cpu_devices
 
     use_cpu_devices()
+    preloading = None
     if args.command in PLOTTING or getattr(args, "plot", None):
         from jaxcart.plots import preload
 
-        preload()
+        preloading = preload()
+    try:
+        return _run(args)
+    finally:
+        if preloading is not None:
+            preloading.join()  # (half a second's import at most: no thread outlives a command)
+
+
+def _run(args) -> int:
+    """The command's exit status; a user's error is one line (status 2), Ctrl-C 130."""
     from hw.atomicio import OutputError
     from hw.gains import GainsFileError
     from jaxcart.errors import UserError
@@ -96,14 +111,24 @@ def main(argv=None) -> int:
         if args.command in INTERRUPTIBLE and not getattr(args, "coordinator", None):
             from tuning.commands import interruptible
 
-            return int(interruptible.run(args.func, args) or 0)
-        return int(args.func(args) or 0)
+            return int(interruptible.run(_in_float64, args) or 0)
+        return int(_in_float64(args) or 0)
     except (UserError, GainsFileError, OutputError) as exc:
         print(f"jaxcart {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _in_float64(args):
+    """``args.func(args)`` in float64: every command computes as the lab's tests check it
+    (jax.enable_x64, scoped to the command's thread; the process's own setting is left as it
+    was, and the fits, the diagnosis and the tuner scope it themselves besides)."""
+    import jax  # (after parsing: building the parser imports no jax)
+
+    with jax.enable_x64(True):
+        return args.func(args)
 
 
 #: Commands that spend minutes inside compiled programs: run so that Ctrl-C stops them at

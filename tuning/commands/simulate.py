@@ -91,9 +91,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     import numpy as np
 
     import jaxcart as jc

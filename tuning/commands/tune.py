@@ -266,11 +266,7 @@ def _run(args, share, outputs) -> int:
     """Tune and write the outputs. share: this process's
     :class:`tuning.design.start_share.StartShare` in a distributed run (else None); outputs:
     process 0's paths checked before it joined."""
-    import jax
-
     from jaxcart import parallel
-
-    jax.config.update("jax_enable_x64", True)
     from tuning.design.tune import tune
 
     problem = _problem(args)

@@ -35,7 +35,7 @@ from hw.control_law import PID
 from jaxcart.params import Plant
 from tuning.design.iteration import compiled_update, descend, initial_state
 from tuning.design.losses import GAIN_NAMES, LossSettings, Spec
-from tuning.design.problem import starts, tuning_problem
+from tuning.design.problem import TuningProblem, starts, tuning_problem
 from tuning.design.result import TuneResult, conclude
 from tuning.design.settings import DEFAULT, TuneSettings
 from tuning.design.wording import progress_printer
@@ -110,34 +110,47 @@ def tune(
     step, projection and the step metrics that track the best point.
 
     Never raises for a specification it cannot meet: ``meets`` is False, ``failing`` names the
-    constraints and ``message`` says so; the best effort is returned.
+    constraints and ``message`` says so; the best effort is returned. Runs in float64 whatever
+    jax_enable_x64 says, and leaves it as it was.
     """
     t0 = time.perf_counter()
-    p = tuning_problem(
-        plant,
-        spec=spec or Spec(),
-        start=start,
-        free=free,
-        controller=controller,
-        robust=robust,
-        bounds=bounds,
-        settings=settings or LossSettings(),
-        substeps=substeps,
-        n_check=n_check,
-        seed=seed,
+    search = TuneSettings(
+        max(1, n_starts),
+        spread,
+        max_iterations,
+        learning_rate,
+        patience,
+        stage_iterations,
+        check_every,
+        seed,
     )
-    n_starts = max(1, n_starts)
-    theta, rows = starts(p, n_starts, spread, seed)
+    with jax.enable_x64(True):  # float64 for this call only, whatever the process has
+        p = tuning_problem(
+            plant,
+            spec=spec or Spec(),
+            start=start,
+            free=free,
+            controller=controller,
+            robust=robust,
+            bounds=bounds,
+            settings=settings or LossSettings(),
+            substeps=substeps,
+            n_check=n_check,
+            seed=seed,
+        )
+        return _search(p, search, progress, processes, t0)
+
+
+def _search(p: TuningProblem, search: TuneSettings, progress, processes, t0) -> TuneResult | None:
+    """:func:`tune` once its problem is checked and placed."""
+    theta, rows = starts(p, search.n_starts, search.spread, search.seed)
     treedef = jax.tree.structure(p.plants_arg)
     update = compiled_update(p.template, p.spec, p.settings, p.robust, p.substeps, treedef)
     if processes is not None:  # this process's starts computed, the whole batch returned
         update = processes.wrap(update)
     # The optimizer state lives where the update puts it (else the second step recompiles).
     opt_state = initial_state(theta, rows)
-    search = TuneSettings(
-        n_starts, spread, max_iterations, learning_rate, patience, stage_iterations, check_every
-    )
     descent = descend(update, p, theta, opt_state, search, progress_printer(progress), t0)
     if processes is not None and not processes.finish():
         return None  # another process of a distributed run: process 0 verifies and reports
-    return conclude(p, update, descent, n_starts, t0)
+    return conclude(p, update, descent, search.n_starts, t0)

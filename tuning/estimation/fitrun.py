@@ -24,17 +24,20 @@ import json
 import numpy as np
 
 
-def cross_rows(rec, recordings, params, *, progress=False) -> list:
+def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> list:
     """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
     state refitted). One row per recording, in their order (see :func:`cross_table`)."""
     from tuning.estimation import fit as F
 
-    alone = F.fit([rec], params, progress=progress)
+    alone = F.fit([rec], params, progress=progress, executor=executor)
     values = {n: float(alone.values[F.canonical(n)]) for n in params}
     held = [n for n, e in alone.params.items() if not e.identifiable]
     rows = []
     for other in recordings:
-        pred = alone if other is rec else F.cross_predict(values, [other], progress=progress)
+        if other is rec:
+            pred = alone
+        else:
+            pred = F.cross_predict(values, [other], progress=progress, executor=executor)
         rows.append(
             {
                 "fitted_on": F._name(rec),
@@ -48,7 +51,9 @@ def cross_rows(rec, recordings, params, *, progress=False) -> list:
     return rows
 
 
-def cross_table(recordings, params, *, progress=False, processes=None, failure=None) -> list:
+def cross_table(
+    recordings, params, *, progress=False, processes=None, failure=None, executor=None
+) -> list:
     """Fit each recording alone; predict every other one with those values (its start state
     refitted). [{"fitted_on", "predicting", "rms", "rms_smooth", "values", "held"}] with RMS
     [m], grouped by the recording fitted, in the recordings' order; "held" names the
@@ -57,11 +62,12 @@ def cross_table(recordings, params, *, progress=False, processes=None, failure=N
     processes: a :class:`tuning.distributed.Exchange` of a jax.distributed run: this process
     fits its share of the recordings and every process returns the whole table. failure: an
     exception this process met before (process 0's joint fit): it computes nothing more and
-    the error is raised on every process after the exchange, as is one met in a fit."""
+    the error is raised on every process after the exchange, as is one met in a fit.
+    executor: makes each fit's exact runs (:func:`tuning.estimation.fit.fit`)."""
     recordings = list(recordings)
 
     def group(i):
-        return cross_rows(recordings[i], recordings, params, progress=progress)
+        return cross_rows(recordings[i], recordings, params, progress=progress, executor=executor)
 
     if processes is None:
         if failure is not None:

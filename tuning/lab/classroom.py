@@ -272,7 +272,9 @@ def _start_worker(n_devices: int, cache: bool) -> None:
     """A worker process: jaxcart's XLA setting, the compilation cache and its share of the
     cores as XLA devices, before JAX starts (as ``jaxcart`` sets them for a command)."""
     os.environ.setdefault("MPLBACKEND", "Agg")
-    import jaxcart  # noqa: F401  (its XLA flags are set on import, before jax starts)
+    from jaxcart import xlaflags
+
+    xlaflags.request()  # loops compiled whole, before jax starts
 
     if cache:
         from jaxcart.cache import enable_persistent_cache

@@ -15,16 +15,17 @@ PARTS = {
 }
 
 
-def compute(inputs, say=lambda text: None):
+def compute(inputs, say=lambda text: None, *, executor=None):
     """Every recording of the lab diagnosed jointly, one cart (repeats included): a
-    :class:`tuning.estimation.diagnose.Diagnosis`, or None without recordings."""
+    :class:`tuning.estimation.diagnose.Diagnosis`, or None without recordings; ``executor``
+    makes its exact runs (:func:`tuning.estimation.diagnose.diagnose`)."""
     from tuning.estimation.diagnose import diagnose
 
     runs = inputs.runs()
     if not runs:
         return None
     say(f"diagnosis: the {len(runs)} recordings jointly, one cart")
-    return diagnose(runs, progress=False)
+    return diagnose(runs, progress=False, executor=executor)
 
 
 def to_json(d) -> dict | None:

@@ -22,10 +22,11 @@ QUICK_FIT = {"widths": (1e-3, 1e-4), "adam_steps": 0, "lm_iterations": 15}
 FitFunction = Callable[..., object]
 
 
-def fit(recordings, params, *, initial=None, quick=False, per_recording=()):
+def fit(recordings, params, *, initial=None, quick=False, per_recording=(), executor=None):
     """Fit ``params`` (names) to ``recordings`` from ``initial`` (name -> value) with the
     estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close;
-    ``per_recording``: those of ``params`` free in each recording (the cart's joint fit)."""
+    ``per_recording``: those of ``params`` free in each recording (the cart's joint fit);
+    ``executor``: makes the exact runs (:func:`tuning.estimation.fit.fit`)."""
     from tuning.estimation.fit import FitSettings
     from tuning.estimation.fit import fit as engine_fit
 
@@ -37,6 +38,7 @@ def fit(recordings, params, *, initial=None, quick=False, per_recording=()):
         initial=initial,
         settings=settings,
         progress=False,
+        executor=executor,
     )
 
 

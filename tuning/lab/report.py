@@ -25,6 +25,7 @@ folder of real ones.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import shutil
@@ -153,6 +154,7 @@ def run_lab(
     plant=None,
     diagnosis: bool = True,
     fmt: str = "png",
+    executor=None,
 ) -> Path:
     """Write the lab report; returns its folder.
 
@@ -162,18 +164,27 @@ def run_lab(
     :class:`jaxcart.Plant`, e.g. from a plant file): its B_eq, f_c and effects start the lab's
     model, and the parts refit B_eq and f_c from the recordings as usual; diagnosis: add the
     section that diagnoses each recording (most of the run time); fmt: the figures' format,
-    "png", "svg" or "pdf" (report.html embeds PNG and SVG; with PDF it embeds a PNG copy).
+    "png", "svg" or "pdf" (report.html embeds PNG and SVG; with PDF it embeds a PNG copy);
+    executor: what makes the fits' exact runs several at a time (a
+    :class:`jaxcart.workers.Helpers` the caller owns; default: one after the other here).
     """
     import jax
 
     fmt = check_format(fmt)
     with jax.enable_x64(True):  # fits and exact checks need float64
         return _run_lab(
-            data, out, force=force, stream=stream, plant=plant, diagnosis=diagnosis, fmt=fmt
+            data,
+            out,
+            force=force,
+            stream=stream,
+            plant=plant,
+            diagnosis=diagnosis,
+            fmt=fmt,
+            executor=executor,
         )
 
 
-def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True, fmt="png") -> Path:
+def _run_lab(data, out, *, force, stream, plant, diagnosis, fmt, executor) -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
     inputs = find_inputs(folder)  # every input read and checked before anything is computed
@@ -183,7 +194,7 @@ def _run_lab(data, out, *, force, stream, plant=None, diagnosis=True, fmt="png")
         lab = Lab(
             out=tmp, inputs=inputs, doc=Document(TITLE), stream=stream, started=started, fmt=fmt
         )
-        _sections(lab, folder, data is None, plant, diagnosis)
+        _sections(lab, folder, data is None, plant, diagnosis, executor)
     lab.say(
         f"done: {final / 'report.md'}, {final / 'report.html'}, {final / 'results.json'} "
         f"({len(lab.figures)} figures) in {time.perf_counter() - started:.1f} s"
@@ -209,7 +220,13 @@ class LabResults:
 
 
 def compute(
-    inputs, start: CartModel, *, diagnosis: bool = True, fit=fits.fit, say=lambda t: None
+    inputs,
+    start: CartModel,
+    *,
+    diagnosis: bool = True,
+    fit=fits.fit,
+    say=lambda t: None,
+    executor=None,
 ) -> LabResults:
     """Every part of the lab from the recordings ``inputs`` and the starting model, in the
     order their data need: the tap's model feeds Parts (ii) and (iii), Part (iii)'s f_c feeds
@@ -217,13 +234,20 @@ def compute(
     part uses (:func:`tuning.lab.fits.fit`). Another estimate of the cart (a joint fit over
     every recording, say) goes in as the ``model`` argument of the parts that simulate with
     it, and :func:`tuning.lab.part_ii.agreement` is the one place the tap's and the step's
-    B_eq are compared."""
+    B_eq are compared. executor: the command's helper processes for the exact runs (the
+    parts' fits and the diagnosis share them), else each run is made in this process.
+
+    Two pieces run in threads beside the parts, each collected here before any result that
+    holds it is built: the joint diagnosis (it needs only the recordings; while one compiles,
+    the other fits) and the PID's re-tune on the fitted cart (beside Part (v))."""
     from jaxcart.background import Background
 
+    if executor is not None:
+        fit = functools.partial(fit, executor=executor)
     recordings = inputs.recordings
-    # The joint diagnosis needs only the recordings: it runs beside the parts (while one
-    # compiles, the other fits), and the cart below waits for it.
-    found = Background(diagnosis_section.compute, inputs, say) if diagnosis else None
+    found = None
+    if diagnosis:
+        found = Background(diagnosis_section.compute, inputs, say, executor=executor)
     pre = prelab.compute(say=say)
     tap = part_i.compute(recordings.get("tap"), start, fit=fit, say=say)
     step = part_ii.compute(recordings.get("p_step"), tap.model, fit=fit, say=say)
@@ -235,8 +259,13 @@ def compute(
     tap_b = None if tap.fit is None else (tap.model.B_eq, tap.model.B_eq_stderr)
     known = {"B_eq": friction.model.B_eq, "f_c": friction.model.f_c}
     joint = cart.compute(inputs, tap_b, found, start=known, fit=fit, say=say)
+    retune = None
+    if joint is not None:
+        say("the cart: the PID re-tuned on the fitted cart")
+        retune = Background(cart.retune, joint)
     model = cart.model_of(joint, friction.model)
     pid = part_v.compute(recordings.get("pid"), model, pre.gains, say=say)
+    joint = cart.with_retune(joint, retune.result() if retune is not None else None)
     return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found, joint)
 
 
@@ -252,7 +281,7 @@ def values(r: LabResults) -> list:
     ]
 
 
-def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool) -> None:
+def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool, executor) -> None:
     lab.diagnosis = diagnosis
     start = CartModel.starting(plant)
     if plant is not None:
@@ -262,7 +291,7 @@ def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool) -> 
     lab.say(f"data: {'built-in example recordings' if builtin else folder}")
     for line in lab.inputs.summary_lines():
         lab.say("  " + line)
-    r = compute(lab.inputs, start, diagnosis=diagnosis, say=lab.say)
+    r = compute(lab.inputs, start, diagnosis=diagnosis, say=lab.say, executor=executor)
     _introduction(lab, folder, builtin)
     render(lab, r)
     _summary(lab, values(r))

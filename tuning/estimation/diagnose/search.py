@@ -43,7 +43,7 @@ from tuning.estimation.engine.noise import MISFIT_RATIO
 
 
 def diagnose(
-    recordings, *, start=None, progress=True, pairs: bool = True, processes=None
+    recordings, *, start=None, progress=True, pairs: bool = True, processes=None, executor=None
 ) -> Diagnosis:
     """Diagnose one recording or several of one cart jointly.
 
@@ -59,10 +59,18 @@ def diagnose(
     result gathered on every one, which then all hold the same diagnosis (process 0 reports).
     Inside ``processes.carry()`` (as ``jaxcart diagnose`` calls it), an exception one process
     meets is raised on every process at its next exchange, none waiting for another.
+
+    executor: what makes the exact runs several at a time (a :class:`jaxcart.workers.Helpers`
+    the caller owns; default: one after the other in this process). Runs in float64 whatever
+    jax_enable_x64 says, and leaves it as it was.
     """
     import jax
 
-    jax.config.update("jax_enable_x64", True)
+    with jax.enable_x64(True):
+        return _diagnose(recordings, start, progress, pairs, processes, executor)
+
+
+def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagnosis:
     say = C._progress_printer(progress)
     t_start = _time.perf_counter()
     if not isinstance(recordings, list | tuple):
@@ -73,7 +81,7 @@ def diagnose(
         for m in messages:
             say(m)
         return Diagnosis(names, "not diagnosed", messages, checks, seconds=C._elapsed(t_start))
-    search = Search(recordings, controllers, read_counts, start, say, processes)
+    search = Search(recordings, controllers, read_counts, start, say, processes, executor)
     search.run(pairs)
     d = search.diagnosis(names, checks, t_start)
     say(
@@ -113,8 +121,7 @@ def _checks(recordings, say):
 class Search:
     """One diagnosis's search: the segments, the batch fitter, the candidates tried."""
 
-    def __init__(self, recordings, controllers, read_counts, start, say, processes):
-        from jaxcart.cache import enable_persistent_cache
+    def __init__(self, recordings, controllers, read_counts, start, say, processes, executor=None):
         from jaxcart.plantspec import handout_plant
         from tuning.estimation.engine.noise import floor_of
 
@@ -140,7 +147,6 @@ class Search:
             f"diagnose {', '.join(s.name for s in segments)}: "
             f"{sum(s.target.size for s in segments)} samples fitted"
         )
-        enable_persistent_cache()  # compiled batches kept on disk: a second one starts warm
         # Several driven runs of one cart: each may have its own drive limits (PER_RUN).
         runs = tuple(i for i, s in enumerate(segments) if s.motor)
         self.runs = runs if len(runs) >= 2 else ()
@@ -148,10 +154,7 @@ class Search:
         per = C.per_run_params() if self.runs else ()
         self.fitter = BatchFitter(segments, self.base_plants, per_recording=per, max_shared=K_MAX)
         self.layout = self.fitter.layout
-        self.memo = C.ExactMemo()
-        from jaxcart import workers
-
-        workers.start()  # the exact runs' helpers import while the batch fit runs
+        self.memo = C.ExactMemo(executor=executor)
         self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
         self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
         self.starts_all = C._start_values(segments, recordings, self.base_plants, P.superset())

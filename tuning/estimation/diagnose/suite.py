@@ -35,6 +35,7 @@ from jaxcart.effects import (
     Spring,
     Stiction,
 )
+from jaxcart.workers import Helpers
 
 #: What counts as right, per case (:func:`judge`). "names": the named effects are the expected
 #: ones, or the expected ones are among the structures said to fit equally well (a tie said
@@ -440,7 +441,7 @@ def _own_limits_right(case: Case, d) -> bool:
     return True
 
 
-def run_suite(names=None, progress=False, out=sys.stdout) -> list[dict]:
+def run_suite(names=None, progress=False, out=sys.stdout, executor=None) -> list[dict]:
     from jaxcart.files import read_experiment
     from tuning.estimation.diagnose import diagnose
 
@@ -453,7 +454,7 @@ def run_suite(names=None, progress=False, out=sys.stdout) -> list[dict]:
         for case in chosen:
             paths = make_case(case, tmp)
             t = time.perf_counter()
-            d = diagnose([read_experiment(p) for p in paths], progress=progress)
+            d = diagnose([read_experiment(p) for p in paths], progress=progress, executor=executor)
             row = judge(case, d)
             row["seconds"] = round(time.perf_counter() - t, 2)
             rows.append(row)
@@ -505,13 +506,16 @@ def main(argv=None) -> int:
     p.add_argument("--progress", action="store_true")
     args = p.parse_args(argv)
     names = FAST if args.fast else (args.only.split(",") if args.only else None)
-    rows = run_suite(names, progress=args.progress)
+    with Helpers() as helpers:  # the exact runs several at a time, closed at the end
+        rows = run_suite(names, progress=args.progress, executor=helpers)
     print(summary(rows))
     return 0
 
 
 if __name__ == "__main__":
+    from jaxcart.cache import enable_persistent_cache
     from jaxcart.parallel import use_cpu_devices
 
+    enable_persistent_cache()  # as the command line does: compiled batches kept on disk
     use_cpu_devices()
     sys.exit(main())
