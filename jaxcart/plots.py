@@ -24,6 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from hw.atomicio import save_figure
+from jaxcart.errors import UserError
+
+# matplotlib is imported where a figure is made (about 1 s, measured on 2 cores): this module
+# is imported while the command line's parser is built (add_format_option).
+
 ROLES = ("experiment", "simulation", "reference")
 DPI = 130
 #: Figure formats every command can write (matplotlib writers), chosen by ``--format``.
@@ -189,8 +195,6 @@ def figure_legend(fig, axes, *, ncols: int = 2, fontsize="small") -> None:
 def save(fig, path, *, dpi: int = DPI) -> Path:
     """Write ``fig`` to ``path`` (or to each of several paths), the format from the suffix
     (:data:`FORMATS`); folders are made. Returns the first path."""
-    from hw.atomicio import save_figure
-
     paths = [Path(path)] if isinstance(path, (str, Path)) else [Path(p) for p in path]
     for p in paths:
         save_figure(fig, p, dpi=dpi)  # a temporary name, then renamed: never half a file
@@ -221,8 +225,6 @@ def figure_name(path, fmt: str | None, *, option: str = "--plot") -> Path:
     """A figure's path under ``--format``: ``path`` with the suffix of ``fmt``, where ``path``
     has no figure suffix of its own; a path whose suffix names another format is refused
     (one line naming both), and without ``fmt`` the path is kept."""
-    from jaxcart.errors import UserError
-
     path = Path(path)
     if fmt is None:
         return path

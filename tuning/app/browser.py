@@ -129,7 +129,7 @@ def page_at(
     """A Playwright page of Chromium (fresh profile, off the network) showing ``url``, once the
     design page is built; ``requests``: a list that gets the URL of every request the page
     makes."""
-    from playwright.sync_api import sync_playwright
+    from playwright.sync_api import sync_playwright  # (an optional dependency: .[test])
 
     profile = tempfile.mkdtemp(prefix="jaxcart-chromium-")
     try:

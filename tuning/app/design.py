@@ -34,6 +34,8 @@ from hw.control_law import PID, setting_problem
 from jaxcart import control_systems
 from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
+from jaxcart.files import read_experiment
+from jaxcart.plantsource import load_plant
 from jaxcart.plausibility import LAB_VOLTAGE
 from tuning.design.grid_blocks import feasible_mask
 from tuning.design.losses import Spec
@@ -383,13 +385,9 @@ def problem_from_files(data=None, plant=None, *, region_points: int = REGION_POI
 def _problem_from_files(data, plant, region_points) -> DesignProblem:
     overlay = None
     if data is not None:
-        from jaxcart.files import read_experiment
-
         overlay = overlay_from(read_experiment(data))
     design_plant = None
     if plant is not None:
-        from jaxcart.plantsource import load_plant
-
         # A plant fitted to a tap (motor unplugged) is the same cart: drive it.
         design_plant = dataclasses.replace(load_plant(plant), motor_connected=True)
     return DesignProblem(

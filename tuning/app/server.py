@@ -21,7 +21,15 @@ from __future__ import annotations
 
 import socket
 import sys
+import webbrowser
 
+from bokeh.application import Application
+from bokeh.application.handlers.function import FunctionHandler
+from bokeh.io import output_notebook, show
+from bokeh.resources import INLINE
+from bokeh.server.server import Server
+
+from jaxcart.errors import UserError
 from tuning.app.design import DesignProblem, Settings, problem_from_files
 from tuning.app.view import build
 
@@ -49,10 +57,6 @@ def free_port(address: str) -> int:
 def make_server(problem: DesignProblem, *, port: int = DEFAULT_PORT, address="127.0.0.1"):
     """A started-to-be :class:`bokeh.server.server.Server` of the page on ``address:port``
     (port 0: a free one), accepting pages opened from that address or localhost."""
-    from bokeh.application import Application
-    from bokeh.application.handlers.function import FunctionHandler
-    from bokeh.server.server import Server
-
     port = port or free_port(address)
     app = Application(FunctionHandler(lambda doc: build(doc, problem)))
     origins = [f"{address}:{port}", f"localhost:{port}"]
@@ -66,8 +70,6 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
     try:
         server = make_server(problem, port=port, address=address)
     except OSError as exc:
-        from jaxcart.errors import UserError
-
         raise UserError(
             f"--port {port}: cannot listen on {address}:{port} ({exc.strerror}); give another "
             "port (--port 0 picks a free one)"
@@ -76,8 +78,6 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
     server.start()
     print(f"jaxcart app: the design page is at {url} (Ctrl-C to stop)", flush=True)
     if browser:
-        import webbrowser
-
         server.io_loop.add_callback(webbrowser.open, url)
     try:
         server.io_loop.start()
@@ -92,9 +92,6 @@ def show_in_notebook(data=None, plant=None, *, notebook_url="localhost:8888"):
     """Show the page in the running Jupyter notebook (a Bokeh server inside the kernel);
     ``notebook_url``: the host:port the notebook's page was opened at. The page computes in
     float64 (:class:`tuning.app.design.DesignProblem`), whatever the kernel has set."""
-    from bokeh.io import output_notebook, show
-    from bokeh.resources import INLINE
-
     problem = problem_from_files(data, plant)
     warm(problem)
     # INLINE: BokehJS from the installed package into the notebook (the default is a CDN).

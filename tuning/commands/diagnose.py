@@ -11,6 +11,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxcart.errors import UserError
+from jaxcart.outputs import check_writable
+from jaxcart.plots import add_format_option
+from tuning.commands.options import add_cluster_options, add_helpers_option, helpers
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 
 def register(subparsers) -> None:
@@ -29,12 +36,10 @@ def register(subparsers) -> None:
     p.add_argument("--out", metavar="DIR", help="report folder (default ./jaxcart-out/diagnose-N)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
     p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
-    from tuning.commands.options import add_cluster_options, add_helpers_option
 
     add_helpers_option(p)
     add_cluster_options(p)
@@ -52,7 +57,6 @@ def _default_out() -> Path:
 def _check_outputs(args) -> Path:
     """The report folder, its files and --json checked writable (and absent unless --force)."""
     out = Path(args.out) if args.out else _default_out()
-    from jaxcart.outputs import check_writable
 
     for p in (out / "report.md", out / "corrected_plant.toml", args.json_out):
         if p and Path(p).exists() and not args.force:
@@ -79,7 +83,6 @@ def run(args) -> int:
     # fails at once instead of leaving the other processes waiting for it.
     checked = settings is None or (settings != "auto" and settings[2] == 0)
     out = _check_outputs(args) if checked else None
-    from tuning.commands.options import helpers
 
     if not parallel.init_distributed(settings):
         with helpers(args) as pool:

@@ -18,7 +18,17 @@ from __future__ import annotations
 
 import sys
 
+from hw.atomicio import all_or_none
+from hw.jsonio import write_json
 from jaxcart.errors import UserError
+from jaxcart.outputs import check_writable
+from jaxcart.plots import add_format_option, figure_name
+from tuning.commands.options import add_cluster_options, add_helpers_option, helpers
+from tuning.estimation import fitrun
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 #: Figure formats matplotlib writes (checked before fitting, not after).
 PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
@@ -61,7 +71,6 @@ def register(subparsers) -> None:
         help="write the report as JSON (or, for a name ending in .mat, as a MATLAB struct)",
     )
     p.add_argument("--plot", metavar="PNG", help="overlay plot of recordings and model")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     p.add_argument(
@@ -77,7 +86,6 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    from tuning.commands.options import add_cluster_options, add_helpers_option
 
     add_helpers_option(p)
     # With --cross, each process fits its share of the recordings alone; process 0 alone runs
@@ -109,7 +117,6 @@ def run(args) -> int:
         from tuning.distributed import Exchange
 
         share = Exchange()
-    from tuning.commands.options import helpers
 
     with helpers(args, distributed=share is not None) as pool:
         return _run(args, params, share, checked, pool)
@@ -121,7 +128,6 @@ def _run(args, params, share, checked, pool) -> int:
     helper processes, which make the fits' exact runs several at a time."""
     from jaxcart import parallel
     from jaxcart.files import read_experiment
-    from tuning.estimation import fitrun
     from tuning.estimation.fit import fit
 
     me = parallel.process_index()
@@ -173,7 +179,6 @@ def _run(args, params, share, checked, pool) -> int:
         if share is not None:
             print(f"  (each recording fitted by one of {share.count} processes)")
         report["cross_prediction"] = cross
-    from hw.atomicio import all_or_none
 
     with all_or_none(args.json_out, args.out, args.plot):  # all written, or none left
         _write_outputs(args, report, result)
@@ -189,8 +194,6 @@ def _write_outputs(args, report, result) -> None:
         write_mat_report(args.json_out, report, name="fit", force=args.force)
         print(f"report: {args.json_out}")
     elif args.json_out:
-        from hw.jsonio import write_json
-
         write_json(args.json_out, report, force=args.force)
         print(f"report: {args.json_out}")
     if args.out:
@@ -231,9 +234,6 @@ def check_outputs(args) -> None:
     """Every output path writable (not under a file, not in a read-only folder, not an
     existing file without --force), checked before the fit computes anything; --plot takes
     the suffix of --format."""
-    from jaxcart.outputs import check_writable
-    from jaxcart.plots import figure_name
-
     if args.format and not args.plot:
         raise UserError(f"--format {args.format}: name the figure with --plot (e.g. fit.pdf)")
     if args.plot:

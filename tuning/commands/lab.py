@@ -16,6 +16,13 @@ import contextlib
 import signal
 from pathlib import Path
 
+from jaxcart.plots import add_format_option
+from tuning.commands.options import add_helpers_option, helpers
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -58,17 +65,14 @@ def register(subparsers) -> None:
         action="store_true",
         help="leave out the section that diagnoses each recording (most of the run time)",
     )
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
-    from tuning.commands.options import add_helpers_option
 
     add_helpers_option(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from tuning.commands.options import helpers
     from tuning.lab.report import run_lab
 
     plant = None

@@ -3,11 +3,12 @@
 The command line is the top floor of the layout (docs/design.md, "Layout"): it lives in
 ``tuning/`` and may import ``jaxcart/`` and ``hw/``; neither of them imports it.
 
-Each subcommand lives in its own module with ``register(subparsers)``, which adds its parser
-and sets ``func``; ``func(args)`` returns the exit status. Building the parser imports no jax
-(a command module imports jax and jaxcart inside its ``func``), so ``jaxcart --help`` and
-argument errors answer at once. Errors the user can fix (:class:`jaxcart.errors.UserError`,
-:class:`hw.gains.GainsFileError`) are printed as one line, without a traceback.
+Each subcommand lives in its own module with ``register(subparsers)``, which adds its parser and
+sets ``func``; ``func(args)`` returns the exit status. Building the parser imports no jax (a command
+module imports what imports jax, jaxcart's simulator and tuning's engines, inside its ``func``), so
+``jaxcart --help`` and argument errors answer at once. Errors the user can fix
+(:class:`jaxcart.errors.UserError`, :class:`hw.gains.GainsFileError`) are printed as one line,
+without a traceback.
 """
 
 from __future__ import annotations
@@ -15,6 +16,16 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as installed
+
+from hw.atomicio import OutputError
+from hw.gains import GainsFileError
+from jaxcart import xlaflags
+from jaxcart.cache import enable_persistent_cache
+from jaxcart.errors import UserError
+from jaxcart.plots import preload
+from tuning.commands import interruptible
 
 #: Subcommand modules, in the order ``jaxcart --help`` lists them: a student's first (the lab
 #: report, raw files in, trying and designing gains, fitting), then the cart, the instructor's
@@ -36,9 +47,6 @@ COMMANDS = (
 
 def version() -> str:
     """The installed jaxcart's version (from its package metadata; imports nothing)."""
-    from importlib.metadata import PackageNotFoundError
-    from importlib.metadata import version as installed
-
     try:
         return installed("jaxcart")
     except PackageNotFoundError:
@@ -79,20 +87,15 @@ def main(argv=None) -> int:
     # a CPU (jaxcart.xlaflags; JAXCART_XLA_FLAGS=0 leaves XLA_FLAGS alone), the compilation
     # cache (--no-cache: none) and one XLA device per core, so that the loops run as kernels,
     # later runs skip compiling and batches shard over every core.
-    from jaxcart import xlaflags
 
     xlaflags.request()
     if not args.no_cache:
-        from jaxcart.cache import enable_persistent_cache
-
         enable_persistent_cache()
-    from jaxcart.parallel import use_cpu_devices
+    from jaxcart.parallel import use_cpu_devices  # (imports jax: after parsing, not before)
 
     use_cpu_devices()
     preloading = None
     if args.command in PLOTTING or getattr(args, "plot", None):
-        from jaxcart.plots import preload
-
         preloading = preload()
     try:
         return _run(args)
@@ -103,14 +106,8 @@ def main(argv=None) -> int:
 
 def _run(args) -> int:
     """The command's exit status; a user's error is one line (status 2), Ctrl-C 130."""
-    from hw.atomicio import OutputError
-    from hw.gains import GainsFileError
-    from jaxcart.errors import UserError
-
     try:
         if args.command in INTERRUPTIBLE and not getattr(args, "coordinator", None):
-            from tuning.commands import interruptible
-
             return int(interruptible.run(_in_float64, args) or 0)
         return int(_in_float64(args) or 0)
     except (UserError, GainsFileError, OutputError) as exc:

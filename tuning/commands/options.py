@@ -15,6 +15,7 @@ import argparse
 import math
 import re
 
+from hw.control_law import setting_problem
 from jaxcart.errors import UserError
 from jaxcart.workers import MOST, Helpers
 
@@ -126,8 +127,6 @@ def parse_gains(text: str, option: str) -> dict:
     """'KP,KI,KD' (the handout's order) -> {"kp", "ki", "kd"} [V/m, V/(m s), V s/m], each
     checked by the one rule of a PID setting (:func:`hw.control_law.setting_problem`: finite,
     >= 0)."""
-    from hw.control_law import setting_problem
-
     parts = [s.strip() for s in text.split(",")]
     try:
         values = [float(s) for s in parts]

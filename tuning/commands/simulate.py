@@ -9,12 +9,26 @@ result as an experiment file, so that the output of one command is the input of 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import sys
 from pathlib import Path
 
-# jax, numpy and jaxcart are imported inside the functions: ``register`` (the parser) must
-# not start jax, so that ``jaxcart --help`` and argument errors answer at once.
+import numpy as np
+
+import jaxcart as jc
+from hw.atomicio import all_or_none
+from hw.control_law import setting_problem
+from jaxcart import plots
+from jaxcart.errors import SimulationDiverged, UserError
+from jaxcart.outputs import OUT_DIR, check_writable, free_names
+from jaxcart.plots import add_format_option, figure_name
+from tuning.commands.options import NOT_RISEN, timed
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
+
 
 #: The lab's design problem (docs/design.md, "The design problem"): step 0.5 m, handout plant,
 #: 6 V, the handout's gains.
@@ -61,7 +75,6 @@ def register(subparsers) -> None:
         "in, else structure-with-time, the Simulink scope's 'Structure With Time')",
     )
     p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     p.add_argument(
@@ -91,11 +104,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
-
-    import jaxcart as jc
     from jaxcart import plausibility
-    from jaxcart.errors import SimulationDiverged, UserError
     from jaxcart.files import read_experiment
 
     recording = read_experiment(args.experiment) if args.experiment else None
@@ -154,7 +163,6 @@ def run(args) -> int:
         description=f"jaxcart simulate ({method} simulator) of {source}",
         force=args.force,
     )
-    from hw.atomicio import all_or_none
 
     with all_or_none(csv_path, toml_path, png_path):  # a failed figure leaves no data either
         if csv_path.suffix.lower() == ".mat":
@@ -188,8 +196,6 @@ def run(args) -> int:
 
 def _with_options(args, controller, experiment, source):
     """The controller with the command-line gains applied."""
-    from jaxcart.errors import UserError
-
     given = {k: getattr(args, k) for k in GAIN_OPTIONS if getattr(args, k) is not None}
     if experiment.kind != "closed_loop":
         if given:
@@ -203,8 +209,6 @@ def _with_options(args, controller, experiment, source):
         raise UserError(
             f"{source} has no [controller]; add one or give the gains with --kp/--ki/--kd"
         )
-    import jaxcart as jc
-    from hw.control_law import setting_problem
 
     base = controller or jc.PID(sample_time=experiment.sample_time)
     for name, value in given.items():
@@ -219,11 +223,8 @@ def _with_options(args, controller, experiment, source):
 def _outputs(args, recording):
     """(data: .csv or .mat, toml, png or None), refusing existing files unless --force, before
     simulating."""
-    from jaxcart.errors import UserError
     from jaxcart.files import experiment_paths
     from jaxcart.matfile import mat_paths
-    from jaxcart.outputs import OUT_DIR, check_writable, free_names
-    from jaxcart.plots import figure_name
 
     if args.out:
         out = Path(args.out)
@@ -282,7 +283,6 @@ def _mat_data(recording) -> bool:
 def _solver(exact: bool, experiment):
     """The simulator the options choose, as a value (jaxcart.simulate's solver): the exact
     one with --exact, else the smooth one, in chunks with progress for a long run."""
-    import jaxcart as jc
     from jaxcart import chunked_sim
 
     if exact:
@@ -294,11 +294,8 @@ def _solver(exact: bool, experiment):
 
 
 def _simulate(solver, plant, controller, experiment):
-    import functools
-
     import jax
 
-    import jaxcart as jc
     from jaxcart import chunked_sim
 
     pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
@@ -323,8 +320,6 @@ def _voltage_limit(plant, controller) -> float:
 
 
 def _plot(path, response, recording, controller, plant, source, method):
-    from jaxcart import plots
-
     runs = []
     if recording is not None:
         runs.append(plots.run_from_recording(recording))
@@ -347,8 +342,6 @@ def _plot(path, response, recording, controller, plant, source, method):
 
 def _thinned(run):
     """The run with at most about chunked_sim.PLOT_POINTS samples, each block's extremes kept."""
-    import numpy as np
-
     from jaxcart.chunked_sim import thin_indices
 
     keep = thin_indices(len(run.time), run.position, run.voltage)
@@ -364,8 +357,6 @@ def _thinned(run):
 
 
 def _is_step(response) -> bool:
-    import numpy as np
-
     r = np.asarray(response.reference)
     return (
         response.kind == "closed_loop"
@@ -375,8 +366,6 @@ def _is_step(response) -> bool:
 
 
 def _metrics_line(info) -> str:
-    from tuning.commands.options import NOT_RISEN, timed
-
     return (
         f"{timed('rise', info.rise_time, NOT_RISEN)}, {timed('settling', info.settling_time)}, "
         f"overshoot {info.overshoot:.2f} %, steady-state error "
@@ -385,9 +374,6 @@ def _metrics_line(info) -> str:
 
 
 def _summary(source, experiment, method, controller, plant, response, recording, paths):
-    import numpy as np
-
-    import jaxcart as jc
     from jaxcart.plantspec import describe_plant
 
     n = experiment.n_samples

@@ -15,8 +15,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
+from hw.control_law import PID, setting_problem
+from hw.gains import GainsFileError, write_gains
+from hw.jsonio import write_json
 from jaxcart.errors import UserError
 from jaxcart.outputs import OUT_DIR, check_writable, free_names
+from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
 from tuning.commands.options import (
     GAINS,
     add_cluster_options,
@@ -28,6 +34,10 @@ from tuning.commands.options import (
     timed,
 )
 from tuning.design.settings import DEFAULT  # (no jax: read while the parser is built)
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 #: What --free may name (tuning.design.losses.PARAM_NAMES, without importing jax for --help),
 #: the gains in the handout's order.
@@ -347,7 +357,6 @@ def _compare(args, problem) -> int:
 
 def _write_outputs(args, result, problem, paths) -> None:
     """The gains file (with the run's metadata), the figure and the JSON summary."""
-    from hw.gains import GainsFileError, write_gains
     from jaxcart.experiments import step
 
     gains_path, png_path, json_path = paths
@@ -456,8 +465,6 @@ def _start(text):
 
 
 def _controller(args):
-    from hw.control_law import PID, setting_problem
-
     for name in ("sample_time", "tau", "kb", "v_limit"):  # the one rule (hw.control_law)
         value = getattr(args, name)
         problem = setting_problem(name, value)
@@ -514,8 +521,6 @@ def _json_path(args):
 
 
 def _write_json(path, doc):
-    from hw.jsonio import write_json
-
     write_json(path, doc, force=True)  # the name was checked (or --force given) before tuning
 
 
@@ -580,10 +585,7 @@ def _plot(path, result, experiment):
     """The exact simulator's step response (and the worst plant of a robust set). The smooth
     run at the final widths is not drawn: it lies on the exact one (the printed metrics give
     both), and simulating it here cost a compilation and seconds of eager operations."""
-    import numpy as np
-
     from jaxcart.exact import simulate_exact
-    from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
 
     g, spec = result.gains, result.spec
     exact = simulate_exact(result.plant, g, experiment)

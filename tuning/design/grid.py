@@ -25,18 +25,24 @@ over the set.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 import time
+import zipfile
 from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.patches import Patch, Rectangle
 
+from hw.atomicio import atomic_open
 from jaxcart.batch_metrics import default_chunk, step_metrics_batch
 from jaxcart.chunked_sim import duration_text
 from jaxcart.errors import UserError
+from jaxcart.exact import step_info_exact
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth_sim import EXACT_FORMS
 from tuning.design import grid_blocks
@@ -455,8 +461,6 @@ def recheck(plant, controller, experiment, gains) -> tuple[StepInfo, str]:
     """Metrics of one gain triple (kp, kd, ki) on the exact simulator, in float64.
 
     Returns (:class:`StepInfo`, a label naming the simulator)."""
-    from jaxcart.exact import step_info_exact
-
     pid = dataclasses.replace(
         controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
     )
@@ -557,8 +561,6 @@ def summary(result: GridResult, exact: StepInfo | None = None) -> dict:
 
 def save_json(result: GridResult, path, *, exact: StepInfo | None = None, force=False):
     """Write :func:`summary` to ``path``; refuses to overwrite unless ``force``."""
-    import json
-
     with _open(path, force) as f:
         f.write((json.dumps(summary(result, exact), indent=2) + "\n").encode())
     return path
@@ -586,9 +588,6 @@ def save_npz(result: GridResult, path, *, exact: StepInfo | None = None, force=F
     point's re-check when ``exact`` is given. A grid without full arrays is written block by
     block from its store (memory stays bounded).
     """
-    import json
-    import zipfile
-
     small = {}
     if result.axes is not None:
         small.update(kp=result.axes[0], kd=result.axes[1], ki=result.axes[2])
@@ -646,8 +645,6 @@ def _open(path, force):
     """The output file under a temporary name, renamed when the block ends
     (:mod:`hw.atomicio`): a full disk leaves no half file; an existing file is refused
     unless ``force``."""
-    from hw.atomicio import atomic_open
-
     return atomic_open(path, "wb", force=force)
 
 
@@ -672,8 +669,6 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
 
 def _plot_grid(result: GridResult, n_slices: int):
     """The heat maps of :func:`plot_slices` for a grid."""
-    import matplotlib.pyplot as plt
-
     ki = result.axes[2]
     per_slice = result.ki_feasible
     # Spread the slices over the ki range that has feasible points (all of it if none).
@@ -723,8 +718,6 @@ def _colour_limits(result: GridResult) -> tuple[float, float]:
 def _draw_slice(ax, result: GridResult, k: int, values, limits):
     """One k_i slice ``k``: the hatched infeasible background, the settling times ``values``
     (kp x kd, nan where not shown) and the best point's star; returns the mesh."""
-    from matplotlib.patches import Rectangle
-
     kp, kd, ki = result.axes
     lo, hi = limits
     ax.add_patch(
@@ -772,9 +765,6 @@ def _draw_slice(ax, result: GridResult, k: int, values, limits):
 
 def _grid_legend(result: GridResult) -> list:
     """The legend's handles: the hatched infeasible region and the best point's star."""
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
-
     return [
         Patch(
             facecolor="0.92",
@@ -805,8 +795,6 @@ def slice_note(result: GridResult, slices) -> str:
 
 
 def _plot_list(result):
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(6.4, 4.8), layout="constrained")
     g, ok = result.gains, result.feasible
     ts = result.info.settling_time

@@ -19,6 +19,12 @@ import math
 from dataclasses import dataclass
 
 from jaxcart import plantspec
+from jaxcart.plantspec import write_plant_file
+from tuning.design.tune import tune
+from tuning.estimation.diagnose.as_fit import fit_result
+from tuning.estimation.engine.parameters import bounds
+from tuning.estimation.fit import Estimate
+from tuning.lab import fits
 from tuning.lab.context import Lab, fmt, value
 
 #: The joint model without a diagnosis: viscous and Coulomb friction shared, the amplifier
@@ -98,8 +104,6 @@ def compute(
 def retune(c: JointCart):
     """The PID tuned on the fitted cart, with ``jaxcart tune``'s settings (one tuner, one
     answer): a :class:`tuning.design.result.TuneResult`."""
-    from tuning.design.tune import tune
-
     return tune(_design_plant(c.fit), progress=False)
 
 
@@ -110,9 +114,6 @@ def with_retune(c: JointCart | None, tuned) -> JointCart | None:
 
 def _diagnosed(diagnosis, tap_b_eq, say):
     """(the diagnosis's joint fit, B_eq of its driven runs alone or None)."""
-    from tuning.estimation.diagnose.as_fit import fit_result
-    from tuning.estimation.fit import Estimate
-
     joint = fit_result(diagnosis)
     say(f"the cart: the diagnosis's joint fit of {len(joint.segments)} recordings")
     b = diagnosis.driven_alone.get("parameters", {}).get("B_eq")
@@ -125,8 +126,6 @@ def _diagnosed(diagnosis, tap_b_eq, say):
 def _fitted(inputs, runs, tap_b_eq, start, fit, say):
     """(a joint fit of ``runs``, B_eq of the driven runs fitted alone or None): without a
     diagnosis, in :func:`structure`'s parameters from the parts' values."""
-    from tuning.lab import fits
-
     fit = fit or fits.fit
     driven = [r for r in runs if r.kind != "tap"]
     params, per = structure(inputs)
@@ -207,7 +206,6 @@ def render(lab: Lab, c: JointCart | None) -> None:
     if c is None:
         doc.paragraph("No driven recording was given: the cart is the tap's (Part (i)).")
         return
-    from jaxcart.plantspec import write_plant_file
 
     write_plant_file(lab.out / PLANT_FILE, c.plant, fit={"source": f"jaxcart lab, {c.source}"})
     doc.paragraph(_structure_text(c))
@@ -261,7 +259,6 @@ def _agreement_text(c: JointCart) -> str:
         return "Without a tap and a driven run there is no second B_eq to compare."
     diff, sigmas = agree
     b = c.driven
-    from tuning.estimation.engine.parameters import bounds
 
     lo, hi = bounds("B_eq")
     if not lo * 1.02 < b.value < hi / 1.02:

@@ -29,17 +29,29 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import json
 import math
+import multiprocessing
 import os
+import shutil
 import statistics
 import sys
 import time
 import tomllib
 import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from hw.jsonio import write_json
 from jaxcart.errors import UserError
+from tuning.design.losses import Spec
+from tuning.lab import classfigures, classpage
+from tuning.lab.inputs import INDEX_NAME, SLOTS, find_inputs
+from tuning.lab.report import output_dir, run_lab, staged
 
 #: A cart parameter this many times the class median (or 1/this of it) is flagged.
 OUTLIER_FACTOR = 10.0
@@ -195,8 +207,6 @@ def used_files(inputs) -> list[str]:
     """Names of the files the lab's inputs (:func:`tuning.lab.inputs.find_inputs`) used: its
     lab.toml, each recording's experiment file and the data files it maps, the raw .mat files
     of imported runs, and the further runs of a part."""
-    from tuning.lab.inputs import INDEX_NAME
-
     used = {INDEX_NAME}
     recordings = list(inputs.recordings.values())
     recordings += [r for runs in inputs.repeats.values() for r in runs]
@@ -231,9 +241,6 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
     returns {"status", "error", "seconds", "runs", "used"}. Never raises for the student's data: a
     refused folder or a failure of the lab is the returned status and its one-line reason
     (a traceback, for an internal error, goes to the log). Runs in a worker process."""
-    from tuning.lab.inputs import find_inputs
-    from tuning.lab.report import run_lab
-
     started = time.perf_counter()
     outcome = {"status": "failed", "error": None, "runs": {}, "used": []}
     with open(log, "w") as stream, contextlib.redirect_stderr(stream):
@@ -257,8 +264,6 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
 
 def _runs(inputs) -> dict:
     """{slot: (time, position, reference or None)} of the recordings, thinned for overlays."""
-    import numpy as np
-
     runs = {}
     for slot, rec in inputs.recordings.items():
         n = len(rec.position)
@@ -323,10 +328,6 @@ def run_all(
 def _pool(job, students, out, workers, diagnosis, cache, finish) -> list:
     """Run ``students`` in a pool of ``workers`` processes; returns those lost to a process
     that died."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
     share = max(1, (os.cpu_count() or 1) // workers)
     lost = []
     with ProcessPoolExecutor(
@@ -357,8 +358,6 @@ def _pool(job, students, out, workers, diagnosis, cache, finish) -> list:
 
 
 def _remove_partial(folder: Path, name: str) -> None:
-    import shutil
-
     for path in folder.glob(f".{name}.partial-*"):
         shutil.rmtree(path, ignore_errors=True)
 
@@ -369,8 +368,6 @@ def _remove_partial(folder: Path, name: str) -> None:
 def read_results(students, out: Path) -> None:
     """Each complete student's results.json (a student whose report cannot be read fails)
     and the files of its folder the lab did not use."""
-    import json
-
     for s in students:
         if not s.complete:
             continue
@@ -467,8 +464,6 @@ def _measured(student, key, results, metric):
 
 def flag(students, columns) -> None:
     """Each student's flags: failure, missing parts, unrecognised files, outliers."""
-    from tuning.lab.inputs import SLOTS
-
     medians = class_medians(students, columns)
     for s in students:
         s.flags = []
@@ -555,8 +550,6 @@ def run_class(
     core, at most one per student); diagnosis: the lab's diagnosis section (most of its time;
     off by default); cache: the compilation cache in the workers; stream: progress (stderr).
     Returns the :class:`ClassResult`."""
-    from tuning.lab.report import output_dir, staged
-
     started = time.perf_counter()
     stream = sys.stderr if stream is None else stream
 
@@ -595,8 +588,6 @@ def _output(out, force, output_dir) -> Path:
 
 
 def _tabulate(folder, final, tmp, students, stray, started, workers, diagnosis) -> ClassResult:
-    from tuning.design.losses import Spec
-
     spec = Spec()
     read_results(students, tmp)
     columns = columns_of(students)
@@ -617,9 +608,6 @@ def _tabulate(folder, final, tmp, students, stray, started, workers, diagnosis) 
 
 
 def _write(result: ClassResult, tmp: Path) -> None:
-    from hw.jsonio import write_json
-    from tuning.lab import classfigures, classpage
-
     figures = classfigures.draw(result, tmp / "figures")
     (tmp / "class.csv").write_text(csv_text(result))
     (tmp / "class.html").write_text(classpage.page(result, figures))

@@ -39,14 +39,20 @@ significant digits. Regenerating with the same seed gives identical files (teste
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
 
+import jaxcart
+import jaxcart as jc
 from jaxcart.effects import Quantization
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
+from jaxcart.plantspec import build_plant
+from jaxcart.synthetic import make_recording, make_tap_recording
 
 #: The name of the encoder's count size [m/count] (the encoder effect's parameter): its key in
 #: TRUE, in lab.toml's [synthetic] table and in results.json.
@@ -126,15 +132,11 @@ SPECS = (
 
 def builtin_dir() -> Path:
     """The folder of the built-in recordings inside the installed package."""
-    import jaxcart
-
     return Path(jaxcart.__file__).resolve().parent / "data"
 
 
 def true_plant(*, tap: bool = False):
     """The true cart of the built-in data (motor unplugged for the tap)."""
-    from jaxcart.plantspec import build_plant
-
     values = {n: TRUE[n] for n in ("M", "B_eq", "f_c")}
     if tap:
         return build_plant(values, motor_connected=False, where="the built-in tap's cart")
@@ -143,9 +145,6 @@ def true_plant(*, tap: bool = False):
 
 def make(spec: Spec, *, seed: int = SEED):
     """The synthetic recording of one spec (a :class:`jaxcart.synthetic.SyntheticRecording`)."""
-    import jaxcart as jc
-    from jaxcart.synthetic import make_recording, make_tap_recording
-
     q = TRUE[ENCODER_PARAM]
     if spec.kind == "tap":
         return make_tap_recording(
@@ -180,8 +179,6 @@ def generate(folder, *, force: bool = False, seed: int = SEED) -> list[Path]:
 
     Refuses to overwrite an existing file unless ``force``. Returns the paths written.
     """
-    import jax
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     outputs = {}
@@ -280,7 +277,6 @@ def _index() -> str:
 
 
 def main() -> None:  # pragma: no cover - run by hand, see the module docstring
-    import sys
 
     folder = builtin_dir()
     paths = generate(folder, force="--force" in sys.argv)

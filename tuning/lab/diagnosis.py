@@ -4,6 +4,8 @@ drive values and RMS."""
 
 from __future__ import annotations
 
+from tuning.estimation.diagnose import diagnose
+
 #: What each slot's recording is, for the table.
 PARTS = {
     "tap": "(i) tap",
@@ -19,8 +21,6 @@ def compute(inputs, say=lambda text: None, *, executor=None):
     """Every recording of the lab diagnosed jointly, one cart (repeats included): a
     :class:`tuning.estimation.diagnose.Diagnosis`, or None without recordings; ``executor``
     makes its exact runs (:func:`tuning.estimation.diagnose.diagnose`)."""
-    from tuning.estimation.diagnose import diagnose
-
     runs = inputs.runs()
     if not runs:
         return None

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from tuning.estimation.fit import FitSettings
+from tuning.estimation.fit import fit as engine_fit
 from tuning.lab.context import fmt
 
 #: Fit settings for the report: the default continuation for the tap (a real tap needs it),
@@ -27,9 +29,6 @@ def fit(recordings, params, *, initial=None, quick=False, per_recording=(), exec
     estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close;
     ``per_recording``: those of ``params`` free in each recording (the cart's joint fit);
     ``executor``: makes the exact runs (:func:`tuning.estimation.fit.fit`)."""
-    from tuning.estimation.fit import FitSettings
-    from tuning.estimation.fit import fit as engine_fit
-
     settings = FitSettings(**QUICK_FIT) if quick else FitSettings()
     return engine_fit(
         recordings,

@@ -12,10 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import jaxcart as jc
+from jaxcart.plots import plot_runs, reference_run
 from tuning.lab import fits
 from tuning.lab.context import V_SAT, fmt, mm, value
 from tuning.lab.model import (
     CartModel,
+    controller_of,
     crop,
     exact,
     no_limit,
@@ -81,9 +84,6 @@ class P50Result:
 
 def compute(rec, model: CartModel, *, fit=fits.fit, say=lambda text: None) -> P50Result:
     """Part (ii) with the recording ``rec`` (None: simulations only) on ``model``."""
-    import jaxcart as jc
-    from tuning.lab.model import controller_of
-
     controller = controller_of(rec, jc.PID(kp=50.0, v_limit=V_SAT))
     exp = rec.experiment_for(HORIZON) if rec is not None else jc.step(0.4, horizon=HORIZON)
     say("Part (ii): simulations without and with saturation")
@@ -306,8 +306,6 @@ def _refit_rows(r: P50Result) -> list:
 
 
 def _figure(lab, r: P50Result) -> str:
-    from jaxcart.plots import plot_runs, reference_run
-
     m, rec = r.model, r.recording
     runs = [reference_run(r.sim_sat.time, r.sim_sat.reference)]
     if rec is not None:

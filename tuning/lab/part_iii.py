@@ -14,7 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+import jaxcart as jc
 from jaxcart.errors import UserError
+from tuning.estimation.classic import pcontrol_fc_bounds, ramp_breakaway_fc
 from tuning.lab import deadband, fits
 from tuning.lab.context import value
 from tuning.lab.data import ENCODER_PARAM
@@ -60,8 +62,6 @@ class RampResult:
 
 def ramp(rec, start: CartModel, *, fit=fits.fit, say=lambda text: None) -> RampResult:
     """f_c from the ramp ``rec`` (B_eq of ``start`` held), or the ramp simulated on ``start``."""
-    import jaxcart as jc
-
     if rec is None:
         sim = exact(start.plant(), None, jc.voltage_ramp(0.1, horizon=HORIZON["ramp"]))
         return RampResult(None, start, sim=sim)
@@ -85,8 +85,6 @@ def ramp(rec, start: CartModel, *, fit=fits.fit, say=lambda text: None) -> RampR
 def handout_f_c(rec) -> dict:
     """f_c by the handout's ramp-breakaway method
     (:func:`tuning.estimation.classic.ramp_breakaway_fc`)."""
-    from tuning.estimation.classic import ramp_breakaway_fc
-
     est = ramp_breakaway_fc(rec)
     d = est.details
     return {
@@ -134,8 +132,6 @@ def p_bounds(recordings: dict) -> tuple:
     pcontrol_fc_bounds`): stuck at the end, γ k (|e(inf)| − q) <= f_c (one encoder count q
     off, see :mod:`tuning.lab.deadband`); wherever it started or reversed, f_c < γ |u|.
     ``recordings``: slot -> recording (or None)."""
-    from tuning.estimation.classic import pcontrol_fc_bounds
-
     out = []
     for slot in ("p_error", "p_step"):
         rec = recordings.get(slot)
@@ -212,8 +208,6 @@ class SteadyState:
 
 def steady_state(rec, model: CartModel, *, say=lambda text: None) -> SteadyState:
     """The steady-state error of P control with the recording ``rec`` (None: simulated)."""
-    import jaxcart as jc
-
     controller = controller_of(rec, jc.PID(kp=10.0))
     k = float(controller.kp)
     exp = experiment_of(rec, "p_error")

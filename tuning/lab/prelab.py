@@ -22,11 +22,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import control
 import numpy as np
 from scipy.optimize import brentq
 
+import jaxcart as jc
+from jaxcart.exact import simulate_exact, step_info_exact
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.params import Plant
+from jaxcart.plots import Run, plot_runs, reference_run
+from tuning.design.tune import tune
+from tuning.lab import figures
 from tuning.lab.context import value
 
 
@@ -52,15 +58,11 @@ def ki_bound_routh(m: float, c: float, k: float) -> float:
 
 def open_loop(m: float, c: float, gamma: float, k: float):
     """H(s) = gamma / (m s^3 + c s^2 + gamma k s): the loop seen by k_i (python-control tf)."""
-    import control
-
     return control.tf([gamma], [m, c, gamma * k, 0.0])
 
 
 def closed_loop_poles(m, c, gamma, k, ki) -> np.ndarray:
     """Poles of the PI loop with gain k_i, from python-control's feedback(k_i H, 1)."""
-    import control
-
     return np.asarray(control.feedback(ki * open_loop(m, c, gamma, k), 1).poles())
 
 
@@ -87,8 +89,6 @@ def ki_bound_locus(m: float, c: float, gamma: float, k: float) -> tuple[float, f
 
 def locus_data(m, c, gamma, k, ki_max):
     """Root locus of H for k_i in [0, 3 ki_max] (python-control's root_locus_map)."""
-    import control
-
     gains = np.concatenate([[0.0], np.geomspace(1e-3, 3.0 * ki_max, 600)])
     gains = np.sort(np.concatenate([gains, [ki_max]]))
     return control.root_locus_map(open_loop(m, c, gamma, k), gains=gains)
@@ -174,8 +174,6 @@ def ki_bound(m: float, c: float, gamma: float, k: float) -> KiBound:
 
 def render_ki_bound(lab, bound: KiBound, *, name: str, title: str) -> None:
     """The bound's paragraph and root-locus figure ``name``."""
-    from tuning.lab import figures
-
     m, c, gamma, k = bound.m, bound.c, bound.gamma, bound.k
     path, rel_path = lab.figure_path(name)
     figures.root_locus(path, bound.locus, ki_bound=bound.ki_locus, omega=bound.omega, title=title)
@@ -247,10 +245,6 @@ class Prelab:
 
 def compute(*, say=lambda text: None) -> Prelab:
     """The pre-lab on the handout's model: constants, the k_i bound at k = 10 V/m, a tuned PID."""
-    import jaxcart as jc
-    from jaxcart.exact import simulate_exact, step_info_exact
-    from tuning.design.tune import tune
-
     say("pre-lab: appendix constants, Routh bound and root locus")
     a = appendix(jc.Plant())
     bound = ki_bound(a["m"], B_EQ_HANDOUT + a["B_emf"], a["gamma"], K_PI)
@@ -339,8 +333,6 @@ def render(lab, p: Prelab) -> None:
 
 
 def _render_design(lab, p: Prelab) -> None:
-    from jaxcart.plots import Run, plot_runs, reference_run
-
     doc, g, res, info, response = lab.doc, p.gains, p.tuned, p.info, p.response
     path, rel = lab.figure_path("prelab_pid_step")
     plot_runs(

@@ -33,7 +33,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
+
+from hw.atomicio import OutputError, describe
+from hw.gains import write_gains
+from hw.jsonio import to_jsonable, write_json
+from jaxcart.background import Background
 from jaxcart.errors import UserError
+from jaxcart.matfile import write_mat_report
+from jaxcart.plantspec import describe_plant
 from tuning.lab import (
     cart,
     fits,
@@ -86,8 +94,6 @@ def staged(final: Path):
     to ``final`` when the block completes; on any error or interrupt it is removed, so an
     interrupted lab leaves nothing that blocks a rerun. Into an existing, non-empty ``final``
     (``--force``) only the report's own files and figures/ are replaced; other files stay."""
-    from hw.atomicio import OutputError, describe
-
     final = Path(final)
     parent = final.parent
     try:
@@ -168,8 +174,6 @@ def run_lab(
     executor: what makes the fits' exact runs several at a time (a
     :class:`jaxcart.workers.Helpers` the caller owns; default: one after the other here).
     """
-    import jax
-
     fmt = check_format(fmt)
     with jax.enable_x64(True):  # fits and exact checks need float64
         return _run_lab(
@@ -240,8 +244,6 @@ def compute(
     Two pieces run in threads beside the parts, each collected here before any result that
     holds it is built: the joint diagnosis (it needs only the recordings; while one compiles,
     the other fits) and the PID's re-tune on the fitted cart (beside Part (v))."""
-    from jaxcart.background import Background
-
     if executor is not None:
         fit = functools.partial(fit, executor=executor)
     recordings = inputs.recordings
@@ -285,8 +287,6 @@ def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool, exe
     lab.diagnosis = diagnosis
     start = CartModel.starting(plant)
     if plant is not None:
-        from jaxcart.plantspec import describe_plant
-
         lab.say(f"starting model: {describe_plant(plant)}")
     lab.say(f"data: {'built-in example recordings' if builtin else folder}")
     for line in lab.inputs.summary_lines():
@@ -448,10 +448,6 @@ def _summary_row(v, synthetic) -> list:
 
 
 def _write(lab: Lab) -> None:
-    from hw.gains import write_gains
-    from hw.jsonio import to_jsonable, write_json
-    from jaxcart.matfile import write_mat_report
-
     out = lab.out
     write_json(out / "results.json", lab.results, force=True)
     write_mat_report(out / "results.mat", to_jsonable(lab.results), name="results", force=True)
