@@ -19,17 +19,26 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hw.control_law import PID
 from hw.devices.base import DeviceError
+from hw.devices.quanser import QuanserBoard
+from hw.devices.replay import Replay
+from hw.devices.sim import CartParams, SimCart, load_cart_params
 from hw.expfile import ExpFileError
 from hw.gains import GainsFileError, read_gains_file
-from hw.pacing import choose_watchdog
+from hw.loop import run_loop, timing_stats
+from hw.pacing import choose_watchdog, verdict
+from hw.prerun import check_gains
 from hw.safety import X_MAX, Limits
+from hw.stepinfo import comparison_lines, run_metrics, spec_of
 
 DEVICES = ("sim", "q2_usb", "q8_usb", "replay")
 #: Default folder and name of recordings (never overwritten: run.toml, run-2.toml, ...).
@@ -170,18 +179,13 @@ def make_device(args):
     if name != "replay" and args.replay:
         raise CommandError("--replay names the recording of --device replay")
     if name == "sim":
-        from hw.devices.sim import CartParams, SimCart, load_cart_params
-
         return SimCart(load_cart_params(args.plant) if args.plant else CartParams())
     if name == "replay":
-        from hw.devices.replay import Replay
-
         if not args.replay:
             raise CommandError("--device replay needs --replay REC.toml, the recording to play")
         return Replay(args.replay)
     if args.virtual:
         raise CommandError(f"--virtual: {name} is real hardware, it runs in real time only")
-    from hw.devices.quanser import QuanserBoard
 
     return QuanserBoard(
         name,
@@ -237,8 +241,6 @@ def _clock(args, device) -> str | None:
 
 def _check(pid, reference, limits, force: bool):
     """The pre-run plausibility (hw.prerun): refuse unstable or relay gains unless forced."""
-    from hw.prerun import check_gains
-
     check = check_gains(pid, reference, limits)
     for line in check.warnings:
         print(f"hw run: warning: {line}", file=sys.stderr)
@@ -250,8 +252,6 @@ def _check(pid, reference, limits, force: bool):
 
 
 def run_command(args) -> int:
-    from hw.loop import run_loop
-
     pid, meta = read_gains_file(args.gains)
     _limits(args, "virtual", pid.sample_time)  # the numbers checked first (no probe yet)
     reference = reference_from(args, pid.sample_time)
@@ -328,9 +328,6 @@ class _HeldSignals:
         self.received: list[str] = []
 
     def hold(self) -> None:
-        import signal
-        import threading
-
         if threading.current_thread() is not threading.main_thread():
             return
         for name in self.NAMES:
@@ -342,13 +339,9 @@ class _HeldSignals:
                     pass
 
     def _note(self, signum, frame) -> None:
-        import signal
-
         self.received.append(signal.Signals(signum).name)
 
     def release(self) -> None:
-        import signal
-
         for signum, old in self._old.items():
             try:
                 signal.signal(signum, old if old is not None else signal.SIG_DFL)
@@ -359,9 +352,6 @@ class _HeldSignals:
 
 def _report(result, simulated, meta) -> int:
     """Print how the run went (metrics against the spec and the simulation); exit status."""
-    from hw.pacing import verdict
-    from hw.stepinfo import comparison_lines, run_metrics, spec_of
-
     t = result.timing
     print(f"hw run: {result.status}, {result.n_samples} samples", file=sys.stderr)
     if "compute_median_us" in t:
@@ -402,8 +392,6 @@ def zero_volts(result) -> str:
 def exit_status(result) -> int:
     """0 completed; 128 + the signal's number when one stopped the run (130 Ctrl-C, 143
     SIGTERM, 129 SIGHUP); 1 any other fault."""
-    import signal
-
     if result.signals:
         number = getattr(signal, result.signals[0], None)
         return 128 + int(number) if number is not None else 1
@@ -451,10 +439,6 @@ def _naive_periods(n: int, ts: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def bench_command(args) -> int:
-    from hw.control_law import PID
-    from hw.devices.sim import SimCart
-    from hw.loop import run_loop, timing_stats
-
     n = int(args.samples)
     if n < 100:
         raise CommandError(f"--samples {n}: give at least 100")

@@ -35,6 +35,7 @@ import json
 import math
 from pathlib import Path
 
+from hw.atomicio import OutputError, write_text
 from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, setting_problem
 from hw.control_law import UNITS as CONTROLLER_UNITS
 from hw.jsonio import to_jsonable
@@ -95,7 +96,6 @@ def write_gains(path, pid: PID, *, force: bool = False, **metadata) -> Path:
     text = json.dumps(document, indent=2, allow_nan=False) + "\n"
     if path.exists() and not force:
         raise GainsFileError("the file exists; pass force=True (--force) to replace it", path=path)
-    from hw.atomicio import OutputError, write_text
 
     try:  # beside the target, then renamed: a crash or a full disk never leaves half a file
         return write_text(path, text, force=force)

@@ -205,7 +205,7 @@ def _check_clock(device, clock: str | None) -> str:
 
 
 @dataclass
-class _Run:
+class _RunRecord:
     """What one run has done so far (the loop appends one row per sample read)."""
 
     ts: float
@@ -272,7 +272,7 @@ def run_loop(
     ref = [float(r) for r in np.asarray(reference, dtype=float).ravel()]
     if len(ref) < 2:
         raise ValueError(f"the reference has {len(ref)} sample(s); give at least 2 (duration > Ts)")
-    run = _Run(ts=float(pid.sample_time), clock=clock, timer=timer or pacing.SYSTEM_TIMER)
+    run = _RunRecord(ts=float(pid.sample_time), clock=clock, timer=timer or pacing.SYSTEM_TIMER)
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     run_table = {"status": "running", "started": started, "clock": clock}
     safety = {f"limit_{k}": v for k, v in limits.to_dict().items()}
@@ -364,7 +364,7 @@ def _drive(device, pid, ref, limits, recorder, stops, run) -> None:
     run.k = len(ref)
 
 
-def _classify(exc: BaseException, run: _Run) -> None:
+def _classify(exc: BaseException, run: _RunRecord) -> None:
     """The reason a run ended, from what ended it."""
     t = f"t = {run.k * run.ts:.3f} s"
     if isinstance(exc, Fault):
@@ -385,7 +385,7 @@ def _line(exc) -> str:
     return " ".join(str(exc).split())
 
 
-def _zero(device, run: _Run) -> None:
+def _zero(device, run: _RunRecord) -> None:
     """0 V, then stop(): each runs whatever the other does (a signal does not raise here).
     Whether 0 V reached the device is judged by what it says it took last (``last_voltage``:
     a write that raises leaves it as it was), so that the run never claims a 0 V it did not
@@ -410,7 +410,7 @@ def _zero(device, run: _Run) -> None:
         run.zero_failure = failure or "the device did not take it"
 
 
-def _finish(device, ref, recorder, run: _Run, stops: _Signals, run_table: dict) -> RunResult:
+def _finish(device, ref, recorder, run: _RunRecord, stops: _Signals, run_table: dict) -> RunResult:
     """The recording finished and the result built; every step runs whatever the others do."""
     rows = run.rows
     if rows and (not run.measured or not _finite(rows[-1][1])):
@@ -471,7 +471,7 @@ def _finite(y) -> bool:
         return False
 
 
-def _describe(device, run: _Run) -> dict:
+def _describe(device, run: _RunRecord) -> dict:
     try:
         return {**device.describe(), "clock": run.clock}  # as started (e.g. the watchdog)
     except BaseException as exc:  # noqa: BLE001
@@ -479,7 +479,7 @@ def _describe(device, run: _Run) -> dict:
         return {"clock": run.clock}
 
 
-def _close(recorder, run: _Run, run_table, timing, device_table, device) -> Path | None:
+def _close(recorder, run: _RunRecord, run_table, timing, device_table, device) -> Path | None:
     """The recording's end: [run], [timing], [device]; or, never started, no files at all."""
     if recorder.saved < MIN_SAMPLES:
         try:
@@ -511,7 +511,7 @@ def _close(recorder, run: _Run, run_table, timing, device_table, device) -> Path
     return recorder.path
 
 
-def _final(recorder, run: _Run, run_table: dict, device) -> dict:
+def _final(recorder, run: _RunRecord, run_table: dict, device) -> dict:
     """The recording's [run] table at the end: status, samples, the reason, the notes."""
     m = recorder.saved
     final = {**run_table, "status": "completed" if run.fault is None else "fault"}

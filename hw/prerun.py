@@ -22,6 +22,7 @@ import numpy as np
 
 from hw.control_law import PID
 from hw.devices.sim import CartParams, SimCart, _phis
+from hw.loop import SIGNAL_REASONS, run_loop
 from hw.safety import Limits
 
 #: Full-swing flips of the command per second above which the loop is a relay.
@@ -78,8 +79,6 @@ def simulate(pid: PID, reference, params: CartParams | None = None, *, padded: b
     """The run on the simulated cart, in virtual time, limits off (it shows what would
     happen), at most ``MAX_SECONDS`` long (``padded``: at least ``MIN_SECONDS``, the last
     set point held)."""
-    from hw.loop import SIGNAL_REASONS, run_loop
-
     r = np.asarray(reference, dtype=float)[: int(MAX_SECONDS / pid.sample_time) + 1]
     if padded:  # a short run still shows what the loop does once the cart arrives
         r = np.pad(r, (0, max(0, int(MIN_SECONDS / pid.sample_time) + 1 - r.size)), mode="edge")

@@ -77,15 +77,6 @@ def _utf16_without_bom(head: bytes) -> bool:
     return even.count(0) > 0.8 * pairs or odd.count(0) > 0.8 * pairs
 
 
-def decode_text(data: bytes, name) -> str:
-    """``data`` as text: UTF-8, a BOM dropped. Raises ValueError with the one line of
-    :func:`not_text` for anything else."""
-    reason = not_text(data[:HEAD], name) or check_decodes(data, name)
-    if reason:
-        raise ValueError(reason)
-    return data.decode("utf-8-sig")
-
-
 #: Control characters a TOML basic string makes of a Windows path's backslashes
 #: ("runs\run.csv": \r; "C:\tests\new.csv": \t and \n), mapped back to what was typed.
 _ESCAPES = {"\r": "\\r", "\t": "\\t", "\n": "\\n", "\b": "\\b", "\f": "\\f"}

@@ -2,16 +2,14 @@
 
 Public names load on first use (``jaxcart.simulate`` imports JAX then), so that importing a
 submodule without JAX, such as :mod:`jaxcart.errors` for the command line, stays instant.
+Importing jaxcart changes nothing in the process: no environment variable, no JAX setting, no
+thread (:mod:`jaxcart.xlaflags` and :mod:`jaxcart.cache` change them when asked, as the command
+line asks on the user's behalf).
 """
 
 from __future__ import annotations
 
 import importlib
-
-from jaxcart import xlaflags
-
-# Before JAX starts its backend: loops compiled whole on a CPU (see jaxcart.xlaflags).
-xlaflags.request()
 
 #: public name -> module that defines it
 _EXPORTS = {

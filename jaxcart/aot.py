@@ -25,10 +25,13 @@ import os
 import pickle
 import tempfile
 from collections.abc import Callable, Hashable
+from importlib import metadata
 from pathlib import Path
 
 import jax
 import numpy as np
+
+from jaxcart import cache
 
 #: Bump when the file layout changes.
 FORMAT = 1
@@ -44,8 +47,6 @@ def programs_dir() -> Path | None:
     that :func:`jaxcart.cache.enable_persistent_cache` chose), or None when the caches are
     off. Never a folder of the user's own JAX cache setting: programs are unpickled, so they
     live only in a folder of jaxcart's that this user owns."""
-    from jaxcart import cache
-
     if os.environ.get("JAXCART_NO_CACHE", "").strip() not in ("", "0"):
         return None
     if not jax.config.jax_compilation_cache_dir:  # only worth it where compilations are kept
@@ -70,8 +71,6 @@ def source_hash() -> str:
     control law), and the versions of jaxlib and optax (traced into the tuner)."""
     global _SOURCE_HASH
     if _SOURCE_HASH is None:
-        from importlib import metadata
-
         h = hashlib.sha256()
         for dist in ("jaxlib", "optax"):
             try:

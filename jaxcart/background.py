@@ -1,8 +1,12 @@
 """One function run in a daemon thread, its result (or exception) collected later.
 
 Used where two long, independent pieces of work can overlap (the lab's joint diagnosis beside
-its parts: one compiles while the other fits) and by :mod:`tuning.commands.interruptible`. The
-thread is a daemon: a process that ends (an error elsewhere, Ctrl-C) does not wait for it.
+its parts: one compiles while the other fits; the PID's re-tune beside Part (v)) and by
+:mod:`tuning.commands.interruptible`. Whoever starts one collects its result (:meth:`result`)
+before it builds anything that holds it: a result object is plain data, never a handle on a
+running thread. The thread is a daemon: a process that ends (an error elsewhere, Ctrl-C) does
+not wait for it. A thread does not inherit its starter's ``jax.enable_x64`` scope: the work
+run in one sets its own precision.
 """
 
 from __future__ import annotations

@@ -10,14 +10,19 @@ they start, with the horizon that would.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
 import time
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxcart.errors import UserError
+from jaxcart.exact import simulate_exact
+from jaxcart.smooth_sim import DIVERGED_POSITION, Response, loop
 
 #: Samples per compiled chunk of a long smooth run.
 CHUNK = 1 << 16
@@ -88,11 +93,6 @@ def simulate_chunked(plant, controller, experiment, *, chunk=None, n_columns=5, 
     arrays in the :class:`jaxcart.Response`). The cost is announced after the second chunk
     (the first compiles) when the rest and the writing are expected to take more than a
     minute."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxcart.smooth_sim import DIVERGED_POSITION, Response, loop
-
     out = sys.stderr if out is None else out
     chunk = CHUNK if chunk is None else int(chunk)
     n = experiment.n_samples
@@ -149,10 +149,6 @@ def simulate_chunked(plant, controller, experiment, *, chunk=None, n_columns=5, 
 
 def estimate_exact(plant, controller, experiment) -> float:
     """Seconds the exact simulator will take for the whole experiment, from a timed prefix."""
-    import dataclasses
-
-    from jaxcart.exact import simulate_exact
-
     n = experiment.n_samples
     probe = min(n, EXACT_PROBE)
     short = dataclasses.replace(experiment, signal=experiment.signal[:probe])

@@ -34,6 +34,7 @@ import control
 import numpy as np
 
 from jaxcart.errors import UserError
+from jaxcart.plausibility import delayed_plant, plant_delay
 
 #: Names of the systems (python-control prefixes interconnected states with them).
 PLANT_NAME = "cart"
@@ -114,16 +115,12 @@ PADE_ORDER = 6
 def _delay(plant) -> float:
     """The plant's delay effect [s] as the simulators apply it (0 without one); other effects
     are not linear."""
-    from jaxcart.plausibility import plant_delay
-
     return plant_delay(plant)
 
 
 def _delayed_zoh(plant, ts, delay):
     """The ZOH cart behind a delay line, exactly (:func:`jaxcart.plausibility.delayed_plant`:
     states y, y_dot, u_1 ... u_L, the last L commands)."""
-    from jaxcart.plausibility import delayed_plant
-
     big_a, big_b = delayed_plant(plant, ts, delay)
     size = big_a.shape[0]
     states = ["y", "y_dot"] + [f"u_{j + 1}" for j in range(size - 2)]

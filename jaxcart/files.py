@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,6 +50,7 @@ from hw.expfile import (  # noqa: F401  (the format's names, re-exported for jax
 from jaxcart import matfile, plausibility
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
+from jaxcart.matimport import run_of, split_source
 from jaxcart.params import Plant
 from jaxcart.plantspec import build_plant, check_plant_overrides
 from jaxcart.smooth_sim import Response
@@ -204,8 +206,6 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
     the track raise a UserError, milder doubts are printed once to stderr and kept in
     ``Recording.warnings``.
     """
-    from jaxcart.matimport import run_of, split_source
-
     raw = split_source(path)  # "file.mat" or "file.mat:scope[1]": a raw scope file, no TOML
     if raw is not None:
         return read_imported(run_of(path, experiment), raw[0], check=check)
@@ -221,8 +221,6 @@ def read_imported(run, path=None, *, check: bool = True, quiet: bool = False) ->
     ``path`` (default: its first file) names it. The guess and its evidence go to stderr
     unless ``quiet``. A run that is no recording, or whose evidence is weak, is a UserError
     (one line; the weak one asks the user to name the experiment)."""
-    import sys
-
     path = Path(path) if path is not None else run.files[0]
     if run.problem:
         raise UserError(run.problem)

@@ -28,6 +28,7 @@ is taken at the lab's 1 kHz (``ASSUMED_SAMPLE_TIME``) and says so.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from dataclasses import dataclass, field
@@ -36,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from hw.atomicio import write_text
+from hw.expfile import toml_value
 from jaxcart import matfile
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
@@ -435,8 +437,6 @@ def _meta(run: Imported, toml_folder) -> dict:
 
 
 def _toml_text(run: Imported, meta: dict) -> str:
-    from hw.expfile import toml_value
-
     lines = [f"# Written by jaxcart import from {run.label}: correct any line and rerun."]
     lines += [f"# {line}" for line in run.lines()[1:]]
     for key, value in meta.items():
@@ -489,8 +489,6 @@ def split_source(text) -> tuple[Path, str | None]:
 def _choose(path: Path, signals: list[RawSignal], variable: str) -> list[RawSignal]:
     """``signals`` of ``path`` with ``variable`` (the user's choice) as the position; the
     signals that looked like positions before no longer do."""
-    import dataclasses
-
     base, selector = matfile.parse_variable(variable)
     try:
         obj = matfile.load_mat(path)[base]

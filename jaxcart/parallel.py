@@ -33,8 +33,11 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
+from jax._src import distributed as _dist
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from jaxcart import aot
+from jaxcart.errors import UserError
 
 #: Name of the one mesh axis: the batch.
 AXIS = "batch"
@@ -75,12 +78,12 @@ def mesh(devs: list | None = None) -> Mesh:
 
 def batch_sharding(m: Mesh | None = None) -> NamedSharding:
     """Leading axis split over the mesh."""
-    return NamedSharding(m or mesh(), P(AXIS))
+    return NamedSharding(m or mesh(), PartitionSpec(AXIS))
 
 
 def replicated(m: Mesh | None = None) -> NamedSharding:
     """A copy on every device of the mesh."""
-    return NamedSharding(m or mesh(), P())
+    return NamedSharding(m or mesh(), PartitionSpec())
 
 
 def put(x, dtype=None, sharding=None):
@@ -233,15 +236,13 @@ def sharded_map(
             mapped = jax.shard_map(
                 local,
                 mesh=m,
-                in_specs=(P(AXIS),) + (P(),) * n_shared,
-                out_specs=P(AXIS),
+                in_specs=(PartitionSpec(AXIS),) + (PartitionSpec(),) * n_shared,
+                out_specs=PartitionSpec(AXIS),
                 check_vma=False,
             )
             if name is None:
                 jitted[n_shared, step] = jax.jit(mapped, compiler_options=dict(options) or None)
             else:
-                from jaxcart import aot
-
                 jitted[n_shared, step] = aot.jit(mapped, name, (static, n_shared, step, n_dev))
         return jitted[n_shared, step]
 
@@ -314,8 +315,6 @@ def cluster_settings(coordinator=None, num_processes=None, process_id=None, envi
     processes (jax.distributed detects the rest); ``None`` for a single process.
 
     A clear :class:`jaxcart.errors.UserError` names a bad or missing setting."""
-    from jaxcart.errors import UserError
-
     env = os.environ if environ is None else environ
     given = {"coordinator": coordinator, "num_processes": num_processes, "process_id": process_id}
     where = {}
@@ -367,10 +366,6 @@ def _scheduler_processes(env) -> int:
 def init_distributed(settings, *, timeout_s: int = 300) -> bool:
     """Join the cluster of :func:`cluster_settings` (before any computation); True when this
     process is one of several. Safe to call twice."""
-    from jax._src import distributed as _dist  # the runtime's state: was it started?
-
-    from jaxcart.errors import UserError
-
     if settings is None:
         return False
     if _dist.global_state.client is not None:
@@ -409,8 +404,6 @@ def partition(n_items: int, index: int | None = None, count: int | None = None) 
 
 
 def _client():
-    from jax._src import distributed as _dist
-
     if _dist.global_state.client is None:
         raise RuntimeError("no distributed runtime: call init_distributed first")
     return _dist.global_state.client

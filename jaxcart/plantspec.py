@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hw.atomicio import write_text
 from hw.handout import APPENDIX
 from jaxcart.effects import REGISTRY, STAGE_ORDER, Effect, Param, effect_of_param
 from jaxcart.errors import UserError
@@ -323,7 +324,6 @@ def write_plant_file(path, plant: Plant, *, fit: Mapping | None = None, force: b
         lines += [f"{k} = {toml_value(v)}   # [{unit(k)}]" for k, v in table.items()]
     if fit:
         lines += ["", "[fit]"] + _toml_table(fit, "fit")
-    from hw.atomicio import write_text
 
     return write_text(path, "\n".join(lines) + "\n", force=True)  # checked above
 

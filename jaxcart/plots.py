@@ -17,11 +17,18 @@ off the data.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from itertools import cycle
 from pathlib import Path
 
 import numpy as np
+
+from hw.atomicio import save_figure
+from jaxcart.errors import UserError
+
+# matplotlib is imported where a figure is made (about 1 s, measured on 2 cores): this module
+# is imported while the command line's parser is built (add_format_option).
 
 ROLES = ("experiment", "simulation", "reference")
 DPI = 130
@@ -78,11 +85,11 @@ def reference_run(time, reference, label: str = "reference r") -> Run:
     return Run(label, np.asarray(time), np.asarray(reference), None, "reference")
 
 
-def preload() -> None:
+def preload() -> threading.Thread:
     """Import matplotlib's figure and PNG writer in a background thread, so that a command
     which plots at its end finds them loaded: the import (about half a second) overlaps the
-    computation, which runs in XLA outside the interpreter lock."""
-    import threading
+    computation, which runs in XLA outside the interpreter lock. Returns the thread (the
+    command joins it before it returns)."""
 
     def work():
         try:
@@ -93,7 +100,9 @@ def preload() -> None:
 
     # Not a daemon: an exit mid-import waits for it (killed there, matplotlib's font-cache
     # lock file could be left behind).
-    threading.Thread(target=work, name="matplotlib-preload").start()
+    thread = threading.Thread(target=work, name="matplotlib-preload")
+    thread.start()
+    return thread
 
 
 def plot_runs(
@@ -186,8 +195,6 @@ def figure_legend(fig, axes, *, ncols: int = 2, fontsize="small") -> None:
 def save(fig, path, *, dpi: int = DPI) -> Path:
     """Write ``fig`` to ``path`` (or to each of several paths), the format from the suffix
     (:data:`FORMATS`); folders are made. Returns the first path."""
-    from hw.atomicio import save_figure
-
     paths = [Path(path)] if isinstance(path, (str, Path)) else [Path(p) for p in path]
     for p in paths:
         save_figure(fig, p, dpi=dpi)  # a temporary name, then renamed: never half a file
@@ -218,8 +225,6 @@ def figure_name(path, fmt: str | None, *, option: str = "--plot") -> Path:
     """A figure's path under ``--format``: ``path`` with the suffix of ``fmt``, where ``path``
     has no figure suffix of its own; a path whose suffix names another format is refused
     (one line naming both), and without ``fmt`` the path is kept."""
-    from jaxcart.errors import UserError
-
     path = Path(path)
     if fmt is None:
         return path

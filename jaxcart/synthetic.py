@@ -36,8 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from hw.control_law import PID
+from jaxcart.exact import simulate_exact
 from jaxcart.experiments import Experiment
-from jaxcart.files import Recording
+from jaxcart.files import Recording, write_experiment
 from jaxcart.params import ENCODER_RESOLUTION, Plant
 from jaxcart.smooth_sim import Response
 
@@ -130,8 +131,6 @@ def make_recording(
     recording's ``command`` is the voltage the software sent [V] (closed and open loop), its
     ``reference`` the reference [m] (closed loop).
     """
-    from jaxcart.exact import simulate_exact  # numpy-heavy; only needed here
-
     enc = Encoder(quantization, noise, seed)
     start = dataclasses.replace(experiment, y0=float(experiment.y0) + enc.phase)
     response = simulate_exact(plant, controller, start)
@@ -164,8 +163,6 @@ def make_tap_recording(
     (cart at rest at t = 0, no drive): a simulator cannot reproduce the unknown push; fitting
     finds the coasting part itself.
     """
-    from jaxcart.exact import simulate_exact
-
     if not (speed > 0 and rest >= 0 and push_time > 0 and horizon > rest + push_time):
         raise ValueError(
             "make_tap_recording: need speed > 0, rest >= 0, push_time > 0 and "
@@ -217,8 +214,6 @@ def write_recording(
     :func:`jaxcart.files.write_experiment`; refuses to overwrite unless ``force``.
     ``plant_overrides`` go to [plant] (the truth is named in the description, not in [plant],
     so that a fit of the file starts from the nominal plant)."""
-    from jaxcart.files import write_experiment
-
     return write_experiment(
         toml_path,
         recording.response(),

@@ -2,9 +2,16 @@
 
 The exact simulator (:mod:`jaxcart.exact`) is plain Python, a few microseconds a sample, and a
 diagnosis makes a couple of thousand of its runs: the forward differences of each exact
-Gauss-Newton step, each recording of a trial. They are independent, so :func:`map` spreads
-them over helper processes while the calling process takes its own share: on a 2-core machine
-one helper and the caller run two at a time.
+Gauss-Newton step, each recording of a trial. They are independent, so :meth:`Helpers.map`
+spreads them over helper processes while the calling process takes its own share: on a 2-core
+machine one helper and the caller run two at a time.
+
+The caller owns the helpers, as :mod:`concurrent.futures` and scipy's ``workers=`` have it: a
+command creates them (``with Helpers() as helpers:``), hands them to the fits that make exact
+runs (``fit(..., executor=helpers)``, ``diagnose(..., executor=helpers)``) and closes them on
+its way out, so that no process outlives the command. A library call given no executor makes
+its runs in the calling process (:data:`SERIAL`); the library never starts a process on its
+own, and no environment variable chooses for it.
 
 The helpers are started with :mod:`subprocess` (``python -m jaxcart.workers``), never with
 :mod:`multiprocessing`: a spawned ``multiprocessing`` worker re-imports the caller's
@@ -14,117 +21,130 @@ functions on pickled arguments, ignores Ctrl-C (the caller decides) and exits wh
 closes its pipe or exits. A helper that fails or dies only loses speed: its item is computed
 again by the caller, whose exception, if any, is the one raised. Results are the same, float
 for float, as the caller's own (the same code on the same inputs).
-
-``JAXCART_WORKERS=N`` sets the number of helpers (0: none); by default one fewer than the
-cores this process may use, at most :data:`MOST`. Inside a helper there are none, nor in a
-jax.distributed run (its processes share out the work themselves).
 """
 
 from __future__ import annotations
 
-import atexit
 import os
 import pickle
 import select
+import signal
 import struct
 import subprocess
 import sys
 import threading
 from collections.abc import Callable, Iterable
 
-#: The environment variable that sets the number of helpers.
-VARIABLE = "JAXCART_WORKERS"
-#: Set in a helper's environment: a helper starts none of its own.
-INSIDE = "JAXCART_IN_WORKER"
 #: Most helpers started by default.
 MOST = 7
 _HEADER = struct.Struct("!Q")
 
-_lock = threading.Lock()
-_pool: list[_Helper] | None = None
-#: (module, name) of functions a helper could not import: computed here from then on.
-_unknown: set = set()
 
-
-def count() -> int:
-    """How many helpers :func:`map` uses (0: everything runs in this process)."""
-    if os.environ.get(INSIDE) or os.name != "posix" or _distributed():
+def default_count() -> int:
+    """Helpers a command starts unless told otherwise: one fewer than the cores this process may
+    use, at most :data:`MOST`; none where the pipes cannot be waited on (not POSIX)."""
+    if os.name != "posix":
         return 0  # (the helpers' pipes are waited on with select: POSIX only)
-    given = os.environ.get(VARIABLE, "").strip()
-    if given:
-        try:
-            return max(int(given), 0)
-        except ValueError:
-            from jaxcart.errors import UserError
-
-            raise UserError(
-                f"{VARIABLE}={given!r}: give a whole number of helper processes (0 for none)"
-            ) from None
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return min(max((cores or 1) - 1, 0), MOST)
 
 
-def _distributed() -> bool:
-    """A jax.distributed run (:func:`jaxcart.parallel.init_distributed`): its processes share
-    out the work, several of them perhaps on one host, so none starts helpers."""
-    dist = sys.modules.get("jax._src.distributed")
-    return dist is not None and dist.global_state.client is not None
+class Serial:
+    """Every item in the calling process, in order: the executor of a call given none."""
 
-
-def start() -> None:
-    """Start the helpers now, so that they have imported by the time :func:`map` needs them
-    (a fit starts them before its compiled part; until then :func:`map` runs here)."""
-    if count() and _lock.acquire(blocking=False):
-        try:
-            _helpers()
-        finally:
-            _lock.release()
-
-
-def map(fn: Callable, items: Iterable, weights: Iterable[float] | None = None) -> list:  # noqa: A001
-    """``[fn(x) for x in items]``, the items shared between the helpers and this process.
-
-    ``fn``: a module-level function (pickled by name); the items and results must pickle.
-    ``weights``: each item's cost (an exact run's number of samples, say; equal by default),
-    by which the items are dealt out so that every process has about the same work. The order
-    of the results is the order of the items."""
-    items = list(items)
-    name = (getattr(fn, "__module__", None), getattr(fn, "__qualname__", None))
-    if len(items) < 2 or count() == 0 or name in _unknown:
+    def map(self, fn: Callable, items: Iterable, weights: Iterable[float] | None = None) -> list:
+        """``[fn(x) for x in items]`` (``weights`` are ignored)."""
         return [fn(x) for x in items]
-    if not _lock.acquire(blocking=False):
-        return [fn(x) for x in items]  # (another thread's map holds the helpers)
-    try:
-        helpers = [h for h in _helpers() if h.is_ready()]
-        weights = [1.0] * len(items) if weights is None else [float(w) for w in weights]
-        return _spread(fn, items, helpers, weights)
-    finally:
-        _lock.release()
 
 
-def _spread(fn, items, helpers, weights) -> list:
-    """Each helper gets its share in one message; this process computes its own meanwhile."""
-    mine, *theirs = _deal(weights, len(helpers) + 1)
-    sent = []
-    for h, share in zip(helpers, theirs, strict=True):
-        if share and h.send(fn, [items[i] for i in share]):
-            sent.append((h, share))
-        else:
-            mine += share
-    results: list = [None] * len(items)
-    try:
-        for i in mine:
-            results[i] = fn(items[i])
-    finally:  # every reply read, also when this share raised: none is left for the next map
-        replies = [(share, *h.receive()) for h, share in sent]
-    for share, ok, values in replies:
-        if ok == "unknown":  # the helper cannot import fn (a script's own): none will
-            _unknown.add((getattr(fn, "__module__", None), getattr(fn, "__qualname__", None)))
-        if ok is not True:  # computed here: its exception, if any, is raised here
-            values = [fn(items[i]) for i in share]
-        for i, v in zip(share, values, strict=True):
-            results[i] = v
-    return results
+#: The executor of a library call given none.
+SERIAL = Serial()
+
+
+class Helpers:
+    """``count`` helper processes (default :func:`default_count`; 0: everything runs in the
+    calling process) that share out :meth:`map`'s items with it.
+
+    Created by the command that needs them and closed by it (a context manager): started on
+    entering (so that they have imported by the time the first map needs them: a fit's smooth
+    part runs meanwhile), stopped on leaving. One map at a time: a second thread's map waits
+    for the first to return (the lab's diagnosis and its parts share one set of helpers)."""
+
+    def __init__(self, count: int | None = None):
+        self.count = default_count() if count is None else max(int(count), 0)
+        self._lock = threading.Lock()
+        self._procs: list[_Helper] = []
+        self._closed = False
+        #: (module, name) of functions a helper could not import: computed here from then on.
+        self._unknown: set = set()
+
+    def __enter__(self) -> Helpers:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Start the helpers now (they import while the caller works on)."""
+        with self._lock:
+            self._started()
+
+    def _started(self) -> list[_Helper]:
+        """The helpers still alive, started first where none were (the lock held); none
+        once closed (a map then runs here)."""
+        if not self._procs and self.count and not self._closed:
+            self._procs = [_Helper() for _ in range(self.count)]
+        return [h for h in self._procs if h.alive]
+
+    def map(self, fn: Callable, items: Iterable, weights: Iterable[float] | None = None) -> list:
+        """``[fn(x) for x in items]``, the items shared between the helpers and this process.
+
+        ``fn``: a module-level function (pickled by name); the items and results must pickle.
+        ``weights``: each item's cost (an exact run's number of samples, say; equal by
+        default), by which the items are dealt out so that every process has about the same
+        work. The order of the results is the order of the items."""
+        items = list(items)
+        name = (getattr(fn, "__module__", None), getattr(fn, "__qualname__", None))
+        if len(items) < 2 or self.count == 0 or name in self._unknown:
+            return [fn(x) for x in items]
+        with self._lock:  # (another thread's map: this one waits its turn)
+            helpers = [h for h in self._started() if h.is_ready()]
+            weights = [1.0] * len(items) if weights is None else [float(w) for w in weights]
+            return self._spread(fn, name, items, helpers, weights)
+
+    def _spread(self, fn, name, items, helpers, weights) -> list:
+        """Each helper gets its share in one message; this process computes its own
+        meanwhile."""
+        mine, *theirs = _deal(weights, len(helpers) + 1)
+        sent = []
+        for h, share in zip(helpers, theirs, strict=True):
+            if share and h.send(fn, [items[i] for i in share]):
+                sent.append((h, share))
+            else:
+                mine += share
+        results: list = [None] * len(items)
+        try:
+            for i in mine:
+                results[i] = fn(items[i])
+        finally:  # every reply read, also when this share raised: none is left for the next map
+            replies = [(share, *h.receive()) for h, share in sent]
+        for share, ok, values in replies:
+            if ok == "unknown":  # the helper cannot import fn (a script's own): none will
+                self._unknown.add(name)
+            if ok is not True:  # computed here: its exception, if any, is raised here
+                values = [fn(items[i]) for i in share]
+            for i, v in zip(share, values, strict=True):
+                results[i] = v
+        return results
+
+    def close(self) -> None:
+        """Stop the helpers (each reads the end of its input and exits; waited for). A map
+        after this runs in the calling process."""
+        with self._lock:
+            for h in self._procs:
+                h.close()
+            self._procs, self._closed = [], True
 
 
 def _deal(weights, n: int) -> list[list[int]]:
@@ -139,32 +159,12 @@ def _deal(weights, n: int) -> list[list[int]]:
     return shares
 
 
-def _helpers() -> list[_Helper]:
-    global _pool
-    if _pool is None or len(_pool) != count():
-        shutdown()
-        _pool = [_Helper() for _ in range(count())]
-    _pool = [h for h in _pool if h.alive] or _pool
-    return _pool
-
-
-def shutdown() -> None:
-    """Stop the helpers (they are started again when needed)."""
-    global _pool
-    for h in _pool or []:
-        h.close()
-    _pool = None
-
-
-atexit.register(shutdown)
-
-
 class _Helper:
     """One helper process and its pipes. ``ready``: it has imported and waits for work."""
 
     def __init__(self):
         # float64 on: a float64 JAX array in an item (a plant's parameter) arrives as one.
-        env = dict(os.environ, **{INSIDE: "1", "JAX_PLATFORMS": "cpu", "JAX_ENABLE_X64": "1"})
+        env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_ENABLE_X64="1")
         # The helper imports what this process imports (a test folder, an editable install).
         env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
         self.proc = subprocess.Popen(
@@ -236,12 +236,12 @@ def _read(stream) -> bytes:
 
 def serve() -> None:
     """A helper's loop: read (function, items), write (True, results) or (False, why)."""
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller decides when to stop
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # a print in a task must not corrupt the pipe
-    import jaxcart.exact  # noqa: F401 - imported before saying ready: the first task starts at once
+    # Imported before saying ready, so that the first task starts at once: the helper's own
+    # start-up (a caller that never makes an exact run never imports the simulator for it).
+    import jaxcart.exact  # noqa: F401
 
     _write(stdout, pickle.dumps(("ready", None)))
     while True:

@@ -1,5 +1,6 @@
-"""The one XLA setting jaxcart asks for before JAX starts a backend: loops as whole kernels on
-a CPU. Importing this module imports no jax.
+"""The one XLA setting jaxcart's command line asks for before JAX starts a backend: loops as
+whole kernels on a CPU. Importing this module imports no jax, and importing jaxcart changes no
+setting: :func:`request` does, when called.
 
 XLA:CPU runs a while loop (every ``lax.scan`` over the samples of a run) as a sequence of
 tasks, one per fused operation per iteration. For a chunk of a few hundred runs the dispatch
@@ -13,13 +14,15 @@ runs, forward-mode tangents) to the task runtime, where they run faster (measure
 W1 1.3x per CPU-second with 256-run chunks against 4096-run chunks without it; the bench's
 gradient row 1.8x slower when its 4096-run loop is made one kernel).
 
-:func:`request` runs when jaxcart is imported (``jaxcart/__init__.py``): it adds the option to
-``XLA_FLAGS`` unless a JAX backend has already started, so that it could not take effect, or
-the variable already sets it (the user's value is kept: ``1024`` restores XLA's default), or
-``JAXCART_XLA_FLAGS=0`` is set. The setting is the process's (and its children's, which inherit
-the variable): it also applies to a user's own JAX programs, whose loops of less than 1 MiB per
-iteration then compile whole too (wider ones are left as they are). :func:`loop_kernels` says
-whether this process compiles loops whole, and the batches choose their chunks from it. The
+The command line calls :func:`request` on the user's behalf once a command runs, before it
+starts JAX (``tuning/commands/main.py``; a script asks the same by calling it before its first
+JAX computation): it adds the option to ``XLA_FLAGS`` unless a JAX backend has already
+started, so that it could not take effect, or the variable already sets it (the user's value is
+kept: ``1024`` restores XLA's default), or ``JAXCART_XLA_FLAGS=0`` is set. The setting is the
+process's (and its children's, which inherit the variable): it also applies to the process's
+other JAX programs, whose loops of less than 1 MiB per iteration then compile whole too (wider
+ones are left as they are). :func:`loop_kernels` says whether this process compiles loops
+whole, and the batches choose their chunks from it. The
 option is read by XLA's CPU compiler only (other backends leave ``xla_``-prefixed extra options
 alone). Results are the same up to the rounding of the compiled arithmetic.
 """
@@ -100,5 +103,8 @@ def request() -> int:
 
 
 def loop_kernels() -> bool:
-    """True when this process's CPU backend compiles jaxcart's chunked loops whole."""
-    return request() >= LOOP_KERNEL_BYTES
+    """True when this process's CPU backend compiles jaxcart's chunked loops whole: after
+    :func:`request`, or with the option set that high in the user's own ``XLA_FLAGS``."""
+    if _IN_EFFECT is not None:
+        return _IN_EFFECT >= LOOP_KERNEL_BYTES
+    return (threshold_in(os.environ.get("XLA_FLAGS", "")) or 0) >= LOOP_KERNEL_BYTES

@@ -10,7 +10,7 @@ import sys
 import threading
 
 from jaxcart import parallel
-from tuning.design.tunerun import Exchange
+from tuning.distributed import Exchange
 
 #: The command line of ``python -m tuning``, run after a test's own code (``spawn(inject=)``).
 MAIN = "import sys\nfrom tuning.commands.main import main\nsys.exit(main())\n"

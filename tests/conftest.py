@@ -15,9 +15,11 @@ _CACHE = tempfile.mkdtemp(prefix="jaxcart-test-cache-")
 os.environ["XDG_CACHE_HOME"] = _CACHE
 atexit.register(shutil.rmtree, _CACHE, True)
 
-# Before JAX starts: jaxcart's XLA setting (loops compiled whole, jaxcart.xlaflags), as in
-# every command, so the tests run what the commands run.
-import jaxcart  # noqa: E402, F401
+# Before JAX starts: jaxcart's XLA setting (loops compiled whole, jaxcart.xlaflags), as every
+# command asks for it, so the tests run what the commands run.
+from jaxcart import xlaflags  # noqa: E402
+
+xlaflags.request()
 
 # isort: split
 import jax  # noqa: E402

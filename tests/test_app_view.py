@@ -120,14 +120,12 @@ def test_narrow_layout_puts_region_and_poles_underneath(problem):
 
 def test_notebook_gets_bokehjs_inline_not_from_a_cdn(monkeypatch):
     """show_in_notebook: BokehJS from the installed package (offline), the narrow page."""
-    import bokeh.io
-
     from tuning.app import server
 
     seen = {}
-    monkeypatch.setattr(bokeh.io, "output_notebook", lambda **kw: seen.update(kw))
+    monkeypatch.setattr(server, "output_notebook", lambda **kw: seen.update(kw))
     monkeypatch.setattr(
-        bokeh.io, "show", lambda app, notebook_url: seen.update(app=app, url=notebook_url)
+        server, "show", lambda app, notebook_url: seen.update(app=app, url=notebook_url)
     )
     monkeypatch.setattr(server, "warm", lambda problem: None)
     server.show_in_notebook(notebook_url="localhost:8890")

@@ -220,7 +220,7 @@ def test_the_lab_marks_its_f_c_bound_as_a_bound():
     steady = SimpleNamespace(bound=0.01, e_sim=0.01, recording=None)
     part = SimpleNamespace(ramp=SimpleNamespace(recording=None), steady=steady, model=model)
     part.bounds = (bound,)
-    found = {v.key: v.as_json() for v in part_iii.values(part)}
+    found = {v.key: v.to_json() for v in part_iii.values(part)}
     assert found["f_c_lower_p_step"]["bound"] == "lower" and "bound" not in found["f_c"]
 
 

@@ -67,11 +67,11 @@ def test_tune_start_is_kp_ki_kd():
     """--start 60,1,4 is kp = 60, ki = 1, kd = 4, as the design library receives it."""
     from tuning.commands.tune import _start
     from tuning.design.losses import PARAM_NAMES
-    from tuning.design.tune import _start_and_template
+    from tuning.design.problem import start_and_template
 
     start = _start("60,1,4")
     assert start == {"kp": 60.0, "ki": 1.0, "kd": 4.0}
-    params, _ = _start_and_template(start, None, ("kp", "ki", "kd"))
+    params, _ = start_and_template(start, None, ("kp", "ki", "kd"))
     got = dict(zip(PARAM_NAMES, params, strict=True))
     assert (got["kp"], got["ki"], got["kd"]) == (60.0, 1.0, 4.0)
     args = build_parser().parse_args(["tune", "--start", "60,1,4"])

@@ -275,8 +275,9 @@ def test_exact_memo_reuses_runs_read_only_and_keeps_the_newest():
 def test_exact_memo_reruns_only_the_recordings_a_value_moves(tmp_path):
     """A joint diagnosis's exact runs are kept per recording: a drive limit free per run moves
     its own run alone (the other runs and the unplugged tap are the stored ones), a shared
-    value moves every run, and the residuals equal a run without the memo (made several at a
-    time, in helper processes: jaxcart.workers), bit for bit."""
+    value moves every run, and the residuals made in this process without the memo equal
+    those made several at a time, in a helper process (jaxcart.workers), bit for bit."""
+    from jaxcart.workers import Helpers
     from tuning.estimation.diagnose import core as C
     from tuning.estimation.diagnose.search import Search
 
@@ -286,17 +287,18 @@ def test_exact_memo_reruns_only_the_recordings_a_value_moves(tmp_path):
     cand = next(c for c in search.round1 if C.PER_RUN in c.parts)
     values = dict(search.starts_all)
     values = {k: values.get(k, values.get(search.layout.kind(k))) for k in cand.free}
-    memo = C.ExactMemo()
-    args = (cand, search.segments, search.base_plants)
-    first, _ = C.exact_residuals(*args, values, search.layout, memo)
-    assert memo.made == 3
-    own = next(k for k in cand.free if k.endswith("@2"))
-    moved = dict(values, **{own: values[own] * 1.01})
-    before = set(memo.one)
-    r, _ = C.exact_residuals(*args, moved, search.layout, memo)
-    assert memo.made == 4 and [key[0] for key in set(memo.one) - before] == [2]
-    assert r[0] is first[0] and r[1] is first[1] and r[2] is not first[2]
-    fresh, _ = C.exact_residuals(*args, moved, search.layout)
-    assert all(np.array_equal(a, b) for a, b in zip(r, fresh, strict=True))
-    C.exact_residuals(*args, dict(values, B_eq=values["B_eq"] * 1.01), search.layout, memo)
-    assert memo.made == 7
+    with Helpers(1) as helpers:
+        memo = C.ExactMemo(executor=helpers)
+        args = (cand, search.segments, search.base_plants)
+        first, _ = C.exact_residuals(*args, values, search.layout, memo)
+        assert memo.made == 3
+        own = next(k for k in cand.free if k.endswith("@2"))
+        moved = dict(values, **{own: values[own] * 1.01})
+        before = set(memo.one)
+        r, _ = C.exact_residuals(*args, moved, search.layout, memo)
+        assert memo.made == 4 and [key[0] for key in set(memo.one) - before] == [2]
+        assert r[0] is first[0] and r[1] is first[1] and r[2] is not first[2]
+        fresh, _ = C.exact_residuals(*args, moved, search.layout)  # (no memo: here)
+        assert all(np.array_equal(a, b) for a, b in zip(r, fresh, strict=True))
+        C.exact_residuals(*args, dict(values, B_eq=values["B_eq"] * 1.01), search.layout, memo)
+        assert memo.made == 7

@@ -72,7 +72,7 @@ def test_fit_cross_two_processes_equal_one(tmp_path):
 
 def test_a_failure_anywhere_is_raised_on_every_process(monkeypatch):
     # Processes as threads (tests/cluster.py); the rows of recording "b" cannot be computed.
-    def rows(rec, recordings, params, progress=False):
+    def rows(rec, recordings, params, **kwargs):
         return [{"fitted_on": rec}] if rec == "a" else [{"fitted_on": rec, "rms": 1 / 0}]
 
     monkeypatch.setattr(fitrun, "cross_rows", rows)

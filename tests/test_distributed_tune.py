@@ -21,7 +21,8 @@ from cluster import spawn
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.design import tunerun
+from tuning import distributed
+from tuning.design.start_share import StartShare
 
 TAP = Path(jc.__file__).parent / "data" / "tap.toml"
 
@@ -88,14 +89,14 @@ def test_diagnose_two_processes_equal_one(tmp_path):
 
 def test_every_start_and_row_has_one_owner():
     # No runtime needed: the shares of 3 processes cover 7 starts once each.
-    shares = [tunerun.StartShare(7, i, 3) for i in range(3)]
+    shares = [StartShare(7, i, 3) for i in range(3)]
     rows = np.sort(np.concatenate([s.rows for s in shares]))
     np.testing.assert_array_equal(rows, np.arange(7))
     parts = [{"x": np.asarray(s.rows, float) * 10} for s in shares]
-    whole = tunerun.assemble(parts, shares[0].owners(7), 7)
+    whole = distributed.gather_rows(parts, shares[0].owners(7), 7)
     np.testing.assert_array_equal(whole["x"], np.arange(7) * 10.0)
     with pytest.raises(UserError, match="at least one start each; give --starts 3"):
-        tunerun.StartShare(2, 2, 3)
+        StartShare(2, 2, 3)
 
 
 def test_bad_options_fail_before_joining(tmp_path, capsys, monkeypatch):
@@ -124,13 +125,13 @@ if os.environ["JAXCART_PROCESS_ID"] == "1":
 """
 #: The tuner's 4th iteration fails on process 1 (a bug's exception, not a UserError).
 TUNE_FAILS = FAIL_ON_1.format(
-    """    import tuning.design.tune as T
-    cosine = T._cosine
-    def _cosine(lr, k, n, *rest):
-        if k == 3:
+    """    import tuning.design.iteration as T
+    entry = T._history_entry
+    def _history_entry(it, *rest):
+        if it == 3:
             raise RuntimeError("injected at iteration 3")
-        return cosine(lr, k, n, *rest)
-    T._cosine = _cosine"""
+        return entry(it, *rest)
+    T._history_entry = _history_entry"""
 )
 #: Process 1's exact polishes fail (after the first batch fit and exact re-checks).
 DIAGNOSE_FAILS = FAIL_ON_1.format(

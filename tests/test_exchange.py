@@ -1,7 +1,8 @@
-"""The exchange between the processes of a distributed run (tuning/design/tunerun.py), in this
-process: each 'process' a thread over an in-memory key-value store (tests/cluster.py), so the
-order of the calls, the errors that travel in them and the keys left behind are checked without
-a runtime. A process that would wait for one that stopped fails the test after 20 s."""
+"""The exchange between the processes of a distributed run (tuning/distributed.py, the tuner's share
+in tuning/design/start_share.py), in this process: each 'process' a thread over an in-memory
+key-value store (tests/cluster.py), so the order of the calls, the errors that travel in them and
+the keys left behind are checked without a runtime. A process that would wait for one that stopped
+fails the test after 20 s."""
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from cluster import in_threads
 
 from jaxcart import parallel
 from jaxcart.errors import UserError
-from tuning.design.tunerun import StartShare
+from tuning.design.start_share import StartShare
 
 
 def test_rows_reach_every_process_and_no_key_is_left(monkeypatch):

@@ -284,8 +284,9 @@ def test_real_cross_prediction(realdata):
         assert math.isfinite(row["rms"])
 
 
-def test_numpy_adam_is_optax_adam():
-    """The fit's adam stage (numpy) takes optax.adam's steps with a cosine-decayed rate."""
+def test_the_fits_adam_is_optax_adam():
+    """The fit's adam stage takes optax.adam's steps with optax's cosine-decayed rate, on the
+    active entries alone, and returns the best point it met."""
     import jax.numpy as jnp
     import optax
 

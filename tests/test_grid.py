@@ -14,7 +14,7 @@ import jaxcart as jc
 from hw.atomicio import OutputError
 from jaxcart.errors import UserError
 from tuning.commands import grid as grid_cmd
-from tuning.design import grid, gridrun
+from tuning.design import grid, grid_blocks
 
 TS = 1e-3  # sample time [s]: the tolerance of every time metric is one sample
 OVERSHOOT_TOL = 0.05  # [percentage points], float32 against float64
@@ -116,12 +116,12 @@ def test_ties_in_settling_time_go_to_the_smaller_overshoot():
         "diverged": np.zeros(5, bool),
     }
     feasible = flat["overshoot"] < 5.0
-    assert gridrun.best_of(flat, feasible, 1.0, 5.0) == (2, True)
+    assert grid_blocks.best_of(flat, feasible, 1.0, 5.0) == (2, True)
     # None feasible (spec 0.5 s): least violation, ties broken by steady-state error.
     flat["settling_time"][:] = np.inf
     flat["steady_state_error"][:] = [3e-3, 2e-3, 1e-3, 1e-3, 4e-3]
     flat["diverged"][2] = True
-    assert gridrun.best_of(flat, np.zeros(5, bool), 0.5, 5.0) == (3, False)
+    assert grid_blocks.best_of(flat, np.zeros(5, bool), 0.5, 5.0) == (3, False)
 
 
 def test_float32_agrees_with_float64(grids):

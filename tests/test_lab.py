@@ -410,7 +410,7 @@ def test_builtin_report_reads_as_a_grader_expects(builtin_report):
     assert ("Gains of the experiment, the pre-lab's tuned PID" in md) == same
     assert ("**not** the pre-lab's tuned gains" in md) == (not same)
     # A tuned gain on the tuner's box is flagged.
-    from tuning.design.tune import DEFAULT_BOUNDS
+    from tuning.design.problem import DEFAULT_BOUNDS
 
     box = {n: DEFAULT_BOUNDS[n] for n in ("kp", "kd", "ki")}  # the gains the lab tunes
     hit = {n for n, (lo, hi) in box.items() if not lo * 1.01 < tuned[n] < hi * 0.99}

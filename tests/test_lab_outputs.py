@@ -26,7 +26,7 @@ def _copy(folder, names=("tap",)):
     return folder
 
 
-def _stub_sections(lab, folder, builtin, plant, diagnosis):
+def _stub_sections(lab, folder, builtin, plant, diagnosis, executor):
     lab.doc.paragraph("stub report")
     report._write(lab)
 

@@ -95,6 +95,51 @@ def test_results_are_frozen_and_the_model_travels_explicitly(computed):
     assert r.part_v.tuned is r.prelab.gains
 
 
+def test_the_prelab_and_jaxcart_tune_give_one_answer(computed, tmp_path):
+    """One tuner, one answer (issue 34): the pre-lab's PID is the one ``jaxcart tune`` writes
+    for the same problem, bit for bit, and the cart's re-tune searches alike: the same tuner
+    with the same settings (:data:`tuning.design.settings.DEFAULT`, the command's defaults)."""
+    import json
+
+    from tuning.commands.main import build_parser, main
+    from tuning.design.settings import DEFAULT
+
+    args = build_parser().parse_args(["tune"])
+    assert (args.starts, args.iterations, args.seed) == (
+        DEFAULT.n_starts,
+        DEFAULT.max_iterations,
+        DEFAULT.seed,
+    )
+    _, r, _ = computed
+    gains = tmp_path / "gains.json"
+    assert main(["tune", "--quiet", "--out", str(gains), "--json", str(tmp_path / "t.json")]) == 0
+    written = json.loads(gains.read_text())["controller"]
+    assert [written[n] for n in ("kp", "ki", "kd")] == [
+        r.prelab.gains.kp,
+        r.prelab.gains.ki,
+        r.prelab.gains.kd,
+    ]
+    for tuned in (r.prelab.tuned, r.cart.tuned):
+        assert tuned.n_starts == DEFAULT.n_starts and tuned.iterations <= DEFAULT.max_iterations
+
+
+def test_results_hold_results_never_a_thread(computed):
+    """The lab's diagnosis and re-tune run in threads beside the parts: each is collected
+    before the result that holds it is built, and no thread outlives the computation."""
+    import threading
+    from concurrent.futures import Future
+
+    from jaxcart.background import Background
+
+    _, r, _ = computed
+    assert r.cart.tuned is not None and r.cart.tuned.meets
+    for result in (r, r.prelab, r.part_v, r.cart):
+        for field in dataclasses.fields(result):
+            value = getattr(result, field.name)
+            assert not isinstance(value, Background | Future | threading.Thread), field.name
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("jaxcart-")]
+
+
 def test_a_part_is_a_function_of_its_inputs(computed):
     """Part (iii)'s steady state from the same model and recording gives the same numbers;
     from another model, other numbers, and the first result is unchanged."""
@@ -130,10 +175,10 @@ def test_rendering_reads_results_only(computed, tmp_path):
     assert values["f_c"].value == r.part_iii.model.f_c
     assert values["B_eq_tap_fit"].true(found.synthetic) == found.synthetic["B_eq"]
     assert (
-        part_ii.as_json(r.part_ii, r.agreement, diagnosis=False)["B_eq_agreement"]["text"]
+        part_ii.to_json(r.part_ii, r.agreement, diagnosis=False)["B_eq_agreement"]["text"]
         in texts[0]
     )
-    assert part_i.as_json(r.part_i)["c"] == pytest.approx(r.part_i.model.B_eq + 7.7236, abs=1e-4)
+    assert part_i.to_json(r.part_i)["c"] == pytest.approx(r.part_i.model.B_eq + 7.7236, abs=1e-4)
 
 
 def test_cart_model_builds_the_plant_it_names():

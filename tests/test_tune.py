@@ -1,4 +1,4 @@
-"""Gradient PID tuning (tuning/design/tune.py, tuning/design/losses.py, tuning/commands/tune.py).
+"""Gradient PID tuning (tuning/design/: tune.py, its modules, losses.py; tuning/commands/tune.py).
 
 Every claim about a tuned controller is re-checked here on the exact simulator
 (jaxcart.exact.simulate_exact + jaxcart.metrics.step_info), independently of the tuner's own
@@ -18,11 +18,13 @@ from hw.gains import read_gains
 from jaxcart.errors import UserError
 from jaxcart.exact import simulate_exact
 from jaxcart.metrics import step_info
+from tuning.benchmark.tuners import compare_tuners
 from tuning.design.losses import LossSettings, Spec, make_loss
-from tuning.design.tune import DEFAULT_BOUNDS, compare_tuners, tune
+from tuning.design.problem import DEFAULT_BOUNDS
+from tuning.design.tune import tune
 
 STEP = jc.step(0.5, horizon=3.0)
-tune_module = importlib.import_module("tuning.design.tune")
+iteration_module = importlib.import_module("tuning.design.iteration")
 
 
 def exact_metrics(plant, pid, experiment=STEP):
@@ -70,7 +72,7 @@ def test_default_problem_keeps_every_controller_setting(lab):
     # The smooth simulator at the final widths agrees with the exact one to a few samples.
     assert lab.smooth.settling_time == pytest.approx(lab.exact.settling_time, abs=0.01)
     assert lab.smooth.overshoot == pytest.approx(lab.exact.overshoot, abs=0.2)
-    doc = lab.as_json()
+    doc = lab.to_json()
     assert set(doc["exact"]) == {"settling_time", "overshoot", "rise_time", "steady_state_error"}
     json.dumps(doc, allow_nan=False)
 
@@ -81,7 +83,7 @@ def test_pd_keeps_ki_zero():
     info = exact_metrics(jc.handout_plant(), res.gains)
     assert res.meets and info.settling_time < 1.0 and info.overshoot < 5.0
     # Other starts, free gains (as many) and bounds reuse the one compiled iteration.
-    update, _ = tune_module._CACHE[next(reversed(tune_module._CACHE))]
+    update = iteration_module._CACHE[next(reversed(iteration_module._CACHE))]
     traced = update.cache_size()
     tune(
         start=(60.0, 4.0, 1.0),
@@ -253,21 +255,31 @@ def test_compare_tuners_runs_all_three_and_rechecks_on_the_exact_simulator():
     print("\n" + report["table"])
 
 
-def test_initial_adam_state_is_optax_init_placed_like_the_update_output():
-    """tune builds adam's state on the host (no eager compiles): it equals optax's own init,
-    leaf by leaf in value, dtype and shape."""
+def test_the_optimizer_is_optax_adam_on_optax_cosine_decay_placed_like_the_update_output():
+    """The tuner's optimizer, whose learning rate and iteration count are arguments of the
+    compiled update, steps as optax.adam on optax.cosine_decay_schedule (to rounding), past the
+    end of the decay too; its initial state is optax's, the moments placed by start (where
+    the update puts them, so the second step compiles nothing)."""
     import optax
 
     from jaxcart.parallel import batch_sharding
-    from tuning.design.tune import initial_state
+    from tuning.design.iteration import ALPHA, initial_state, optimizer
 
-    adam = optax.scale_by_adam()
-    theta = jnp.asarray(np.random.default_rng(1).normal(size=(8, 6)))
+    rng = np.random.default_rng(1)
+    lr, n = 0.25, 7
+    ours = optimizer(lr, float(n))
+    theirs = optax.adam(optax.cosine_decay_schedule(lr, n, alpha=ALPHA))
+    theta = jnp.asarray(rng.normal(size=(8, 6)))
     rows = batch_sharding()
-    ours, theirs = initial_state(adam, theta, rows), adam.init(theta)
-    assert jax.tree.structure(ours) == jax.tree.structure(theirs)
-    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+    state, expected = initial_state(theta, rows), theirs.init(theta)
+    assert jax.tree.structure(state) == jax.tree.structure(expected)
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(expected), strict=True):
         assert a.dtype == b.dtype and a.shape == b.shape
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         if a.ndim == 2:
             assert a.sharding == rows
+    for _ in range(n + 2):
+        grad = jnp.asarray(rng.normal(size=(8, 6)))
+        step, state = ours.update(grad, state)
+        want, expected = theirs.update(grad, expected)
+        np.testing.assert_allclose(np.asarray(step), np.asarray(want), rtol=1e-13, atol=0)

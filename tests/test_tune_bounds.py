@@ -11,7 +11,9 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.design.tune import DEFAULT_BOUNDS, on_bounds, tune
+from tuning.design.problem import DEFAULT_BOUNDS
+from tuning.design.result import on_bounds
+from tuning.design.tune import tune
 
 
 def test_on_bounds_flags_within_one_percent_of_either_bound():
@@ -42,7 +44,7 @@ def test_result_names_every_gain_on_a_bound(short_run):
         elif value <= 1.01 * lo:
             expected[name] = "lower"
     assert {n: side for n, (side, _) in res.on_bound.items()} == expected
-    doc = res.as_json()
+    doc = res.to_json()
     assert set(doc["on_bound"]) == set(expected)
     json.dumps(doc, allow_nan=False)
     if expected:  # the lab's optimum pushes kp to its 250 V/m cap
@@ -78,13 +80,14 @@ def test_command_line_prints_the_bound_and_how_to_widen_it(tmp_path, capsys, sho
 
 @pytest.fixture
 def no_tuning(monkeypatch):
+    import tuning.benchmark.tuners
     import tuning.design.tune
 
     def refuse(*args, **kwargs):
         raise AssertionError("tune() ran although an output cannot be written")
 
     monkeypatch.setattr(tuning.design.tune, "tune", refuse)
-    monkeypatch.setattr(tuning.design.tune, "compare_tuners", refuse)
+    monkeypatch.setattr(tuning.benchmark.tuners, "compare_tuners", refuse)
 
 
 @pytest.mark.parametrize("option", ["--out", "--json", "--plot"])
@@ -117,8 +120,8 @@ def test_new_parameters_are_checked():
     with pytest.raises(UserError, match="start value tau"):
         tune(start={"kp": 40.0, "tau": -1.0})
     # A PID start keeps its own tau, kb and v_limit (the template's numbers).
-    from tuning.design.tune import _start_and_template
+    from tuning.design.problem import start_and_template
 
     pid = jc.PID(kp=50.0, kd=4.0, ki=1.0, tau=0.02, kb=3.0, v_limit=5.0)
-    params, template = _start_and_template(pid, None, ("kp",))
+    params, template = start_and_template(pid, None, ("kp",))
     assert list(params) == [50.0, 4.0, 1.0, 0.02, 3.0, 5.0] and template is pid

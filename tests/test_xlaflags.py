@@ -1,7 +1,8 @@
 """jaxcart's one XLA setting (jaxcart.xlaflags): loops compiled whole on a CPU. The flag string
-it builds, that importing jaxcart puts it in place before JAX starts (and leaves a user's own
-value, or a backend that started first, alone), that XLA then compiles a chunk's loop into one
-kernel, and the chunk sizes the batches choose from it."""
+it builds, that a request (the command line's) puts it in place before JAX starts (and leaves a
+user's own value, or a backend that started first, alone) while importing jaxcart asks for
+nothing, that XLA then compiles a chunk's loop into one kernel, and the chunk sizes the batches
+choose from it."""
 
 import os
 import subprocess
@@ -73,37 +74,45 @@ _PROBE = """
 """
 
 
+#: What the command line does before JAX starts (tuning/commands/main.py).
+REQUEST = "import jaxcart.xlaflags; jaxcart.xlaflags.request()"
+
+
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
-def test_importing_jaxcart_first_compiles_a_chunks_loop_whole():
-    kernels, whole, chunk, flags = _run(_PROBE.format(first="import jaxcart"), None)
+def test_a_request_before_jax_starts_compiles_a_chunks_loop_whole():
+    kernels, whole, chunk, flags = _run(_PROBE.format(first=REQUEST), None)
     assert (kernels, whole, int(chunk)) == ("True", "True", 256)
     assert flags == f"--xla_backend_extra_options={OPTION}=1048576"
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
+def test_importing_jaxcart_asks_for_nothing():
+    kernels, whole, chunk, flags = _run(_PROBE.format(first="import jaxcart"), None)
+    assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, "-")
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
 def test_a_users_smaller_value_is_kept_and_the_chunks_stay_wide():
     mine = f"--xla_backend_extra_options={OPTION}=1024"
-    kernels, whole, chunk, flags = _run(_PROBE.format(first="import jaxcart"), mine)
+    kernels, whole, chunk, flags = _run(_PROBE.format(first=REQUEST), mine)
     assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, mine)
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
 def test_turned_off_it_leaves_xla_flags_alone():
-    kernels, whole, chunk, flags = _run(
-        _PROBE.format(first="import jaxcart"), None, **{xlaflags.OFF: "0"}
-    )
+    kernels, whole, chunk, flags = _run(_PROBE.format(first=REQUEST), None, **{xlaflags.OFF: "0"})
     assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, "-")
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="a CPU backend's option")
 def test_a_backend_started_first_is_left_alone():
-    first = "import jax.numpy; jax.numpy.ones(2).block_until_ready(); import jaxcart"
+    first = "import jax.numpy; jax.numpy.ones(2).block_until_ready(); " + REQUEST
     kernels, whole, chunk, flags = _run(_PROBE.format(first=first), None)
     assert (kernels, whole, int(chunk), flags) == ("False", "False", 4096, "-")
 
 
 def test_the_suite_runs_with_loops_compiled_whole():
-    """conftest imports jaxcart before JAX starts: the tests run what the commands run."""
+    """conftest asks for the setting before JAX starts: the tests run what the commands run."""
     if jax.default_backend() == "cpu":
         assert xlaflags.loop_kernels()
         f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (c + 1.0, None), x, None, 10)[0])

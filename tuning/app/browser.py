@@ -133,7 +133,7 @@ def page_at(
     window of ``width`` x ``height`` [px] (a laptop's 1280 x 720 by default: the page is made to
     fit it), once the design page is built; ``requests``: a list that gets the URL of every
     request the page makes."""
-    from playwright.sync_api import sync_playwright
+    from playwright.sync_api import sync_playwright  # (an optional dependency: .[test])
 
     profile = tempfile.mkdtemp(prefix="jaxcart-chromium-")
     try:

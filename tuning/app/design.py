@@ -28,6 +28,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
 
 import jaxcart as jc
@@ -35,11 +36,13 @@ from hw.control_law import PID, setting_problem
 from jaxcart import control_systems
 from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
+from jaxcart.files import read_experiment
 from jaxcart.params import TRAVEL
+from jaxcart.plantspec import FORMAT, read_plant_file
 from jaxcart.plausibility import LAB_VOLTAGE
-from tuning.design.gridrun import feasible_mask
+from tuning.design.grid_blocks import feasible_mask
 from tuning.design.losses import Spec
-from tuning.design.tune import HANDOUT_START
+from tuning.design.problem import HANDOUT_START
 
 #: The page's simulator: the exact one (event-exact friction, hard clip at the 6 V limit).
 EXACT = jc.Exact()
@@ -299,7 +302,12 @@ class DesignProblem:
         return _experiment(float(setpoint), float(self.spec.horizon))
 
     def design(self, settings: Settings) -> Design:
-        """The exact run, metrics, checks and poles at one slider position."""
+        """The exact run, metrics, checks and poles at one slider position (in float64,
+        whatever the process has set: a page in a notebook computes as the command's does)."""
+        with jax.enable_x64(True):
+            return self._design(settings)
+
+    def _design(self, settings: Settings) -> Design:
         pid = settings.controller()
         experiment = self.experiment(settings.setpoint)
         response = jc.simulate(self.plant, pid, experiment, solver=EXACT)
@@ -371,7 +379,8 @@ class DesignProblem:
 
 @functools.lru_cache(maxsize=32)
 def _experiment(setpoint: float, horizon: float):
-    return jc.step(setpoint, horizon=horizon)
+    with jax.enable_x64(True):  # the reference in float64 (the grid casts it to its dtype)
+        return jc.step(setpoint, horizon=horizon)
 
 
 def overlay_from(recording) -> Overlay:
@@ -406,10 +415,13 @@ def problem_from_files(data=None, plant=None, *, region_points: int = REGION_POI
     """The :class:`DesignProblem` of ``jaxcart app --data REC.toml --plant P.toml``: the
     student's plant (closed loop, motor connected) as the design plant, the recording
     overlaid. Each file is checked for what it is first (:func:`design_plant`)."""
+    with jax.enable_x64(True):  # read in float64, whatever the process has set
+        return _problem_from_files(data, plant, region_points)
+
+
+def _problem_from_files(data, plant, region_points) -> DesignProblem:
     overlay = None
     if data is not None:
-        from jaxcart.files import read_experiment
-
         _refuse_plant_file(data)
         overlay = overlay_from(read_experiment(data))
     design = label = None
@@ -427,8 +439,6 @@ def _toml_head(path) -> dict:
 
 
 def _refuse_plant_file(path) -> None:
-    from jaxcart.plantspec import FORMAT
-
     if _toml_head(path).get("format") == FORMAT:
         raise UserError(
             f"--data {path}: a plant file, not a recording; give it as --plant {path}, and a "
@@ -441,9 +451,6 @@ def design_plant(path) -> tuple[jc.Plant, str]:
     or ``diagnose``: "fitted plant (P.toml)"; without a [fit] table: "plant of P.toml"), or an
     experiment file's own [plant] table ("[plant] of run.toml"). A recording without one
     holds no plant (the handout's would be drawn under another name): refused with the fix."""
-    from jaxcart.files import read_experiment
-    from jaxcart.plantspec import FORMAT, read_plant_file
-
     path = Path(path)
     if not path.is_file():
         raise UserError(f"--plant {path}: no such file; give a plant file (.toml)")

@@ -20,7 +20,15 @@ notebook gets BokehJS inline from the installed package, not from a CDN.
 from __future__ import annotations
 
 import sys
+import webbrowser
 
+from bokeh.application import Application
+from bokeh.application.handlers.function import FunctionHandler
+from bokeh.io import output_notebook, show
+from bokeh.resources import INLINE
+from bokeh.server.server import Server
+
+from jaxcart.errors import UserError
 from tuning.app.design import DesignProblem, Settings, problem_from_files
 from tuning.app.port import free_port, port_problem
 from tuning.app.view import build
@@ -42,10 +50,6 @@ def warm(problem: DesignProblem) -> None:
 def make_server(problem: DesignProblem, *, port: int = DEFAULT_PORT, address="127.0.0.1"):
     """A started-to-be :class:`bokeh.server.server.Server` of the page on ``address:port``
     (port 0: a free one), accepting pages opened from that address or localhost."""
-    from bokeh.application import Application
-    from bokeh.application.handlers.function import FunctionHandler
-    from bokeh.server.server import Server
-
     port = port or free_port(address)
     app = Application(FunctionHandler(lambda doc: build(doc, problem)))
     origins = [f"{address}:{port}", f"localhost:{port}"]
@@ -56,8 +60,6 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
     """Serve the page until Ctrl-C (or SIGTERM); prints its address first. Returns 0. The
     port is taken before the page's first position is computed, so a busy one is said at
     once."""
-    from jaxcart.errors import UserError
-
     try:
         server = make_server(problem, port=port, address=address)
     except OSError as exc:
@@ -68,8 +70,6 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
     server.start()
     print(f"jaxcart app: the design page is at {url} (Ctrl-C to stop)", flush=True)
     if browser:
-        import webbrowser
-
         server.io_loop.add_callback(webbrowser.open, url)
     try:
         server.io_loop.start()
@@ -82,13 +82,8 @@ def serve(problem: DesignProblem, *, port=DEFAULT_PORT, address="127.0.0.1", bro
 
 def show_in_notebook(data=None, plant=None, *, notebook_url="localhost:8888"):
     """Show the page in the running Jupyter notebook (a Bokeh server inside the kernel);
-    ``notebook_url``: the host:port the notebook's page was opened at."""
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    from bokeh.io import output_notebook, show
-    from bokeh.resources import INLINE
-
+    ``notebook_url``: the host:port the notebook's page was opened at. The page computes in
+    float64 (:class:`tuning.app.design.DesignProblem`), whatever the kernel has set."""
     problem = problem_from_files(data, plant)
     warm(problem)
     # INLINE: BokehJS from the installed package into the notebook (the default is a CDN).

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcart.cache import cache_dir
 from jaxcart.effects import Saturation
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.params import voltage_limit
@@ -55,8 +56,6 @@ def compiler() -> str | None:
 
 def cache_folder() -> Path:
     """Where built kernels are kept: beside the persistent JAX cache (jaxcart.cache)."""
-    from jaxcart.cache import cache_dir
-
     return cache_dir().parent / "ckernel"
 
 

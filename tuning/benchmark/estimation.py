@@ -26,13 +26,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
+
+import jaxcart as jc
+from jaxcart.effects import Coulomb, Saturation
+from jaxcart.plantspec import build_plant
+from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.benchmark import startup
+from tuning.estimation.diagnose.core import PER_RUN
 
 CASES = ("single", "joint", "lab")
 #: Issue 21's targets for the median wall time [s] (on the project's 2-core machine).
@@ -73,12 +81,6 @@ RUNS = (
 def write_cart(folder) -> list[Path]:
     """Write the joint case's five recordings (tap first) as experiment files into ``folder``;
     returns their TOML paths."""
-    import jax
-
-    import jaxcart as jc
-    from jaxcart.plantspec import build_plant
-    from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -104,9 +106,6 @@ def write_cart(folder) -> list[Path]:
 
 def check_joint(diagnosis: dict) -> dict:
     """The joint diagnosis (its JSON) against the truth of :data:`CART` and :data:`RUNS`."""
-    from jaxcart.effects import Coulomb, Saturation
-    from tuning.estimation.diagnose.core import PER_RUN
-
     # The effects named are in left_out; a limit free per run is a part of the chosen structure.
     named = set(diagnosis.get("left_out") or []) | set((diagnosis.get("chosen") or "").split("+"))
     limit = Saturation.params[0].name
@@ -221,8 +220,6 @@ def _lab_rows(tmp: Path, repeats: int, say) -> list[Row]:
 def measure(cases=CASES, repeats: int = 3, progress=None, realdata: Path | None = None):
     """The rows of the table, in the order of ``cases``, and the load averages (1, 5, 15 min)
     at the start and the end: {"rows": [Row], "load": {"start": (...), "end": (...)}}."""
-    import os
-
     say = progress or (lambda text: None)
     rows: list[Row] = []
     load = {"start": os.getloadavg()}
@@ -273,8 +270,6 @@ def table(result: dict) -> str:
 
 
 def _cores() -> int:
-    import os
-
     return os.cpu_count() or 1
 
 

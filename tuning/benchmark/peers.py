@@ -14,8 +14,10 @@ import dataclasses
 import math
 from types import SimpleNamespace
 
+import control
 import numpy as np
 import scipy.linalg
+from scipy.integrate import solve_ivp
 
 from hw.control_law import PIDState, pid_init, pid_update
 from jaxcart.effects import Held, Saturation
@@ -109,8 +111,6 @@ def python_control_run(plant, controller, experiment, gains):
     States: y [m], y' [m/s], the PID memory (I, d, s_prev) and the last v_k, u_k [V] (kept as
     states so the response carries them). One extra sample gives v and u at the last sample.
     """
-    import control
-
     ts = experiment.sample_time
     pid = dataclasses.replace(
         controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
@@ -155,8 +155,6 @@ def python_control_run(plant, controller, experiment, gains):
 def scipy_run(plant, controller, experiment, gains, *, rtol=IVP_RTOL, atol=IVP_ATOL):
     """One W1 run: at each sample the PID (hw.control_law) computes u_k, then ``solve_ivp``
     integrates the continuous plant over the hold interval; returns (positions, metrics)."""
-    from scipy.integrate import solve_ivp
-
     ts = experiment.sample_time
     pid = dataclasses.replace(
         controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])

@@ -40,12 +40,27 @@ import sys
 import time
 from collections.abc import Callable
 
+import control
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy
 
+import jaxcart
 from hw.control_law import PID
+from jaxcart import parallel
+from jaxcart.accumulators import accumulate, value_and_jacfwd_rows
+from jaxcart.batch_metrics import (
+    COMPILER_OPTIONS,
+    WIDE_CHUNK,
+    default_chunk,
+    loops_whole,
+    step_metrics_batch,
+)
+from jaxcart.parallel import sharded_map
 from jaxcart.params import voltage_limit
+from jaxcart.smoothing import smooth_relu
+from tuning.benchmark import ckernel
 from tuning.benchmark.peers import numpy_batch, python_control_run, scipy_run, trace_metrics
 
 #: Workload W1 (docs/design.md, "Benchmark workload W1"): the step [m], horizon [s], sample
@@ -103,8 +118,6 @@ def w1_grid(points: int) -> np.ndarray:
 
 def w1_problem(horizon: float = HORIZON):
     """(plant, controller, experiment) of W1, built in the current JAX precision."""
-    import jaxcart
-
     plant = jaxcart.handout_plant()
     controller = PID(tau=TAU, v_limit=V_LIMIT, sample_time=SAMPLE_TIME)
     experiment = jaxcart.step(STEP, horizon=horizon, sample_time=SAMPLE_TIME)
@@ -117,8 +130,6 @@ def w1_problem(horizon: float = HORIZON):
 def reference_positions(plant, controller, experiment, gains) -> np.ndarray:
     """Float64 ``jaxcart.simulate`` positions [m] with EXACT_FORMS (hard clips), one row per
     gain triple. Builds its own float64 problem: pass the W1 setup built in any precision."""
-    import jaxcart
-
     with jax.enable_x64(True):
         experiment = dataclasses.replace(
             experiment, signal=jnp.asarray(np.asarray(experiment.signal, dtype=float))
@@ -133,8 +144,6 @@ def reference_positions(plant, controller, experiment, gains) -> np.ndarray:
 
 def jaxcart_metrics(plant, controller, experiment, gains, dtype) -> dict:
     """``step_metrics_batch`` (EXACT_FORMS) in ``dtype``, as a dict of numpy arrays."""
-    from jaxcart.batch_metrics import step_metrics_batch
-
     x64 = jnp.dtype(dtype) == jnp.float64
     with jax.enable_x64(x64):
         experiment = dataclasses.replace(
@@ -160,9 +169,6 @@ def smooth_loss(plant, controller, experiment, gains, smoothing=None):
     :class:`jaxcart.Smoothing`. Summed inside the simulation loop
     (:func:`jaxcart.accumulators.accumulate`): no trace is stored, so forward-mode tangents ride
     along in the loop's carry."""
-    from jaxcart.accumulators import accumulate
-    from jaxcart.smoothing import smooth_relu
-
     pid = dataclasses.replace(controller, kp=gains[0], kd=gains[1], ki=gains[2])
     # A product, not a quotient per sample: a division is the costliest operation of the
     # loop's tangents (the row 1.5x faster, measured).
@@ -173,8 +179,6 @@ def smooth_loss(plant, controller, experiment, gains, smoothing=None):
         e = (s.reference - s.position) * inv_amplitude
         z = (s.position - experiment.y0) * inv_amplitude
         return ise + e * e, over + jnp.square(smooth_relu(z - 1.05, 1e-3))
-
-    from jaxcart.batch_metrics import loops_whole
 
     zero = jnp.zeros((), jnp.result_type(experiment.signal))
     unroll = UNROLL_GRAD["whole" if loops_whole() else "tasks"]
@@ -188,10 +192,6 @@ def grad_evaluator(plant, controller, experiment, *, chunk: int):
     """f(gains (B, 3)) -> (loss (B,), d loss / d gains (B, 3)) by forward mode (three tangents
     per run, the loss summed inside the loop: nothing stored for a backward pass), in chunks
     of ``chunk`` runs per device through :func:`jaxcart.parallel.sharded_map`."""
-    from jaxcart.accumulators import value_and_jacfwd_rows
-    from jaxcart.batch_metrics import COMPILER_OPTIONS
-    from jaxcart.parallel import sharded_map
-
     grads = value_and_jacfwd_rows(lambda g, _, p, c, e: smooth_loss(p, c, e, g))
 
     def one_chunk(gains, p, c, e):
@@ -433,8 +433,6 @@ def _summary(rows, result, batch, checks) -> dict:
 
 
 def _header(horizon: float) -> dict:
-    from jaxcart import parallel
-
     devices = parallel.devices()
     name = "W1" if horizon == HORIZON else "W1 (shortened horizon: not the benchmark)"
     return {
@@ -573,9 +571,6 @@ def _timed(fn: Callable[[], object], repeats: int, cpu_clock=time.process_time) 
 def _jaxcart_row(name, problem, gains, dtype, repeats, say) -> tuple[dict, object, float]:
     """One step_metrics_batch row: sims/s (median wall), sims per CPU-second (median process
     CPU time, every thread), first call; returns (row, metrics, first call [s])."""
-    from jaxcart import parallel
-    from jaxcart.batch_metrics import step_metrics_batch
-
     devs = parallel.devices()
     kind = devs[0].device_kind
     say(
@@ -629,8 +624,6 @@ def _c_kernel(problem64, gains, ref, jax32, n, checks, say) -> dict:
     against jaxcart float32, then timed in both precisions (vectorized across runs, one
     thread, per CPU-second of the calling thread) and once as the plain scalar loop.
     Without a C compiler the row says why it was skipped."""
-    from tuning.benchmark import ckernel
-
     try:
         _, build = ckernel.load()
     except ckernel.KernelUnavailable as exc:
@@ -709,8 +702,6 @@ def _ceiling_ratios(jax_rows, c_row) -> None:
 
 def _grid(problem32, points, repeats, say) -> dict:
     """Throughput of a points^3 grid through step_metrics_batch (what `jaxcart grid` runs)."""
-    from jaxcart.batch_metrics import step_metrics_batch
-
     grid = w1_grid(points)
     say(f"grid: {points}^3 = {grid.shape[0]} runs, float32")
 
@@ -735,8 +726,6 @@ def _grad(problem32, runs, repeats, say) -> dict:
     forward mode, sharded over the devices in chunks of :data:`GRAD_CHUNK` runs where loops
     compile whole (else of the wide chunks, forward mode stores nothing per step). Timed like
     the jaxcart rows: median wall and process CPU seconds of ``repeats`` calls."""
-    from jaxcart.batch_metrics import WIDE_CHUNK, default_chunk
-
     n_dev = len(jax.devices())
     chunk = max(1, min(default_chunk(GRAD_CHUNK, WIDE_CHUNK), runs // n_dev))
     unit = chunk * n_dev
@@ -779,9 +768,6 @@ def _load() -> float | None:
 
 
 def _versions() -> dict:
-    import control
-    import scipy
-
     return {
         "python": platform.python_version(),
         "jax": jax.__version__,

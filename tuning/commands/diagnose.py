@@ -11,6 +11,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxcart.errors import UserError
+from jaxcart.outputs import check_writable
+from jaxcart.plots import add_format_option
+from tuning.commands.options import add_cluster_options, add_helpers_option, helpers
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 
 def register(subparsers) -> None:
@@ -29,13 +36,12 @@ def register(subparsers) -> None:
     p.add_argument("--out", metavar="DIR", help="report folder (default ./jaxcart-out/diagnose-N)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
     p.add_argument("--fast", action="store_true", help="with --suite: the CI subset only")
-    from tuning.commands.options import add_cluster_options
 
+    add_helpers_option(p)
     add_cluster_options(p)
     p.set_defaults(func=run)
 
@@ -51,7 +57,6 @@ def _default_out() -> Path:
 def _check_outputs(args) -> Path:
     """The report folder, its files and --json checked writable (and absent unless --force)."""
     out = Path(args.out) if args.out else _default_out()
-    from jaxcart.outputs import check_writable
 
     for p in (out / "report.md", out / "corrected_plant.toml", args.json_out):
         if p and Path(p).exists() and not args.force:
@@ -78,20 +83,23 @@ def run(args) -> int:
     # fails at once instead of leaving the other processes waiting for it.
     checked = settings is None or (settings != "auto" and settings[2] == 0)
     out = _check_outputs(args) if checked else None
+
     if not parallel.init_distributed(settings):
-        return _run(args, None, out)
-    from tuning.design.tunerun import Exchange
+        with helpers(args) as pool:
+            return _run(args, None, out, pool)
+    from tuning.distributed import Exchange
 
     share = Exchange()
     # An error one process meets from here on (a recording only some hosts have, a failure
     # mid-run) is raised on every process, none waiting for a partner that has stopped.
     with share.carry():
-        return _run(args, share, out)
+        return _run(args, share, out, helpers(args, distributed=True))
 
 
-def _run(args, share, out) -> int:
-    """Diagnose and write the outputs. share: the :class:`tuning.design.tunerun.Exchange` of a
-    distributed run (else None); out: the report folder, where checked before joining."""
+def _run(args, share, out, pool) -> int:
+    """Diagnose and write the outputs. share: the :class:`tuning.distributed.Exchange` of a
+    distributed run (else None); out: the report folder, where checked before joining; pool:
+    the command's helper processes for the exact runs."""
     from jaxcart import parallel
     from jaxcart.files import read_experiment
     from tuning.estimation.diagnose import diagnose, write_outputs
@@ -107,7 +115,8 @@ def _run(args, share, out) -> int:
         start = load_plant(args.plant_file)
     if share is not None:
         share.sync()  # every process has its inputs: an error reading them stops all now
-    d = diagnose(recordings, start=start, progress=not args.quiet and me == 0, processes=share)
+    progress = not args.quiet and me == 0
+    d = diagnose(recordings, start=start, progress=progress, processes=share, executor=pool)
     if share is not None and not share.finish():
         print(f"process {me} of {share.count}: done, results sent to process 0")
         return 0 if d.status == "diagnosed" else 1

@@ -18,7 +18,17 @@ from __future__ import annotations
 
 import sys
 
+from hw.atomicio import all_or_none
+from hw.jsonio import write_json
 from jaxcart.errors import UserError
+from jaxcart.outputs import check_writable
+from jaxcart.plots import add_format_option, figure_name
+from tuning.commands.options import add_cluster_options, add_helpers_option, helpers
+from tuning.estimation import fitrun
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 #: Figure formats matplotlib writes (checked before fitting, not after).
 PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
@@ -61,7 +71,6 @@ def register(subparsers) -> None:
         help="write the report as JSON (or, for a name ending in .mat, as a MATLAB struct)",
     )
     p.add_argument("--plot", metavar="PNG", help="overlay plot of recordings and model")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     p.add_argument(
@@ -77,8 +86,8 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    from tuning.commands.options import add_cluster_options
 
+    add_helpers_option(p)
     # With --cross, each process fits its share of the recordings alone; process 0 alone runs
     # the joint fit and writes the outputs.
     add_cluster_options(p)
@@ -87,11 +96,9 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from jaxcart import parallel
-    from jaxcart.files import read_experiment
-    from tuning.estimation import fit as F
-    from tuning.estimation import fitrun
+    from tuning.estimation.fit import parse_params
 
-    params = F.parse_params(args.params)
+    params = parse_params(args.params)
     if not params:
         raise UserError("--params: name at least one parameter, e.g. --params B_eq,f_c")
     if args.cross and len(args.experiments) < 2:
@@ -107,9 +114,22 @@ def run(args) -> int:
         check_outputs(args)
     share = None
     if parallel.init_distributed(settings):
-        from tuning.design.tunerun import Exchange
+        from tuning.distributed import Exchange
 
         share = Exchange()
+
+    with helpers(args, distributed=share is not None) as pool:
+        return _run(args, params, share, checked, pool)
+
+
+def _run(args, params, share, checked, pool) -> int:
+    """Fit (and cross-predict), print and write; share: the distributed run's exchange (else
+    None); checked: process 0's outputs were checked before it joined; pool: the command's
+    helper processes, which make the fits' exact runs several at a time."""
+    from jaxcart import parallel
+    from jaxcart.files import read_experiment
+    from tuning.estimation.fit import fit
+
     me = parallel.process_index()
     progress = not args.quiet and me == 0
     recordings, result, failure, report = [], None, None, None
@@ -122,12 +142,13 @@ def run(args) -> int:
             initial = _initial(args.plant_file)
             # The joint fit is one problem: process 0 alone computes it (the others fit their
             # rows of --cross meanwhile) and reports it.
-            result = F.fit(
+            result = fit(
                 recordings,
                 params,
                 per_recording=args.per_recording,
                 initial=initial,
                 progress=progress,
+                executor=pool,
             )
         if result is not None:
             print(format_result(result))
@@ -139,13 +160,13 @@ def run(args) -> int:
     except Exception as exc:
         if share is None:
             raise
-        # Sent in the exchange (tuning.design.tunerun.Exchange.allgather: a UserError as it is, any
+        # Sent in the exchange (tuning.distributed.Exchange.allgather: a UserError as it is, any
         # other as one line naming its type and process) and raised on every process.
         failure = exc
     cross = None
     if args.cross:
         cross = fitrun.cross_table(
-            recordings, params, progress=progress, processes=share, failure=failure
+            recordings, params, progress=progress, processes=share, failure=failure, executor=pool
         )
     elif share is not None:
         fitrun.share(share, {}, failure)
@@ -158,10 +179,9 @@ def run(args) -> int:
         if share is not None:
             print(f"  (each recording fitted by one of {share.count} processes)")
         report["cross_prediction"] = cross
-    from hw.atomicio import all_or_none
 
     with all_or_none(args.json_out, args.out, args.plot):  # all written, or none left
-        _write_outputs(args, report, result, F)
+        _write_outputs(args, report, result)
     return edge_status(result)
 
 
@@ -179,22 +199,22 @@ def edge_status(result) -> int:
     return 1
 
 
-def _write_outputs(args, report, result, F) -> None:
+def _write_outputs(args, report, result) -> None:
+    from tuning.estimation.fit import plot_fit, write_fitted_plant
+
     if args.json_out and str(args.json_out).lower().endswith(".mat"):
         from jaxcart.matfile import write_mat_report
 
         write_mat_report(args.json_out, report, name="fit", force=args.force)
         print(f"report: {args.json_out}")
     elif args.json_out:
-        from hw.jsonio import write_json
-
         write_json(args.json_out, report, force=args.force)
         print(f"report: {args.json_out}")
     if args.out:
-        F.write_fitted_plant(args.out, result, sources=args.experiments, force=args.force)
+        write_fitted_plant(args.out, result, sources=args.experiments, force=args.force)
         print(f"fitted plant: {args.out}")
     if args.plot:
-        F.plot_fit(result, args.plot)
+        plot_fit(result, args.plot)
         print(f"plot: {args.plot}")
 
 
@@ -228,9 +248,6 @@ def check_outputs(args) -> None:
     """Every output path writable (not under a file, not in a read-only folder, not an
     existing file without --force), checked before the fit computes anything; --plot takes
     the suffix of --format."""
-    from jaxcart.outputs import check_writable
-    from jaxcart.plots import figure_name
-
     if args.format and not args.plot:
         raise UserError(f"--format {args.format}: name the figure with --plot (e.g. fit.pdf)")
     if args.plot:

@@ -20,8 +20,12 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
+import jaxcart as jc
 from jaxcart.errors import UserError
-from jaxcart.outputs import OUT_DIR, free_names
+from jaxcart.outputs import OUT_DIR, check_writable, free_names
+from jaxcart.plots import add_format_option, figure_name
 from tuning.commands.options import (
     GAIN_UNITS,
     GAINS,
@@ -30,6 +34,10 @@ from tuning.commands.options import (
     add_robust_options,
     robust_ranges,
 )
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 DEFAULT_RANGES = {"kp": "10:150:64", "ki": "0:30:64", "kd": "0:15:64"}
 #: The gains' order in the design library's grid (its axes, its rows): kp, kd, ki.
@@ -72,7 +80,6 @@ def register(subparsers) -> None:
     )
     p.add_argument("--out", help="metrics file (.npz); default jaxcart-out/grid.npz, grid-2.npz...")
     p.add_argument("--plot", help="heat-map PNG; default beside --out with the suffix .png")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     p.add_argument(
@@ -152,8 +159,6 @@ def read_gains_file(path) -> list[tuple[float, float, float]]:
     """Rows (kp, kd, ki) (the design library's order) of a CSV: a header naming kp, ki and kd
     (any order, other columns ignored) or no header and three columns in the handout's order
     kp, ki, kd. '#' starts a comment line."""
-    import numpy as np
-
     path = Path(path)
     try:
         with open(path, newline="") as f:
@@ -215,8 +220,6 @@ def output_paths(out, plot, force, fmt=None) -> tuple[Path, Path]:
     """The .npz and figure paths: given ones (checked not to exist unless ``force``), or the
     first free jaxcart-out/grid.npz, grid-2.npz, ... with the figure of the same name; fmt:
     the figure's format ("png", the default, "svg" or "pdf")."""
-    from jaxcart.plots import figure_name
-
     suffix = "." + (fmt or "png")
     if out is None and plot is None:
         return free_names(DEFAULT_DIR, "grid", (".npz", suffix))
@@ -227,7 +230,6 @@ def output_paths(out, plot, force, fmt=None) -> tuple[Path, Path]:
     plot_path = figure_name(plot, fmt) if plot is not None else out_path.with_suffix(suffix)
     if out_path == plot_path:
         raise UserError(f"--out and --plot are both {out_path}; give them different names")
-    from jaxcart.outputs import check_writable
 
     for option, path in (("--out", out_path), ("--plot", plot_path)):
         if path.exists() and not force:
@@ -285,7 +287,7 @@ def _check_memory(n_points: int) -> None:
 
 def _plants(args, plant):
     """The plant, or the robust plant set of --robust / --range (as tune builds it)."""
-    from tuning.design.tune import robust_plants
+    from tuning.design.problem import robust_plants
 
     robust = robust_ranges(args)
     if robust is False:
@@ -346,9 +348,7 @@ def run(args) -> int:
 def _points(args) -> dict:
     """The gains to evaluate: {"gains": rows (kp, kd, ki) of --gains-file, or "axes": the
     kp, kd, ki axes of the grid (the design library's order); "n": points; "shape": text}."""
-    import numpy as np
-
-    from tuning.design import gridrun
+    from tuning.design import grid_blocks
 
     if args.gains_file is not None:
         given = [f"--{n}" for n in GAINS if getattr(args, n) is not None]
@@ -364,7 +364,7 @@ def _points(args) -> dict:
         sizes = dict(zip(LIBRARY_ORDER, (a.size for a in axes), strict=True))
         shape = " x ".join(f"{sizes[g]} {g}" for g in GAINS) + f" = {n} points"
         points = {"axes": axes, "shape": shape}
-    if args.gains_file is not None or n <= gridrun.FULL_LIMIT:
+    if args.gains_file is not None or n <= grid_blocks.FULL_LIMIT:
         _check_memory(n)  # a larger grid streams: summaries only, bounded memory
     points["n"] = n
     return points
@@ -374,7 +374,6 @@ def _problem(args) -> dict:
     """The plant (or robust set), its smoothing, the controller template and the step."""
     import jax
 
-    import jaxcart as jc
     from jaxcart.plantsource import load_plant
     from jaxcart.plantspec import describe_plant
 
@@ -402,10 +401,9 @@ def _evaluate(args, points, problem, checkpoint, distributed):
     """Every point's metrics (a :class:`tuning.design.grid.GridResult`; None on a process
     other than 0 of a distributed run)."""
     import jax.numpy as jnp
-    import numpy as np
 
     from jaxcart import parallel
-    from tuning.design import grid, gridrun
+    from tuning.design import grid, grid_blocks
 
     dtype = jnp.float64 if args.float64 else jnp.float32
     where_run = f"{len(parallel.devices())} device(s)"
@@ -416,7 +414,7 @@ def _evaluate(args, points, problem, checkpoint, distributed):
         progress=grid.progress_line("grid", devices=where_run),
         smoothing=problem["smoothing"],
         checkpoint=checkpoint,
-        block=args.block or gridrun.BLOCK,
+        block=args.block or grid_blocks.BLOCK,
         say=lambda text: print(text, file=sys.stderr),
         settling_time=args.settling,
         overshoot=args.overshoot,
@@ -484,7 +482,6 @@ def _not_settled_in_words(table: str) -> str:
 def _json_path(json, force):
     if json is None:
         return None
-    from jaxcart.outputs import check_writable
 
     path = Path(json)
     if path.exists() and not force:

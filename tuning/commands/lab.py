@@ -16,6 +16,13 @@ import contextlib
 import signal
 from pathlib import Path
 
+from jaxcart.plots import add_format_option
+from tuning.commands.options import add_helpers_option, helpers
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -58,16 +65,14 @@ def register(subparsers) -> None:
         action="store_true",
         help="leave out the section that diagnoses each recording (most of the run time)",
     )
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
+
+    add_helpers_option(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)  # fits and checks need float64
     from tuning.lab.report import run_lab
 
     plant = None
@@ -75,7 +80,8 @@ def run(args) -> int:
         from jaxcart.plantsource import load_plant
 
         plant = load_plant(args.plant)
-    with _terminate_as_interrupt():  # a killed job removes its half-written report too
+    # A killed job removes its half-written report too; the helpers stop with the command.
+    with _terminate_as_interrupt(), helpers(args) as pool:
         run_lab(
             args.data,
             args.out,
@@ -83,6 +89,7 @@ def run(args) -> int:
             plant=plant,
             diagnosis=not args.no_diagnosis,
             fmt=args.format or "png",
+            executor=pool,
         )
     return 0
 

@@ -3,11 +3,12 @@
 The command line is the top floor of the layout (docs/design.md, "Layout"): it lives in
 ``tuning/`` and may import ``jaxcart/`` and ``hw/``; neither of them imports it.
 
-Each subcommand lives in its own module with ``register(subparsers)``, which adds its parser
-and sets ``func``; ``func(args)`` returns the exit status. Building the parser imports no jax
-(a command module imports jax and jaxcart inside its ``func``), so ``jaxcart --help`` and
-argument errors answer at once. Errors the user can fix (:class:`jaxcart.errors.UserError`,
-:class:`hw.gains.GainsFileError`) are printed as one line, without a traceback.
+Each subcommand lives in its own module with ``register(subparsers)``, which adds its parser and
+sets ``func``; ``func(args)`` returns the exit status. Building the parser imports no jax (a command
+module imports what imports jax, jaxcart's simulator and tuning's engines, inside its ``func``), so
+``jaxcart --help`` and argument errors answer at once. Errors the user can fix
+(:class:`jaxcart.errors.UserError`, :class:`hw.gains.GainsFileError`) are printed as one line,
+without a traceback.
 """
 
 from __future__ import annotations
@@ -16,6 +17,16 @@ import argparse
 import importlib
 import os
 import sys
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as installed
+
+from hw.atomicio import OutputError
+from hw.gains import GainsFileError
+from jaxcart import xlaflags
+from jaxcart.cache import enable_persistent_cache
+from jaxcart.errors import UserError
+from jaxcart.plots import preload
+from tuning.commands import interruptible
 
 #: Subcommand modules, in the order ``jaxcart --help`` lists them: a student's first (the lab
 #: report, raw files in, trying and designing gains, fitting), then the cart, the instructor's
@@ -38,9 +49,6 @@ COMMANDS = (
 
 def version() -> str:
     """The installed jaxcart's version (from its package metadata; imports nothing)."""
-    from importlib.metadata import PackageNotFoundError
-    from importlib.metadata import version as installed
-
     try:
         return installed("jaxcart")
     except PackageNotFoundError:
@@ -94,35 +102,49 @@ def _main(argv) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    # A command runs: the compilation cache and one XLA device per core, both set before jax
-    # starts a backend, so later runs skip compiling and batches shard over every core.
-    if not args.no_cache:
-        from jaxcart.cache import enable_persistent_cache
+    # A command runs: on the user's behalf, before jax starts a backend, loops compiled whole on
+    # a CPU (jaxcart.xlaflags; JAXCART_XLA_FLAGS=0 leaves XLA_FLAGS alone), the compilation
+    # cache (--no-cache: none) and one XLA device per core, so that the loops run as kernels,
+    # later runs skip compiling and batches shard over every core.
 
+    xlaflags.request()
+    if not args.no_cache:
         enable_persistent_cache()
-    from jaxcart.parallel import use_cpu_devices
+    from jaxcart.parallel import use_cpu_devices  # (imports jax: after parsing, not before)
 
     use_cpu_devices()
+    preloading = None
     if args.command in PLOTTING or getattr(args, "plot", None):
-        from jaxcart.plots import preload
+        preloading = preload()
+    try:
+        return _run(args)
+    finally:
+        if preloading is not None:
+            preloading.join()  # (half a second's import at most: no thread outlives a command)
 
-        preload()
-    from hw.atomicio import OutputError
-    from hw.gains import GainsFileError
-    from jaxcart.errors import UserError
 
+def _run(args) -> int:
+    """The command's exit status; a user's error is one line (status 2), Ctrl-C 130."""
     try:
         if args.command in INTERRUPTIBLE and not getattr(args, "coordinator", None):
-            from tuning.commands import interruptible
-
-            return int(interruptible.run(args.func, args) or 0)
-        return int(args.func(args) or 0)
+            return int(interruptible.run(_in_float64, args) or 0)
+        return int(_in_float64(args) or 0)
     except (UserError, GainsFileError, OutputError) as exc:
         print(f"jaxcart {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _in_float64(args):
+    """``args.func(args)`` in float64: every command computes as the lab's tests check it
+    (jax.enable_x64, scoped to the command's thread; the process's own setting is left as it
+    was, and the fits, the diagnosis and the tuner scope it themselves besides)."""
+    import jax  # (after parsing: building the parser imports no jax)
+
+    with jax.enable_x64(True):
+        return args.func(args)
 
 
 #: Commands that spend minutes inside compiled programs: run so that Ctrl-C stops them at

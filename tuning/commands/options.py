@@ -15,7 +15,9 @@ import argparse
 import math
 import re
 
+from hw.control_law import setting_problem
 from jaxcart.errors import UserError
+from jaxcart.workers import MOST, Helpers
 
 #: The PID gains in the handout's order.
 GAINS = ("kp", "ki", "kd")
@@ -53,6 +55,29 @@ def add_cluster_options(parser: argparse.ArgumentParser) -> None:
         help="jax.distributed: this process, 0 to N-1; 0 writes the outputs (or "
         "JAXCART_PROCESS_ID)",
     )
+
+
+def add_helpers_option(parser: argparse.ArgumentParser) -> None:
+    """--helpers N (fit, diagnose, lab): how many helper processes make the exact simulator's
+    runs several at a time (:func:`helpers`)."""
+    parser.add_argument(
+        "--helpers",
+        type=int,
+        metavar="N",
+        help="helper processes that make the exact simulator's runs several at a time, "
+        f"started by the command and stopped when it ends (default: one fewer than the cores, "
+        f"at most {MOST}; 0: none)",
+    )
+
+
+def helpers(args, *, distributed: bool = False) -> Helpers:
+    """The command's own :class:`jaxcart.workers.Helpers` (use it as a context manager, so
+    they stop when the command ends): ``--helpers N``, else the default; none in a
+    distributed run, whose processes share out the work themselves."""
+    count = getattr(args, "helpers", None)
+    if count is not None and count < 0:
+        raise UserError(f"--helpers {count}: give a whole number of processes, 0 for none")
+    return Helpers(0 if distributed else count)
 
 
 def add_robust_options(group, *, robust_help: str) -> None:
@@ -102,8 +127,6 @@ def parse_gains(text: str, option: str) -> dict:
     """'KP,KI,KD' (the handout's order) -> {"kp", "ki", "kd"} [V/m, V/(m s), V s/m], each
     checked by the one rule of a PID setting (:func:`hw.control_law.setting_problem`: finite,
     >= 0)."""
-    from hw.control_law import setting_problem
-
     parts = [s.strip() for s in text.split(",")]
     try:
         values = [float(s) for s in parts]

@@ -11,10 +11,16 @@ the simulation of the same gains (docs/hardware.md).
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from hw.cli import CommandError, add_run_arguments, run_command
+from hw.devices.base import DeviceError
+from hw.expfile import ExpFileError, experiment_paths
+from jaxcart.errors import UserError
+from jaxcart.outputs import check_writable
+
 
 def register(subparsers) -> None:
-    from hw.cli import add_run_arguments
-
     p = subparsers.add_parser(
         "run",
         help="run a gains file on the cart (sim, q2_usb, q8_usb, replay) and record it",
@@ -36,17 +42,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from hw.cli import CommandError, run_command
-    from hw.devices.base import DeviceError
-    from hw.expfile import ExpFileError
-    from jaxcart.errors import UserError
-
     if args.out:
         # Before the cart moves: an output under a file or in a read-only folder fails now.
-        from pathlib import Path
-
-        from hw.expfile import experiment_paths
-        from jaxcart.outputs import check_writable
 
         for path in experiment_paths(Path(args.out)):
             check_writable(path, option="--out")

@@ -14,12 +14,26 @@ is then the smoothed model's.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import sys
 from pathlib import Path
 
-# jax, numpy and jaxcart are imported inside the functions: ``register`` (the parser) must
-# not start jax, so that ``jaxcart --help`` and argument errors answer at once.
+import numpy as np
+
+import jaxcart as jc
+from hw.atomicio import all_or_none
+from hw.control_law import setting_problem
+from jaxcart import plots
+from jaxcart.errors import SimulationDiverged, UserError
+from jaxcart.outputs import OUT_DIR, check_writable, free_names
+from jaxcart.plots import add_format_option, figure_name
+from tuning.commands.options import NOT_RISEN, timed
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
+
 
 #: The lab's design problem (docs/design.md, "The design problem"): step 0.5 m, handout plant,
 #: 6 V, the handout's gains.
@@ -67,7 +81,6 @@ def register(subparsers) -> None:
         "in, else structure-with-time, the Simulink scope's 'Structure With Time')",
     )
     p.add_argument("--plot", metavar="RUN.png", help="write the figure here")
-    from jaxcart.plots import add_format_option
 
     add_format_option(p)
     which = p.add_mutually_exclusive_group()
@@ -107,14 +120,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    import numpy as np
-
-    import jaxcart as jc
     from jaxcart import plausibility
-    from jaxcart.errors import SimulationDiverged, UserError
     from jaxcart.files import read_experiment
 
     recording = read_experiment(args.experiment) if args.experiment else None
@@ -173,7 +179,6 @@ def run(args) -> int:
         description=f"jaxcart simulate ({method} simulator) of {source}",
         force=args.force,
     )
-    from hw.atomicio import all_or_none
 
     with all_or_none(csv_path, toml_path, png_path):  # a failed figure leaves no data either
         if csv_path.suffix.lower() == ".mat":
@@ -207,8 +212,6 @@ def run(args) -> int:
 
 def _with_options(args, controller, experiment, source):
     """The controller with the command-line gains applied."""
-    from jaxcart.errors import UserError
-
     given = {k: getattr(args, k) for k in GAIN_OPTIONS if getattr(args, k) is not None}
     if experiment.kind != "closed_loop":
         if given:
@@ -222,8 +225,6 @@ def _with_options(args, controller, experiment, source):
         raise UserError(
             f"{source} has no [controller]; add one or give the gains with --kp/--ki/--kd"
         )
-    import jaxcart as jc
-    from hw.control_law import setting_problem
 
     base = controller or jc.PID(sample_time=experiment.sample_time)
     for name, value in given.items():
@@ -238,11 +239,8 @@ def _with_options(args, controller, experiment, source):
 def _outputs(args, recording):
     """(data: .csv or .mat, toml, png or None), refusing existing files unless --force, before
     simulating."""
-    from jaxcart.errors import UserError
     from jaxcart.files import experiment_paths
     from jaxcart.matfile import mat_paths
-    from jaxcart.outputs import OUT_DIR, check_writable, free_names
-    from jaxcart.plots import figure_name
 
     if args.out:
         out = Path(args.out)
@@ -301,7 +299,6 @@ def _mat_data(recording) -> bool:
 def _solver(smooth: bool, experiment):
     """The simulator the options choose, as a value (jaxcart.simulate's solver): the exact one,
     or with --smooth the smooth one, in chunks with progress for a long run."""
-    import jaxcart as jc
     from jaxcart import chunked_sim
 
     if not smooth:
@@ -313,11 +310,8 @@ def _solver(smooth: bool, experiment):
 
 
 def _simulate(solver, plant, controller, experiment):
-    import functools
-
     import jax
 
-    import jaxcart as jc
     from jaxcart import chunked_sim
 
     pid = controller if controller is not None else jc.PID(sample_time=experiment.sample_time)
@@ -353,8 +347,6 @@ def _voltage_limit(plant, controller) -> float:
 
 
 def _plot(path, response, recording, controller, plant, source, method):
-    from jaxcart import plots
-
     runs = []
     if recording is not None:
         runs.append(plots.run_from_recording(recording))
@@ -377,8 +369,6 @@ def _plot(path, response, recording, controller, plant, source, method):
 
 def _thinned(run):
     """The run with at most about chunked_sim.PLOT_POINTS samples, each block's extremes kept."""
-    import numpy as np
-
     from jaxcart.chunked_sim import thin_indices
 
     keep = thin_indices(len(run.time), run.position, run.voltage)
@@ -394,8 +384,6 @@ def _thinned(run):
 
 
 def _is_step(response) -> bool:
-    import numpy as np
-
     r = np.asarray(response.reference)
     return (
         response.kind == "closed_loop"
@@ -405,8 +393,6 @@ def _is_step(response) -> bool:
 
 
 def _metrics_line(info) -> str:
-    from tuning.commands.options import NOT_RISEN, timed
-
     return (
         f"{timed('rise', info.rise_time, NOT_RISEN)}, {timed('settling', info.settling_time)}, "
         f"overshoot {info.overshoot:.2f} %, steady-state error "
@@ -415,9 +401,6 @@ def _metrics_line(info) -> str:
 
 
 def _summary(source, experiment, method, controller, plant, response, recording, paths):
-    import numpy as np
-
-    import jaxcart as jc
     from jaxcart.plantspec import describe_plant
 
     n = experiment.n_samples

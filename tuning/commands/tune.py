@@ -15,8 +15,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
+from hw.control_law import PID, setting_problem
+from hw.gains import GainsFileError, write_gains
+from hw.jsonio import write_json
 from jaxcart.errors import UserError
 from jaxcart.outputs import OUT_DIR, check_writable, free_names
+from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
 from tuning.commands.options import (
     GAINS,
     add_cluster_options,
@@ -27,6 +33,11 @@ from tuning.commands.options import (
     seconds_text,
     timed,
 )
+from tuning.design.settings import DEFAULT  # (no jax: read while the parser is built)
+
+# What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
+# run the command: building the parser must start no jax (importing jax takes 2.4 s against
+# 0.65 s for all of ``jaxcart --help``, measured on 2 cores; tests/test_layout.py checks it).
 
 #: What --free may name (tuning.design.losses.PARAM_NAMES, without importing jax for --help),
 #: the gains in the handout's order.
@@ -209,16 +220,19 @@ def _run_options(run_) -> None:
     run_.add_argument(
         "--starts",
         type=int,
-        default=8,
-        help="multi-start batch size (8; rounded up to a multiple of the device count)",
+        default=DEFAULT.n_starts,
+        help=f"multi-start batch size ({DEFAULT.n_starts}; rounded up to a multiple of the "
+        "device count)",
     )
     run_.add_argument(
         "--iterations",
         type=int,
-        default=400,
-        help="most optimizer iterations (400; it stops earlier when done)",
+        default=DEFAULT.max_iterations,
+        help=f"most optimizer iterations ({DEFAULT.max_iterations}; it stops earlier when done)",
     )
-    run_.add_argument("--seed", type=int, default=0, help="seed of the multi-start (0)")
+    run_.add_argument(
+        "--seed", type=int, default=DEFAULT.seed, help=f"seed of the multi-start ({DEFAULT.seed})"
+    )
     run_.add_argument(
         "--compare",
         action="store_true",
@@ -249,7 +263,7 @@ def run(args) -> int:
         outputs = (*_outputs(args), _json_path(args))
     if not parallel.init_distributed(settings):
         return _run(args, None, outputs)
-    from tuning.design.tunerun import StartShare
+    from tuning.design.start_share import StartShare
 
     share = StartShare(args.starts)
     # An error one process meets from here on (an input only some hosts have, a failure
@@ -259,13 +273,10 @@ def run(args) -> int:
 
 
 def _run(args, share, outputs) -> int:
-    """Tune and write the outputs. share: this process's :class:`tuning.design.tunerun.StartShare`
-    in a distributed run (else None); outputs: process 0's paths checked before it joined."""
-    import jax
-
+    """Tune and write the outputs. share: this process's
+    :class:`tuning.design.start_share.StartShare` in a distributed run (else None); outputs:
+    process 0's paths checked before it joined."""
     from jaxcart import parallel
-
-    jax.config.update("jax_enable_x64", True)
     from tuning.design.tune import tune
 
     problem = _problem(args)
@@ -316,7 +327,7 @@ def _problem(args) -> dict:
 
 def _compare(args, problem) -> int:
     """--compare: this tuner against Nelder-Mead (and a grid) on each problem; prints tables."""
-    from tuning.design.tune import compare_tuners
+    from tuning.benchmark.tuners import compare_tuners
 
     if problem["robust"] is not False:
         raise UserError(
@@ -346,7 +357,6 @@ def _compare(args, problem) -> int:
 
 def _write_outputs(args, result, problem, paths) -> None:
     """The gains file (with the run's metadata), the figure and the JSON summary."""
-    from hw.gains import GainsFileError, write_gains
     from jaxcart.experiments import step
 
     gains_path, png_path, json_path = paths
@@ -378,7 +388,7 @@ def _write_outputs(args, result, problem, paths) -> None:
     sample_time = problem["controller"].sample_time
     _plot(png_path, result, step(spec.step, horizon=spec.horizon, sample_time=sample_time))
     if json_path is not None:
-        _write_json(json_path, result.as_json())
+        _write_json(json_path, result.to_json())
     written = ", ".join(
         str(p) for p in (gains_path, png_path, json_path) if p is not None and str(p) != "-"
     )
@@ -455,8 +465,6 @@ def _start(text):
 
 
 def _controller(args):
-    from hw.control_law import PID, setting_problem
-
     for name in ("sample_time", "tau", "kb", "v_limit"):  # the one rule (hw.control_law)
         value = getattr(args, name)
         problem = setting_problem(name, value)
@@ -513,8 +521,6 @@ def _json_path(args):
 
 
 def _write_json(path, doc):
-    from hw.jsonio import write_json
-
     write_json(path, doc, force=True)  # the name was checked (or --force given) before tuning
 
 
@@ -579,10 +585,7 @@ def _plot(path, result, experiment):
     """The exact simulator's step response (and the worst plant of a robust set). The smooth
     run at the final widths is not drawn: it lies on the exact one (the printed metrics give
     both), and simulating it here cost a compilation and seconds of eager operations."""
-    import numpy as np
-
     from jaxcart.exact import simulate_exact
-    from jaxcart.plots import Run, plot_runs, reference_run, run_from_response
 
     g, spec = result.gains, result.spec
     exact = simulate_exact(result.plant, g, experiment)

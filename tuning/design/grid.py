@@ -9,11 +9,11 @@ overshoot < ``overshoot``, not diverged: :meth:`jaxcart.StepInfo.meets`).
 Memory stays bounded for any grid: the gains of a block of points are generated from the axes
 when the block is evaluated (the (B, 3) gain array of the whole grid is never built), each block
 goes through :func:`jaxcart.batch_metrics.step_metrics_batch` (chunked, sharded over every local
-device) and is kept by :mod:`tuning.design.gridrun` (checkpoint files, the share of each process of
-a
-distributed run, the streaming reduction). A grid of up to :data:`tuning.design.gridrun.FULL_LIMIT`
-points also keeps its metric arrays (about 30 bytes per point); a larger one keeps summaries.
-With a plant set (a list of plants) every metric is the worst over the set.
+device) and is kept by :mod:`tuning.design.grid_blocks` (checkpoint files, the share of each process
+of a distributed run, the streaming reduction). A grid of up to
+:data:`tuning.design.grid_blocks.FULL_LIMIT` points also keeps its metric arrays (about 30 bytes per
+point); a larger one keeps summaries. With a plant set (a list of plants) every metric is the worst
+over the set.
 
 >>> import numpy as np, jaxcart as jc
 >>> res = grid_search(jc.handout_plant(), jc.PID(v_limit=6.0), jc.step(0.5, horizon=1.5),
@@ -25,22 +25,28 @@ With a plant set (a list of plants) every metric is the worst over the set.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 import time
+import zipfile
 from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.patches import Patch, Rectangle
 
+from hw.atomicio import atomic_open
 from jaxcart.batch_metrics import default_chunk, step_metrics_batch
 from jaxcart.chunked_sim import duration_text
 from jaxcart.errors import UserError
+from jaxcart.exact import step_info_exact
 from jaxcart.metrics import StepInfo
 from jaxcart.smooth_sim import EXACT_FORMS
-from tuning.design import gridrun
-from tuning.design.gridrun import feasible_mask
+from tuning.design import grid_blocks
+from tuning.design.grid_blocks import feasible_mask
 
 #: Metric names with their units, in the order they are reported.
 METRICS = {
@@ -61,7 +67,7 @@ class GridResult:
     info: :class:`jaxcart.StepInfo` of arrays, each of ``shape`` ((nkp, nkd, nki) for a grid,
         (B,) for a list): rise/settling/saturation time [s], overshoot [%], steady-state
         error [m], peak voltage [V], diverged (bool); None for a grid too large to hold
-        (:data:`tuning.design.gridrun.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
+        (:data:`tuning.design.grid_blocks.FULL_LIMIT`): :meth:`slices` and :func:`save_npz` read its
         blocks back from ``store``
     feasible: bool array of ``shape``, True where the point meets the specification (None
         with ``info``)
@@ -78,7 +84,7 @@ class GridResult:
     ki_feasible: feasible points in each k_i slice (grids)
     settling_range: (min, max) finite settling time of any point [s] (nan, nan if none)
     n_plants: plants of the set the metrics are the worst over (1: one plant)
-    store: the :class:`tuning.design.gridrun.BlockStore` of the blocks; block: points per block
+    store: the :class:`tuning.design.grid_blocks.BlockStore` of the blocks; block: points per block
     n_computed: points this process computed in this call (fewer when it resumed from a
         checkpoint or shared the work with other processes)
     """
@@ -100,7 +106,7 @@ class GridResult:
     settling_range: tuple[float, float] = (float("nan"), float("nan"))
     n_plants: int = 1
     store: object = None
-    block: int = gridrun.BLOCK
+    block: int = grid_blocks.BLOCK
     n_computed: int = 0
 
     @property
@@ -147,7 +153,7 @@ class GridResult:
         ts = np.full((nkp * nkd, len(ks)), np.nan)
         ok = np.zeros((nkp * nkd, len(ks)), bool)
         needs = ("settling_time", "overshoot", "diverged")
-        for start, flat in gridrun.blocks(self.store, self.n_points, self.block, needs):
+        for start, flat in grid_blocks.blocks(self.store, self.n_points, self.block, needs):
             idx = start + np.arange(flat["settling_time"].size)
             col = where[idx % nki]
             pick = col >= 0
@@ -182,7 +188,7 @@ def grid_search(
     progress=None,
     checkpoint=None,
     keep_full: bool | None = None,
-    block: int = gridrun.BLOCK,
+    block: int = grid_blocks.BLOCK,
     say=None,
 ) -> GridResult | None:
     """Evaluate every point of the grid kp x kd x ki (1-D axes [V/m], [V s/m], [V/(m s)]).
@@ -194,10 +200,10 @@ def grid_search(
     that precision whatever ``jax_enable_x64`` says. smoothing: default the exact forms (hard
     clip), right for plants without friction. ``progress(done, total)`` after each block.
     checkpoint: a folder for the block files (a rerun of the same problem resumes from them;
-    ``say(text)`` is told so);
-    keep_full: hold every metric array (default: when the grid has at most
-    :data:`tuning.design.gridrun.FULL_LIMIT` points). Metric arrays are shaped (len(kp), len(kd),
-    len(ki)). In a distributed run (:func:`jaxcart.parallel.init_distributed`) every process
+    ``say(text)`` is told so); keep_full: hold every metric array (default: when the grid has at
+    most :data:`tuning.design.grid_blocks.FULL_LIMIT` points). Metric arrays are shaped (len(kp),
+    len(kd), len(ki)). In a distributed run (:func:`jaxcart.parallel.init_distributed`) every
+    process
     computes its share of the blocks; process 0 returns the result, the others None.
     """
     _check_spec(settling_time, overshoot)
@@ -241,7 +247,7 @@ def evaluate_list(
     chunk: int | None = None,
     progress=None,
     checkpoint=None,
-    block: int = gridrun.BLOCK,
+    block: int = grid_blocks.BLOCK,
     say=None,
 ) -> GridResult | None:
     """Evaluate each row (kp [V/m], kd [V s/m], ki [V/(m s)]) of ``gains`` (shape (B, 3)).
@@ -315,11 +321,11 @@ def _evaluate(
     n = int(np.prod(shape))
     # Same block size on every call (the last one padded) so the evaluator compiles once.
     block = int(min(n, block))
-    keep_full = n <= gridrun.FULL_LIMIT if keep_full is None else bool(keep_full)
+    keep_full = n <= grid_blocks.FULL_LIMIT if keep_full is None else bool(keep_full)
     where = plants if len(plants) > 1 else plants[0]
     # The chunk is not part of the problem: it moves a metric by rounding at most, and the
     # processes of one distributed run (a GPU host beside CPU hosts) may choose different ones.
-    key = gridrun.problem_key(
+    key = grid_blocks.problem_key(
         where,
         controller,
         experiment,
@@ -344,14 +350,14 @@ def _evaluate(
     # Exactly the requested precision whatever jax_enable_x64 says globally: float64 needs it
     # on (the command line runs with it off); float32 must not pick up the default float64.
     with jax.enable_x64(dtype == np.float64):
-        first, computed = gridrun.fill(store, n, block, compute, progress=progress, say=say)
+        first, computed = grid_blocks.fill(store, n, block, compute, progress=progress, say=say)
         if not first:
             return None  # another process of a distributed run: process 0 reports
     elapsed = time.perf_counter() - start_time
-    reducer = gridrun.Reducer(
+    reducer = grid_blocks.Reducer(
         n, dtype, *spec, keep_full=keep_full, nki=shape[2] if axes is not None else None
     )
-    for start, flat in gridrun.blocks(store, n, block):
+    for start, flat in grid_blocks.blocks(store, n, block):
         reducer.add(start, flat)
     if reducer.full is not None and store.dir is None:
         store.remove()  # the full arrays hold it all: no second copy in memory
@@ -388,14 +394,14 @@ def _checked_problem(plant, experiment, smoothing, dtype) -> tuple[list, np.dtyp
     return plants, dtype
 
 
-def _store(checkpoint, keep_full: bool, key: str) -> gridrun.BlockStore:
+def _store(checkpoint, keep_full: bool, key: str) -> grid_blocks.BlockStore:
     """Block files in ``checkpoint``, else memory when the full arrays are kept anyway, else a
     temporary folder."""
     if checkpoint is not None:
-        return gridrun.BlockStore(checkpoint, key)
+        return grid_blocks.BlockStore(checkpoint, key)
     if keep_full:
-        return gridrun.BlockStore(None, key)
-    return gridrun.temporary_store(key)
+        return grid_blocks.BlockStore(None, key)
+    return grid_blocks.temporary_store(key)
 
 
 def _block_metrics(where, controller, experiment, rows, n, block, smoothing, chunk, dtype):
@@ -455,8 +461,6 @@ def recheck(plant, controller, experiment, gains) -> tuple[StepInfo, str]:
     """Metrics of one gain triple (kp, kd, ki) on the exact simulator, in float64.
 
     Returns (:class:`StepInfo`, a label naming the simulator)."""
-    from jaxcart.exact import step_info_exact
-
     pid = dataclasses.replace(
         controller, kp=float(gains[0]), kd=float(gains[1]), ki=float(gains[2])
     )
@@ -557,8 +561,6 @@ def summary(result: GridResult, exact: StepInfo | None = None) -> dict:
 
 def save_json(result: GridResult, path, *, exact: StepInfo | None = None, force=False):
     """Write :func:`summary` to ``path``; refuses to overwrite unless ``force``."""
-    import json
-
     with _open(path, force) as f:
         f.write((json.dumps(summary(result, exact), indent=2) + "\n").encode())
     return path
@@ -586,9 +588,6 @@ def save_npz(result: GridResult, path, *, exact: StepInfo | None = None, force=F
     point's re-check when ``exact`` is given. A grid without full arrays is written block by
     block from its store (memory stays bounded).
     """
-    import json
-    import zipfile
-
     small = {}
     if result.axes is not None:
         small.update(kp=result.axes[0], kd=result.axes[1], ki=result.axes[2])
@@ -634,7 +633,7 @@ def _stream_member(zf, name, result) -> None:
     with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
         np.lib.format.write_array_header_2_0(member, header)
         needs = ("settling_time", "overshoot", "diverged") if name == "feasible" else (name,)
-        for _start, flat in gridrun.blocks(result.store, result.n_points, result.block, needs):
+        for _start, flat in grid_blocks.blocks(result.store, result.n_points, result.block, needs):
             if name == "feasible":
                 values = feasible_mask(flat, result.settling_spec, result.overshoot_spec)
             else:
@@ -646,8 +645,6 @@ def _open(path, force):
     """The output file under a temporary name, renamed when the block ends
     (:mod:`hw.atomicio`): a full disk leaves no half file; an existing file is refused
     unless ``force``."""
-    from hw.atomicio import atomic_open
-
     return atomic_open(path, "wb", force=force)
 
 
@@ -672,8 +669,6 @@ def plot_slices(result: GridResult, path=None, *, n_slices: int = 4, force=False
 
 def _plot_grid(result: GridResult, n_slices: int):
     """The heat maps of :func:`plot_slices` for a grid."""
-    import matplotlib.pyplot as plt
-
     ki = result.axes[2]
     per_slice = result.ki_feasible
     # Spread the slices over the ki range that has feasible points (all of it if none).
@@ -723,8 +718,6 @@ def _colour_limits(result: GridResult) -> tuple[float, float]:
 def _draw_slice(ax, result: GridResult, k: int, values, limits):
     """One k_i slice ``k``: the hatched infeasible background, the settling times ``values``
     (kp x kd, nan where not shown) and the best point's star; returns the mesh."""
-    from matplotlib.patches import Rectangle
-
     kp, kd, ki = result.axes
     lo, hi = limits
     ax.add_patch(
@@ -772,9 +765,6 @@ def _draw_slice(ax, result: GridResult, k: int, values, limits):
 
 def _grid_legend(result: GridResult) -> list:
     """The legend's handles: the hatched infeasible region and the best point's star."""
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
-
     return [
         Patch(
             facecolor="0.92",
@@ -805,8 +795,6 @@ def slice_note(result: GridResult, slices) -> str:
 
 
 def _plot_list(result):
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(6.4, 4.8), layout="constrained")
     g, ok = result.gains, result.feasible
     ts = result.info.settling_time

@@ -70,6 +70,7 @@ from jaxcart.params import ENCODER_RESOLUTION, Plant
 from jaxcart.plantspec import handout_plant
 from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing, continuation
+from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.covariance import covariances
 from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
@@ -753,8 +754,9 @@ _positions_jit = jax.jit(_positions, static_argnames="layout")
 class _Problem:
     """Segments, theta's layout and the compiled residual function."""
 
-    def __init__(self, segments, params, settings: FitSettings):
+    def __init__(self, segments, params, settings: FitSettings, executor=None):
         self.segments = segments
+        self.executor = executor or SERIAL
         self.params = tuple(canonical(p) for p in params)
         self.n_params = len(self.params)
         self.settings = settings
@@ -918,8 +920,7 @@ class _Problem:
 
     def simulate_exact_many(self, thetas):
         """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
-        (:func:`jaxcart.workers.map`)."""
-        from jaxcart import workers
+        (the executor's ``map``: several at a time)."""
         from tuning.estimation.engine.exact_runs import exact_position
 
         jobs = []
@@ -930,7 +931,7 @@ class _Problem:
                 jobs.append(
                     (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
                 )
-        runs = workers.map(exact_position, jobs, list(self.sizes) * len(thetas))
+        runs = self.executor.map(exact_position, jobs, list(self.sizes) * len(thetas))
         n = len(self.segments)
         return [runs[i : i + n] for i in range(0, len(runs), n)]
 
@@ -1028,6 +1029,7 @@ def fit(
     settings: FitSettings | None = None,
     exact: bool = True,
     progress: bool = True,
+    executor=None,
 ) -> FitResult:
     """Fit plant parameters (shared by all recordings) and nuisance values (per recording).
 
@@ -1038,20 +1040,19 @@ def fit(
     as ``name@k`` for recording ``k`` (:attr:`FitResult.per_recording`); the others are one
     value for every recording (the cart's mechanics); initial: starting (and, for names not
     fitted, fixed) values {name: value} [SI] applied to every recording's plant; exact: also
-    run the exact simulator before and after; progress: a line per stage on stderr.
-    Returns a :class:`FitResult`; a parameter the data do not determine is reported as not
-    identifiable and held at its starting value. Runs in float64 whatever jax_enable_x64 says.
+    run the exact simulator before and after; progress: a line per stage on stderr; executor:
+    what makes the exact runs several at a time (a :class:`jaxcart.workers.Helpers` the caller
+    owns; default: one after the other in this process). Returns a :class:`FitResult`; a
+    parameter the data do not determine is reported as not identifiable and held at its
+    starting value. Runs in float64 whatever jax_enable_x64 says.
     Refused before any fitting (:func:`jaxcart.plausibility.check_fit_recordings`): a
     recording without motion, the same data twice, an open-loop input in other units.
     """
     from jaxcart.plausibility import check_fit_recordings
 
     recordings = check_fit_recordings(recordings)
-    from jaxcart import workers
-
-    workers.start()  # the exact polish's helpers import while the smooth fit runs
     with jax.enable_x64(True):
-        return _fit(recordings, params, per_recording, initial, settings, exact, progress)
+        return _fit(recordings, params, per_recording, initial, settings, exact, progress, executor)
 
 
 #: Most Levenberg-Marquardt iterations of the direct start at the narrowest width (the
@@ -1088,7 +1089,7 @@ class _Run:
         return theta, r, jac
 
 
-def _fit(recordings, params, per_recording, initial, settings, exact, progress) -> FitResult:
+def _fit(recordings, params, per_recording, initial, settings, exact, progress, executor):
     settings = settings or FitSettings()
     t_start = _time.perf_counter()
     params = parse_params(params)
@@ -1098,7 +1099,7 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress) 
     values0 = {canonical(k): _initial_value(k, v) for k, v in (initial or {}).items()}
     segments = [prepare(rec, params, values0, settings) for rec in recordings]
     params = _expand(params, per_recording, segments)
-    problem = _Problem(segments, params, settings)
+    problem = _Problem(segments, params, settings, executor)
     run = _Run(progress)
     active, notes = _acting(problem)
     r0, _ = problem.evaluate(problem.theta0, settings.widths[-1])
@@ -1441,12 +1442,19 @@ def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:
 
 
 def cross_predict(
-    values: dict, recordings, *, settings: FitSettings | None = None, progress: bool = False
+    values: dict,
+    recordings,
+    *,
+    settings: FitSettings | None = None,
+    progress: bool = False,
+    executor=None,
 ) -> FitResult:
     """How well parameter ``values`` (e.g. ``FitResult.values`` of another recording) predict
     ``recordings``: only the nuisance values (a tap's start state) are fitted; the result's
     ``rms_after_exact`` is the prediction error [m]."""
-    return fit(recordings, (), initial=values, settings=settings, progress=progress)
+    return fit(
+        recordings, (), initial=values, settings=settings, progress=progress, executor=executor
+    )
 
 
 def _finite(x):

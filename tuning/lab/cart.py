@@ -7,16 +7,24 @@ chosen structure over every recording, the mechanics shared and a drive limit fr
 where the data show one, and the same structure on the driven runs alone, for a B_eq beside
 the tap's. :func:`compute` takes the cart from there (fitting only where there is no
 diagnosis: ``--no-diagnosis``, or recordings it could not diagnose, with
-:func:`tuning.estimation.fit.fit`, ``per_recording``) and re-tunes the PID on it;
+:func:`tuning.estimation.fit.fit`, ``per_recording``); :func:`retune` tunes the PID on it (the
+lab runs it beside Part (v) and puts its result in the cart with :func:`with_retune`);
 :func:`render` writes the section and the plant file.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 from jaxcart import plantspec
+from jaxcart.plantspec import write_plant_file
+from tuning.design.tune import tune
+from tuning.estimation.diagnose.as_fit import fit_result
+from tuning.estimation.engine.parameters import bounds
+from tuning.estimation.fit import Estimate
+from tuning.lab import fits
 from tuning.lab.context import Lab, fmt, value
 
 #: The joint model without a diagnosis: viscous and Coulomb friction shared, the amplifier
@@ -33,21 +41,16 @@ class JointCart:
     diagnosis's, :func:`tuning.estimation.diagnose.as_fit.fit_result`, or a fit of its own);
     driven: B_eq of the driven runs alone (an :class:`~tuning.estimation.fit.Estimate`; None
     without a tap to compare with); tap: Part (i)'s (B_eq, its standard error) [kg/s] or None;
-    retune: the PID re-tuned on the fitted cart (:attr:`tuned`); names: each recording's
-    file name; source: where the fit comes from, in words."""
+    names: each recording's file name; source: where the fit comes from, in words; tuned: the
+    PID re-tuned on the fitted cart (a :class:`tuning.design.result.TuneResult`; None until
+    the lab has it: :func:`retune`, :func:`with_retune`)."""
 
     fit: object
     driven: object
     tap: tuple | None
-    retune: object
     names: tuple
     source: str = "the joint diagnosis"
-
-    @property
-    def tuned(self):
-        """The re-tune's :class:`tuning.design.tune.TuneResult` (``retune`` runs it in a
-        :class:`jaxcart.background.Background` beside Part (v); this waits for it)."""
-        return self.retune.result()
+    tuned: object = None
 
     @property
     def plant(self):
@@ -83,11 +86,8 @@ def compute(
     :func:`structure`'s parameters;
     ``tap_b_eq``: Part (i)'s (value, stderr); ``start``: the cart as the parts left it ({name:
     value}), where a fit of its own starts; ``fit``: the lab's fitter
-    (:func:`tuning.lab.fits.fit`). None without a driven run."""
-    from jaxcart.background import Background
-    from tuning.design.tune import tune
-    from tuning.lab.prelab import TUNE_OPTIONS
-
+    (:func:`tuning.lab.fits.fit`). None without a driven run. The PID is not re-tuned here
+    (:func:`retune`)."""
     runs = inputs.runs()
     if not any(r.kind != "tap" for r in runs):
         return None
@@ -97,18 +97,23 @@ def compute(
     else:
         joint, alone = _fitted(inputs, runs, tap_b_eq, start or {}, fit, say)
         source = "a joint fit of its own (no diagnosis)"
-    say("the cart: the PID re-tuned on the fitted cart")
-    # Beside Part (v) and the report's figures, which do not need it.
-    retune = Background(tune, _design_plant(joint), progress=False, **TUNE_OPTIONS)
     names = tuple(s.name for s in joint.segments)
-    return JointCart(joint, alone, tap_b_eq, retune, names, source)
+    return JointCart(joint, alone, tap_b_eq, names, source)
+
+
+def retune(c: JointCart):
+    """The PID tuned on the fitted cart, with ``jaxcart tune``'s settings (one tuner, one
+    answer): a :class:`tuning.design.result.TuneResult`."""
+    return tune(_design_plant(c.fit), progress=False)
+
+
+def with_retune(c: JointCart | None, tuned) -> JointCart | None:
+    """The cart with its re-tuned PID (:func:`retune`'s result)."""
+    return None if c is None else dataclasses.replace(c, tuned=tuned)
 
 
 def _diagnosed(diagnosis, tap_b_eq, say):
     """(the diagnosis's joint fit, B_eq of its driven runs alone or None)."""
-    from tuning.estimation.diagnose.as_fit import fit_result
-    from tuning.estimation.fit import Estimate
-
     joint = fit_result(diagnosis)
     say(f"the cart: the diagnosis's joint fit of {len(joint.segments)} recordings")
     b = diagnosis.driven_alone.get("parameters", {}).get("B_eq")
@@ -121,8 +126,6 @@ def _diagnosed(diagnosis, tap_b_eq, say):
 def _fitted(inputs, runs, tap_b_eq, start, fit, say):
     """(a joint fit of ``runs``, B_eq of the driven runs fitted alone or None): without a
     diagnosis, in :func:`structure`'s parameters from the parts' values."""
-    from tuning.lab import fits
-
     fit = fit or fits.fit
     driven = [r for r in runs if r.kind != "tap"]
     params, per = structure(inputs)
@@ -141,8 +144,6 @@ def _fitted(inputs, runs, tap_b_eq, start, fit, say):
 def _design_plant(joint):
     """The fitted cart as the tuner's design model: its mechanics and drive, without the
     sensor (the tuner's loop reads the position itself)."""
-    import dataclasses
-
     plant = joint.plant()
     return dataclasses.replace(
         plant, effects=tuple(e for e in plant.effects if e.stage != "sensor")
@@ -152,8 +153,6 @@ def _design_plant(joint):
 def model_of(c: JointCart | None, before):
     """The lab's :class:`tuning.lab.model.CartModel` after the joint fit (``before`` without
     one): Part (v) simulates the measured run on it."""
-    import dataclasses
-
     if c is None:
         return before
     e = c.fit.params
@@ -184,7 +183,7 @@ def values(c: JointCart | None) -> list:
     return out
 
 
-def as_json(c: JointCart | None) -> dict | None:
+def to_json(c: JointCart | None) -> dict | None:
     if c is None:
         return None
     agree = c.agreement()
@@ -207,7 +206,6 @@ def render(lab: Lab, c: JointCart | None) -> None:
     if c is None:
         doc.paragraph("No driven recording was given: the cart is the tap's (Part (i)).")
         return
-    from jaxcart.plantspec import write_plant_file
 
     write_plant_file(lab.out / PLANT_FILE, c.plant, fit={"source": f"jaxcart lab, {c.source}"})
     doc.paragraph(_structure_text(c))
@@ -261,7 +259,6 @@ def _agreement_text(c: JointCart) -> str:
         return "Without a tap and a driven run there is no second B_eq to compare."
     diff, sigmas = agree
     b = c.driven
-    from tuning.estimation.engine.parameters import bounds
 
     lo, hi = bounds("B_eq")
     if not lo * 1.02 < b.value < hi / 1.02:

@@ -19,11 +19,16 @@ true cart in ``[synthetic]``, which the report compares its fits with.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 
+import jaxcart as jc
 from jaxcart.errors import UserError
+from jaxcart.plantspec import build_plant
+from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.lab import data
 
 #: Viscous friction B_eq [kg/s] and Coulomb friction f_c [N] of the class's carts (uniform).
@@ -55,10 +60,6 @@ def write_student(folder, cart: dict, *, seed: int, horizons: dict | None = None
     """One student's folder: the six experiments on ``cart`` ({"B_eq", "f_c"}, SI units) and
     lab.toml. horizons: {slot: seconds} replacing the built-in horizons (e.g. :data:`SHORT`);
     seed: the encoder phase. Refuses to write into a folder that holds files."""
-    import jax
-
-    from jaxcart.synthetic import write_recording
-
     folder = Path(folder)
     if folder.exists() and any(folder.iterdir()):
         raise UserError(f"{folder}: the folder holds files; give a new folder for the student")
@@ -90,10 +91,6 @@ def generate_class(
 def _make(spec, truth: dict, seed: int):
     """The recording of one spec on the cart ``truth`` (as :func:`tuning.lab.data.make` makes
     the built-in ones on the built-in cart)."""
-    import jaxcart as jc
-    from jaxcart.plantspec import build_plant
-    from jaxcart.synthetic import make_recording, make_tap_recording
-
     values = {name: truth[name] for name in ("M", "B_eq", "f_c")}
     q = truth[data.ENCODER_PARAM]
     if spec.kind == "tap":
@@ -125,7 +122,6 @@ def _index(truth: dict, seed: int) -> str:
 
 
 def main(argv=None) -> int:  # pragma: no cover - run by hand, see the module docstring
-    import sys
 
     args = sys.argv[1:] if argv is None else argv
     if not args or len(args) > 2:

@@ -10,8 +10,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 from jaxcart.plots import DPI
+from tuning.lab.inputs import SLOTS
 
 #: The numbers whose distributions are drawn, when the reports have them and they vary.
 PREFERRED = (
@@ -40,8 +44,6 @@ DASHES = ("-", "--", ":", "-.")
 def line_style(k: int) -> dict:
     """The colour and dash of the ``k``-th student's lines (matplotlib keywords): the first ten
     solid in tab10's colours, the next ten dashed in the same colours, and so on."""
-    from matplotlib import colormaps
-
     cmap = colormaps["tab10"]
     return {"color": cmap(k % COLOURS), "ls": DASHES[(k // COLOURS) % len(DASHES)]}
 
@@ -91,8 +93,6 @@ def _scale(unit: str) -> tuple[float, str]:
 def distributions(result, columns, path) -> Path:
     """One strip per number: each complete student's value (jittered vertically), a box plot,
     flagged values in red with the student's name, the spec's bound where there is one."""
-    from matplotlib.figure import Figure
-
     n = len(columns)
     rows = (n + 1) // 2
     fig = Figure(figsize=(11.0, 1.9 * rows + 0.6), layout="constrained")
@@ -146,8 +146,6 @@ def _strip(ax, result, column, bound) -> None:
 def _box(ax, values) -> None:
     """Quartile box, median and whiskers to the extremes, drawn by hand (matplotlib's boxplot
     changed its orientation argument between the versions jaxcart supports)."""
-    from matplotlib.patches import Rectangle
-
     q1, median, q3 = np.percentile(values, [25, 50, 75])
     lo, hi = float(np.min(values)), float(np.max(values))
     ax.add_patch(Rectangle((q1, -0.3), q3 - q1, 0.6, fill=False, ec="0.3", lw=1.0, zorder=1))
@@ -161,10 +159,6 @@ def overlays(result, path) -> Path:
     time, one colour and dash per student (:func:`line_style`), and the reference of
     closed-loop steps. A flagged student's runs are drawn thicker and named at their end: in a
     bundle of 20 runs no colour tells one apart, a name does."""
-    from matplotlib.figure import Figure
-
-    from tuning.lab.inputs import SLOTS
-
     slots = [s for s in SLOTS if any(s in st.runs for st in result.students)]
     cols = 3 if len(slots) > 4 else 2
     rows = (len(slots) + cols - 1) // cols

@@ -38,17 +38,29 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import json
 import math
+import multiprocessing
 import os
+import shutil
 import statistics
 import sys
 import time
 import tomllib
 import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from hw.jsonio import write_json
 from jaxcart.errors import UserError
+from tuning.design.losses import Spec
+from tuning.lab import classfigures, classpage
+from tuning.lab.inputs import INDEX_NAME, SLOTS, find_inputs
+from tuning.lab.report import output_dir, run_lab, staged
 
 #: A cart parameter this many times the class median (or 1/this of it) is flagged.
 OUTLIER_FACTOR = 10.0
@@ -208,8 +220,6 @@ def used_files(inputs) -> list[str]:
     """Names of the files the lab's inputs (:func:`tuning.lab.inputs.find_inputs`) used: its
     lab.toml, each recording's experiment file and the data files it maps, the raw .mat files
     of imported runs, and the further runs of a part."""
-    from tuning.lab.inputs import INDEX_NAME
-
     used = {INDEX_NAME}
     recordings = list(inputs.recordings.values())
     recordings += [r for runs in inputs.repeats.values() for r in runs]
@@ -247,9 +257,6 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
     partially), a refused folder or a failure of the lab is the returned status and its
     one-line reason (a traceback, for an internal error, goes to the log). Runs in a worker
     process."""
-    from tuning.lab.inputs import find_inputs
-    from tuning.lab.report import run_lab
-
     started, cpu = time.perf_counter(), time.process_time()
     outcome = {"status": "failed", "error": None, "runs": {}, "used": []}
     with open(log, "w") as stream, contextlib.redirect_stderr(stream):
@@ -274,8 +281,6 @@ def run_student(folder, out, log, *, diagnosis: bool = False) -> dict:
 
 def _runs(inputs) -> dict:
     """{slot: (time, position, reference or None)} of the recordings, thinned for overlays."""
-    import numpy as np
-
     runs = {}
     for slot, rec in inputs.recordings.items():
         n = len(rec.position)
@@ -289,7 +294,9 @@ def _start_worker(n_devices: int, cache: bool) -> None:
     """A worker process: jaxcart's XLA setting, the compilation cache and its share of the
     cores as XLA devices, before JAX starts (as ``jaxcart`` sets them for a command)."""
     os.environ.setdefault("MPLBACKEND", "Agg")
-    import jaxcart  # noqa: F401  (its XLA flags are set on import, before jax starts)
+    from jaxcart import xlaflags
+
+    xlaflags.request()  # loops compiled whole, before jax starts
 
     if cache:
         from jaxcart.cache import enable_persistent_cache
@@ -366,10 +373,6 @@ def _pool(job, first, students, out, workers, diagnosis, cache, finish) -> tuple
     """Run ``first`` (alone), then ``students``, in one pool of ``workers`` processes;
     returns (those lost to a process that died, those not started because it broke the pool
     while ``first`` ran)."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
     share = max(1, (os.cpu_count() or 1) // workers)
     lost = []
     with ProcessPoolExecutor(
@@ -403,8 +406,6 @@ def _pool(job, first, students, out, workers, diagnosis, cache, finish) -> tuple
 
 
 def _remove_partial(folder: Path, name: str) -> None:
-    import shutil
-
     for path in folder.glob(f".{name}.partial-*"):
         shutil.rmtree(path, ignore_errors=True)
 
@@ -415,8 +416,6 @@ def _remove_partial(folder: Path, name: str) -> None:
 def read_results(students, out: Path) -> None:
     """Each complete student's results.json (a student whose report cannot be read fails)
     and the files of its folder the lab did not use."""
-    import json
-
     for s in students:
         if not s.complete:
             continue
@@ -520,8 +519,6 @@ def _measured(student, key, results, metric):
 def flag(students, columns) -> None:
     """Each student's flags: failure, files that cannot be used (with the part each cost),
     missing parts, unrecognised files, outliers."""
-    from tuning.lab.inputs import SLOTS
-
     medians = class_medians(students, columns)
     for s in students:
         s.flags = []
@@ -620,8 +617,6 @@ def run_class(
     core, at most one per student); diagnosis: the lab's diagnosis section (most of its time;
     off by default); cache: the compilation cache in the workers; stream: progress (stderr).
     Returns the :class:`ClassResult`."""
-    from tuning.lab.report import output_dir, staged
-
     started = time.perf_counter()
     stream = sys.stderr if stream is None else stream
 
@@ -660,8 +655,6 @@ def _output(out, force, output_dir) -> Path:
 
 
 def _tabulate(folder, final, tmp, students, stray, started, workers, diagnosis) -> ClassResult:
-    from tuning.design.losses import Spec
-
     spec = Spec()
     read_results(students, tmp)
     columns = columns_of(students)
@@ -682,16 +675,13 @@ def _tabulate(folder, final, tmp, students, stray, started, workers, diagnosis) 
 
 
 def _write(result: ClassResult, tmp: Path) -> None:
-    from hw.jsonio import write_json
-    from tuning.lab import classfigures, classpage
-
     figures = classfigures.draw(result, tmp / "figures")
     (tmp / "class.csv").write_text(csv_text(result))
     (tmp / "class.html").write_text(classpage.page(result, figures))
-    write_json(tmp / "class.json", as_json(result), force=True)
+    write_json(tmp / "class.json", to_json(result), force=True)
 
 
-def as_json(result: ClassResult) -> dict:
+def to_json(result: ClassResult) -> dict:
     """The class as JSON: per student its status, checks, flags, report and every number."""
     return {
         "folder": str(result.folder),

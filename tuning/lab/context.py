@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from jaxcart.errors import UserError
 from tuning.lab.html import Document
 from tuning.lab.inputs import Inputs
 
@@ -46,7 +47,7 @@ class Value:
             return None
         return float(synthetic[self.true_key])
 
-    def as_json(self, synthetic: dict | None = None) -> dict:
+    def to_json(self, synthetic: dict | None = None) -> dict:
         out = {
             "value": _plain(self.value),
             "unit": self.unit,
@@ -147,8 +148,6 @@ def mm(x, digits: int = 3) -> str:
 
 def check_format(fmt_name: str) -> str:
     """``fmt_name`` lower-cased if it is one of :data:`FIGURE_FORMATS`; else a one-line error."""
-    from jaxcart.errors import UserError
-
     name = str(fmt_name).lower().lstrip(".")
     if name not in FIGURE_FORMATS:
         raise UserError(

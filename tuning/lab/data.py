@@ -39,14 +39,21 @@ significant digits. Regenerating with the same seed gives identical files (teste
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
 
+import jaxcart as jc
+from hw.atomicio import all_or_none, exists_message, write_bytes
 from jaxcart.effects import Quantization
 from jaxcart.errors import UserError
+from jaxcart.files import BUILTIN_DATA
 from jaxcart.params import ENCODER_RESOLUTION
+from jaxcart.plantspec import build_plant
+from jaxcart.synthetic import make_recording, make_tap_recording
 
 #: The name of the encoder's count size [m/count] (the encoder effect's parameter): its key in
 #: TRUE, in lab.toml's [synthetic] table and in results.json.
@@ -126,8 +133,6 @@ SPECS = (
 
 def builtin_dir() -> Path:
     """The folder of the built-in recordings inside the installed package."""
-    from jaxcart.files import BUILTIN_DATA
-
     return BUILTIN_DATA
 
 
@@ -135,8 +140,6 @@ def copy_examples(folder, *, force: bool = False) -> list[Path]:
     """Copy the built-in recordings (every experiment file, its CSV, and lab.toml) into
     ``folder`` (made if missing), each file atomically; an existing file is refused before
     anything is written, unless ``force``. Returns the paths written."""
-    from hw.atomicio import all_or_none, exists_message, write_bytes
-
     folder = Path(folder)
     sources = sorted(p for p in builtin_dir().iterdir() if p.suffix in (".toml", ".csv"))
     targets = [folder / p.name for p in sources]
@@ -156,8 +159,6 @@ def copy_examples(folder, *, force: bool = False) -> list[Path]:
 
 def true_plant(*, tap: bool = False):
     """The true cart of the built-in data (motor unplugged for the tap)."""
-    from jaxcart.plantspec import build_plant
-
     values = {n: TRUE[n] for n in ("M", "B_eq", "f_c")}
     if tap:
         return build_plant(values, motor_connected=False, where="the built-in tap's cart")
@@ -166,9 +167,6 @@ def true_plant(*, tap: bool = False):
 
 def make(spec: Spec, *, seed: int = SEED):
     """The synthetic recording of one spec (a :class:`jaxcart.synthetic.SyntheticRecording`)."""
-    import jaxcart as jc
-    from jaxcart.synthetic import make_recording, make_tap_recording
-
     q = TRUE[ENCODER_PARAM]
     if spec.kind == "tap":
         return make_tap_recording(
@@ -203,8 +201,6 @@ def generate(folder, *, force: bool = False, seed: int = SEED) -> list[Path]:
 
     Refuses to overwrite an existing file unless ``force``. Returns the paths written.
     """
-    import jax
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     outputs = {}
@@ -303,7 +299,6 @@ def _index() -> str:
 
 
 def main() -> None:  # pragma: no cover - run by hand, see the module docstring
-    import sys
 
     folder = builtin_dir()
     paths = generate(folder, force="--force" in sys.argv)

@@ -4,6 +4,8 @@ drive values and RMS."""
 
 from __future__ import annotations
 
+from tuning.estimation.diagnose import diagnose
+
 #: What each slot's recording is, for the table.
 PARTS = {
     "tap": "(i) tap",
@@ -15,19 +17,18 @@ PARTS = {
 }
 
 
-def compute(inputs, say=lambda text: None):
+def compute(inputs, say=lambda text: None, *, executor=None):
     """Every recording of the lab diagnosed jointly, one cart (repeats included): a
-    :class:`tuning.estimation.diagnose.Diagnosis`, or None without recordings."""
-    from tuning.estimation.diagnose import diagnose
-
+    :class:`tuning.estimation.diagnose.Diagnosis`, or None without recordings; ``executor``
+    makes its exact runs (:func:`tuning.estimation.diagnose.diagnose`)."""
     runs = inputs.runs()
     if not runs:
         return None
     say(f"diagnosis: the {len(runs)} recordings jointly, one cart")
-    return diagnose(runs, progress=False)
+    return diagnose(runs, progress=False, executor=executor)
 
 
-def as_json(d) -> dict | None:
+def to_json(d) -> dict | None:
     return None if d is None else d.to_json()
 
 

@@ -11,7 +11,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import control
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+
+from jaxcart.plots import figure_legend, save
 
 DPI = 110
 SIZE = (7.5, 5.0)
@@ -44,10 +49,7 @@ class Trace:
 
 
 def _pyplot():
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
 
     return plt
 
@@ -65,8 +67,6 @@ def _draw(ax, traces):
 
 def _save(fig, path, axes=None):
     """Save (the legend of ``axes`` below them, if given) and close."""
-    from jaxcart.plots import figure_legend, save
-
     if axes is not None:
         figure_legend(fig, axes, ncols=1 if len(axes) == 1 else 2, fontsize=8.5)
     out = save(fig, path, dpi=DPI)
@@ -148,8 +148,6 @@ def two_panel(
 
 def root_locus(path, rldata, *, ki_bound, omega, title):
     """Root locus (python-control's plot) with the imaginary-axis crossing marked."""
-    import control
-
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 5.6), layout="constrained")
     cplt = control.root_locus_plot(rldata, ax=ax, legend_loc=False)

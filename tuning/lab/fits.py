@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from tuning.estimation.fit import FitSettings
+from tuning.estimation.fit import fit as engine_fit
 from tuning.lab.context import fmt
 
 #: Fit settings for the report: the default continuation for the tap (a real tap needs it),
@@ -22,13 +24,11 @@ QUICK_FIT = {"widths": (1e-3, 1e-4), "adam_steps": 0, "lm_iterations": 15}
 FitFunction = Callable[..., object]
 
 
-def fit(recordings, params, *, initial=None, quick=False, per_recording=()):
+def fit(recordings, params, *, initial=None, quick=False, per_recording=(), executor=None):
     """Fit ``params`` (names) to ``recordings`` from ``initial`` (name -> value) with the
     estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close;
-    ``per_recording``: those of ``params`` free in each recording (the cart's joint fit)."""
-    from tuning.estimation.fit import FitSettings
-    from tuning.estimation.fit import fit as engine_fit
-
+    ``per_recording``: those of ``params`` free in each recording (the cart's joint fit);
+    ``executor``: makes the exact runs (:func:`tuning.estimation.fit.fit`)."""
     settings = FitSettings(**QUICK_FIT) if quick else FitSettings()
     return engine_fit(
         recordings,
@@ -37,6 +37,7 @@ def fit(recordings, params, *, initial=None, quick=False, per_recording=()):
         initial=initial,
         settings=settings,
         progress=False,
+        executor=executor,
     )
 
 

@@ -47,7 +47,13 @@ from pathlib import Path
 
 import numpy as np
 
+from hw.expfile import ExpFileError, read_toml, toml_str, toml_value
 from jaxcart.errors import UserError
+from jaxcart.files import read_experiment, read_imported
+from jaxcart.matimport import data_prefix, scan
+from jaxcart.params import TRACK_LENGTH
+from jaxcart.plausibility import time_unit_doubt
+from jaxcart.recognition import EXPERIMENTS
 
 INDEX_NAME = "lab.toml"
 #: The sub-folder of a report where :func:`write_used` puts the experiment files of repeats.
@@ -156,8 +162,6 @@ def _without_folder(text: str, folder) -> str:
 
 
 def _read_experiment(path):
-    from jaxcart.files import read_experiment
-
     return check_recording(read_experiment(path))
 
 
@@ -166,9 +170,6 @@ def check_recording(recording):
     readers check the format): finite positions that fit on the track, a time base in
     seconds (a tap in ms otherwise ends its part with a symptom: "B_eq cannot be determined").
     Returns it."""
-    from jaxcart.params import TRACK_LENGTH
-    from jaxcart.plausibility import time_unit_doubt
-
     y = np.asarray(recording.position, dtype=float)
     name = recording.path
     if y.size < 2 or not np.all(np.isfinite(y)):
@@ -191,7 +192,6 @@ def check_recording(recording):
 def _load_toml(path: Path) -> dict:
     if path.is_dir():
         raise UserError(f"{path}: a folder, not an experiment file; rename or move it away")
-    from hw.expfile import ExpFileError, read_toml
 
     try:  # the experiment files' own reader: UTF-16, a BOM, a workbook said with the fix
         return read_toml(path)
@@ -441,9 +441,6 @@ def _mat_files(meta: dict, folder: Path) -> set:
 
 def _use_raw(inputs: Inputs, slot: str, paths: list, index_path: Path) -> None:
     """The raw .mat run ``paths`` named as ``slot`` in lab.toml, read as that experiment."""
-    from jaxcart.files import read_imported
-    from jaxcart.matimport import scan
-
     runs = [r for r in scan(paths, named={p.name: slot for p in paths}) if paths[0] in r.files]
     run = runs[0]
     if run.problem or len(run.files) != len(paths):
@@ -460,8 +457,6 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
     the reason, a question where the evidence is weak."""
     if not paths:
         return
-    from jaxcart.files import read_imported
-    from jaxcart.recognition import EXPERIMENTS
 
     for run in sorted(_scan(inputs, paths), key=lambda r: r.label):
         guess = run.guess
@@ -538,8 +533,6 @@ def write_used(inputs: Inputs, out, final=None) -> list[Path]:
     Raw runs not used are offered as commented lines. Returns the paths written."""
     if not inputs.imported:
         return []
-    from hw.expfile import toml_str, toml_value
-    from jaxcart.matimport import data_prefix
 
     out, final = Path(out), Path(final or out)
     written, names = [], {INDEX_NAME, "results.toml", "gains.toml"}

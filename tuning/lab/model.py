@@ -16,7 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
+import jaxcart as jc
+from jaxcart.effects import effect_of_param
+from jaxcart.exact import simulate_exact
 from jaxcart.params import Plant
+from jaxcart.plantspec import build_plant
+from jaxcart.plots import Run
 from tuning.lab.context import HANDOUT_B_EQ, V_SAT
 from tuning.lab.inputs import SLOTS
 
@@ -29,8 +34,6 @@ FINAL_WINDOW = 0.1
 
 def _effect(param: str):
     """The registered effect that owns parameter ``param`` (names stay in jaxcart.effects)."""
-    from jaxcart.effects import effect_of_param
-
     return effect_of_param(param)
 
 
@@ -64,8 +67,6 @@ class CartModel:
         """This cart: appendix values, B_eq and f_c, and the lab's 6 V limit as an amplifier
         saturation (the handout's Simulink block, so that recordings whose files name no
         software limit are simulated as they ran); without the effects the flags turn off."""
-        from jaxcart.plantspec import build_plant
-
         sat, coul = _effect("v_sat"), _effect("f_c")
         values = {"B_eq": self.B_eq}
         if saturation and (self.base is None or self.base.effect(sat) is None):
@@ -92,8 +93,6 @@ class CartModel:
 
 def exact(plant, controller, experiment):
     """The exact simulator's response (:func:`jaxcart.exact.simulate_exact`)."""
-    from jaxcart.exact import simulate_exact
-
     return simulate_exact(plant, controller, experiment)
 
 
@@ -120,8 +119,6 @@ def controller_of(rec, default):
 
 def experiment_of(rec, slot):
     """The recording's experiment, or the handout's for ``slot`` where there is no recording."""
-    import jaxcart as jc
-
     if rec is not None:
         return rec.experiment
     if slot == "ramp":
@@ -146,8 +143,6 @@ def render_source(doc, rec, slot) -> None:
 
 def run(label, time, position, voltage=None, role="simulation"):
     """A :class:`jaxcart.plots.Run` from arrays."""
-    from jaxcart.plots import Run
-
     return Run(
         label,
         np.asarray(time),

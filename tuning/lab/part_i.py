@@ -12,8 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.lab import fits
+from tuning.estimation.classic import loglinear_beq
+from tuning.lab import figures, fits
 from tuning.lab.context import HANDOUT_B_EQ, fmt, mm, value
 from tuning.lab.model import CartModel, render_source, source_name
 
@@ -51,8 +53,6 @@ class TapResult:
 
 def compute(rec, start: CartModel, *, fit=fits.fit, say=lambda text: None) -> TapResult:
     """B_eq (and f_c) from the tap ``rec`` (None: keep ``start``); ``fit``: the fitter."""
-    import jaxcart as jc
-
     p = jc.Plant()
     nominal = {"m": float(p.m), "gamma": float(p.gamma), "B_emf": float(p.B_emf)}
     if rec is None:
@@ -110,7 +110,7 @@ def values(r: TapResult) -> list:
     return out + [value("c", r.c, "kg/s", "c = B_eq + B_emf (Part (i))", "i")]
 
 
-def as_json(r: TapResult) -> dict:
+def to_json(r: TapResult) -> dict:
     out = {"recording": r.source}
     if r.recording is not None:
         out["handout_method"] = {k: v for k, v in r.classic.items() if k not in ("curve", "points")}
@@ -130,8 +130,6 @@ def as_json(r: TapResult) -> dict:
 def handout_b_eq(rec) -> dict:
     """B_eq by the handout's log-linear method (:func:`tuning.estimation.classic.loglinear_beq`),
     the ln|v| points and line it rests on, and the pure-viscous coast it implies."""
-    from tuning.estimation.classic import loglinear_beq
-
     est = loglinear_beq(rec)
     d = est.details
     t0, t1 = d["start_time"], d["stop_time"]
@@ -260,8 +258,6 @@ def _render_methods(lab, r: TapResult) -> None:
 
 
 def _tap_figure(lab, r: TapResult) -> str:
-    from tuning.lab import figures
-
     rec, classic, seg = r.recording, r.classic, r.fit.segments[0]
     b_fit, f_fit = r.b_fit, r.f_fit
     t_c, y_c = classic["curve"]
@@ -292,8 +288,6 @@ def _tap_figure(lab, r: TapResult) -> str:
 
 
 def _loglinear_figure(lab, classic: dict, source: str) -> str:
-    from tuning.lab import figures
-
     t, lv = classic["points"]
     t0, t1 = classic["start_time"], classic["stop_time"]
     line_t = np.linspace(t0, t1, 50)

@@ -12,10 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import jaxcart as jc
+from jaxcart.plots import plot_runs, reference_run
 from tuning.lab import fits
 from tuning.lab.context import V_SAT, fmt, mm, value
 from tuning.lab.model import (
     CartModel,
+    controller_of,
     crop,
     exact,
     no_limit,
@@ -81,9 +84,6 @@ class P50Result:
 
 def compute(rec, model: CartModel, *, fit=fits.fit, say=lambda text: None) -> P50Result:
     """Part (ii) with the recording ``rec`` (None: simulations only) on ``model``."""
-    import jaxcart as jc
-    from tuning.lab.model import controller_of
-
     controller = controller_of(rec, jc.PID(kp=50.0, v_limit=V_SAT))
     exp = rec.experiment_for(HORIZON) if rec is not None else jc.step(0.4, horizon=HORIZON)
     say("Part (ii): simulations without and with saturation")
@@ -168,7 +168,7 @@ class Agreement:
             f"shows. The later parts keep the tap's value. {where}"
         )
 
-    def as_json(self, diagnosis: bool) -> dict:
+    def to_json(self, diagnosis: bool) -> dict:
         return {
             "B_eq_tap": self.B_eq_tap,
             "B_eq_step": self.B_eq_step,
@@ -220,7 +220,7 @@ def values(r: P50Result) -> list:
     return out
 
 
-def as_json(r: P50Result, agreed: Agreement | None, *, diagnosis: bool) -> dict:
+def to_json(r: P50Result, agreed: Agreement | None, *, diagnosis: bool) -> dict:
     out = {
         "recording": r.source,
         "controller": r.controller.to_dict(),
@@ -232,7 +232,7 @@ def as_json(r: P50Result, agreed: Agreement | None, *, diagnosis: bool) -> dict:
         if r.refit_coulomb is not None:
             out["refit_with_coulomb"] = r.refit_coulomb.to_json()
         out["final_error_measured"] = r.final_error_measured
-        out["B_eq_agreement"] = None if agreed is None else agreed.as_json(diagnosis)
+        out["B_eq_agreement"] = None if agreed is None else agreed.to_json(diagnosis)
     out["simulations"] = {
         "without_saturation": r.info_free.as_dict(),
         "with_saturation": r.info_sat.as_dict(),
@@ -306,8 +306,6 @@ def _refit_rows(r: P50Result) -> list:
 
 
 def _figure(lab, r: P50Result) -> str:
-    from jaxcart.plots import plot_runs, reference_run
-
     m, rec = r.model, r.recording
     runs = [reference_run(r.sim_sat.time, r.sim_sat.reference)]
     if rec is not None:

@@ -14,7 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+import jaxcart as jc
 from jaxcart.errors import UserError
+from tuning.estimation.classic import pcontrol_fc_bounds, ramp_breakaway_fc
 from tuning.lab import deadband, fits
 from tuning.lab.context import value
 from tuning.lab.data import ENCODER_PARAM
@@ -60,8 +62,6 @@ class RampResult:
 
 def ramp(rec, start: CartModel, *, fit=fits.fit, say=lambda text: None) -> RampResult:
     """f_c from the ramp ``rec`` (B_eq of ``start`` held), or the ramp simulated on ``start``."""
-    import jaxcart as jc
-
     if rec is None:
         sim = exact(start.plant(), None, jc.voltage_ramp(0.1, horizon=HORIZON["ramp"]))
         return RampResult(None, start, sim=sim)
@@ -85,8 +85,6 @@ def ramp(rec, start: CartModel, *, fit=fits.fit, say=lambda text: None) -> RampR
 def handout_f_c(rec) -> dict:
     """f_c by the handout's ramp-breakaway method
     (:func:`tuning.estimation.classic.ramp_breakaway_fc`)."""
-    from tuning.estimation.classic import ramp_breakaway_fc
-
     est = ramp_breakaway_fc(rec)
     d = est.details
     return {
@@ -115,7 +113,7 @@ class PBound:
     q: float = 0.0
     error: str | None = None
 
-    def as_json(self) -> dict:
+    def to_json(self) -> dict:
         est = self.estimate
         return {**est.to_json(), "lower": self.lower, "lower_without_count": est.lower, "q": self.q}
 
@@ -134,8 +132,6 @@ def p_bounds(recordings: dict) -> tuple:
     pcontrol_fc_bounds`): stuck at the end, γ k (|e(inf)| − q) <= f_c (one encoder count q
     off, see :mod:`tuning.lab.deadband`); wherever it started or reversed, f_c < γ |u|.
     ``recordings``: slot -> recording (or None)."""
-    from tuning.estimation.classic import pcontrol_fc_bounds
-
     out = []
     for slot in ("p_error", "p_step"):
         rec = recordings.get(slot)
@@ -212,8 +208,6 @@ class SteadyState:
 
 def steady_state(rec, model: CartModel, *, say=lambda text: None) -> SteadyState:
     """The steady-state error of P control with the recording ``rec`` (None: simulated)."""
-    import jaxcart as jc
-
     controller = controller_of(rec, jc.PID(kp=10.0))
     k = float(controller.kp)
     exp = experiment_of(rec, "p_error")
@@ -302,12 +296,12 @@ def values(p: Part3) -> list:
     return out
 
 
-def as_json(p: Part3) -> dict:
+def to_json(p: Part3) -> dict:
     r, s, model = p.ramp, p.steady, p.model
     ramp_out = {"recording": r.source}
     if r.recording is not None:
         ramp_out.update({"handout_method": r.classic, "fit": r.fit.to_json()})
-    bounds = {b.slot: b.as_json() for b in p.bounds if b.error is None}
+    bounds = {b.slot: b.to_json() for b in p.bounds if b.error is None}
     if p.bounds:
         bounds["outside_bounds"] = [b.name for b in p.bounds if b.outside(model.f_c)]
     out = {"ramp": ramp_out, "p_control_bounds": bounds}

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tuning.lab import deadband, fits
+import jaxcart as jc
+from tuning.lab import deadband, figures, fits
 from tuning.lab.context import fmt, mm
 from tuning.lab.model import FINAL_WINDOW, render_source, source_name
 from tuning.lab.part_iii import BOUND_SLACK, Part3
@@ -23,9 +24,6 @@ def render(lab, p: Part3) -> None:
 
 def ramp(lab, r, model) -> None:
     """The ramp's subsection: both methods (or the simulation) and the figure."""
-    import jaxcart as jc
-    from tuning.lab import figures
-
     doc = lab.doc
     gamma = float(jc.Plant().gamma)
     doc.heading("f_c from the voltage ramp (0.1 V/s)", 3)
@@ -222,8 +220,6 @@ def _rows(s) -> list:
 
 
 def _error_figure(lab, s) -> str:
-    from tuning.lab import figures
-
     traces = []
     if s.recording is not None:
         label = f"experiment ({source_name(s.recording)})"
@@ -248,8 +244,6 @@ def _error_figure(lab, s) -> str:
 
 def error_traces(sim, sim_lin, f_c):
     """Simulated error [mm] with Coulomb friction and saturation, and without friction."""
-    from tuning.lab import figures
-
     return [
         figures.Trace(
             sim.time,

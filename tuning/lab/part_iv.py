@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tuning.lab import prelab
+import jaxcart as jc
+from tuning.lab import figures, prelab
 from tuning.lab.context import mm, value
 from tuning.lab.model import (
     CartModel,
@@ -21,6 +22,7 @@ from tuning.lab.model import (
     render_source,
     source_name,
 )
+from tuning.lab.part_iii_render import error_traces
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,8 +62,6 @@ class PIResult:
 
 def compute(rec, model: CartModel, *, say=lambda text: None) -> PIResult:
     """Part (iv) with the recording ``rec`` (None: simulations only) on ``model``."""
-    import jaxcart as jc
-
     controller = controller_of(rec, jc.PID(kp=10.0, ki=15.0))
     exp = experiment_of(rec, "pi")
     say("Part (iv): PI simulations")
@@ -81,13 +81,13 @@ def values(r: PIResult) -> list:
     return out + r.bound.values("ki_max_fitted", "iv")
 
 
-def as_json(r: PIResult) -> dict:
+def to_json(r: PIResult) -> dict:
     out = {"recording": r.source, "controller": r.controller.to_dict()}
     if r.recording is not None:
         out["final_error_measured"] = final_error(r.recording.time, r.e_recorded)
         out["rms_difference"] = r.rms
     out["final_error_simulated"] = final_error(r.sim.time, r.sim.error)
-    out["pi_bound"] = r.bound.as_json()
+    out["pi_bound"] = r.bound.to_json()
     return out
 
 
@@ -129,9 +129,6 @@ def render(lab, r: PIResult) -> None:
 
 
 def _figure(lab, r: PIResult) -> str:
-    from tuning.lab import figures
-    from tuning.lab.part_iii_render import error_traces
-
     traces = []
     if r.recording is not None:
         label = f"experiment ({r.source})"

@@ -13,6 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import jaxcart as jc
+from jaxcart.metrics import step_info
+from jaxcart.smooth_sim import Response
 from tuning.lab.context import V_SAT, value
 from tuning.lab.model import CartModel, controller_of, exact, experiment_of, source_name
 
@@ -67,8 +70,6 @@ class PIDResult:
 def compute(rec, model: CartModel, tuned=None, *, say=lambda text: None) -> PIDResult:
     """Part (v) with the recording ``rec`` (None: simulation only) on ``model``; ``tuned``:
     the pre-lab's PID (None: the handout's kp = 40, kd = 5, ki = 5)."""
-    import jaxcart as jc
-
     tuned = tuned if tuned is not None else jc.PID(kp=40.0, kd=5.0, ki=5.0, v_limit=V_SAT)
     controller = controller_of(rec, tuned)
     exp = experiment_of(rec, "pid")
@@ -108,9 +109,6 @@ def same_gains(a, b, rel: float = 5e-4) -> bool:
 
 def slider_moves(response, times):
     """Step metrics of each move of a piecewise-constant reference."""
-    from jaxcart.metrics import step_info
-    from jaxcart.smooth_sim import Response
-
     t = np.asarray(response.time)
     bounds = [int(np.searchsorted(t, x - 1e-9)) for x in times] + [t.size]
     previous = float(response.position[0])
@@ -147,7 +145,7 @@ def values(r: PIDResult) -> list:
     return out
 
 
-def as_json(r: PIDResult) -> dict:
+def to_json(r: PIDResult) -> dict:
     out = {"recording": r.source, "controller": r.controller.to_dict()}
     if r.info_rec is not None:
         out["measured"] = r.info_rec.as_dict()

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from jaxcart.metrics import SETTLING_BAND
+from jaxcart.plots import plot_runs, reference_run
 from tuning.lab.context import HANDOUT_B_EQ, V_SAT
 from tuning.lab.model import render_source, run, seconds
 from tuning.lab.part_v import OVERSHOOT_SPEC, SETTLING_SPEC, PIDResult
@@ -71,8 +72,6 @@ def _step(lab, r) -> None:
 
 
 def _step_figure(lab, r) -> str:
-    from jaxcart.plots import plot_runs, reference_run
-
     sim, c, rec = r.sim, r.controller, r.recording
     runs = [reference_run(sim.time, sim.reference)]
     if rec is not None:
@@ -98,8 +97,6 @@ def _step_figure(lab, r) -> str:
 
 
 def _slider(lab, r) -> None:
-    from jaxcart.plots import plot_runs, reference_run
-
     doc, tuned, s = lab.doc, r.tuned, r.slider
     path, rel = lab.figure_path("part5_slider")
     plot_runs(

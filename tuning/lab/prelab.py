@@ -22,11 +22,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import control
 import numpy as np
 from scipy.optimize import brentq
 
+import jaxcart as jc
+from jaxcart.exact import simulate_exact, step_info_exact
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.params import Plant
+from jaxcart.plots import Run, plot_runs, reference_run
+from tuning.design.tune import tune
+from tuning.lab import figures
 from tuning.lab.context import value
 
 
@@ -52,15 +58,11 @@ def ki_bound_routh(m: float, c: float, k: float) -> float:
 
 def open_loop(m: float, c: float, gamma: float, k: float):
     """H(s) = gamma / (m s^3 + c s^2 + gamma k s): the loop seen by k_i (python-control tf)."""
-    import control
-
     return control.tf([gamma], [m, c, gamma * k, 0.0])
 
 
 def closed_loop_poles(m, c, gamma, k, ki) -> np.ndarray:
     """Poles of the PI loop with gain k_i, from python-control's feedback(k_i H, 1)."""
-    import control
-
     return np.asarray(control.feedback(ki * open_loop(m, c, gamma, k), 1).poles())
 
 
@@ -87,8 +89,6 @@ def ki_bound_locus(m: float, c: float, gamma: float, k: float) -> tuple[float, f
 
 def locus_data(m, c, gamma, k, ki_max):
     """Root locus of H for k_i in [0, 3 ki_max] (python-control's root_locus_map)."""
-    import control
-
     gains = np.concatenate([[0.0], np.geomspace(1e-3, 3.0 * ki_max, 600)])
     gains = np.sort(np.concatenate([gains, [ki_max]]))
     return control.root_locus_map(open_loop(m, c, gamma, k), gains=gains)
@@ -99,8 +99,6 @@ def locus_data(m, c, gamma, k, ki_max):
 #: The handout's P gain for the PI analysis [V/m] and its B_eq estimate [kg/s].
 K_PI = 10.0
 B_EQ_HANDOUT = 5.4
-#: Tuning for the report: a short multi-start run (about 10 s on 2 cores), checked exactly.
-TUNE_OPTIONS = {"max_iterations": 60, "n_starts": 4}
 
 
 @dataclass(frozen=True)
@@ -123,7 +121,7 @@ class KiBound:
     poles: tuple
     locus: object = field(repr=False, compare=False)
 
-    def as_json(self) -> dict:
+    def to_json(self) -> dict:
         return {
             "k": self.k,
             "m": self.m,
@@ -176,8 +174,6 @@ def ki_bound(m: float, c: float, gamma: float, k: float) -> KiBound:
 
 def render_ki_bound(lab, bound: KiBound, *, name: str, title: str) -> None:
     """The bound's paragraph and root-locus figure ``name``."""
-    from tuning.lab import figures
-
     m, c, gamma, k = bound.m, bound.c, bound.gamma, bound.k
     path, rel_path = lab.figure_path(name)
     figures.root_locus(path, bound.locus, ki_bound=bound.ki_locus, omega=bound.omega, title=title)
@@ -229,7 +225,7 @@ def gains_on_bounds(result) -> dict:
 class Prelab:
     """The pre-lab's answers: the appendix constants (:func:`appendix`), the PI bound on the
     handout's model, and the PID tuned on it with its exact step response (0.5 m, 3 s) and
-    metrics; ``tuned``: the :class:`tuning.design.tune.TuneResult`."""
+    metrics; ``tuned``: the :class:`tuning.design.result.TuneResult`."""
 
     appendix: dict
     bound: KiBound
@@ -249,16 +245,12 @@ class Prelab:
 
 def compute(*, say=lambda text: None) -> Prelab:
     """The pre-lab on the handout's model: constants, the k_i bound at k = 10 V/m, a tuned PID."""
-    import jaxcart as jc
-    from jaxcart.exact import simulate_exact, step_info_exact
-    from tuning.design.tune import tune
-
     say("pre-lab: appendix constants, Routh bound and root locus")
     a = appendix(jc.Plant())
     bound = ki_bound(a["m"], B_EQ_HANDOUT + a["B_emf"], a["gamma"], K_PI)
-    say("pre-lab: tuning the PID on the handout's model (jaxcart tune, 60 iterations, 4 starts)")
+    say("pre-lab: tuning the PID on the handout's model (as jaxcart tune does)")
     plant = jc.handout_plant()
-    res = tune(plant, progress=False, **TUNE_OPTIONS)
+    res = tune(plant, progress=False)  # the settings of jaxcart tune: one tuner, one answer
     exp = jc.step(0.5, horizon=3.0)
     info = step_info_exact(plant, res.gains, exp)
     result = Prelab(a, bound, res, simulate_exact(plant, res.gains, exp), info)
@@ -293,10 +285,10 @@ def values(p: Prelab) -> list:
     return out
 
 
-def as_json(p: Prelab) -> dict:
+def to_json(p: Prelab) -> dict:
     return {
         "appendix": p.appendix,
-        "pi_bound": p.bound.as_json(),
+        "pi_bound": p.bound.to_json(),
         "pid": {
             "gains": p.gains.to_dict(),
             "metrics": p.info.as_dict(),
@@ -341,8 +333,6 @@ def render(lab, p: Prelab) -> None:
 
 
 def _render_design(lab, p: Prelab) -> None:
-    from jaxcart.plots import Run, plot_runs, reference_run
-
     doc, g, res, info, response = lab.doc, p.gains, p.tuned, p.info, p.response
     path, rel = lab.figure_path("prelab_pid_step")
     plot_runs(
@@ -366,12 +356,12 @@ def _render_design(lab, p: Prelab) -> None:
     message = message[:1].upper() + message[1:]
     doc.paragraph(
         "The design problem: move 0.5 m, 2 % settling time under 1 s, overshoot under 5 %, "
-        "with the 6 V saturation, on the handout's model (B_eq = 5.4 kg/s). `jaxcart tune "
-        f"--starts {TUNE_OPTIONS['n_starts']} --iterations {TUNE_OPTIONS['max_iterations']}` "
-        f"(gradient descent through the smooth simulator, {TUNE_OPTIONS['n_starts']} starts, "
-        f"{TUNE_OPTIONS['max_iterations']} iterations, from the handout's kp = 40, kd = 5, "
-        f"ki = 5) found the gains below in {res.seconds:.1f} s; the metrics are those of the "
-        f"exact simulator (hard clip, 1 ms digital loop). {message}."
+        "with the 6 V saturation, on the handout's model (B_eq = 5.4 kg/s). `jaxcart tune` "
+        f"(gradient descent through the smooth simulator, {res.n_starts} starts, "
+        f"{res.iterations} iterations, from the handout's kp = 40, kd = 5, ki = 5; the same "
+        f"tuner with the same settings as here) found the gains below in {res.seconds:.1f} s; "
+        f"the metrics are those of the exact simulator (hard clip, 1 ms digital loop). "
+        f"{message}."
     )
     if p.on_bounds:
         doc.note(_on_bounds_note(g, p.on_bounds))

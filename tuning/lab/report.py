@@ -25,6 +25,7 @@ folder of real ones.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import shutil
@@ -32,7 +33,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
+
+from hw.atomicio import OutputError, describe, missing_folders, remove_empty
+from hw.gains import write_gains
+from hw.jsonio import to_jsonable, write_json
+from jaxcart.background import Background
 from jaxcart.errors import UserError
+from jaxcart.matfile import write_mat_report
+from jaxcart.plantspec import describe_plant
 from tuning.lab import (
     cart,
     fits,
@@ -85,8 +94,6 @@ def staged(final: Path):
     to ``final`` when the block completes; on any error or interrupt it is removed, so an
     interrupted lab leaves nothing that blocks a rerun. Into an existing, non-empty ``final``
     (``--force``) only the report's own files and figures/ are replaced; other files stay."""
-    from hw.atomicio import OutputError, describe, missing_folders, remove_empty
-
     final = Path(final)
     parent = final.parent
     made = missing_folders([final])  # removed again, empty, if the report is not written
@@ -157,6 +164,7 @@ def run_lab(
     diagnosis: bool = True,
     fmt: str = "png",
     partial: bool = False,
+    executor=None,
 ) -> Path:
     """Write the lab report; returns its folder.
 
@@ -169,9 +177,9 @@ def run_lab(
     "png", "svg" or "pdf" (report.html embeds PNG and SVG; with PDF it embeds a PNG copy);
     partial: a file that cannot be read costs only its part, said in the report and in
     results.json's ``data.broken`` (``jaxcart class``), instead of refusing the lab.
+    executor: what makes the fits' exact runs several at a time (a
+    :class:`jaxcart.workers.Helpers` the caller owns; default: one after the other here).
     """
-    import jax
-
     fmt = check_format(fmt)
     with jax.enable_x64(True):  # fits and exact checks need float64
         return _run_lab(
@@ -183,11 +191,21 @@ def run_lab(
             diagnosis=diagnosis,
             fmt=fmt,
             partial=partial,
+            executor=executor,
         )
 
 
 def _run_lab(
-    data, out, *, force, stream, plant=None, diagnosis=True, fmt="png", partial=False
+    data,
+    out,
+    *,
+    force,
+    stream,
+    plant=None,
+    diagnosis=True,
+    fmt="png",
+    partial=False,
+    executor=None,
 ) -> Path:
     started = time.perf_counter()
     folder = Path(data) if data is not None else builtin_dir()
@@ -199,7 +217,7 @@ def _run_lab(
         lab = Lab(
             out=tmp, inputs=inputs, doc=Document(TITLE), stream=stream, started=started, fmt=fmt
         )
-        _sections(lab, folder, data is None, plant, diagnosis)
+        _sections(lab, folder, data is None, plant, diagnosis, executor)
     lab.say(
         f"done: {final / 'report.md'}, {final / 'report.html'}, {final / 'results.json'} "
         f"({len(lab.figures)} figures) in {time.perf_counter() - started:.1f} s"
@@ -225,7 +243,13 @@ class LabResults:
 
 
 def compute(
-    inputs, start: CartModel, *, diagnosis: bool = True, fit=fits.fit, say=lambda t: None
+    inputs,
+    start: CartModel,
+    *,
+    diagnosis: bool = True,
+    fit=fits.fit,
+    say=lambda t: None,
+    executor=None,
 ) -> LabResults:
     """Every part of the lab from the recordings ``inputs`` and the starting model, in the
     order their data need: the tap's model feeds Parts (ii) and (iii), Part (iii)'s f_c feeds
@@ -233,13 +257,18 @@ def compute(
     part uses (:func:`tuning.lab.fits.fit`). Another estimate of the cart (a joint fit over
     every recording, say) goes in as the ``model`` argument of the parts that simulate with
     it, and :func:`tuning.lab.part_ii.agreement` is the one place the tap's and the step's
-    B_eq are compared."""
-    from jaxcart.background import Background
+    B_eq are compared. executor: the command's helper processes for the exact runs (the
+    parts' fits and the diagnosis share them), else each run is made in this process.
 
+    Two pieces run in threads beside the parts, each collected here before any result that
+    holds it is built: the joint diagnosis (it needs only the recordings; while one compiles,
+    the other fits) and the PID's re-tune on the fitted cart (beside Part (v))."""
+    if executor is not None:
+        fit = functools.partial(fit, executor=executor)
     recordings = inputs.recordings
-    # The joint diagnosis needs only the recordings: it runs beside the parts (while one
-    # compiles, the other fits), and the cart below waits for it.
-    found = Background(diagnosis_section.compute, inputs, say) if diagnosis else None
+    found = None
+    if diagnosis:
+        found = Background(diagnosis_section.compute, inputs, say, executor=executor)
     pre = prelab.compute(say=say)
     tap = part_i.compute(recordings.get("tap"), start, fit=fit, say=say)
     step = part_ii.compute(recordings.get("p_step"), tap.model, fit=fit, say=say)
@@ -251,8 +280,13 @@ def compute(
     tap_b = None if tap.fit is None else (tap.model.B_eq, tap.model.B_eq_stderr)
     known = {"B_eq": friction.model.B_eq, "f_c": friction.model.f_c}
     joint = cart.compute(inputs, tap_b, found, start=known, fit=fit, say=say)
+    retune = None
+    if joint is not None:
+        say("the cart: the PID re-tuned on the fitted cart")
+        retune = Background(cart.retune, joint)
     model = cart.model_of(joint, friction.model)
     pid = part_v.compute(recordings.get("pid"), model, pre.gains, say=say)
+    joint = cart.with_retune(joint, retune.result() if retune is not None else None)
     return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found, joint)
 
 
@@ -268,17 +302,15 @@ def values(r: LabResults) -> list:
     ]
 
 
-def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool) -> None:
+def _sections(lab: Lab, folder: Path, builtin: bool, plant, diagnosis: bool, executor) -> None:
     lab.diagnosis = diagnosis
     start = CartModel.starting(plant)
     if plant is not None:
-        from jaxcart.plantspec import describe_plant
-
         lab.say(f"starting model: {describe_plant(plant)}")
     lab.say(f"data: {'built-in example recordings' if builtin else folder}")
     for line in lab.inputs.summary_lines():
         lab.say("  " + line)
-    r = compute(lab.inputs, start, diagnosis=diagnosis, say=lab.say)
+    r = compute(lab.inputs, start, diagnosis=diagnosis, say=lab.say, executor=executor)
     _introduction(lab, folder, builtin)
     render(lab, r)
     _summary(lab, values(r))
@@ -299,19 +331,19 @@ def render(lab: Lab, r: LabResults) -> None:
     part_v_render.render(lab, r.part_v)
     lab.results.update(
         {
-            "prelab": prelab.as_json(r.prelab),
-            "part_i": part_i.as_json(r.part_i),
-            "part_ii": part_ii.as_json(r.part_ii, r.agreement, diagnosis=lab.diagnosis),
-            "part_iii": part_iii.as_json(r.part_iii),
-            "part_iv": part_iv.as_json(r.part_iv),
-            "part_v": part_v.as_json(r.part_v),
+            "prelab": prelab.to_json(r.prelab),
+            "part_i": part_i.to_json(r.part_i),
+            "part_ii": part_ii.to_json(r.part_ii, r.agreement, diagnosis=lab.diagnosis),
+            "part_iii": part_iii.to_json(r.part_iii),
+            "part_iv": part_iv.to_json(r.part_iv),
+            "part_v": part_v.to_json(r.part_v),
         }
     )
     if r.diagnosis is not None:
         diagnosis_section.render(lab, r.diagnosis, r.agreement)
-        lab.results["diagnosis"] = diagnosis_section.as_json(r.diagnosis)
+        lab.results["diagnosis"] = diagnosis_section.to_json(r.diagnosis)
     cart.render(lab, r.cart)
-    lab.results["cart"] = cart.as_json(r.cart)
+    lab.results["cart"] = cart.to_json(r.cart)
     lab.gains = r.prelab.gains
     lab.gains_metrics = lab.results["prelab"]["pid"]["metrics"]
     if r.cart is not None:  # the gains to run on this cart: re-tuned on it
@@ -414,7 +446,7 @@ def _summary(lab: Lab, numbers: list) -> None:
         "MATLAB struct `results`); the tuned gains are in "
         "`gains.json` (jaxcart gains-file format, every PID setting)."
     )
-    lab.results["values"] = {v.key: v.as_json(synthetic) for v in numbers}
+    lab.results["values"] = {v.key: v.to_json(synthetic) for v in numbers}
 
 
 def _summary_row(v, synthetic) -> list:
@@ -442,10 +474,6 @@ def _summary_row(v, synthetic) -> list:
 
 
 def _write(lab: Lab) -> None:
-    from hw.gains import write_gains
-    from hw.jsonio import to_jsonable, write_json
-    from jaxcart.matfile import write_mat_report
-
     out = lab.out
     write_json(out / "results.json", lab.results, force=True)
     write_mat_report(out / "results.mat", to_jsonable(lab.results), name="results", force=True)

@@ -36,6 +36,7 @@ from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
 from jaxcart.errors import UserError
 from jaxcart.files import signal64
+from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout, Segment
 from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton, jacobian
@@ -532,8 +533,9 @@ class ExactMemo:
     polished point is re-checked), about a quarter of a diagnosis's exact runs (measured on
     the built-in P 50 step: 247 runs, 189 distinct). Results are shared: read-only arrays."""
 
-    def __init__(self, size: int = 64):
+    def __init__(self, size: int = 64, executor=None):
         self.size = size
+        self.executor = executor or SERIAL  # makes the runs of fill several at a time
         self.runs: dict = {}
         self.hits = 0
         self.made = 0  # single runs simulated (here or by a helper process)
@@ -552,15 +554,13 @@ class ExactMemo:
 
     def fill(self, jobs) -> None:
         """Make the runs of ``jobs`` ((key, :class:`ExactJob`) pairs) not stored yet, all at
-        once (:func:`jaxcart.workers.map`: several at a time, in helper processes)."""
-        from jaxcart import workers
-
+        once (the executor's ``map``: several at a time, in helper processes)."""
         todo = {}
         for key, job in jobs:
             if key not in self.one and key not in todo:
                 todo[key] = job
         sizes = [job.target.size for job in todo.values()]
-        for key, out in zip(todo, workers.map(exact_run, todo.values(), sizes), strict=True):
+        for key, out in zip(todo, self.executor.map(exact_run, todo.values(), sizes), strict=True):
             self._store(key, out)
 
     def _store(self, key, out):
@@ -610,14 +610,10 @@ def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo
     """Exact-simulator residuals [m] (and commands [V] of motor segments) of ``cand`` at
     ``values``, one array per segment; ``memo`` reuses a run made before (of all recordings,
     or of one recording whose plant and start are unchanged). The recordings' runs are made
-    several at a time (:func:`jaxcart.workers.map`)."""
+    several at a time (the memo's executor)."""
     jobs = exact_jobs(cand, segments, base_plants, values, layout)
     if memo is None:
-        from jaxcart import workers
-
-        jobs = [j for _, j in jobs]
-        runs = workers.map(exact_run, jobs, [j.target.size for j in jobs])
-        runs = [read_only(run) for run in runs]
+        runs = [read_only(exact_run(j)) for _, j in jobs]
         return [r for r, _ in runs], [u for _, u in runs]
 
     def compute():
@@ -1442,7 +1438,7 @@ def _suggestions(tests, best) -> list:
 
 def _spread(processes, items, compute):
     """``[compute(item) for item in items]``, each a ({name: float}, [arrays]) pair; with
-    ``processes`` (a :class:`tuning.design.tunerun.Exchange`) each item computed by one process and
+    ``processes`` (a :class:`tuning.distributed.Exchange`) each item computed by one process and
     every result gathered on every process."""
     if processes is None:
         return [compute(item) for item in items]

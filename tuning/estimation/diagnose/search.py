@@ -44,7 +44,7 @@ from tuning.estimation.engine.starts import start_values
 
 
 def diagnose(
-    recordings, *, start=None, progress=True, pairs: bool = True, processes=None
+    recordings, *, start=None, progress=True, pairs: bool = True, processes=None, executor=None
 ) -> Diagnosis:
     """Diagnose one recording or several of one cart jointly.
 
@@ -55,15 +55,23 @@ def diagnose(
     Several driven runs of one cart share the mechanics; each may have its own drive limits
     (the structures with PER_RUN free v_sat, i_max per run).
 
-    processes: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: the candidates'
+    processes: a :class:`tuning.distributed.Exchange` of a jax.distributed run: the candidates'
     batch fits, exact re-checks and exact polishes are split over the processes and every
     result gathered on every one, which then all hold the same diagnosis (process 0 reports).
     Inside ``processes.carry()`` (as ``jaxcart diagnose`` calls it), an exception one process
     meets is raised on every process at its next exchange, none waiting for another.
+
+    executor: what makes the exact runs several at a time (a :class:`jaxcart.workers.Helpers`
+    the caller owns; default: one after the other in this process). Runs in float64 whatever
+    jax_enable_x64 says, and leaves it as it was.
     """
     import jax
 
-    jax.config.update("jax_enable_x64", True)
+    with jax.enable_x64(True):
+        return _diagnose(recordings, start, progress, pairs, processes, executor)
+
+
+def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagnosis:
     say = C._progress_printer(progress)
     t_start = _time.perf_counter()
     if not isinstance(recordings, list | tuple):
@@ -74,7 +82,7 @@ def diagnose(
         for m in messages:
             say(m)
         return Diagnosis(names, "not diagnosed", messages, checks, seconds=C._elapsed(t_start))
-    search = Search(recordings, controllers, read_counts, start, say, processes)
+    search = Search(recordings, controllers, read_counts, start, say, processes, executor)
     search.run(pairs)
     d = search.diagnosis(names, checks, t_start)
     say(
@@ -114,8 +122,7 @@ def _checks(recordings, say):
 class Search:
     """One diagnosis's search: the segments, the batch fitter, the candidates tried."""
 
-    def __init__(self, recordings, controllers, read_counts, start, say, processes):
-        from jaxcart.cache import enable_persistent_cache
+    def __init__(self, recordings, controllers, read_counts, start, say, processes, executor=None):
         from jaxcart.plantspec import handout_plant
         from tuning.estimation.engine.noise import floor_of
 
@@ -141,7 +148,6 @@ class Search:
             f"diagnose {', '.join(s.name for s in segments)}: "
             f"{sum(s.target.size for s in segments)} samples fitted"
         )
-        enable_persistent_cache()  # compiled batches kept on disk: a second one starts warm
         # Several driven runs of one cart: each may have its own drive limits (PER_RUN).
         runs = tuple(i for i, s in enumerate(segments) if s.motor)
         self.runs = runs if len(runs) >= 2 else ()
@@ -151,10 +157,7 @@ class Search:
             segments, self.base_plants, per_recording=per, max_shared=K_MAX, noise=self.noise
         )
         self.layout = self.fitter.layout
-        self.memo = C.ExactMemo()
-        from jaxcart import workers
-
-        workers.start()  # the exact runs' helpers import while the batch fit runs
+        self.memo = C.ExactMemo(executor=executor)
         self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
         self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
         self.starts_all = start_values(segments, recordings, self.base_plants, P.superset())

@@ -48,6 +48,7 @@ from jaxcart.effects import (
     Spring,
     Stiction,
 )
+from jaxcart.workers import Helpers
 
 #: What counts as right, per case (:func:`judge`). "names": the named effects are the expected
 #: ones, or the expected ones are among the structures said to fit equally well (a tie said
@@ -629,7 +630,9 @@ def _own_limits_right(case: Case, d, truths=None) -> bool:
     return True
 
 
-def run_suite(names=None, progress=False, out=sys.stdout, generators=GENERATORS) -> list[dict]:
+def run_suite(
+    names=None, progress=False, out=sys.stdout, generators=GENERATORS, executor=None
+) -> list[dict]:
     """Diagnose every chosen case made by each of ``generators``; the score rows (each with
     its ``generator``), printed as they come."""
     from jaxcart.files import read_experiment
@@ -647,7 +650,9 @@ def run_suite(names=None, progress=False, out=sys.stdout, generators=GENERATORS)
             for case in (c for c in chosen if generator in c.generators):
                 made = make_recordings(case, folder, generator)
                 t = time.perf_counter()
-                d = diagnose([read_experiment(p) for p, _ in made], progress=progress)
+                d = diagnose(
+                    [read_experiment(p) for p, _ in made], progress=progress, executor=executor
+                )
                 row = judge(case.on(generator), d, [truth for _, truth in made])
                 row["seconds"] = round(time.perf_counter() - t, 2)
                 row["generator"] = generator
@@ -711,7 +716,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     names = FAST if args.fast else (args.only.split(",") if args.only else None)
     generators = GENERATORS if args.generator == "both" else (args.generator,)
-    rows = run_suite(names, progress=args.progress, generators=generators)
+    with Helpers() as helpers:  # the exact runs several at a time, closed at the end
+        rows = run_suite(names, progress=args.progress, generators=generators, executor=helpers)
     for generator in generators:
         mine = [r for r in rows if r["generator"] == generator]
         if mine:
@@ -724,7 +730,9 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    from jaxcart.cache import enable_persistent_cache
     from jaxcart.parallel import use_cpu_devices
 
+    enable_persistent_cache()  # as the command line does: compiled batches kept on disk
     use_cpu_devices()
     sys.exit(main())

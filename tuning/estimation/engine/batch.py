@@ -422,8 +422,8 @@ class BatchFitter:
         base values dict). Returns list of (values dict, smooth mean square residual [m^2],
         jac, r).
 
-        share: a :class:`tuning.design.tunerun.Exchange` of a jax.distributed run: this process fits
-        its :meth:`~tuning.design.tunerun.Exchange.items` of the problems and every process gets
+        share: a :class:`tuning.distributed.Exchange` of a jax.distributed run: this process fits
+        its :meth:`~tuning.distributed.Exchange.items` of the problems and every process gets
         every result (each problem's LM is independent of the others)."""
         jnp = self._jnp
         lay = self.layout
@@ -526,13 +526,13 @@ class BatchFitter:
 
     def _gathered(self, share, problems, arrays, progress, widths):
         """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
-        from tuning.design.tunerun import assemble
+        from tuning.distributed import gather_rows
 
         n = len(problems)
         parts = share.allgather({k: np.asarray(v) for k, v in arrays.items()})
         # A process without problems sent nothing.
         owners = [o for o, p in zip(share.owners(n), parts, strict=True) if p]
-        full = assemble([p for p in parts if p], owners, n)
+        full = gather_rows([p for p in parts if p], owners, n)
         if progress:  # only the final costs are gathered: one line, at the last width
             progress(widths[-1], np.sum(np.asarray(full["r"]) ** 2, axis=1))
         return self._unpack(problems, full["theta"], full["jac"], full["r"])

@@ -1,5 +1,5 @@
 """One recording's exact-simulator run as a job a helper process can take
-(:func:`jaxcart.workers.map`): small, picklable, and importing only the simulator.
+(:meth:`jaxcart.workers.Helpers.map`): small, picklable, and importing only the simulator.
 
 A fit's exact Gauss-Newton makes its runs several at a time: the forward differences' columns,
 each recording of a trial. :class:`ExactJob` carries what one run needs, :func:`exact_run`

@@ -1,7 +1,7 @@
 """The damped least-squares step every fit of the engine takes (NumPy or JAX arrays), and the
 host-side drivers that take it for one problem at a time (``jaxcart fit``): Levenberg-Marquardt
-with several dampings tried per iteration, and the Adam start of a long fit. The batched driver
-of many candidate structures at once is :mod:`tuning.estimation.engine.batch`.
+with several dampings tried per iteration, and the Adam start of a long fit (optax's). The
+batched driver of many candidate structures at once is :mod:`tuning.estimation.engine.batch`.
 
 Levenberg-Marquardt with Marquardt's diagonal scaling: the step solves
 (J^T J + lam D) delta = -J^T r, D the diagonal of J^T J (a column the data do not see gets a
@@ -11,9 +11,12 @@ short step along the scaled gradient.
 
 from __future__ import annotations
 
+import functools
 import math
 
+import jax
 import numpy as np
+import optax
 
 from jaxcart.errors import UserError
 from tuning.estimation.engine.noise import effective_samples
@@ -120,18 +123,17 @@ def levenberg_marquardt(problem, theta, active, width, iterations, tolerance=LM_
     return theta, r, jac, done, False
 
 
-def adam(problem, theta, active, width, steps, lr, b1=0.9, b2=0.999, eps=1e-8):
-    """Adam with a cosine-decayed step (optax.adam(optax.cosine_decay_schedule(lr, steps))'s
-    arithmetic, in numpy: a handful of numbers need no device programs of their own) on the
-    active entries of theta; ``problem`` as for :func:`levenberg_marquardt`. Returns (the best
-    point met, its cost)."""
+def adam(problem, theta, active, width, steps, lr):
+    """Adam with a cosine-decayed step (``optax.adam(optax.cosine_decay_schedule(lr, steps))``)
+    on the active entries of theta; ``problem`` as for :func:`levenberg_marquardt`. Returns
+    (the best point met, its cost)."""
     if steps <= 0 or not np.any(active):
         return theta, None
-    mu = np.zeros(int(np.count_nonzero(active)))
-    nu = np.zeros_like(mu)
+    init, update = _adam(float(lr), int(steps))
+    state = init(theta[active])
     best, best_cost = theta.copy(), np.inf
     current = theta.copy()
-    for k in range(steps):
+    for _ in range(steps):
         r, jac = problem.evaluate(current, width)
         cost = float(r @ r)
         if not math.isfinite(cost):
@@ -139,11 +141,16 @@ def adam(problem, theta, active, width, steps, lr, b1=0.9, b2=0.999, eps=1e-8):
         if cost < best_cost:
             best, best_cost = current.copy(), cost
         grad = jac[:, active].T @ r / max(cost, 1e-300)  # scale-free (adam normalizes anyway)
-        mu = b1 * mu + (1 - b1) * grad
-        nu = b2 * nu + (1 - b2) * grad**2
-        step = lr * 0.5 * (1 + math.cos(math.pi * k / steps))
+        step, state = update(grad, state)
         current = current.copy()
-        current[active] -= (
-            step * (mu / (1 - b1 ** (k + 1))) / (np.sqrt(nu / (1 - b2 ** (k + 1))) + eps)
-        )
+        current[active] += np.asarray(step)
     return best, best_cost
+
+
+@functools.cache
+def _adam(lr: float, steps: int):
+    """(init, update) of optax's adam on its cosine decay, each one compiled program: run
+    eagerly, their dozen small operations compile a program each in every new process
+    (measured, 2 cores at load 10: the first update 1.9 s eager, 0.54 s jitted)."""
+    optimizer = optax.adam(optax.cosine_decay_schedule(lr, steps))
+    return jax.jit(optimizer.init), jax.jit(optimizer.update)
