@@ -2,7 +2,9 @@
 effect plain and concealed (brief, masked by integral action, without a column v, combined
 with a second effect), identifiable stiction (a late breakaway on a voltage ramp, stick-slip
 hunting under PI), several recordings of one cart whose drive limit differs from run to run,
-friction that varies along the track (no candidate: "not explained" is the right answer),
+friction and a dead band that differ by direction, a voltage offset (in closed loop a tie with a
+tilt), a tilt told from it by a tap, Stribeck friction, friction that varies along the track
+(no candidate: "not explained" is the right answer),
 clean recordings and parameter errors; and its score table. What counts as right is each
 case's ``rule`` (:data:`RULES`).
 
@@ -28,12 +30,18 @@ from pathlib import Path
 
 from jaxcart.effects import (
     Coulomb,
+    CoulombAsymmetry,
     CurrentLimit,
     Deadzone,
+    DeadzoneAsymmetry,
     Delay,
     Saturation,
     Spring,
     Stiction,
+    Stribeck,
+    Tilt,
+    ViscousAsymmetry,
+    VoltageOffset,
 )
 
 #: What counts as right, per case (:func:`judge`). "names": the named effects are the expected
@@ -57,7 +65,9 @@ class Case:
     """One case: a truth (plant values, SI), the recording(s) made of it, and what counts as
     the right answer (``rule``, one of :data:`RULES`, with ``expect``).
 
-    kind: "step" | "ramp" (closed loop, reference amplitude [m] or slope [m/s]) | "open_ramp"
+    kind: "step" | "ramp" (closed loop, reference amplitude [m] or slope [m/s]) | "out_back"
+    (closed loop: out to the amplitude [m], back to minus half of it at half the horizon, so the
+    cart moves both ways) | "open_ramp"
     (open-loop voltage ramp of ``rate`` [V/s]) | "tap" (motor unplugged); horizon [s] (None:
     the kind's default); kp [V/m], ki [V/(m s)], kd [V s/m], v_limit [V]: the PID; drop_v: the
     column v dropped from the file. ``runs``: several recordings of one cart, each a dict of
@@ -102,6 +112,13 @@ class Case:
 
 COULOMB, STICTION, SATURATION = Coulomb.name, Stiction.name, Saturation.name
 DELAY, DEADZONE, SPRING, CURRENT = Delay.name, Deadzone.name, Spring.name, CurrentLimit.name
+COULOMB_ASYM, VISCOUS_ASYM = CoulombAsymmetry.name, ViscousAsymmetry.name
+DEADZONE_ASYM, OFFSET, TILT, STRIBECK = (
+    DeadzoneAsymmetry.name,
+    VoltageOffset.name,
+    Tilt.name,
+    Stribeck.name,
+)
 B = {"B_eq": 4.6}
 #: A lab cart as the real recordings show it (issue 21): viscous friction of a tap, 0.4 N of
 #: Coulomb friction.
@@ -295,6 +312,53 @@ CASES = (
         expect=(COULOMB, SATURATION),
         rule="shared",
     ),
+    # Physics beyond the first library (issue 33): friction, a dead band that differ by
+    # direction (a reference out and back), offsets, the Stribeck fall.
+    Case(
+        "coulomb by direction",
+        "plain",
+        {**B, "f_c": 0.3, "f_c_asym": 0.1},
+        kind="out_back",
+        expect=(COULOMB, COULOMB_ASYM),
+    ),
+    Case(
+        "viscous by direction",
+        "plain",
+        {**B, "B_asym": 1.2},
+        kind="out_back",
+        expect=(VISCOUS_ASYM,),
+    ),
+    Case(
+        "deadzone by direction",
+        "plain",
+        {**B, "deadzone": 0.4, "deadzone_asym": 0.15},
+        kind="out_back",
+        expect=(DEADZONE, DEADZONE_ASYM),
+    ),
+    # In closed loop a voltage offset is a tilt (gamma v_offset = f_tilt): named as a tie.
+    Case("voltage offset", "plain", {**B, "v_offset": 0.25}, expect=(OFFSET,)),
+    # The tap (motor unplugged) tells the tilt from an offset of the drive.
+    Case(
+        "tilt (tap + PD step)",
+        "concealed",
+        {"B_eq": 1.5, "f_tilt": 0.3},
+        amplitude=0.15,
+        kp=50.0,
+        kd=2.0,
+        runs=(TAP, {}),
+        expect=(TILT,),
+    ),
+    Case(
+        "stribeck hunting under PI",
+        "concealed",
+        {**B, "f_c": 0.4, "f_s": 0.6, "v_stribeck": 0.01},
+        amplitude=0.01,
+        kp=40.0,
+        ki=400.0,
+        kd=1.5,
+        horizon=3.0,
+        expect=(COULOMB, STICTION, STRIBECK),
+    ),
     Case(
         "track friction (no candidate)",
         "concealed",
@@ -337,6 +401,9 @@ def _write_run(case: Case, path: Path) -> Path:
         pid = jc.PID(kp=case.kp, ki=case.ki, kd=case.kd, v_limit=case.v_limit)
         if case.kind == "step":
             exp = jc.step(case.amplitude, horizon=horizon or 2.0)
+        elif case.kind == "out_back":
+            h = horizon or 2.0
+            exp = jc.setpoints([0.0, h / 2], [case.amplitude, -case.amplitude / 2], horizon=h)
         elif case.kind == "ramp":
             exp = jc.ramp(case.amplitude, horizon=horizon or 2.0)
         elif case.kind == "open_ramp":
@@ -344,7 +411,8 @@ def _write_run(case: Case, path: Path) -> Path:
             pid = None
         else:
             raise ValueError(
-                f"case {case.name!r}: kind {case.kind!r}: give step, ramp, open_ramp or tap"
+                f"case {case.name!r}: kind {case.kind!r}: give step, ramp, out_back, open_ramp "
+                "or tap"
             )
         rec = make_recording(plant, pid, exp, seed=case.seed)
     write_recording(rec, path, force=True)
