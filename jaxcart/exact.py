@@ -14,14 +14,16 @@ The sampled-data loop (sample time Ts [s], samples at t_k = k Ts):
 Over one sample the drive F = gamma v_k [N] is constant, and within a slip phase so is the
 friction -f_k sgn(y') [N]; the motion y'' = -a y' + b (a = c/m [1/s], b [m/s^2]) is then solved
 in closed form (exponential and its phi functions via expm1, series for small a t, so c = 0 is
-exact too). Stick-slip events are found in closed form (Karnopp, static level f_s >= kinetic f_k):
+exact too). A kinetic level that differs by direction (f_k+ sliding right, f_k- left) keeps this:
+within a slip phase the direction, hence the level, is fixed. Stick-slip events are found in
+closed form (Karnopp, static level f_s >= kinetic f_k):
 
     start of sample, or velocity just reached 0 at time t* (closed form):
                       |
               y' == 0 ?  --no-->  slip, s = sgn(y'):  b = (F - s f_k)/m
                  | yes                |
                  v                    |  does y' reach 0 before the sample ends?
-          |F| <= f_s ?                |    (only if s b < 0; t* = log1p(-a y'/b)/a)
+  -f_s- <= F <= f_s+ ?              |    (only if s b < 0; t* = log1p(-a y'/b)/a)
           |yes       |no              |-- yes: advance to t*, set y' = 0 exactly, loop back up
           v          v                '-- no: advance to the sample end; done
         stuck:     slip, s = sgn(F)
@@ -96,22 +98,77 @@ def _stop_time(a: float, v: float, b: float) -> float:
     return (-v / b) * ratio
 
 
+class _Friction:
+    """The plant's dry friction, its members combined (docs/design.md, "Effects"): kinetic
+    levels K+(y) sliding right and K-(y) sliding left [N] (each the members' sum, held at 0 or
+    above), the static level S [N] (stiction; None without) and the Stribeck speed v_s [m/s]
+    (0: Karnopp's jump from S to the kinetic level). Sliding in direction s at speed q its
+    magnitude is K_s + max(S - K_s, 0) exp(-(q / v_s)^2); a cart at rest breaks away in
+    direction s only where s F > max(S, K_s) for the applied force F [N].
+
+    ``constant``: (K+, K-) where no level varies within a slip phase (neither with the
+    position nor with the speed), else None; ``varying``: the opposite.
+    """
+
+    def __init__(self, dry):
+        self.dry = dry
+        statics = [float(e.static()) for e in dry if e.static() is not None]
+        self.static = max(statics) if statics else None
+        speeds = [float(e.stribeck()) for e in dry if e.stribeck() is not None]
+        self.v_s = max(speeds, default=0.0) if self.static is not None else 0.0
+        positional = any(e.position_dependent for e in dry)
+        self.varying = positional or self.v_s > 0.0
+        self.constant = None if positional else self._sum(0.0)
+
+    def _sum(self, y):
+        right = left = 0.0
+        for e in self.dry:
+            r, lf = e.kinetic_sides(y, math)
+            right, left = right + float(r), left + float(lf)
+        return max(right, 0.0), max(left, 0.0)
+
+    def sides(self, y):
+        """(K+, K-) [N] at position y [m]."""
+        return self._sum(y) if self.constant is None else self.constant
+
+    def level(self, y, s, speed):
+        """The friction's magnitude [N] sliding in direction s at speed [m/s], position y [m]."""
+        right, left = self.sides(y)
+        k = right if s > 0.0 else left
+        if self.v_s > 0.0 and self.static > k:
+            k += (self.static - k) * math.exp(-((speed / self.v_s) ** 2))
+        return k
+
+    def breakaway(self, y, s):
+        """The applied force [N] a cart at rest at y [m] must exceed in direction s to move."""
+        right, left = self.sides(y)
+        k = right if s > 0.0 else left
+        return k if self.static is None else max(self.static, k)
+
+    def stuck(self, y, applied):
+        """True where a cart at rest at y [m] stays at rest under the applied force [N]."""
+        return -self.breakaway(y, -1.0) <= applied <= self.breakaway(y, 1.0)
+
+
 class _Cart:
     """The cart between two samples, stepped with Python floats (numpy scalars are ~10x slower).
 
-    m: moving mass [kg]; a = c/m [1/s]; f_k, f_s: kinetic and static friction [N]; h: Ts [s].
+    m: moving mass [kg]; a = c/m [1/s]; friction: the plant's :class:`_Friction` (constant
+    levels); h: Ts [s].
     """
 
-    def __init__(self, m: float, c: float, f_k: float, f_s: float, h: float):
+    def __init__(self, m: float, c: float, friction: _Friction, h: float):
         self.m = m
         self.a = c / m
-        self.f_k = f_k
-        # Break away only when the drive also beats kinetic friction, else it would re-stick at
-        # once (chatter); with f_s >= f_k, as Karnopp assumes, this is just f_s.
-        self.f_break = max(f_s, f_k)
+        # Kinetic level sliding right and left, and the force that breaks the cart away each
+        # way [N] (the drive must also beat kinetic friction, else it re-sticks at once).
+        self.f_right, self.f_left = friction.constant
+        self.break_right = friction.breakaway(0.0, 1.0)
+        self.break_left = friction.breakaway(0.0, -1.0)
         self.h = h
         self.full = _phis(self.a, h)  # most phases span a whole sample: computed once
-        self.advance = self._advance_linear if f_k == 0.0 and f_s == 0.0 else self._advance
+        idle = self.break_right == 0.0 and self.break_left == 0.0
+        self.advance = self._advance_linear if idle else self._advance
 
     def _slip(self, y, v, b, t):
         e, p1, p2 = self.full if t == self.h else _phis(self.a, t)
@@ -130,12 +187,12 @@ class _Cart:
         left = h
         for _ in range(_MAX_EVENTS):
             if v == 0.0:
-                if abs(force) <= self.f_break:
+                if -self.break_left <= force <= self.break_right:
                     return y, 0.0  # stuck until the drive changes at the next sample
                 s = 1.0 if force > 0.0 else -1.0
             else:
                 s = 1.0 if v > 0.0 else -1.0
-            b = (force - s * self.f_k) / self.m
+            b = (force - s * (self.f_right if s > 0.0 else self.f_left)) / self.m
             if s * b < 0.0:
                 t_stop = _stop_time(self.a, v, b)
                 if t_stop < left:
@@ -153,28 +210,29 @@ class _GeneralCart:
     """The cart under any force effects: classical RK4 on fine sub-steps (Ts/20), with the
     stick-slip events of dry friction located by bisection and the Karnopp stick test at each.
 
-    Used where the closed form does not apply (a spring, a current limit, friction that varies
-    along the track). Forces keep their hard forms: no smoothing anywhere. Within a slip phase
-    the friction direction is fixed, so the right-hand side is smooth and RK4 converges at
-    fourth order; the error is below 1e-12 m per sample at these time scales (tested against
-    the closed form where both apply). Where every force is affine (a spring) a piece of a
-    sample without an event is the sub-steps composed into one map (:func:`_rk4_map`).
+    Used where the closed form does not apply (a spring, friction that varies along the track
+    or with the speed: Stribeck's). Forces keep their hard forms: no smoothing anywhere. Within
+    a slip phase the friction direction is fixed, so the right-hand side is smooth and RK4
+    converges at fourth order; the error is below 1e-12 m per sample at these time scales
+    (tested against the closed form where both apply). Where every force is affine (a spring)
+    a piece of a sample without an event is the sub-steps composed into one map
+    (:func:`_rk4_map`).
     """
 
-    def __init__(self, m, c, gamma, drive, dry, others, h, substeps):
+    def __init__(self, m, c, gamma, drive, friction, others, h, substeps):
         self.m, self.c, self.gamma, self.drive, self.h = m, c, gamma, drive, h
         self.substeps = substeps
-        self.dry, self.others = dry, others
-        statics = [e.static() for e in dry if e.static() is not None]
-        self.static = max(statics) if statics else None
-        # Friction that does not vary along the track is one number: computed once.
-        self.varying = any(e.position_dependent for e in dry)
-        self.kinetic_force = None if self.varying else self._kinetic(0.0)
+        self.friction, self.others = friction, others
+        # Friction that varies neither along the track nor with the speed is one number per
+        # direction within a slip phase.
+        self.varying = friction.varying
         self.affine = None if self.varying else _affine_phase(m, c, drive, others, h)
         self.maps: dict = {}
 
-    def _kinetic(self, y):
-        return sum(float(e.kinetic(y, math)) for e in self.dry) if self.dry else 0.0
+    def _kinetic(self, s):
+        """The constant friction level [N] sliding in direction s (not ``varying``)."""
+        right, left = self.friction.constant
+        return right if s > 0.0 else left
 
     def _stepper(self, v, s):
         """``rk4(y, yd, h)``: :meth:`_rk4` under the held voltage ``v`` [V] and friction
@@ -183,7 +241,7 @@ class _GeneralCart:
         if self.varying:
             return lambda y, yd, h: self._rk4(y, yd, v, s, h)
         m, c, drive = self.m, self.c, self.drive
-        gv, sk = self.gamma * v, s * self.kinetic_force
+        gv, sk = self.gamma * v, s * self._kinetic(s)
         forces = tuple(e.exact_force_for(drive) for e in self.others)
 
         if len(forces) == 1:
@@ -218,7 +276,7 @@ class _GeneralCart:
         return rk4
 
     def _accel(self, y, yd, v, s):
-        f = self.gamma * v - self.c * yd - s * self._kinetic(y)
+        f = self.gamma * v - self.c * yd - s * self.friction.level(y, s, abs(yd))
         for e in self.others:
             f += e.exact_force(y, yd, v, self.drive)
         return f / self.m
@@ -256,7 +314,7 @@ class _GeneralCart:
         """(y, y') after h [s] under the held voltage v [V]: a piece with no event in one
         affine map where the forces allow (:func:`_affine_phase`), else RK4 sub-steps."""
         left = h
-        friction = bool(self.dry)
+        friction = bool(self.friction.dry)
         for _ in range(_MAX_EVENTS):
             if left <= 0.0:
                 return y, yd
@@ -264,16 +322,14 @@ class _GeneralCart:
                 applied = self.gamma * v + sum(
                     e.exact_force(y, 0.0, v, self.drive) for e in self.others
                 )
-                kinetic = self._kinetic(y)
-                level = kinetic if self.static is None else max(self.static, kinetic)
-                if abs(applied) <= level:
+                if self.friction.stuck(y, applied):
                     return y, 0.0  # stuck: every force is constant while y is
                 s = 1.0 if applied > 0.0 else -1.0
             else:
                 s = 1.0 if yd > 0.0 else -1.0
             if self.affine is not None and left == h:
                 p00, p01, p10, p11, q0, q1 = self._map(h)
-                acc = (self.gamma * v - s * self.kinetic_force + self.affine[1]) / self.m
+                acc = (self.gamma * v - s * self._kinetic(s) + self.affine[1]) / self.m
                 y1, yd1 = p00 * y + p01 * yd + q0 * acc, p10 * y + p11 * yd + q1 * acc
                 if not friction or yd1 * s > 0.0:
                     return y1, yd1
@@ -346,20 +402,20 @@ class _VelocityCart:
     At a held voltage v the force of the effects is F(y') = f0_j + k_j y' on the j-th interval
     of the velocity (:meth:`jaxcart.effects.base.Effect`'s ``exact_velocity_pieces``), and
     continuous, so within a piece and a slip direction s the motion is y'' = -a y' + b with
-    a = (c - k_j)/m, b = (gamma v - s f_k + f0_j)/m, and y' runs monotonically towards b/a.
+    a = (c - k_j)/m, b = (gamma v - s f_k,s + f0_j)/m (f_k,s the kinetic level sliding in
+    direction s), and y' runs monotonically towards b/a.
     The next event is the nearest break between y' and b/a (a new piece) or, under friction,
     y' = 0 (the Karnopp stick test); its time is :func:`_stop_time` of the velocity shifted
     by the break. Agrees with :class:`_GeneralCart`'s RK4 to ~1e-12 m (tests/test_exact.py)
     at a tenth of its cost or less.
     """
 
-    def __init__(self, m, c, gamma, drive, dry, others):
+    def __init__(self, m, c, gamma, drive, friction, others):
         self.m, self.c, self.gamma, self.drive = m, c, gamma, drive
         self.others = others
-        self.friction = bool(dry)
-        self.f_k = sum(float(e.kinetic(0.0, math)) for e in dry)
-        statics = [float(e.static()) for e in dry if e.static() is not None]
-        self.f_break = max([*statics, self.f_k])
+        self.friction = bool(friction.dry)
+        self.f_right, self.f_left = friction.constant
+        self.stuck = friction.stuck
         self._at: dict = {}
         self._phis: dict = {}
 
@@ -398,7 +454,7 @@ class _VelocityCart:
                 if yd == 0.0:
                     f0, _ = pieces[bisect.bisect_right(breaks, 0.0)]
                     applied = gv + f0
-                    if abs(applied) <= self.f_break:
+                    if self.stuck(y, applied):
                         return y, 0.0  # stuck: every force is constant while y is
                     s = 1.0 if applied > 0.0 else -1.0
                 else:
@@ -434,7 +490,8 @@ class _VelocityCart:
     def _phase(self, piece, gv, s):
         """(a [1/s], b [m/s^2]) of y'' = -a y' + b on ``piece`` in slip direction s."""
         f0, k = piece
-        return (self.c - k) / self.m, (gv - s * self.f_k + f0) / self.m
+        f_k = self.f_right if s > 0.0 else self.f_left
+        return (self.c - k) / self.m, (gv - s * f_k + f0) / self.m
 
     @staticmethod
     def _event(breaks, j, yd, accel, friction):
@@ -461,7 +518,7 @@ class _BacklashCart:
 
     MAX_EVENTS = 16
 
-    def __init__(self, plant, effect, gamma, drive, dry, others, h, substeps):
+    def __init__(self, plant, effect, gamma, drive, friction, others, h, substeps):
         self.substeps = substeps
         self.big_m, self.m_j = float(plant.M), float(plant.M_J)
         self.m = self.big_m + self.m_j
@@ -469,13 +526,12 @@ class _BacklashCart:
         self.c = self.b_eq + self.b_emf
         self.gamma, self.drive, self.h = gamma, drive, h
         self.half = 0.5 * float(effect.backlash)
-        self.dry, self.others = dry, others
-        statics = [e.static() for e in dry if e.static() is not None]
-        self.static = max(statics) if statics else None
+        self.friction, self.others = friction, others
+        self.dry = bool(friction.dry)
         self.d, self.dd, self.mode = effect.exact_init(h)
 
-    def _kinetic(self, y):
-        return sum(float(e.kinetic(y, math)) for e in self.dry) if self.dry else 0.0
+    def _kinetic(self, y, yd, s):
+        return self.friction.level(y, s, abs(yd)) if self.dry else 0.0
 
     def _other(self, y, yd, v):
         return sum(e.exact_force(y, yd, v, self.drive) for e in self.others)
@@ -486,10 +542,12 @@ class _BacklashCart:
         if s == 0.0:
             cart = 0.0
         elif self.mode:
-            cart = self.gamma * v - self.c * yd - s * self._kinetic(y) + self._other(y, yd, v)
+            friction = s * self._kinetic(y, yd, s)
+            cart = self.gamma * v - self.c * yd - friction + self._other(y, yd, v)
             return yd, cart / self.m, 0.0, 0.0
         else:
-            cart = (-self.b_eq * yd - s * self._kinetic(y) + self._other(y, yd, v)) / self.big_m
+            friction = s * self._kinetic(y, yd, s)
+            cart = (-self.b_eq * yd - friction + self._other(y, yd, v)) / self.big_m
         if self.mode:
             return yd, 0.0, 0.0, 0.0
         motor = (self.gamma * v - self.b_emf * (yd + dd)) / self.m_j
@@ -526,9 +584,7 @@ class _BacklashCart:
         if yd != 0.0 or not self.dry:
             return 1.0 if yd >= 0.0 else -1.0
         applied = self._other(y, 0.0, v) + (self.gamma * v if self.mode else 0.0)
-        kinetic = self._kinetic(y)
-        level = kinetic if self.static is None else max(self.static, kinetic)
-        if abs(applied) <= level:
+        if self.friction.stuck(y, applied):
             return 0.0
         return 1.0 if applied > 0.0 else -1.0
 
@@ -626,20 +682,18 @@ def _cart(plant: Plant, ts: float):
     transmission = next((e for e in forces if e.transmission), None)
     forces = [e for e in forces if e is not transmission]
     substeps = substeps_per_sample(plant, rk4=True)
-    dry = [e for e in forces if e.dry_friction]
+    friction = _Friction([e for e in forces if e.dry_friction])
     others = [e for e in forces if not e.dry_friction]
     drive = _Drive(float(plant.gamma), float(plant.Rm), float(plant.B_emf))
-    varying = any(e.position_dependent for e in dry)
+    varying = friction.varying
     if transmission is not None:
-        cart = _BacklashCart(plant, transmission, gamma, drive, dry, others, ts, substeps)
+        cart = _BacklashCart(plant, transmission, gamma, drive, friction, others, ts, substeps)
     elif others and not varying and all(hasattr(e, "exact_velocity_pieces") for e in others):
-        cart = _VelocityCart(m, c, gamma, drive, dry, others)
+        cart = _VelocityCart(m, c, gamma, drive, friction, others)
     elif others or varying:
-        cart = _GeneralCart(m, c, gamma, drive, dry, others, ts, substeps)
+        cart = _GeneralCart(m, c, gamma, drive, friction, others, ts, substeps)
     else:
-        f_k = sum(float(e.kinetic(0.0, math)) for e in dry)
-        statics = [float(e.static()) for e in dry if e.static() is not None]
-        cart = _Cart(m, c, f_k, max(statics) if statics else f_k, ts)
+        cart = _Cart(m, c, friction, ts)
         return _pieces(cart.advance, ts, scale=gamma)
     return _pieces(cart.advance, ts)
 

@@ -112,23 +112,40 @@ def _linear_step(y, yd, accel, a, h):
 def _dry_friction(plant: Plant, smoothing: Smoothing):
     """Smoothed combined dry friction F(y, y') [N] of the plant's friction effects, or None.
 
-    Kinetic level K(y) = sum of the members' kinetic(y); with a static level S (stiction) the
-    magnitude rises to S near zero velocity (see :mod:`jaxcart.effects.stiction`)."""
+    Kinetic level K(y) = sum of the members' kinetic(y); where a member differs by direction
+    (``sided``), K+ and K- (each at least 0) joined by the smoothed sign s:
+    K = (K+ + K-)/2 + s (K+ - K-)/2. With a static level S (stiction) the magnitude rises to S
+    near zero velocity over v_s = sqrt(w c) (see :mod:`jaxcart.effects.stiction`), and over
+    sqrt(v_S^2 + w c) with a Stribeck speed v_S (:mod:`jaxcart.effects.stribeck`)."""
     dry = [e for e in plant.effects if e.dry_friction]
     if not dry:
         return None
     statics = [e.static() for e in dry if e.static() is not None]
+    speeds = [e.stribeck() for e in dry if e.stribeck() is not None]
+    sided = any(e.sided for e in dry)
     w = smoothing.velocity
 
+    def kinetic(y, sign):
+        if not sided:
+            return sum(e.kinetic(y, jnp) for e in dry)
+        sides = [e.kinetic_sides(y, jnp) for e in dry]
+        right = jnp.maximum(sum(r for r, _ in sides), 0.0)
+        left = jnp.maximum(sum(lf for _, lf in sides), 0.0)
+        return 0.5 * (right + left) + 0.5 * (right - left) * sign
+
     def force(y, yd):
-        kinetic = sum(e.kinetic(y, jnp) for e in dry)
         sign = smooth_sign(yd, w)
+        level = kinetic(y, sign)
         if not statics:
-            return -kinetic * sign
+            return -level * sign
         static = functools.reduce(jnp.maximum, statics)
-        vs = jnp.sqrt(w * STRIBECK_SCALE)
+        if speeds:
+            v_s = functools.reduce(jnp.maximum, speeds)
+            vs = jnp.sqrt(w * STRIBECK_SCALE + v_s * v_s)
+        else:
+            vs = jnp.sqrt(w * STRIBECK_SCALE)
         bump = jnp.exp(-((yd / vs) ** 2))
-        return -(kinetic + jnp.maximum(static - kinetic, 0.0) * bump) * sign
+        return -(level + jnp.maximum(static - level, 0.0) * bump) * sign
 
     return force
 

@@ -70,6 +70,12 @@ def smooth_sign(x, width):
     return jnp.where(denom > 0, x * jax.lax.rsqrt(safe), 0.0)
 
 
+def smooth_abs(x, width):
+    """|x| smoothed over ``width``: x smooth_sign(x) = x^2 / sqrt(x^2 + width^2); exact at
+    width 0, and within width of |x| everywhere."""
+    return x * smooth_sign(x, width)
+
+
 def continuation(shrink: float, stages: int) -> tuple[float, ...]:
     """The smoothing continuation schedule shared by fitting and tuning: width factors from 1
     down to ``shrink`` in ``stages`` geometric steps (``continuation(0.125, 4)`` is 1, 0.5,

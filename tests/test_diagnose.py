@@ -247,6 +247,21 @@ def test_every_registered_effect_is_a_candidate_or_says_why_not():
         assert set(params) >= set(REGISTRY[name].param_names()), name
 
 
+def test_an_effect_along_the_track_is_a_candidate_only_where_the_recordings_cover_it(
+    monkeypatch,
+):
+    """An effect that declares ``covers`` (a map along the track) is searched only where the
+    recordings span that much of the track; without the span it is left out."""
+    from jaxcart.effects import REGISTRY
+    from tuning.estimation.engine import parameters as P
+
+    monkeypatch.setattr(REGISTRY["spring"], "covers", 0.4)
+    assert "spring" not in P.candidates() and "spring" not in P.candidates(span=0.3)
+    assert P.candidates(span=0.5)["spring"] == ("k_s", "y_rest")
+    covers = [n for n, cls in REGISTRY.items() if cls.covers and n != "spring"]
+    assert covers == ["track_friction"] and "0.4 m" in REGISTRY["track_friction"].not_candidate
+
+
 def test_exact_memo_reuses_runs_read_only_and_keeps_the_newest():
     """The diagnosis's memo of exact runs: the same structure and values give the stored run
     (not a new one), read-only; another value or structure is a new run; the oldest goes."""

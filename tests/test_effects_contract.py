@@ -23,6 +23,8 @@ PID_STEP = jc.PID(kp=40.0, kd=3.0, ki=5.0, v_limit=6.0)
 
 #: A closed-loop PD step on the handout plant [V/m, V s/m, V]: the default case's run.
 PD_STEP = jc.PID(kp=40.0, kd=3.0, v_limit=6.0)
+#: References that move the cart both ways: 0.2 m out, then back to -0.1 m at 0.3 s [m].
+BOTH_WAYS = jc.setpoints([0.0, 0.3], [0.2, -0.1], horizon=HORIZON)
 
 #: For effects whose default case does not show them plainly: plant values where the effect
 #: acts plainly, the controller (None: open loop) and the experiment.
@@ -46,6 +48,23 @@ CASES = {
         {"f_track": [0.2, 0.8, 0.3, 0.5, 0.1]},
         jc.PID(kp=25.0),
         jc.step(0.3, horizon=HORIZON),
+    ),
+    # Coulomb's own case, the level 0.8 N sliding right (0.4 N left).
+    "coulomb_asymmetry": (
+        {"f_c": 0.6, "f_c_asym": 0.2},
+        jc.PID(kp=20.0),
+        jc.step(0.1, horizon=HORIZON),
+    ),
+    # Both directions: out to 0.2 m, back to -0.1 m.
+    "viscous_asymmetry": ({"B_asym": 2.0}, PID_STEP, BOTH_WAYS),
+    "deadzone_asymmetry": ({"deadzone": 0.5, "deadzone_asym": 0.2}, jc.PID(kp=20.0), BOTH_WAYS),
+    "voltage_offset": ({"v_offset": 0.3}, PID_STEP, jc.step(0.3, horizon=HORIZON)),
+    "tilt": ({"f_tilt": 0.5}, PID_STEP, jc.step(0.3, horizon=HORIZON)),
+    # Stiction's ramp: after the breakaway at 0.9 N the friction falls to 0.3 N over ~1 cm/s.
+    "stribeck": (
+        {"f_c": 0.3, "f_s": 0.9, "v_stribeck": 0.01},
+        None,
+        jc.voltage_sequence(np.linspace(0.0, 1.2, int(HORIZON * 1000) + 1)),
     ),
 }
 NAMES = sorted(REGISTRY)
@@ -202,6 +221,12 @@ def test_any_combination_runs_in_both_simulators():
         "k_s": 5.0,
         "i_max": 1.5,
         "quantization": 2.275e-5,
+        "f_c_asym": 0.1,
+        "B_asym": 0.5,
+        "deadzone_asym": 0.05,
+        "v_offset": 0.1,
+        "f_tilt": 0.2,
+        "v_stribeck": 0.01,
     }
     plant = build_plant(values)
     exp = jc.step(0.3, horizon=HORIZON)

@@ -406,6 +406,190 @@ def test_backlash_step_crosses_the_gap_then_shares_momentum():
     np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_RK4)
 
 
+# ---------------------------------------------------------------- effects that differ by direction
+
+
+@pytest.mark.parametrize("v0", [0.8, -0.8])
+def test_coulomb_asymmetry_tap_stops_at_each_directions_level(v0):
+    """A tap (motor unplugged) with f_c = 0.44 N, f_c_asym = 0.12 N: sliding right the cart
+    decelerates against 0.56 N, left against 0.32 N; each the Coulomb tap's closed form with
+    that level (stop time ln(1 + B_eq |v0| / f) m / B_eq: 0.89 s and 1.11 s), at rest after.
+    1e-12 m."""
+    b_eq, f_c, asym = 1.5, 0.44, 0.12
+    level = f_c + asym if v0 > 0 else f_c - asym
+    t = _times(1.5)
+    res = simulate_exact(
+        jc.tap_plant(B_eq=b_eq, f_c=f_c, f_c_asym=asym), None, jc.tap(v0, horizon=1.5)
+    )
+    y, v, t_stop, _ = _coulomb_tap(t, level, v0, c=b_eq)
+    assert 0.05 < t_stop < 1.45
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+
+
+def test_coulomb_asymmetry_is_coulomb_with_a_constant_force():
+    """f_c +- f_c_asym is Coulomb friction f_c plus the constant force -f_c_asym, at rest too
+    (the Karnopp band shifts with it): a P loop that reverses and sticks on either side, and
+    an open-loop voltage sequence, equal to 1e-12 m between two code paths of the exact
+    simulator (the closed form with a level per direction; the velocity-piecewise one with a
+    constant force)."""
+    f_c, asym = 0.5, 0.15
+    runs = (
+        (jc.PID(kp=15.0), jc.setpoints([0.0, 0.4, 0.8], [0.05, -0.03, 0.02], horizon=1.2)),
+        (None, jc.voltage_sequence(np.repeat([0.5, 0.2, -0.3, -0.15, 0.1, 0.0], 100))),
+    )
+    for pid, exp in runs:
+        sided = simulate_exact(build_plant({"f_c": f_c, "f_c_asym": asym}), pid, exp)
+        tilted = simulate_exact(build_plant({"f_c": f_c, "f_tilt": -asym}), pid, exp)
+        np.testing.assert_allclose(sided.position, tilted.position, rtol=0, atol=TOL_CLOSED)
+        np.testing.assert_allclose(sided.velocity, tilted.velocity, rtol=0, atol=TOL_CLOSED)
+        # It sticks (the band matters) and the asymmetry acts.
+        assert np.sum(sided.velocity == 0.0) > 50
+        plain = simulate_exact(build_plant({"f_c": f_c}), pid, exp)
+        assert np.max(np.abs(plain.position - sided.position)) > 1e-3
+
+
+@pytest.mark.parametrize("volts", [3.0, -3.0])
+def test_viscous_asymmetry_step_is_the_closed_form_with_each_directions_coefficient(volts):
+    """B_eq = 2 kg/s, B_asym = 0.8 kg/s: a voltage step right is the linear cart with
+    c = B_eq + 0.8 + B_emf, left with B_eq - 0.8 + B_emf. 1e-12 m (closed form in the exact
+    simulator too, the force piecewise linear in the velocity)."""
+    b_eq, asym = 2.0, 0.8
+    t = _times(0.5)
+    plant = build_plant({"B_eq": b_eq, "B_asym": asym})
+    res = simulate_exact(plant, None, jc.voltage_step(volts, horizon=0.5))
+    c = b_eq + (asym if volts > 0 else -asym) + B_EMF
+    y, v = linear(t, GAMMA * volts, c=c)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+
+
+@pytest.mark.parametrize("v0", [0.6, -0.6])
+def test_viscous_asymmetry_tap_decays_at_each_directions_rate(v0):
+    """A tap (motor unplugged, c = B_eq +- B_asym): v(t) = v0 exp(-(B_eq +- B_asym) t / m)."""
+    b_eq, asym = 1.5, 0.4
+    t = _times(0.5)
+    res = simulate_exact(jc.tap_plant(B_eq=b_eq, B_asym=asym), None, jc.tap(v0, horizon=0.5))
+    y, v = linear(t, 0.0, c=b_eq + (asym if v0 > 0 else -asym), v0=v0)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+
+
+def test_deadzone_asymmetry_band_is_shifted_by_its_centre():
+    """deadzone = 0.3 V, deadzone_asym = 0.1 V: commands in [-0.2, 0.4] V move nothing; 1 V
+    drives with 1 - 0.4 = 0.6 V, -1 V with -1 + 0.2 = -0.8 V (the closed form, 1e-12 m)."""
+    t = _times(0.5)
+    plant = build_plant({"deadzone": 0.3, "deadzone_asym": 0.1})
+    for volts, applied in ((1.0, 0.6), (-1.0, -0.8)):
+        res = simulate_exact(plant, None, jc.voltage_step(volts, horizon=0.5))
+        np.testing.assert_allclose(res.voltage, applied, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(
+            res.position, linear(t, GAMMA * applied)[0], rtol=0, atol=TOL_CLOSED
+        )
+    for volts in (0.39, -0.19):
+        res = simulate_exact(plant, None, jc.voltage_step(volts, horizon=0.5))
+        assert np.all(res.position == 0.0) and np.all(res.voltage == 0.0)
+
+
+# ---------------------------------------------------------------- offsets: a bias, a tilt
+
+
+def test_voltage_offset_adds_to_every_command_and_not_to_a_tap():
+    """v_offset = 0.25 V: a 2 V step is the 2.25 V closed form, no command the 0.25 V one;
+    in a tap (motor unplugged) it does nothing, bit for bit."""
+    t = _times(0.4)
+    plant = build_plant({"v_offset": 0.25})
+    for volts in (2.0, 0.0):
+        res = simulate_exact(plant, None, jc.voltage_step(volts, horizon=0.4))
+        y, v = linear(t, GAMMA * (volts + 0.25))
+        np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+        np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+    tap = jc.tap(0.7, horizon=0.4)
+    biased = simulate_exact(jc.tap_plant(B_eq=1.5, f_c=0.4, v_offset=0.25), None, tap)
+    plain = simulate_exact(jc.tap_plant(B_eq=1.5, f_c=0.4), None, tap)
+    np.testing.assert_array_equal(biased.position, plain.position)
+
+
+def test_voltage_offset_is_a_tilt_in_closed_loop_but_not_under_the_amplifiers_limit():
+    """Under a PD loop with the software's 6 V limit (which clips the command before the
+    offset) v_offset = b is the force gamma b of a tilt, to 1e-12 m; with the amplifier's
+    saturation v_sat (after the offset) the two differ, as in a tap."""
+    b = 0.4
+    pid, exp = jc.PID(kp=60.0, kd=3.0, v_limit=6.0), jc.step(0.4, horizon=1.0)
+    bias = simulate_exact(build_plant({"v_offset": b, "f_c": 0.3}), pid, exp)
+    tilt = simulate_exact(build_plant({"f_tilt": GAMMA * b, "f_c": 0.3}), pid, exp)
+    assert np.max(np.abs(bias.command)) == 6.0  # the software limit acts
+    np.testing.assert_allclose(bias.position, tilt.position, rtol=0, atol=TOL_CLOSED)
+    bias = simulate_exact(build_plant({"v_offset": b, "v_sat": 5.0}), pid, exp)
+    tilt = simulate_exact(build_plant({"f_tilt": GAMMA * b, "v_sat": 5.0}), pid, exp)
+    assert np.max(np.abs(bias.position - tilt.position)) > 1e-3
+
+
+def test_tilt_pulls_in_a_tap_and_holds_a_pd_loop_off_its_reference():
+    """f_tilt = 0.5 N: a tap is the linear cart under the constant force (closed form,
+    1e-12 m); a PD loop settles where kp gamma (r - y) + f_tilt = 0, past the reference by
+    f_tilt / (kp gamma) (3.6 mm at kp = 80 V/m; at rest to 1e-6 m by 2 s)."""
+    f = 0.5
+    t = _times(0.5)
+    res = simulate_exact(jc.tap_plant(B_eq=1.5, f_tilt=f), None, jc.tap(-0.4, horizon=0.5))
+    y, v = linear(t, f, c=1.5, v0=-0.4)
+    np.testing.assert_allclose(res.position, y, rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity, v, rtol=0, atol=TOL_CLOSED)
+    pid = jc.PID(kp=80.0, kd=4.0, v_limit=6.0)
+    res = simulate_exact(build_plant({"f_tilt": f}), pid, jc.step(0.2, horizon=2.0))
+    assert res.position[-1] == pytest.approx(0.2 + f / (80.0 * GAMMA), abs=1e-6)
+
+
+# ---------------------------------------------------------------- Stribeck
+
+
+def _stribeck_level(speed, f_c, f_s, v_s):
+    return f_c + (f_s - f_c) * math.exp(-((speed / v_s) ** 2))
+
+
+def test_stribeck_breakaway_is_the_ode_with_the_falling_friction():
+    """A 0.6 V step (1.03 N) against f_c = 0.3 N, f_s = 0.9 N, v_stribeck = 0.02 m/s: the cart
+    breaks away at once and slides against f_c + (f_s - f_c) exp(-(y'/v_s)^2). solve_ivp
+    (DOP853, rtol 1e-12) of m y'' + c y' = gamma V - that level: 1e-9 m (RK4 in the exact
+    simulator). The friction's fall matters: with stiction alone (Karnopp's jump) the cart is
+    5.8 mm ahead by 0.4 s."""
+    f_c, f_s, v_s, volts = 0.3, 0.9, 0.02, 0.6
+    t = _times(0.4)
+
+    def rhs(_, x):
+        return [x[1], (GAMMA * volts - C * x[1] - _stribeck_level(x[1], f_c, f_s, v_s)) / M]
+
+    sol = solve_ivp(rhs, (0.0, 0.4), [0.0, 0.0], method="DOP853", rtol=1e-12, atol=1e-14,
+                    dense_output=True)  # fmt: skip
+    values = {"f_c": f_c, "f_s": f_s, "v_stribeck": v_s}
+    res = simulate_exact(build_plant(values), None, jc.voltage_step(volts, horizon=0.4))
+    ref = sol.sol(t)
+    np.testing.assert_allclose(res.position, ref[0], rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.velocity, ref[1], rtol=0, atol=TOL_RK4)
+    jump = simulate_exact(
+        build_plant({"f_c": f_c, "f_s": f_s}), None, jc.voltage_step(volts, horizon=0.4)
+    )
+    assert jump.position[-1] > res.position[-1] + 5e-3
+
+
+def test_stribeck_nests_stiction_and_coulomb():
+    """The nesting the diagnosis relies on, on a PI loop that hunts by stick-slip (366 samples
+    stuck in 1.5 s): with f_s = f_c the Stribeck run is the Coulomb run (RK4 against the
+    closed form, 1e-9 m), and as v_stribeck -> 0 it tends to stiction's Karnopp jump (measured
+    4.7e-5 m at 1e-4 m/s, 9.7e-6 m at 1e-5 m/s, 1.3e-6 m at 1e-6 m/s)."""
+    pid, exp = jc.PID(kp=40.0, ki=400.0, kd=1.5), jc.step(0.01, horizon=1.5)
+    coulomb = simulate_exact(build_plant({"f_c": 0.4}), pid, exp)
+    flat = simulate_exact(build_plant({"f_c": 0.4, "f_s": 0.4, "v_stribeck": 0.05}), pid, exp)
+    np.testing.assert_allclose(flat.position, coulomb.position, rtol=0, atol=TOL_RK4)
+    stiction = simulate_exact(build_plant({"f_c": 0.4, "f_s": 0.6}), pid, exp)
+    assert np.sum(stiction.velocity == 0.0) > 300  # it sticks
+    gaps = []
+    for v_s in (1e-4, 1e-5, 1e-6):
+        near = simulate_exact(build_plant({"f_c": 0.4, "f_s": 0.6, "v_stribeck": v_s}), pid, exp)
+        gaps.append(float(np.max(np.abs(near.position - stiction.position))))
+    assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 2e-6, gaps
+
+
 # ---------------------------------------------------------------- every effect has one
 
 #: The tests above that reference each effect's exact form.
@@ -432,6 +616,24 @@ REFERENCES = {
         test_track_friction_tap_decelerates_at_the_local_level,
     ),
     "backlash": (test_backlash_step_crosses_the_gap_then_shares_momentum,),
+    "coulomb_asymmetry": (
+        test_coulomb_asymmetry_tap_stops_at_each_directions_level,
+        test_coulomb_asymmetry_is_coulomb_with_a_constant_force,
+    ),
+    "viscous_asymmetry": (
+        test_viscous_asymmetry_step_is_the_closed_form_with_each_directions_coefficient,
+        test_viscous_asymmetry_tap_decays_at_each_directions_rate,
+    ),
+    "deadzone_asymmetry": (test_deadzone_asymmetry_band_is_shifted_by_its_centre,),
+    "voltage_offset": (
+        test_voltage_offset_adds_to_every_command_and_not_to_a_tap,
+        test_voltage_offset_is_a_tilt_in_closed_loop_but_not_under_the_amplifiers_limit,
+    ),
+    "tilt": (test_tilt_pulls_in_a_tap_and_holds_a_pd_loop_off_its_reference,),
+    "stribeck": (
+        test_stribeck_breakaway_is_the_ode_with_the_falling_friction,
+        test_stribeck_nests_stiction_and_coulomb,
+    ),
 }
 #: Registered by another change; its reference is still to be written.
 PENDING = {"backlash"}

@@ -8,8 +8,12 @@ declared start value) and fits B_eq beside it (truth B_eq = 2.5 kg/s, start 5.4 
 excitation is chosen so that the effect acts plainly: a saturated P step for the amplifier's
 voltage and current limits, a PID step for the delay, a P loop on a slow ramp for the deadzone,
 a P loop moving over +-0.2 m for the spring, a P step that comes to rest for Coulomb friction,
-an open-loop slow voltage ramp for stiction. Measured values (seed per case, 2-core machine)
-are in the report of this change; run with ``-s`` to print each fit's row.
+an open-loop slow voltage ramp for stiction. The effects that differ by direction are fitted
+beside their symmetric part on a reference that moves the cart both ways (out 0.2 m, back to
+-0.1 m); the offsets on a P step (which they hold off its target), Stribeck friction with
+Coulomb friction and stiction on a PI loop that follows a slow ramp by stick-slip. Measured
+values (seed per case, 2-core machine) are in the report of each change; run with ``-s`` to
+print each fit's row.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ from tuning.estimation import fit as F
 Q = 2.275e-5  # [m] the IP02 encoder count
 B_EQ = 2.5  # [kg/s] truth of every case
 PID_STEP = jc.PID(kp=40.0, kd=3.0, ki=5.0, v_limit=6.0)
+#: Out 0.2 m, back to -0.1 m at 0.6 s: both directions of motion, each coming to rest [m].
+BOTH_WAYS = jc.setpoints([0.0, 0.6], [0.2, -0.1], horizon=1.2)
 
 #: effect -> (truth values, controller (None: open loop), experiment, seed, relative tolerance)
 CASES = {
@@ -57,9 +63,59 @@ CASES = {
         3,
         0.02,
     ),
+    # Measured: f_c_asym 0.099982 of 0.1 (z -1.0), B_asym 0.79997 of 0.8, deadzone_asym
+    # 0.150004 of 0.15, v_offset 0.199989 of 0.2, f_tilt 0.300020 of 0.3, v_stribeck
+    # 0.0099848 of 0.01 (z -0.7); every fit at the encoder floor.
+    "coulomb_asymmetry": (
+        {"f_c": 0.3, "f_c_asym": 0.1},
+        jc.PID(kp=50.0, v_limit=6.0),
+        BOTH_WAYS,
+        3,
+        0.02,
+    ),
+    "viscous_asymmetry": (
+        {"B_asym": 0.8},
+        jc.PID(kp=50.0, kd=1.0, v_limit=6.0),
+        BOTH_WAYS,
+        3,
+        0.02,
+    ),
+    "deadzone_asymmetry": (
+        {"deadzone": 0.4, "deadzone_asym": 0.15},
+        jc.PID(kp=20.0),
+        jc.setpoints([0.0, 0.75], [0.1, -0.05], horizon=1.5),
+        3,
+        0.02,
+    ),
+    "voltage_offset": (
+        {"v_offset": 0.2},
+        jc.PID(kp=50.0, v_limit=6.0),
+        jc.step(0.3, horizon=1.0),
+        3,
+        0.02,
+    ),
+    "tilt": ({"f_tilt": 0.3}, jc.PID(kp=50.0, v_limit=6.0), jc.step(0.3, horizon=1.0), 3, 0.02),
+    # Stick-slip on a slow ramp: each breakaway passes through the Stribeck curve.
+    "stribeck": (
+        {"f_c": 0.3, "f_s": 0.6, "v_stribeck": 0.01},
+        jc.PID(kp=40.0, ki=100.0, kd=1.5),
+        jc.ramp(0.02, horizon=1.5),
+        3,
+        0.02,
+    ),
 }
 #: Cases whose fit takes over ~5 s here (2 cores, including compilation).
-SLOW = {"coulomb", "spring", "current_limit"}
+SLOW = {
+    "coulomb",
+    "spring",
+    "current_limit",
+    "coulomb_asymmetry",
+    "viscous_asymmetry",
+    "deadzone_asymmetry",
+    "voltage_offset",
+    "tilt",
+    "stribeck",
+}
 
 
 def _fit_case(truth_values, controller, experiment, seed, params, **kwargs):

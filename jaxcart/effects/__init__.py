@@ -16,14 +16,20 @@ from jaxcart.effects.base import (
     register,
 )
 from jaxcart.effects.coulomb import Coulomb
+from jaxcart.effects.coulomb_asymmetry import CoulombAsymmetry
 from jaxcart.effects.current_limit import CurrentLimit
 from jaxcart.effects.deadzone import Deadzone
+from jaxcart.effects.deadzone_asymmetry import DeadzoneAsymmetry
 from jaxcart.effects.delay import Delay
 from jaxcart.effects.quantization import Quantization
 from jaxcart.effects.saturation import Saturation
 from jaxcart.effects.spring import Spring
 from jaxcart.effects.stiction import Stiction
+from jaxcart.effects.stribeck import Stribeck
+from jaxcart.effects.tilt import Tilt
 from jaxcart.effects.track_friction import TrackFriction
+from jaxcart.effects.viscous_asymmetry import ViscousAsymmetry
+from jaxcart.effects.voltage_offset import VoltageOffset
 
 __all__ = [
     "REGISTRY",
@@ -36,12 +42,18 @@ __all__ = [
     "register",
     "Backlash",
     "Coulomb",
+    "CoulombAsymmetry",
     "CurrentLimit",
     "Deadzone",
+    "DeadzoneAsymmetry",
     "Delay",
     "Quantization",
     "Saturation",
     "Spring",
     "Stiction",
+    "Stribeck",
+    "Tilt",
     "TrackFriction",
+    "ViscousAsymmetry",
+    "VoltageOffset",
 ]

@@ -14,8 +14,10 @@ the sampled loop (docs/design.md, "Effects"):
   ``smooth(state, held, smoothing, sample_time) -> (held, state)`` (JAX) and
   ``exact(state, held, sample_time) -> (held, state)`` (Python floats).
 - ``stage = "force"``: a force on the cart [N]. Dry friction (Coulomb, stiction, friction along
-  the track) is one family: each member gives ``kinetic(y)`` [N] and/or ``static()`` [N], the
-  simulators combine them in one Karnopp law (exact) or one smoothed law (smooth). Any other
+  the track, ...) is one family: each member gives ``kinetic(y)`` [N] (or, where it differs by
+  direction, ``kinetic_sides(y)``: the levels moving right and left), ``static()`` [N] and/or
+  ``stribeck()`` [m/s]; the simulators combine them in one Karnopp law (exact) or one smoothed
+  law (smooth). Any other
   force gives ``smooth_force(y, yd, v, smoothing, plant)`` (JAX) and ``exact_force(y, yd, v,
   plant)`` (floats), continuous in y and yd (and may give ``exact_force_for(drive)``, the same
   force as a closure with its constants bound, for the exact simulator's inner loop). A
@@ -121,6 +123,10 @@ class Held(NamedTuple):
     late: Any
     split: Any
 
+    def shifted(self, offset) -> Held:
+        """The same profile with ``offset`` [V] added to both pieces (an offset of the drive)."""
+        return Held(self.early + offset, self.late + offset, self.split)
+
 
 class Effect:
     """Base class of effects; subclasses are frozen pytree dataclasses registered with
@@ -141,10 +147,16 @@ class Effect:
     transmission: ClassVar[bool] = False
     #: a dry-friction level that depends on the position (the exact simulator then integrates)
     position_dependent: ClassVar[bool] = False
+    #: a dry-friction member whose kinetic level differs by direction (``kinetic_sides``)
+    sided: ClassVar[bool] = False
     #: one line for listings and reports
     summary: ClassVar[str] = ""
     #: why the effect is not a candidate of the diagnosis's structure search ("": it is)
     not_candidate: ClassVar[str] = ""
+    #: the least stretch of track [m] the recordings must cover together (the range of their
+    #: positions) for the effect to be a candidate: a map of the position needs the positions
+    #: (0: any recording; tuning.estimation.engine.parameters.candidates)
+    covers: ClassVar[float] = 0.0
     #: effects whose parameters a candidate of this one frees and names too (stiction is
     #: static friction above a kinetic level: it stands on Coulomb friction)
     requires: ClassVar[tuple[str, ...]] = ()
@@ -171,7 +183,10 @@ class Effect:
         """How far each item this effect names is from doing nothing: yields (item, strength,
         weights of the parameters in it, what it measures, where it does nothing). Positive
         when it acts; ``peaks``: {"command": largest |command| [V], "current": largest
-        |armature current| [A]} of the run, for a limit."""
+        |armature current| [A]} of the run, for a limit. By default each scalar parameter with
+        a neutral value: a limit's distance below the run's peak, a parameter valid on either
+        side of its neutral value (an asymmetry, an offset) its distance from it, any other
+        its excess over it."""
         for p in cls.params:
             if p.neutral is None or p.size:
                 continue
@@ -185,6 +200,13 @@ class Effect:
                     f"{p.name} = {v:.3g} {p.unit}",
                     f"the largest {cls.limits}, {top:.3g} {p.unit}",
                 )
+            elif p.low < p.neutral:
+                # Acts on either side of its neutral value (an asymmetry, an offset): the
+                # distance from it, whichever way.
+                zero = f"{p.neutral:g} {p.unit}"
+                sign = 1.0 if v >= p.neutral else -1.0
+                what = f"|{p.name}| = {abs(v - p.neutral):.3g} {p.unit}"
+                yield cls.name, abs(v - p.neutral), {p.name: sign}, what, zero
             else:
                 zero = f"{p.neutral:g} {p.unit}"
                 yield cls.name, v - p.neutral, {p.name: 1.0}, f"{p.name} = {v:.3g} {p.unit}", zero
@@ -218,8 +240,20 @@ class Effect:
         """Kinetic friction level [N] at position y (0 if the effect has none)."""
         return 0.0
 
+    def kinetic_sides(self, y, xp):
+        """(level moving right, level moving left) [N] at position y: :meth:`kinetic` both
+        ways unless the effect is ``sided``. The simulators sum each side over the members and
+        hold a sum below 0 at 0 (friction never pushes)."""
+        level = self.kinetic(y, xp)
+        return level, level
+
     def static(self):
         """Static (breakaway) level [N], or None if the effect has none."""
+        return None
+
+    def stribeck(self):
+        """The Stribeck speed [m/s] over which the friction falls from the static level to the
+        kinetic one as the cart speeds up, or None (the Karnopp jump at breakaway)."""
         return None
 
     # Other forces (stage "force", with exact_force).
@@ -241,6 +275,15 @@ class Effect:
     # [m/s] where its law changes, ascending, and for each of the len(breaks) + 1 intervals
     # (f0 [N], k [N s/m]) with F = f0 + k y'. The exact simulator then solves the cart in
     # closed form between events instead of by RK4 (jaxcart.exact._VelocityCart).
+
+
+def within(values: dict, name: str, bound: str) -> dict:
+    """``values`` with ``name`` held within +-``values[bound]`` where both are given: an
+    asymmetry no larger than the symmetric level it splits (both sides' levels stay >= 0)."""
+    if name in values and bound in values:
+        top = abs(values[bound])
+        values = {**values, name: min(max(values[name], -top), top)}
+    return values
 
 
 #: Registered effect classes by name, in registration order.

@@ -39,7 +39,13 @@ class TrackFriction(Effect):
     dry_friction = True
     position_dependent = True
     summary = "friction along the track: a smooth map f(y) through knots over +/-0.4 m"
-    not_candidate = "a 5-vector that triples the batch's compile time; fit it with jaxcart fit"
+    not_candidate = (
+        "a candidate only where the recordings cover 0.4 m of the track, and the diagnosis's "
+        "batch does not fit a vector yet (5 knots and B_eq are 6 slots of its 5); fit it with "
+        "jaxcart fit --params B_eq,f_track"
+    )
+    # Two knot spacings: three knots within reach, so that a level that varies shows.
+    covers = 0.4
     shows_in = ("position",)
     params = (
         Param(

@@ -21,6 +21,13 @@ from hw.handout import APPENDIX
 #: jaxcart's ``f_track`` knots lie evenly over +/- this [m] (jaxcart.effects.track_friction);
 #: a truth given as ``f_track`` puts its table's points there.
 TRACK_SPAN = 0.4
+#: jaxcart's asymmetry parameters (half the difference between the two directions' levels) and
+#: the symmetric level and the per-direction fields of this cart they translate to.
+ASYMMETRIES = {
+    "f_c_asym": ("f_c", "f_c"),
+    "B_asym": ("B_eq", "B"),
+    "deadzone_asym": ("deadzone", "deadzone"),
+}
 
 
 @dataclass(frozen=True)
@@ -110,8 +117,15 @@ class TrueCart:
     @classmethod
     def from_values(cls, values: dict, **more) -> TrueCart:
         """A cart from ``{name: value}`` in the names above, plus jaxcart's ``f_track`` (a list
-        of kinetic friction levels [N] at points evenly over +/- TRACK_SPAN m)."""
+        of kinetic friction levels [N] at points evenly over +/- TRACK_SPAN m) and its
+        asymmetries (``f_c_asym``, ``B_asym``, ``deadzone_asym``: half the difference between
+        the two directions' levels, +y / positive commands the larger)."""
         values = {**values, **more}
+        for asym, (level_name, prefix) in ASYMMETRIES.items():
+            if asym in values:
+                a = float(values.pop(asym))
+                level = float(values.get(level_name, getattr(cls, level_name)))
+                values[f"{prefix}_pos"], values[f"{prefix}_neg"] = level + a, level - a
         if "f_track" in values:
             levels = tuple(float(x) for x in values.pop("f_track"))
             span = TRACK_SPAN

@@ -122,12 +122,17 @@ def is_drive(name: str) -> bool:
         return False
 
 
-def candidates() -> dict:
+def candidates(span: float | None = None) -> dict:
     """The effects a diagnosis searches over: {effect name: the parameters a candidate of it
-    frees} (its own and those of the effects it stands on), in registry order."""
+    frees} (its own and those of the effects it stands on), in registry order. ``span``: the
+    stretch of track the recordings cover together [m] (the range of their positions); an
+    effect that declares ``covers`` (a map along the track) is a candidate only where
+    span >= covers (None: not known, and such an effect is left out)."""
     out = {}
     for name, cls in REGISTRY.items():
         if cls.not_candidate:
+            continue
+        if cls.covers and (span is None or span < cls.covers):
             continue
         names = [p.name for r in cls.requires for p in REGISTRY[r].params]
         out[name] = tuple(dict.fromkeys(names + [p.name for p in cls.params]))
