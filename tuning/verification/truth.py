@@ -21,13 +21,9 @@ from hw.handout import APPENDIX
 #: jaxcart's ``f_track`` knots lie evenly over +/- this [m] (jaxcart.effects.track_friction);
 #: a truth given as ``f_track`` puts its table's points there.
 TRACK_SPAN = 0.4
-#: jaxcart's asymmetry parameters (half the difference between the two directions' levels) and
-#: the symmetric level and the per-direction fields of this cart they translate to.
-ASYMMETRIES = {
-    "f_c_asym": ("f_c", "f_c"),
-    "B_asym": ("B_eq", "B"),
-    "deadzone_asym": ("deadzone", "deadzone"),
-}
+#: jaxcart's asymmetry parameters (half the difference between the two directions' levels):
+#: NAME_asym translates to this cart's NAME_pos and NAME_neg about its level NAME (B: B_eq).
+ASYMMETRIES = ("f_c_asym", "B_asym", "deadzone_asym")
 
 
 @dataclass(frozen=True)
@@ -121,8 +117,10 @@ class TrueCart:
         asymmetries (``f_c_asym``, ``B_asym``, ``deadzone_asym``: half the difference between
         the two directions' levels, +y / positive commands the larger)."""
         values = {**values, **more}
-        for asym, (level_name, prefix) in ASYMMETRIES.items():
+        for asym in ASYMMETRIES:
             if asym in values:
+                prefix = asym.removesuffix("_asym")
+                level_name = "B_eq" if prefix == "B" else prefix
                 a = float(values.pop(asym))
                 level = float(values.get(level_name, getattr(cls, level_name)))
                 values[f"{prefix}_pos"], values[f"{prefix}_neg"] = level + a, level - a

@@ -87,8 +87,9 @@ class Case:
 
     kind: "step" | "ramp" | "square" | "out_back" (closed loop, reference amplitude [m], slope
     [m/s], a square wave between 0 and ``amplitude`` of ``period`` [s], or out to the amplitude
-    and back to minus half of it at half the horizon, so the cart moves both ways) | "open_ramp" (open-loop voltage
-    ramp of ``rate`` [V/s]) | "tap" (motor unplugged); horizon [s] (None: the kind's default);
+    and back to minus half of it at half the horizon, so the cart moves both ways) |
+    "open_ramp" (open-loop voltage ramp of ``rate`` [V/s]) | "tap" (motor unplugged); horizon
+    [s] (None: the kind's default);
     kp [V/m], ki [V/(m s)], kd [V s/m], v_limit [V]: the PID; drop_v: the column v dropped
     from the file; drop: other columns dropped (("y",): the position given by the error e
     and the reference). ``runs``: several recordings of one cart, each a dict of the fields
