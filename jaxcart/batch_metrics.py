@@ -58,6 +58,10 @@ def default_chunk(kernel: int = KERNEL_CHUNK, wide: int = WIDE_CHUNK) -> int:
 
 
 _FNS: dict = {}
+#: The controller's numbers a row of gains may set, in order: the gains (kp, kd, ki), then the
+#: derivative filter tau [s], the back-calculation gain kb [1/s] and the software limit v_limit
+#: [V] (a row of 3 or of 6).
+ROW_NAMES = ("kp", "kd", "ki", "tau", "kb", "v_limit")
 
 
 def _metrics_fn(plant, base, experiment, smoothing, substeps, worst):
@@ -70,7 +74,8 @@ def _metrics_fn(plant, base, experiment, smoothing, substeps, worst):
     if key not in _FNS:
 
         def one(gains, plant, base, experiment):
-            controller = dataclasses.replace(base, kp=gains[0], kd=gains[1], ki=gains[2])
+            names = ROW_NAMES[: gains.shape[-1]]
+            controller = dataclasses.replace(base, **{n: gains[i] for i, n in enumerate(names)})
             return step_metrics(
                 plant, controller, experiment, smoothing=smoothing, substeps=substeps
             )
@@ -106,7 +111,8 @@ def step_metrics_batch(
     dtype=None,
     progress=None,
 ) -> StepInfo:
-    """:class:`StepInfo` arrays for each row (kp, kd, ki) of ``gains`` (shape (B, 3)).
+    """:class:`StepInfo` arrays for each row (kp, kd, ki) of ``gains`` (shape (B, 3)), or
+    (kp, kd, ki, tau, kb, v_limit) (shape (B, 6), :data:`ROW_NAMES`).
 
     ``plant``: one plant, or a list of plants (a plant set): then every metric is the worst
     over the set (the largest value; diverged if any diverged). The other controller settings
@@ -118,8 +124,11 @@ def step_metrics_batch(
     arrays of each field's dtype, nothing run.
     """
     gains = np.asarray(gains)
-    if gains.ndim != 2 or gains.shape[1] != 3:
-        raise ValueError(f"gains must have shape (B, 3) for (kp, kd, ki); got {gains.shape}")
+    if gains.ndim != 2 or gains.shape[1] not in (3, len(ROW_NAMES)):
+        raise ValueError(
+            f"gains must have shape (B, 3) for (kp, kd, ki) or (B, 6) for "
+            f"{', '.join(ROW_NAMES)}; got {gains.shape}"
+        )
     chunk = parallel.positive(chunk, "step_metrics_batch: chunk")
     dtype = jnp.dtype(dtype or jnp.result_type(float))
     # float64 needs x64 on; enable it here rather than silently computing in float32.

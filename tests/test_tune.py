@@ -64,8 +64,9 @@ def test_default_problem_keeps_every_controller_setting(lab):
         "none",
     )
     for name in ("kp", "kd", "ki"):
-        lo, hi = DEFAULT_BOUNDS[name]
+        lo, hi = lab.bounds[name]  # the box: kp and kd's upper ends derived from the cart
         assert lo <= getattr(g, name) <= hi
+    assert lab.bounds["kp"] == (DEFAULT_BOUNDS["kp"][0], pytest.approx(600.0))
     assert lab.seconds_to_spec is not None and lab.seconds_to_spec <= lab.seconds
     h = lab.history
     assert len(h) == lab.iterations and h[0]["scale"] == 1.0 and h[-1]["scale"] < 1.0

@@ -11,7 +11,6 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.design.problem import DEFAULT_BOUNDS
 from tuning.design.result import on_bounds
 from tuning.design.tune import tune
 
@@ -34,10 +33,14 @@ def short_run():
 
 
 def test_result_names_every_gain_on_a_bound(short_run):
+    """Every free gain on (within 1 % of) an end of its box is flagged; on an upper end the
+    cart sets (kp, kd: tuning.design.limits) the result says what sets it, on any other the
+    note says how to widen the box."""
     res = short_run
+    assert res.bounds["kp"][1] == pytest.approx(600.0)  # 6 V over 2 % of the 0.5 m step
     expected = {}
     for name in res.free:
-        lo, hi = DEFAULT_BOUNDS[name]
+        lo, hi = res.bounds[name]
         value = getattr(res.gains, name)
         if value >= 0.99 * hi:
             expected[name] = "upper"
@@ -46,10 +49,15 @@ def test_result_names_every_gain_on_a_bound(short_run):
     assert {n: side for n, (side, _) in res.on_bound.items()} == expected
     doc = res.to_json()
     assert set(doc["on_bound"]) == set(expected)
+    assert doc["binding"] == res.binding and set(doc["limits"]) == {"kp", "kd"}
     json.dumps(doc, allow_nan=False)
-    if expected:  # the lab's optimum pushes kp to its 250 V/m cap
+    set_by_cart = {n for n, side in expected.items() if side == "upper" and n in res.limits}
+    others = set(expected) - set_by_cart
+    for name in set_by_cart:
+        assert res.limits[name].what in res.binding
+    if others:
         note = res.bound_note()
-        assert all(n in note for n in expected) and "widen" in note
+        assert all(n in note for n in others) and "widen" in note
     else:
         assert res.bound_note() is None
 
@@ -68,7 +76,7 @@ def test_command_line_prints_the_bound_and_how_to_widen_it(tmp_path, capsys, sho
     gains = json.loads((tmp_path / "g.json").read_text())
     assert doc["on_bound"]["kp"]["side"] == "upper" and doc["on_bound"]["kp"]["bound"] == 20.0
     for name, entry in doc["on_bound"].items():
-        lo, hi = (1.0, 20.0) if name == "kp" else DEFAULT_BOUNDS[name]
+        lo, hi = (1.0, 20.0) if name == "kp" else doc["bounds"][name]
         bound = hi if entry["side"] == "upper" else lo
         assert entry["bound"] == bound
         assert abs(doc["gains"][name] - bound) <= 0.01 * bound

@@ -7,6 +7,7 @@ the tuner's wall time. Wall times include compilation.
 from __future__ import annotations
 
 import math
+import statistics
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -21,9 +22,10 @@ from jaxcart.batch_metrics import step_metrics_batch
 from jaxcart.errors import UserError
 from jaxcart.experiments import step
 from jaxcart.params import Plant
-from jaxcart.plantspec import handout_plant
+from jaxcart.plantspec import build_plant, handout_plant
 from jaxcart.smooth_sim import EXACT_FORMS
 from tuning.design.candidates import exact_info, failing_constraints, violation, worst
+from tuning.design.for_cart import training_carts
 from tuning.design.iteration import SCALES
 from tuning.design.losses import (
     GAIN_NAMES,
@@ -38,16 +40,25 @@ from tuning.design.problem import (
     base_start,
     free_mask,
     has_force_effects,
-    log_bounds,
     robust_plants,
+    search_box,
     start_and_template,
 )
 from tuning.design.result import json_number
 from tuning.design.tune import tune
+from tuning.design.uncertainty import from_fit_table
 
-#: Box of the grid baseline [V/m, V s/m, V/(m s)], sampled log-uniformly: generous around the
-#: handout's gains, without the useless corners of DEFAULT_BOUNDS.
-GRID_BOX = {"kp": (10.0, 1000.0), "kd": (0.5, 50.0), "ki": (0.01, 50.0)}
+#: Box of the grid baseline, sampled log-uniformly: kp [V/m], kd [V s/m], ki [V/(m s)] generous
+#: around the handout's gains, without the useless corners of DEFAULT_BOUNDS; and where they
+#: are tuned too, tau [s], kb [1/s] and v_limit [V] (the tuner's box, within reason).
+GRID_BOX = {
+    "kp": (10.0, 1000.0),
+    "kd": (0.5, 50.0),
+    "ki": (0.01, 50.0),
+    "tau": (1e-3, 0.05),
+    "kb": (0.1, 100.0),
+    "v_limit": (3.0, 6.0),
+}
 
 
 def penalty_objective(
@@ -69,20 +80,55 @@ def penalty_objective(
 #: The benchmark problems of :func:`compare_tuners`: the lab's (kp, kd, ki on the nominal
 #: plant); robust over 25 plants (the default box's centre and 8 corners, plus 16 random
 #: plants of it); wide: all six numbers of the PID (kp, kd, ki, tau, kb with back-calculation
-#: anti-windup, v_limit) robust over the box's centre and corners (9 plants).
-PROBLEMS = ("lab", "robust", "wide")
+#: anti-windup, v_limit) robust over the box's centre and corners (9 plants); cart: the six
+#: numbers robust over :data:`CART_CARTS` carts drawn from a fitted cart's uncertainty (the
+#: design for the cart as measured, :mod:`tuning.design.for_cart`: a plant file's, or the real
+#: recordings' cart, :func:`real_cart`).
+PROBLEMS = ("lab", "robust", "wide", "cart")
 #: Most Nelder-Mead evaluations per problem (each one is a run per plant on the exact
 #: simulator), and the most seconds it may take.
-NM_EVALUATIONS = {"lab": 600, "robust": 400, "wide": 600}
+NM_EVALUATIONS = {"lab": 600, "robust": 400, "wide": 600, "cart": 600}
 NM_SECONDS = 600.0
+#: The methods of a comparison, and how a table names them.
+METHODS = {
+    "gradient": "gradient (this tuner, exact check)",
+    "nelder_mead": "scipy Nelder-Mead, exact simulator",
+    "grid": "Sobol grid, equal wall time",
+}
+#: Carts of the cart problem: the fitted one and those drawn from its uncertainty.
+CART_CARTS = 24
+#: The real recordings' cart (../shared/realdata: tap, P 50 and its repeat), as ``jaxcart lab``
+#: fitted it at 491d7e4: B_eq [kg/s], f_c [N], delay [s] with their standard errors, and the
+#: amplifier's limit [V] of each driven run (the plant file's [fit] table, cart_plant.toml).
+REAL_CART = {
+    "values": dict(B_eq=1.5165, f_c=0.43274, delay=0.011877, v_sat=5.0884),
+    "fit": {
+        "stderr": dict(B_eq=0.023834, f_c=0.0082284, delay=0.00062231),
+        "runs": dict(v_sat=[5.0884, 5.8964]),
+        "runs_stderr": dict(v_sat=[0.033325, 0.016767]),
+    },
+}
 
 
-def compare_problem(problem: str, plant: Plant | None = None, *, seed: int = 0):
+def real_cart():
+    """The real recordings' cart with its uncertainty (:data:`REAL_CART`)."""
+    plant = build_plant(REAL_CART["values"], where="the real recordings' cart")
+    return from_fit_table(plant, REAL_CART["fit"], source="the real recordings (REAL_CART)")
+
+
+def compare_problem(problem: str, plant: Plant | None = None, *, seed: int = 0, uncertainty=None):
     """(free, controller, robust, n_check, plants, starts) of a benchmark problem of
     :data:`PROBLEMS` on ``plant`` (default the handout's): ``robust`` and ``n_check`` as
     :func:`tune` takes them (False for the lab problem), ``plants`` the set every result is
-    judged on (None: the plant alone), the same set tune checks on."""
+    judged on (None: the plant alone), the same set tune checks on. The cart problem draws its
+    carts from ``uncertainty`` (a :class:`tuning.design.uncertainty.CartUncertainty`; default
+    :func:`real_cart`), the first of them the fitted cart."""
     plant = handout_plant() if plant is None else plant
+    if problem == "cart":
+        u = uncertainty if uncertainty is not None else real_cart()
+        plants = training_carts(u, CART_CARTS - 1, seed=seed)
+        pid = PID(tau=0.01, v_limit=6.0, kb=1.0, anti_windup="back_calculation")
+        return PARAM_NAMES, pid, plants, 0, plants, 4
     if problem == "lab":
         return GAIN_NAMES, None, False, 0, None, 8
     if problem == "robust":
@@ -111,6 +157,7 @@ def compare_tuners(
     nm_max_seconds: float = NM_SECONDS,
     grid: bool | None = None,
     progress: bool = False,
+    uncertainty=None,
 ) -> dict:
     """Benchmark :func:`tune` against scipy's Nelder-Mead on the exact simulator, in one run.
 
@@ -130,8 +177,10 @@ def compare_tuners(
     spec = spec or Spec()
     plant = handout_plant() if plant is None else plant
     p_free, p_controller, robust, n_check, plants, n_starts = compare_problem(
-        problem, plant, seed=seed
+        problem, plant, seed=seed, uncertainty=uncertainty
     )
+    if problem == "cart":
+        plant = plants[0]  # the fitted cart
     free = tuple(free or p_free)
     mask = free_mask(free)
     start_params, template = start_and_template(start, controller or p_controller, free)
@@ -158,7 +207,7 @@ def compare_tuners(
         progress=progress,
     )
     ours_info = ours.worst if ours.worst is not None else ours.exact
-    log_lo, log_hi, _ = log_bounds(bounds)
+    log_lo, log_hi, _, _ = search_box(plant, template, spec, free, bounds)
 
     # 2. Nelder-Mead on the exact simulator, penalty objective, same start.
     say(f"compare ({problem}): Nelder-Mead on the exact simulator, {len(check)} plant(s) ...")
@@ -178,10 +227,10 @@ def compare_tuners(
 
     # 3. Quasi-random grid on the batched simulator for the same wall time (lab problem).
     grid_entry = None
-    if (problem == "lab") if grid is None else grid:
+    if (problem in ("lab", "cart")) if grid is None else grid:
         say(f"compare ({problem}): grid of equal wall time ({ours.seconds:.1f} s) ...")
         grid_entry = _grid_baseline(
-            plant,
+            check if plants is not None else plant,
             template,
             experiment,
             spec,
@@ -347,23 +396,28 @@ def _ratios(result, nm, ours) -> dict:
 
 
 def _grid_baseline(
-    plant, template, experiment, spec, mask, start_params, log_lo, log_hi, budget, seed
+    plants, template, experiment, spec, mask, start_params, log_lo, log_hi, budget, seed
 ):
-    """Best Sobol point of GRID_BOX (kp, kd, ki) on the batched hard-clip simulator within
-    ``budget`` seconds: (params, exact StepInfo, seconds, seconds to spec, points)."""
-    friction = has_force_effects(plant)
+    """Best Sobol point of GRID_BOX (the free parameters among kp, kd, ki, tau, kb, v_limit;
+    the others at their start) on the batched simulator within ``budget`` seconds, worst over
+    ``plants`` where it is a list: (params, exact StepInfo (worst), seconds, seconds to spec,
+    points). The hard clip where no force acts, else the tuner's finest smoothing over 4."""
+    many = isinstance(plants, list)
+    first_plant = plants[0] if many else plants
+    friction = has_force_effects(first_plant)
     smoothing = EXACT_FORMS if not friction else LossSettings().smoothing.scaled(SCALES[-1] / 4)
-    gain_mask = mask[:3]
-    lo = np.maximum(np.log([GRID_BOX[n][0] for n in GAIN_NAMES]), log_lo[:3])
-    hi = np.minimum(np.log([GRID_BOX[n][1] for n in GAIN_NAMES]), log_hi[:3])
-    sobol = qmc.Sobol(d=3, scramble=True, seed=seed)
-    batch = 4096
+    k = 3 if not mask[3:].any() else len(PARAM_NAMES)  # a row of the gains, or of all six
+    names = PARAM_NAMES[:k]
+    lo = np.maximum(np.log([GRID_BOX[n][0] for n in names]), log_lo[:k])
+    hi = np.minimum(np.log([GRID_BOX[n][1] for n in names]), log_hi[:k])
+    sobol = qmc.Sobol(d=k, scramble=True, seed=seed)
+    batch = 4096 if not many else 256  # (a point is a run per plant)
     t0 = time.perf_counter()
     n_points, best, first = 0, None, None
     while time.perf_counter() - t0 < budget:
         g = np.exp(lo + sobol.random(batch) * (hi - lo))
-        g = np.where(gain_mask, g, start_params[:3])
-        info = step_metrics_batch(plant, template, experiment, g, smoothing=smoothing)
+        g = np.where(mask[:k], g, start_params[:k])
+        info = step_metrics_batch(plants, template, experiment, g, smoothing=smoothing)
         n_points += batch
         ok = (
             (~info.diverged)
@@ -379,8 +433,9 @@ def _grid_baseline(
     seconds = time.perf_counter() - t0
     if best is None:
         return None, None, seconds, first, n_points
-    params = np.concatenate([best[1], start_params[3:]])
-    info = exact_info(plant, controller_with(template, list(params)), experiment)
+    params = np.concatenate([best[1], start_params[k:]])
+    pid = controller_with(template, list(params))
+    info = worst([exact_info(p, pid, experiment) for p in (plants if many else [plants])])
     return params, info, seconds, first, n_points
 
 
@@ -395,12 +450,7 @@ def _compare_table(result) -> str:
         f"{'method':<36s}{worst + 'settling [s]':>19s}{worst + 'overshoot [%]':>21s}"
         f"{'meets':>7s}{'wall [s]':>10s}{'to spec [s]':>13s}{'evaluations':>13s}",
     ]
-    names = {
-        "gradient": "gradient (this tuner, exact check)",
-        "nelder_mead": "scipy Nelder-Mead, exact simulator",
-        "grid": "Sobol grid, equal wall time",
-    }
-    for key, label in names.items():
+    for key, label in METHODS.items():
         if key not in result:
             continue
         e = result[key]
@@ -435,5 +485,49 @@ def _compare_table(result) -> str:
             "note: the gradient result has "
             + ", ".join(result["gradient"]["on_bound"])
             + " on a bound of the search box (both methods search the same box)"
+        )
+    return "\n".join(lines)
+
+
+def medians(reports: Sequence[dict]) -> dict:
+    """{method: {"seconds_to_spec", "seconds", "settling_time", "reached"}} over several
+    :func:`compare_tuners` results (their "table" left out) of one problem: the median of
+    each figure over the runs where it exists (a method that never met the spec in a run
+    counts its whole run there, a lower bound), and in how many runs it met the spec."""
+    out = {}
+    for key in METHODS:
+        rows = [r[key] for r in reports if key in r]
+        if not rows:
+            continue
+        to_spec = [
+            r["seconds_to_spec"] if r["seconds_to_spec"] is not None else r["seconds"] for r in rows
+        ]
+        settling = [float(r["settling_time"]) for r in rows if r["meets"]]
+        out[key] = {
+            "seconds_to_spec": statistics.median(to_spec),
+            "seconds": statistics.median(r["seconds"] for r in rows),
+            "settling_time": statistics.median(settling) if settling else None,
+            "reached": sum(r["seconds_to_spec"] is not None for r in rows),
+            "runs": len(rows),
+        }
+    return out
+
+
+def medians_table(reports: Sequence[dict]) -> str:
+    """The medians of several runs of one problem (:func:`medians`), as text."""
+    m = medians(reports)
+    lines = [
+        f"problem {reports[0]['problem']}: medians of {len(reports)} runs (seeds differ); "
+        "to spec: until the first parameters meeting it (the whole run where none did)",
+        f"{'method':<36s}{'to spec [s]':>13s}{'reached':>9s}{'wall [s]':>10s}{'settling [s]':>14s}",
+    ]
+    for key, label in METHODS.items():
+        if key not in m:
+            continue
+        e = m[key]
+        settling = "-" if e["settling_time"] is None else f"{e['settling_time']:.3f}"
+        lines.append(
+            f"{label:<36s}{e['seconds_to_spec']:13.2f}{e['reached']:>6d}/{e['runs']:<2d}"
+            f"{e['seconds']:10.1f}{settling:>14s}"
         )
     return "\n".join(lines)

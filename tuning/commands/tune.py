@@ -6,6 +6,8 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
     jaxcart tune --start 60,1,4                    # from kp = 60, ki = 1, kd = 4 (handout order)
     jaxcart tune --robust --out robust.json        # meet the spec for a whole set of plants
     jaxcart tune --plant fitted.toml --f-c 0.4
+    jaxcart tune --plant cart_plant.toml --robust  # for the cart as measured: robust over the
+                                                   # file's standard errors, with the band
     jaxcart tune --compare                         # benchmark against Nelder-Mead and a grid
     jaxcart tune --robust --starts 64 --coordinator node0:12345 --num-processes 4 --process-id 0
 """
@@ -242,9 +244,18 @@ def _run_options(run_) -> None:
     run_.add_argument(
         "--problem",
         default="lab",
-        choices=("lab", "robust", "wide", "all"),
+        choices=("lab", "robust", "wide", "cart", "all"),
         help="with --compare: lab (kp, ki, kd, nominal plant; default), robust (25 plants), "
+        "cart (all six PID numbers robust over 24 carts drawn from a fitted cart's "
+        "uncertainty: --plant FILE's [fit] table, else the real recordings' cart; minutes), "
         "wide (all six PID numbers, robust over 9 plants; minutes) or all",
+    )
+    run_.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --compare: each problem N times (seeds --seed ...), and the medians",
     )
     run_.add_argument("--quiet", action="store_true", help="no progress line")
 
@@ -282,6 +293,8 @@ def _run(args, share, outputs) -> int:
     problem = _problem(args)
     if args.compare:
         return _compare(args, problem)
+    if problem["uncertainty"] is not None and not args.compare:
+        return _for_cart(args, problem, share, outputs)
     me = parallel.process_index()
     if me == 0:
         gains_path, png_path, json_path = outputs or (*_outputs(args), _json_path(args))
@@ -289,15 +302,8 @@ def _run(args, share, outputs) -> int:
         share.sync()  # every process has its inputs: an error reading them stops all now
     result = tune(
         problem["plant"],
-        spec=problem["spec"],
-        start=problem["start"],
-        free=problem["free"],
-        controller=problem["controller"],
         robust=problem["robust"],
-        n_starts=args.starts,
-        max_iterations=args.iterations,
-        seed=args.seed,
-        bounds=problem["bounds"],
+        **_search(args, problem),
         progress=not args.quiet and me == 0,
         processes=share,
     )
@@ -307,6 +313,49 @@ def _run(args, share, outputs) -> int:
     _print_summary(result, problem["robust"] is not False, parallel.process_count())
     _write_outputs(args, result, problem, (gains_path, png_path, json_path))
     return 0 if result.meets else 1
+
+
+def _for_cart(args, problem, share, outputs) -> int:
+    """--robust with a plant file that knows its standard errors: the design for the cart as
+    measured (robust over the file's uncertainty, with its band)."""
+    from tuning.design.for_cart import design_for_cart
+
+    if share is not None:
+        raise UserError(
+            "tuning over a plant file's uncertainty runs in one process; drop --coordinator"
+        )
+    paths = outputs or (*_outputs(args), _json_path(args))
+    design = design_for_cart(
+        problem["uncertainty"], **_search(args, problem), progress=not args.quiet
+    )
+    result = design.tuned
+    _print_summary(result, True, 1, design.margins)
+    _print_prediction(design.prediction)
+    _write_outputs(args, result, problem, paths, design)
+    return 0 if result.meets else 1
+
+
+def _search(args, problem) -> dict:
+    """What the tuner is asked besides the plant: the problem's spec, start, free parameters,
+    controller and bounds, and the search's starts, iterations and seed."""
+    names = ("spec", "start", "free", "controller", "bounds")
+    return {
+        **{n: problem[n] for n in names},
+        "n_starts": args.starts,
+        "max_iterations": args.iterations,
+        "seed": args.seed,
+    }
+
+
+def _print_prediction(p) -> None:
+    """The design's band on carts drawn from the fit."""
+    (s_lo, s_hi), (o_lo, o_hi) = p.interval("settling_time"), p.interval("overshoot")
+    print(
+        f"on {p.n} carts drawn from the plant file's uncertainty: settling "
+        f"{seconds_text(s_lo)} - {seconds_text(s_hi)} ({p.level:.0%} band; the fitted cart "
+        f"{seconds_text(p.nominal['settling_time'])}), overshoot {o_lo:.2f} - {o_hi:.2f} %; "
+        f"meets the spec on {p.p_meet:.0%} of them"
+    )
 
 
 def _problem(args) -> dict:
@@ -322,42 +371,76 @@ def _problem(args) -> dict:
         "plant": _plant(args),
         "robust": robust_ranges(args),
         "bounds": _bounds(args.bounds),
+        "uncertainty": _uncertainty(args),
     }
 
 
+def _uncertainty(args, *, robust=True):
+    """With --robust (no --range; ``robust=False``: without) and a plant file whose [fit]
+    table holds standard errors: that uncertainty
+    (:func:`tuning.design.uncertainty.from_fit_table`), about the plant as the options leave
+    it; else None."""
+    if not ((args.robust or not robust) and not args.ranges and args.plant_file):
+        return None
+    import dataclasses
+
+    from jaxcart.plantspec import read_plant_file
+    from tuning.design.uncertainty import from_fit_table
+
+    try:
+        plant, fit = read_plant_file(args.plant_file)
+    except UserError:
+        return None  # an experiment file: its [plant] table has no standard errors
+    if not fit:
+        return None
+    u = from_fit_table(plant, fit, source=f"--plant {args.plant_file}")
+    return None if u is None else dataclasses.replace(u, plant=_plant(args))
+
+
 def _compare(args, problem) -> int:
-    """--compare: this tuner against Nelder-Mead (and a grid) on each problem; prints tables."""
-    from tuning.benchmark.tuners import compare_tuners
+    """--compare: this tuner against Nelder-Mead (and a grid) on each problem; prints tables
+    (with --repeats N, each problem N times, seeds seed ... seed + N - 1, and the medians)."""
+    from tuning.benchmark.tuners import compare_tuners, medians_table
 
     if problem["robust"] is not False:
         raise UserError(
             "--compare sets its own plant sets; drop --robust/--range and use --problem"
         )
+    if args.repeats < 1:
+        raise UserError(f"--repeats {args.repeats}: give 1 or more")
     json_path = _json_path(args)
-    problems = ("lab", "robust", "wide") if args.problem == "all" else (args.problem,)
+    problems = ("lab", "robust", "wide", "cart") if args.problem == "all" else (args.problem,)
     docs = {}
     for name in problems:
-        report = compare_tuners(
-            problem["plant"],
-            problem=name,
-            spec=problem["spec"],
-            start=problem["start"],
-            free=problem["free"] if set(problem["free"]) != set(GAINS) else None,
-            controller=problem["controller"] if name != "wide" else None,
-            seed=args.seed,
-            bounds=problem["bounds"],
-            progress=not args.quiet,
-        )
-        print(report["table"], flush=True)
-        docs[name] = {k: v for k, v in report.items() if k != "table"}
+        reports = []
+        for k in range(args.repeats):
+            report = compare_tuners(
+                problem["plant"],
+                problem=name,
+                spec=problem["spec"],
+                start=problem["start"],
+                free=problem["free"] if set(problem["free"]) != set(GAINS) else None,
+                controller=problem["controller"] if name not in ("wide", "cart") else None,
+                seed=args.seed + k,
+                bounds=problem["bounds"],
+                progress=not args.quiet,
+                uncertainty=_uncertainty(args, robust=False) if name == "cart" else None,
+            )
+            print(report["table"], flush=True)
+            reports.append({k: v for k, v in report.items() if k != "table"})
+        if args.repeats > 1:
+            print(medians_table(reports), flush=True)
+        docs[name] = reports[0] if args.repeats == 1 else reports
     if json_path is not None:
         _write_json(json_path, docs if len(docs) > 1 else docs[problems[0]])
     return 0
 
 
-def _write_outputs(args, result, problem, paths) -> None:
-    """The gains file (with the run's metadata), the figure and the JSON summary."""
+def _write_outputs(args, result, problem, paths, design=None) -> None:
+    """The gains file (with the run's metadata: its margins, which limit binds and, for a
+    design for the cart as measured, its prediction), the figure and the JSON summary."""
     from jaxcart.experiments import step
+    from tuning.design.margins import margins
 
     gains_path, png_path, json_path = paths
     start = problem["start"]
@@ -376,7 +459,11 @@ def _write_outputs(args, result, problem, paths) -> None:
         "bounds": {n: list(b) for n, b in result.bounds.items()},
         "on_bound": {n: {"side": side, "bound": b} for n, (side, b) in result.on_bound.items()},
         "seconds": result.seconds,
+        "binding": result.binding,
+        "margins": (design.margins if design else margins(result.plant, result.gains)).to_json(),
     }
+    if design is not None:
+        metadata["prediction"] = design.prediction.to_json()
     if result.worst is not None:
         metadata["robust_worst"] = result.worst.as_dict()
         metadata["robust_plants"] = result.plant_set
@@ -538,7 +625,9 @@ def _fmt(value, unit="", digits=3):
     return f"{value:.{digits}f}{unit}"
 
 
-def _print_summary(result, robust, n_processes=1):
+def _print_summary(result, robust, n_processes=1, margins=None):
+    from tuning.design.margins import margins as margins_of
+
     g = result.gains
     print(
         f"tuned gains: kp = {g.kp:.4g} V/m, ki = {g.ki:.4g} V/(m s), kd = {g.kd:.4g} V s/m"
@@ -556,9 +645,12 @@ def _print_summary(result, robust, n_processes=1):
             f"{_fmt(info.steady_state_error, digits=5):>14s}  {seconds_text(info.settling_time)}"
         )
     print(in_words(result.message))
+    print(in_words(f"what limits the gains: {result.binding}"))
     note = result.bound_note(widen=_bound_flags(result))
     if note is not None:
         print(note)
+    for line in (margins or margins_of(result.plant, result.gains)).lines():
+        print(in_words(f"margins: {line}" if line.startswith("gain") else line))
     to_spec = (
         ""
         if result.seconds_to_spec is None

@@ -22,19 +22,20 @@ from jaxcart.experiments import Experiment, step
 from jaxcart.parallel import batch_sharding, devices, put, replicated
 from jaxcart.params import Plant
 from jaxcart.plantspec import build_plant, handout_plant
+from tuning.design.limits import gain_limits
 from tuning.design.losses import GAIN_NAMES, PARAM_NAMES, LossSettings, Spec, params_of
 
 #: The handout's suggested starting gains (kp [V/m], kd [V s/m], ki [V/(m s)]).
 HANDOUT_START = (40.0, 5.0, 5.0)
-#: Default bounds of the gains: kp [V/m], kd [V s/m], ki [V/(m s)]. kp is capped at 250 V/m:
-#: beyond it the loop is near bang-bang and gains only ~10 ms of settling on the model (0.715 s
-#: at kp ~ 150 against 0.704 s at kp ~ 830, measured), while unmodelled delay and amplifier
-#: dynamics make such gains chatter on a real cart. Widen with bounds= / --range.
-#: The other parameters: derivative filter tau [s] (0.1 ms to 0.1 s), back-calculation gain kb
-#: [1/s] and the software limit v_limit [V] (at most the lab's 6 V amplifier range).
+#: The box of the parameters before the cart is known: kp [V/m], kd [V s/m], ki [V/(m s)], the
+#: derivative filter tau [s] (0.1 ms to 0.1 s), the back-calculation gain kb [1/s] and the
+#: software limit v_limit [V] (at most the lab's 6 V amplifier range). The upper ends of kp
+#: and kd are then derived from the cart (:func:`search_box`, :mod:`tuning.design.limits`:
+#: the drive's voltage inside the settling band, the encoder's ripple), unless ``bounds=`` /
+#: ``--bound`` give them.
 DEFAULT_BOUNDS = {
-    "kp": (1e-2, 250.0),
-    "kd": (1e-3, 50.0),
+    "kp": (1e-2, 1e4),
+    "kd": (1e-3, 1e3),
     "ki": (1e-3, 200.0),
     "tau": (1e-4, 0.1),
     "kb": (1e-2, 1e3),
@@ -51,7 +52,9 @@ class TuningProblem:
     """What :func:`tuning.design.tune.tune` was asked, checked and placed: the specification,
     the controller template, the free parameters (names and mask over :data:`PARAM_NAMES`),
     the start, the box (logs ``lo``, ``hi``; ``box`` in units), the plant (or stacked set
-    ``plants_arg``) and the plants the result is checked on (robust tuning; else None)."""
+    ``plants_arg``), the plants the result is checked on (robust tuning; else None) and the
+    limits of the gains derived from the cart (:func:`tuning.design.limits.gain_limits`: those
+    the box took, the user's bounds winning)."""
 
     spec: Spec
     settings: LossSettings
@@ -68,6 +71,7 @@ class TuningProblem:
     substeps: int | None
     check_plants: list | None
     check_values: list | None
+    limits: dict
 
     @property
     def robust(self) -> bool:
@@ -89,7 +93,7 @@ def tuning_problem(
             "free kb: the back-calculation gain acts only with anti_windup='back_calculation' "
             "(--anti-windup back_calculation)"
         )
-    lo, hi, box = log_bounds(bounds)
+    lo, hi, box, limits = search_box(plant, template, spec, free, bounds)
     experiment = step(spec.step, horizon=spec.horizon, sample_time=template.sample_time)
     plants_arg, check_plants, check_values = plant_set(plant, robust, n_check, seed)
     return TuningProblem(
@@ -108,6 +112,7 @@ def tuning_problem(
         substeps=substeps,
         check_plants=check_plants,
         check_values=check_values,
+        limits=limits,
     )
 
 
@@ -164,9 +169,25 @@ def free_mask(free) -> np.ndarray:
     return np.array([n in free for n in PARAM_NAMES])
 
 
-def log_bounds(bounds):
-    """(log lower, log upper) bounds in :data:`PARAM_NAMES` order, and the merged dict."""
+def search_box(plant, template, spec: Spec, free, bounds):
+    """(log lower, log upper, the box {name: (lo, hi)}, the limits it took): the box of
+    :func:`log_bounds` with the upper ends of kp and kd derived from ``plant`` for the
+    controller ``template`` and the spec's step (:func:`tuning.design.limits.gain_limits`),
+    where ``bounds`` does not give them."""
+    tau_low = DEFAULT_BOUNDS["tau"][0] if "tau" in free else None
+    limits = gain_limits(plant, template, spec.step, tau_low=tau_low)
+    limits = {n: lim for n, lim in limits.items() if n not in (bounds or {})}
+    return (*log_bounds(bounds, limits), limits)
+
+
+def log_bounds(bounds, limits=None):
+    """(log lower, log upper) bounds in :data:`PARAM_NAMES` order, and the merged dict:
+    :data:`DEFAULT_BOUNDS`, the upper ends of ``limits`` ({name:
+    :class:`tuning.design.limits.Limit`}, derived from the cart), then ``bounds``."""
     merged = dict(DEFAULT_BOUNDS)
+    for name, limit in (limits or {}).items():
+        lo = merged[name][0]
+        merged[name] = (lo, max(float(limit.bound), 10.0 * lo))
     for name, pair in (bounds or {}).items():
         if name not in PARAM_NAMES:
             raise UserError(f"bounds: unknown gain {name!r}; use {', '.join(PARAM_NAMES)}")

@@ -14,6 +14,7 @@ from jaxcart.metrics import StepInfo
 from jaxcart.params import Plant
 from tuning.design.candidates import failing_constraints, verify, worst
 from tuning.design.iteration import Descent, smooth_metrics
+from tuning.design.limits import binding_text
 from tuning.design.losses import GAIN_NAMES, PARAM_NAMES, Spec, controller_with, params_of
 from tuning.design.problem import TuningProblem
 from tuning.design.wording import bound_note, verdict
@@ -35,7 +36,8 @@ class TuneResult:
     the check set (exact simulator): a StepInfo whose fields are each the worst over the set;
     plant_set: per plant checked, its parameters and exact metrics; free: the tuned
     parameters; bounds: their search box {name: (lo, hi)}; on_bound: {name: (side, bound)} for
-    each free parameter on or within 1 % of a bound (:func:`on_bounds`).
+    each free parameter on or within 1 % of a bound (:func:`on_bounds`); limits: the upper ends
+    of the box derived from the cart ({name: :class:`tuning.design.limits.Limit`}).
     """
 
     gains: PID
@@ -56,12 +58,23 @@ class TuneResult:
     free: tuple[str, ...] = GAIN_NAMES
     bounds: dict = field(default_factory=dict)
     on_bound: dict = field(default_factory=dict)
+    limits: dict = field(default_factory=dict)
+
+    @property
+    def binding(self) -> str:
+        """Which limit derived from the cart sets the design, or that none does (a sentence,
+        :func:`tuning.design.limits.binding_text`)."""
+        return binding_text(self.gains, {n: v for n, v in self.limits.items() if n in self.free})
 
     def bound_note(self, widen: str | None = None) -> str | None:
         """One line naming every free parameter on (or within 1 % of) a bound of the search
-        box, and how to widen it (``widen``: the way to say it, default the ``bounds=``
-        argument of :func:`tuning.design.tune.tune`); None when there is none."""
-        return bound_note(self.gains, self.on_bound, self.bounds, widen)
+        box that is not a limit of the cart (:attr:`binding` says those), and how to widen it
+        (``widen``: the way to say it, default the ``bounds=`` argument of
+        :func:`tuning.design.tune.tune`); None when there is none."""
+        arbitrary = {
+            n: v for n, v in self.on_bound.items() if not (n in self.limits and v[0] == "upper")
+        }
+        return bound_note(self.gains, arbitrary, self.bounds, widen)
 
     def to_json(self) -> dict:
         """The ``--json`` document: gains, exact and smooth metrics, wall time [s], ..."""
@@ -85,6 +98,12 @@ class TuneResult:
                 for n, (side, b) in self.on_bound.items()
             },
             "bound_note": self.bound_note(),
+            "limits": {
+                n: {"bound": lim.bound, "what": lim.what, "why": lim.why}
+                for n, lim in self.limits.items()
+                if n in self.free
+            },
+            "binding": self.binding,
         }
         doc["gains"]["v_limit"] = json_number(doc["gains"]["v_limit"])
         if self.worst is not None:
@@ -159,4 +178,5 @@ def conclude(p: TuningProblem, update, descent: Descent, n_starts: int, t0: floa
         free=p.free,
         bounds={n: p.box[n] for n in p.free},
         on_bound=on_bounds(values, p.free, p.box),
+        limits=p.limits,
     )

@@ -1,0 +1,137 @@
+"""A run against its prediction (numpy and the standard library only: the lab PC runs it).
+
+A design handed to the cart carries its prediction (``jaxcart lab`` and ``jaxcart tune`` write
+it into the gains file, :meth:`tuning.design.prediction.Prediction.to_json`): for each metric
+the fitted cart's value and a band that a run lies in with the band's probability, and each
+fitted value's standard error with the metrics' change per standard error. :func:`check_run`
+compares a run's metrics with it; where one falls outside its band, it says which single
+fitted value, moved by how many of its standard errors, would explain the difference (the
+change needed over the metric's change per standard error, the fewest first): a run that
+settles 80 ms late where the drive's limit moves the settling time by -55 ms per standard
+error is explained by a limit 1.5 standard errors lower. Where every value would have to move
+by more than :data:`FAR` standard errors, the difference is something the model leaves out.
+
+>>> prediction = {"level": 0.9, "step": 0.5, "metrics": {"settling_time": {"nominal": 0.8,
+...     "band": [0.75, 0.85]}}, "sensitivity": {"v_sat": {"stderr": 0.3, "value": 5.5,
+...     "unit": "V", "settling_time": -0.05}}}
+>>> check = check_run({"settling_time": 0.9}, prediction)
+>>> check["inside"], check["outside"][0]["explained_by"][0]["name"]
+(False, 'v_sat')
+"""
+
+from __future__ import annotations
+
+import math
+
+#: The metrics a run is checked on, with their units and how they are written.
+CHECKED = {"settling_time": ("s", 1.0, "settled"), "overshoot": ("%", 1.0, "overshot")}
+#: A value that would have to move further than this many standard errors does not explain a
+#: difference.
+FAR = 3.0
+
+
+def _number(x) -> float:
+    """A number of a gains file (non-finite ones are written as text)."""
+    if isinstance(x, str):
+        return float(x)
+    return float(x) if x is not None else math.nan
+
+
+def check_run(measured: dict, prediction: dict) -> dict:
+    """The run's ``measured`` metrics ({name: value}: settling_time [s], overshoot [%])
+    against ``prediction`` (the gains file's): {"inside": every checked metric within its band,
+    "level", "metrics": [{"name", "measured", "nominal", "band", "inside"}], "outside": those
+    outside, each with "explained_by": [{"name", "sigmas", "value", "unit", "stderr"}] (the
+    fitted values that explain it within :data:`FAR` standard errors, the fewest first)}."""
+    rows = []
+    for name in CHECKED:
+        pred = prediction.get("metrics", {}).get(name)
+        if pred is None or name not in measured:
+            continue
+        lo, hi = (_number(x) for x in pred["band"])
+        value = _number(measured[name])
+        row = {
+            "name": name,
+            "measured": value,
+            "nominal": _number(pred["nominal"]),
+            "band": (lo, hi),
+            "inside": bool(lo <= value <= hi),
+        }
+        if not row["inside"]:
+            row["explained_by"] = _explained_by(name, value - row["nominal"], prediction)
+        rows.append(row)
+    return {
+        "inside": all(r["inside"] for r in rows),
+        "level": _number(prediction.get("level", math.nan)),
+        "metrics": rows,
+        "outside": [r for r in rows if not r["inside"]],
+    }
+
+
+def _explained_by(metric: str, difference: float, prediction: dict) -> list[dict]:
+    """The fitted values that would move ``metric`` by ``difference`` within :data:`FAR`
+    standard errors, the fewest first."""
+    out = []
+    if not math.isfinite(difference):
+        return out
+    for name, s in prediction.get("sensitivity", {}).items():
+        per_sigma = _number(s.get(metric))
+        if not math.isfinite(per_sigma) or per_sigma == 0:
+            continue  # (a value the metric does not move with)
+        sigmas = difference / per_sigma
+        if abs(sigmas) <= FAR:
+            out.append(
+                {
+                    "name": name,
+                    "sigmas": sigmas,
+                    "value": _number(s.get("value")),
+                    "stderr": _number(s.get("stderr")),
+                    "unit": s.get("unit", ""),
+                }
+            )
+    return sorted(out, key=lambda e: abs(e["sigmas"]))
+
+
+def _fmt(name: str, x: float) -> str:
+    unit = CHECKED[name][0]
+    if not math.isfinite(x):
+        return "never" if name == "settling_time" else "inf"
+    return f"{x:.3f} s" if unit == "s" else f"{x:.2f} %"
+
+
+def check_lines(check: dict) -> list[str]:
+    """The check in words, one line each."""
+    level = check["level"]
+    lines = []
+    for row in check["metrics"]:
+        lo, hi = row["band"]
+        where = "inside" if row["inside"] else "OUTSIDE"
+        lines.append(
+            f"{row['name'].replace('_', ' ')} {_fmt(row['name'], row['measured'])}: {where} the "
+            f"predicted {level:.0%} band {_fmt(row['name'], lo)} - {_fmt(row['name'], hi)} "
+            f"(the fitted cart: {_fmt(row['name'], row['nominal'])})"
+        )
+    for row in check["outside"]:
+        lines.append(_explanation(row))
+    return lines
+
+
+def _explanation(row: dict) -> str:
+    """Which fitted value would explain a metric outside its band, in words."""
+    name = row["name"].replace("_", " ")
+    ways = row.get("explained_by", [])
+    if not ways:
+        return (
+            f"no single fitted value explains the {name} within {FAR:g} standard errors: the "
+            "run shows something the model of the cart leaves out (jaxcart diagnose with this "
+            "run among the recordings)"
+        )
+    parts = []
+    for e in ways[:3]:
+        side = "higher" if e["sigmas"] > 0 else "lower"
+        moved = e["value"] + e["sigmas"] * e["stderr"]
+        parts.append(
+            f"{e['name']} {abs(e['sigmas']):.1f} standard errors {side} ({moved:.4g} "
+            f"{e['unit']} for {e['value']:.4g})".replace(" )", ")")
+        )
+    return f"the {name} would be explained by " + ", or ".join(parts)

@@ -1,0 +1,148 @@
+"""The prediction of a design on the cart as measured (tuning.design.uncertainty,
+tuning.design.prediction) and a run checked against it (hw.predicted): the band's coverage on
+synthetic carts, the draws' statistics, the drive's spread, the plant file's round trip, and a
+run outside its band explained by the value that moved."""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import jaxcart as jc
+from hw.predicted import check_lines, check_run
+from jaxcart.plantspec import build_plant, read_plant_file, write_plant_file
+from tuning.design.prediction import band_of, predict, step_run
+from tuning.design.uncertainty import CartUncertainty, fit_table, from_fit, from_fit_table
+
+#: The coverage test's design and step: a PID on a cart with Coulomb friction and the drive's
+#: 6 V, a 0.2 m step over 1.5 s (short runs: the test makes 800 of them).
+PID = jc.PID(kp=100.0, kd=5.0, ki=2.0, v_limit=6.0)
+STEP = jc.step(0.2, horizon=1.5)
+#: The fit's standard errors of B_eq [kg/s] and f_c [N] in the coverage test.
+SE = np.array([0.25, 0.04])
+
+
+def _cart(b_eq, f_c):
+    return build_plant({"B_eq": b_eq, "f_c": f_c, "v_sat": 6.0})
+
+
+def test_band_is_the_order_statistics_of_a_prediction_interval():
+    """n = 19 at 90 %: the least and the most (a new draw inside with probability 18/20);
+    n = 63: the 3rd least and 3rd most (60/64)."""
+    x = np.arange(19.0)[::-1]
+    assert band_of(x, 0.9) == (0.0, 18.0)
+    assert band_of(np.arange(63.0), 0.9) == (2.0, 60.0)
+
+
+@pytest.fixture(scope="module")
+def coverage():
+    """40 synthetic carts: each true cart drawn from a lab's range, its fit off by an error
+    drawn from the fit's covariance, the design's band predicted from that fit (19 carts:
+    a 90 % band of the least and the most) and the true cart's step beside it (seeded)."""
+    rng = np.random.default_rng(30)
+    inside = {"settling_time": [], "overshoot": [], "position": []}
+    for _ in range(40):
+        truth = np.array([rng.uniform(2.0, 5.0), rng.uniform(0.2, 0.5)])
+        fitted = truth + SE * rng.standard_normal(2)
+        u = CartUncertainty(_cart(*fitted), ("B_eq", "f_c"), fitted, np.diag(SE**2))
+        p = predict(u, PID, experiment=STEP, n=19, seed=int(rng.integers(1 << 30)),
+                    sensitivity=False)  # fmt: skip
+        y, _, metrics = step_run((_cart(*truth), PID, STEP))
+        for name in ("settling_time", "overshoot"):
+            lo, hi = p.interval(name)
+            inside[name].append(lo <= metrics[name] <= hi)
+        k = int(0.25 / 1e-3)  # mid-motion, 0.25 s into the step
+        inside["position"].append(p.band[0][k] <= y[k] <= p.band[1][k])
+    return {k: float(np.mean(v)) for k, v in inside.items()}
+
+
+@pytest.mark.parametrize("what", ["settling_time", "overshoot", "position"])
+def test_the_truth_lies_in_the_90_percent_band_about_90_percent_of_the_time(coverage, what):
+    """The band's coverage on synthetic carts, the exact simulator for the truth and for the
+    drawn carts: about 90 % (40 carts: 0.9 +/- 0.05 is one binomial standard deviation; the
+    band of 19 draws covers with probability 0.9 where the fit's error is as its covariance
+    says). Measured (seed 30): settling 0.9, overshoot 0.875, position 0.9."""
+    assert 0.8 <= coverage[what] <= 0.975, coverage
+
+
+def test_draws_have_the_fits_mean_and_covariance():
+    """Shared values from the normal distribution of the fit (correlations included), each
+    drive value as a new run's: the runs' mean, their spread times sqrt(1 + 1/n) with the
+    standard error of the mean."""
+    cov = np.array([[0.04, -0.006], [-0.006, 0.0025]])
+    u = CartUncertainty(
+        _cart(3.0, 0.4), ("B_eq", "f_c"), np.array([3.0, 0.4]), cov,
+        {"v_sat": (5.1, 5.9)}, {"v_sat": (0.03, 0.02)},
+    )  # fmt: skip
+    draws = u.draw(20000, seed=1)
+    x = np.array([[d["B_eq"], d["f_c"]] for d in draws])
+    assert np.allclose(x.mean(axis=0), [3.0, 0.4], atol=0.01)
+    assert np.allclose(np.cov(x.T), cov, rtol=0.05, atol=1e-5)
+    v = np.array([d["v_sat"] for d in draws])
+    spread = math.hypot(np.std([5.1, 5.9], ddof=1) * math.sqrt(1.5), math.hypot(0.03, 0.02) / 2)
+    assert u.drive_spread("v_sat") == pytest.approx((5.5, spread))
+    assert v.mean() == pytest.approx(5.5, abs=0.02) and v.std() == pytest.approx(spread, rel=0.03)
+    assert u.stderr("v_sat") == pytest.approx(spread) and u.stderr("f_c") == pytest.approx(0.05)
+    wide = u.scaled(2.0)
+    assert wide.stderr("B_eq") == pytest.approx(0.4)
+    assert wide.stderr("v_sat") == pytest.approx(2 * spread)
+
+
+def test_uncertainty_from_a_fit_and_through_a_plant_file(tmp_path):
+    """A fit's shared values with standard errors and correlations, its values per run as the
+    drive's spread; a plant file's [fit] table keeps both (jaxcart tune --plant ... --robust
+    reads them back)."""
+    est = {
+        "B_eq": SimpleNamespace(value=1.5, stderr=0.02),
+        "f_c": SimpleNamespace(value=0.43, stderr=0.008),
+        "delay": SimpleNamespace(value=0.012, stderr=None),  # no standard error: not drawn
+        "v_sat@0": SimpleNamespace(value=5.09, stderr=0.03),
+        "v_sat@2": SimpleNamespace(value=5.90, stderr=0.02),
+    }
+    plant = build_plant({"B_eq": 1.5, "f_c": 0.43, "delay": 0.012, "v_sat": 5.09})
+    fit = SimpleNamespace(params=est, correlation={("B_eq", "f_c"): -0.5})
+    u = from_fit(fit, plant=plant)
+    assert u.names == ("B_eq", "f_c") and u.drive == {"v_sat": (5.09, 5.90)}
+    assert u.cov[0, 1] == pytest.approx(-0.5 * 0.02 * 0.008)
+    path = write_plant_file(tmp_path / "cart.toml", plant, fit={"source": "test", **fit_table(u)})
+    back = from_fit_table(*read_plant_file(path))
+    assert back.names == u.names and back.drive == u.drive
+    assert [back.stderr(n) for n in back.varied] == pytest.approx([u.stderr(n) for n in u.varied])
+    assert from_fit_table(plant, {"source": "no errors"}) is None
+
+
+def test_a_run_outside_its_band_is_explained_by_the_value_that_moved():
+    """A design predicted on a cart whose drive limit varies from run to run; the run on a
+    cart whose limit is 2.5 spreads lower settles later, outside the band, and the check names
+    v_sat, about 2.5 spreads lower (the other values barely move the settling time)."""
+    u = CartUncertainty(
+        _cart(3.0, 0.4), ("B_eq", "f_c"), np.array([3.0, 0.4]), np.diag([0.05, 0.01]) ** 2,
+        {"v_sat": (5.0, 5.2, 5.4)}, {"v_sat": (0.01, 0.01, 0.01)},
+    )  # fmt: skip
+    pid = jc.PID(kp=80.0, kd=6.0, v_limit=6.0)
+    exp = jc.step(0.5, horizon=2.0)
+    p = predict(u, pid, experiment=exp, n=19, seed=3)
+    doc = p.to_json()
+    assert doc["metrics"]["settling_time"]["nominal"] == pytest.approx(p.nominal["settling_time"])
+    assert doc["sensitivity"]["v_sat"]["settling_time"] < 0  # a stronger drive settles sooner
+    spread = u.stderr("v_sat")
+    _, _, run = step_run((u.cart({"v_sat": 5.2 - 2.5 * spread}), pid, exp))
+    check = check_run(run, doc)
+    assert not check["inside"]
+    best = check["outside"][0]["explained_by"][0]
+    assert best["name"] == "v_sat" and -3.5 < best["sigmas"] < -1.5
+    assert any("v_sat" in line and "lower" in line for line in check_lines(check))
+    _, _, same = step_run((u.nominal_cart(), pid, exp))
+    assert check_run(same, doc)["inside"]
+
+
+def test_check_says_when_no_single_value_explains_a_run():
+    prediction = {
+        "level": 0.9,
+        "metrics": {"overshoot": {"nominal": 1.0, "band": [0.5, 1.5]}},
+        "sensitivity": {"B_eq": {"stderr": 0.1, "value": 2.0, "unit": "kg/s", "overshoot": 0.1}},
+    }
+    check = check_run({"overshoot": 9.0}, prediction)  # 80 standard errors of B_eq
+    assert check["outside"][0]["explained_by"] == []
+    assert "leaves out" in check_lines(check)[-1]

@@ -1,0 +1,233 @@
+"""The step of a design on the cart as measured, with its band: what a student may expect when
+the design runs on the cart.
+
+    CartUncertainty --draw n carts--> [the fitted cart, cart 1 ... cart n]
+                                          | each: the exact simulator, the design's step
+                                          v
+        the fitted cart's step (nominal) + the band of the n steps (position over time, each
+        metric) + the share of carts that meet the spec + each value's sensitivity
+
+The band is a prediction interval: of ``n`` drawn carts' results, the k-th smallest and k-th
+largest with k = floor((n + 1)(1 - level)/2), so that a new cart drawn like them (the true one,
+when the fit's errors are what its covariance says) lies inside with probability at least
+``level`` (order statistics: (n + 1 - 2k)/(n + 1); n = 19 at 90 %: the least and the most).
+The spec (:class:`tuning.design.losses.Spec`) is the lab's: settling under 1 s in the 2 % band,
+overshoot under 5 %, the command within the drive's 6 V and the cart within the track's 0.814 m
+travel. Every run is :func:`jaxcart.exact.simulate_exact`'s; they are independent, and made
+through the caller's ``executor`` (:class:`jaxcart.workers.Helpers`) when given one.
+
+:func:`predict` computes; :func:`tuning.design.prediction_plot.plot_prediction` draws.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import jax
+import numpy as np
+
+from hw.control_law import float_pid
+from jaxcart.exact import simulate_exact
+from jaxcart.experiments import step
+from jaxcart.metrics import step_info
+from jaxcart.params import TRAVEL
+from jaxcart.plantspec import unit
+from jaxcart.workers import SERIAL
+from tuning.design.losses import Spec
+from tuning.design.uncertainty import CartUncertainty
+
+#: Carts drawn for a band: 63 gives the 90 % band as the 3rd least and 3rd most (a new cart
+#: inside with probability 60/64 = 0.94 >= 0.9).
+N_CARTS = 63
+#: The band's level: the probability that a new cart drawn like these lies inside.
+LEVEL = 0.9
+#: The metrics a band is given for: settling time [s], overshoot [%], peak command [V],
+#: excursion (how far the cart moves from its start at most) [m].
+METRICS = ("settling_time", "overshoot", "peak_voltage", "excursion")
+#: The drive's voltage range [V] (a command beyond it is not met by the drive).
+V_RANGE = 6.0
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """One design's step on the cart as measured.
+
+    controller: the design (a PID); spec; level; time [s]; reference [m]; nominal: the fitted
+    cart's position [m] and command [V] (``nominal_position``, ``nominal_command``) and its
+    metrics ({name: value}); band: (low, high) of the position [m] at each time; metrics:
+    {name: array over the drawn carts} of :data:`METRICS`; meets: whether each drawn cart meets
+    the spec; values: each drawn cart's varied values; sensitivity: {name: {"stderr" [SI],
+    metric: change per standard error}} at the fitted cart (central differences, one standard
+    error each way); names: the varied values; experiment: what was simulated."""
+
+    controller: object
+    spec: Spec
+    level: float
+    time: np.ndarray
+    reference: np.ndarray
+    nominal_position: np.ndarray
+    nominal_command: np.ndarray
+    nominal: dict
+    band: tuple
+    metrics: dict
+    meets: np.ndarray
+    values: list = field(default_factory=list)
+    sensitivity: dict = field(default_factory=dict)
+    experiment: object = None
+
+    @property
+    def n(self) -> int:
+        """Carts drawn."""
+        return int(self.meets.size)
+
+    @property
+    def p_meet(self) -> float:
+        """The share of the drawn carts on which the design meets the spec."""
+        return float(np.mean(self.meets)) if self.meets.size else math.nan
+
+    def interval(self, metric: str) -> tuple[float, float]:
+        """The band of ``metric`` over the drawn carts (:func:`band_of`)."""
+        return band_of(self.metrics[metric], self.level)
+
+    def to_json(self) -> dict:
+        """The prediction as a gains file and ``jaxcart run`` read it (:mod:`hw.predicted`):
+        for each metric its nominal value and band, the chance of meeting the spec, each
+        value's standard error and the metrics' change per standard error."""
+        return {
+            "level": self.level,
+            "carts": self.n,
+            "p_meet": self.p_meet,
+            "spec": {"settling_time": self.spec.settling_time, "overshoot": self.spec.overshoot},
+            "metrics": {m: self._metric_json(m) for m in METRICS},
+            "step": float(self.reference[-1] - self.nominal_position[0]),
+            "sensitivity": {
+                n: {k: v if isinstance(v, str) else _plain(v) for k, v in s.items()}
+                for n, s in self.sensitivity.items()
+            },
+        }
+
+    def _metric_json(self, metric: str) -> dict:
+        return {
+            "nominal": _plain(self.nominal[metric]),
+            "band": [_plain(x) for x in self.interval(metric)],
+        }
+
+
+def _plain(x):
+    x = float(x)
+    return x if math.isfinite(x) else ("inf" if x > 0 else "-inf" if x < 0 else "nan")
+
+
+def band_of(samples, level: float = LEVEL) -> tuple[float, float]:
+    """(k-th least, k-th most) of ``samples`` with k = max(1, floor((n + 1)(1 - level) / 2)):
+    a new draw of the same distribution falls inside with probability >= level (for
+    n >= 2 / (1 - level) - 1)."""
+    x = np.sort(np.asarray(samples, dtype=float), axis=0)
+    n = x.shape[0]
+    k = max(1, int(math.floor((n + 1) * (1.0 - level) / 2.0)))
+    return x[k - 1], x[n - k]
+
+
+def step_run(job) -> tuple:
+    """One exact run of a design's step (a :meth:`jaxcart.workers.Helpers.map` job: ``(plant,
+    controller, experiment)``): (position [m], command [V], {metric: value})."""
+    plant, controller, experiment = job
+    with jax.enable_x64(True):
+        res = simulate_exact(plant, float_pid(controller), experiment)
+    info = step_info(res, v_limit=float(controller.v_limit))
+    y = np.asarray(res.position, dtype=float)
+    u = np.asarray(res.command, dtype=float)
+    metrics = {
+        "settling_time": float(info.settling_time),
+        "overshoot": float(info.overshoot),
+        "peak_voltage": float(np.max(np.abs(u))) if not info.diverged else math.inf,
+        "excursion": float(np.max(np.abs(y - y[0]))) if not info.diverged else math.inf,
+        "diverged": bool(info.diverged),
+    }
+    return y, u, metrics
+
+
+def meets_spec(metrics: dict, spec: Spec) -> bool:
+    """The spec on one run's metrics: settling and overshoot under their bounds, the command
+    within the drive's range, the cart within the track's travel."""
+    return bool(
+        not metrics["diverged"]
+        and metrics["settling_time"] < spec.settling_time
+        and metrics["overshoot"] < spec.overshoot
+        and metrics["peak_voltage"] <= V_RANGE * (1 + 1e-9)
+        and metrics["excursion"] <= TRAVEL
+    )
+
+
+def predict(
+    uncertainty: CartUncertainty,
+    controller,
+    spec: Spec | None = None,
+    *,
+    experiment=None,
+    n: int = N_CARTS,
+    level: float = LEVEL,
+    seed: int = 0,
+    sensitivity: bool = True,
+    executor=None,
+) -> Prediction:
+    """The step of ``controller`` on the cart of ``uncertainty`` and on ``n`` carts drawn from
+    it (:meth:`CartUncertainty.draw`, ``seed``), each on the exact simulator.
+
+    spec: the design problem (default the lab's: 0.5 m, settling < 1 s, overshoot < 5 %);
+    experiment: what to simulate (default the spec's step over its horizon; a recording's
+    own experiment to predict that run); sensitivity: also each varied value's effect on the
+    metrics (two runs per value); executor: what makes the runs (the caller's
+    :class:`jaxcart.workers.Helpers`; default one after the other here)."""
+    spec = spec or Spec()
+    experiment = experiment or step(spec.step, horizon=spec.horizon)
+    values = uncertainty.draw(n, seed=seed)
+    plants = [uncertainty.nominal_cart()] + [uncertainty.cart(v) for v in values]
+    names = list(uncertainty.varied) if sensitivity else []
+    nominal = uncertainty.nominal()
+    for name in names:
+        se = uncertainty.stderr(name)
+        for sign in (-1.0, 1.0):
+            plants.append(uncertainty.cart({name: nominal[name] + sign * se}))
+    jobs = [(_host(p), controller, experiment) for p in plants]
+    runs = (executor or SERIAL).map(step_run, jobs)
+    drawn = runs[1 : n + 1]
+    positions = np.array([y for y, _, _ in drawn])
+    y0, u0, m0 = runs[0]
+    return Prediction(
+        controller=controller,
+        spec=spec,
+        level=level,
+        time=np.asarray(experiment.time, dtype=float),
+        reference=np.asarray(experiment.signal, dtype=float),
+        nominal_position=y0,
+        nominal_command=u0,
+        nominal=m0,
+        band=band_of(positions, level),
+        metrics={m: np.array([r[2][m] for r in drawn]) for m in METRICS},
+        meets=np.array([meets_spec(r[2], spec) for r in drawn], dtype=bool),
+        values=values,
+        sensitivity=_sensitivities(uncertainty, names, runs[n + 1 :]),
+        experiment=experiment,
+    )
+
+
+def _sensitivities(uncertainty, names, runs) -> dict:
+    """{name: {"value" [SI], "unit", "stderr" [SI], metric: (metric at +1 se - metric at -1
+    se) / 2}} (a metric that is inf either way: nan)."""
+    out = {}
+    nominal = uncertainty.nominal()
+    for i, name in enumerate(names):
+        low, high = runs[2 * i][2], runs[2 * i + 1][2]
+        entry = {"value": nominal[name], "unit": unit(name), "stderr": uncertainty.stderr(name)}
+        for m in METRICS:
+            a, b = low[m], high[m]
+            entry[m] = (b - a) / 2.0 if math.isfinite(a) and math.isfinite(b) else math.nan
+        out[name] = entry
+    return out
+
+
+def _host(plant):
+    """The plant with numpy leaves (a job pickles it for a helper process)."""
+    return jax.tree.map(np.asarray, plant)
