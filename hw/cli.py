@@ -8,9 +8,12 @@
 
 Before the run the gains are simulated (hw.prerun: refused when unstable or a relay, unless
 --force); after it, the metrics of the run are printed against the spec and that simulation,
-with the pacing's verdict (hw.pacing). Exit status: 0 completed, 1 a fault or an error, 2 bad
-options or an output that cannot be written (nothing moved), 128 + the signal's number when a
-signal stopped the run (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP).
+with the pacing's verdict (hw.pacing), and against the prediction the gains file carries
+(hw.predicted: ``jaxcart lab`` writes the band of its design on the cart as measured): inside
+the band, or which fitted value of the cart would explain the difference. Exit status: 0
+completed, 1 a fault or an error, 2 bad options or an output that cannot be written (nothing
+moved), 128 + the signal's number when a signal stopped the run (130 Ctrl-C, 143 SIGTERM, 129
+SIGHUP).
 
 ``jaxcart run`` (tuning/commands/run.py) is the same command from the full install.
 """
@@ -36,6 +39,7 @@ from hw.expfile import ExpFileError
 from hw.gains import GainsFileError, read_gains_file
 from hw.loop import run_loop, timing_stats
 from hw.pacing import choose_watchdog, verdict
+from hw.predicted import check_lines, check_run
 from hw.prerun import check_gains
 from hw.safety import X_MAX, Limits
 from hw.stepinfo import comparison_lines, run_metrics, spec_of
@@ -360,7 +364,10 @@ def _report(result, simulated, meta) -> int:
         )
     if result.fault is None and result.n_samples >= 2:
         sim = run_metrics(simulated) if simulated is not None else None
-        for line in comparison_lines(run_metrics(result), sim, spec_of(meta)):
+        measured = run_metrics(result)
+        for line in comparison_lines(measured, sim, spec_of(meta)):
+            print(f"hw run: {line}", file=sys.stderr)
+        for line in prediction_lines(measured, meta):
             print(f"hw run: {line}", file=sys.stderr)
     for note in result.notes:
         print(f"hw run: note: {note}", file=sys.stderr)
@@ -371,6 +378,24 @@ def _report(result, simulated, meta) -> int:
     if result.path is not None:
         print(result.path)
     return exit_status(result)
+
+
+def prediction_lines(measured: list[dict], meta: dict) -> list[str]:
+    """The run's first step against the prediction in the gains file's metadata (none: no
+    lines): inside its band, or which fitted value would explain the difference."""
+    prediction = meta.get("prediction") if isinstance(meta, dict) else None
+    if not isinstance(prediction, dict) or not measured:
+        return []
+    first = measured[0]
+    step = prediction.get("step")
+    if isinstance(step, int | float) and not math.isclose(first["set_point"], step, abs_tol=1e-9):
+        return [
+            f"the gains file predicts a {step:g} m step; this run stepped to "
+            f"{first['set_point']:g} m, so it is not compared (--step {step:g})"
+        ]
+    return ["against the prediction of the gains file:"] + [
+        f"  {line}" for line in check_lines(check_run(first, prediction))
+    ]
 
 
 def zero_volts(result) -> str:

@@ -156,3 +156,22 @@ def test_a_busy_port_is_said_before_the_page_is_computed(monkeypatch, capsys):
     assert "another server listens there" in err[0] and "--port 0 picks a free one" in err[0]
     assert main(["app", "--address", "192.0.2.1", "--port", "0", "--no-browser"]) == 2
     assert "not an address of this machine" in capsys.readouterr().err
+
+
+def test_the_page_shows_the_designs_margins_and_warns_of_hunting(page):
+    """Under the metric table: the margins of the slider's gains on the design plant
+    (tuning.design.margins, its numbers), and in red the warning when integral action meets
+    stiction."""
+    from tuning.design.margins import margins
+
+    page.sliders["kp"].value = 150.0
+    m = margins(jc.handout_plant(), jc.PID(kp=150.0, ki=5.0, kd=5.0, tau=0.01, v_limit=6.0))
+    text = page.metrics.text
+    assert "data-metric='margins'" in text and f"phase {m.phase_margin:.1f}°" in text
+    assert f"peak sensitivity {m.peak_sensitivity:.2f}" in text and f"{m.ripple:.3g} V" in text
+    sticky = app.DesignProblem(
+        jc.build_plant({"B_eq": 4.0, "f_c": 0.3, "f_s": 0.6}), plant_label="sticky cart",
+        region_points=POINTS,
+    )  # fmt: skip
+    hunting = build(Document(), sticky).metrics.text
+    assert "integral action with stiction hunts" in hunting and "#cf222e" in hunting

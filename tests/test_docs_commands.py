@@ -129,6 +129,17 @@ SHOWN = [
         writes=("fitted.toml",),
     ),
     Shown(
+        "jaxcart tune --plant fitted.toml --robust --out robust.json",
+        "examples",
+        says=(
+            r"meets the specification \(on all 12 plants",
+            r"what limits the gains: ",
+            r"margins: gain margin .* phase margin .* peak sensitivity",
+            r"on 63 carts drawn from the plant file's uncertainty: settling .* meets the spec",
+        ),
+        writes=("robust.json", "robust.png"),
+    ),
+    Shown(
         "jaxcart simulate p10.toml --plant fitted.toml",
         "examples",
         # The README: the dead band, 26.1 mm as recorded (issue 34: 15.65 mm on the smooth

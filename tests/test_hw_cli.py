@@ -46,6 +46,34 @@ def test_run_on_the_sim_writes_a_recording(tmp_path, capsys):
     assert "exists" in capsys.readouterr().err
 
 
+def test_a_run_is_checked_against_the_prediction_its_gains_file_carries(tmp_path, capsys):
+    """A gains file with a prediction (jaxcart lab writes one): the run's settling time against
+    its band; outside it, the fitted value that would explain it; a run of another step is
+    not compared (numpy only: hw.predicted)."""
+    prediction = {
+        "level": 0.9,
+        "step": 0.5,
+        "metrics": {
+            "settling_time": {"nominal": 0.5, "band": [0.45, 0.55]},
+            "overshoot": {"nominal": 0.0, "band": [0.0, 50.0]},
+        },
+        "sensitivity": {
+            "v_sat": {"value": 5.5, "stderr": 0.3, "unit": "V", "settling_time": -0.2},
+            "B_eq": {"value": 2.0, "stderr": 0.1, "unit": "kg/s", "settling_time": 0.001},
+        },
+    }
+    pid = PID(kp=120.9, ki=1.67, kd=4.1, v_limit=6.0)  # settles in 0.725 s (docs/hardware.md)
+    gains = str(write_gains(tmp_path / "g.json", pid, prediction=prediction))
+    args = ["run", gains, "--device", "sim", "--virtual", "--out"]
+    assert main([*args, str(tmp_path / "a.toml"), "--step", "0.5"]) == 0
+    err = capsys.readouterr().err
+    assert "against the prediction of the gains file" in err
+    assert "settling time" in err and "OUTSIDE the predicted 90% band 0.450 s - 0.550 s" in err
+    assert "would be explained by v_sat" in err and "B_eq" not in err.split("explained by")[1]
+    assert main([*args, str(tmp_path / "b.toml"), "--step", "0.3"]) == 0
+    assert "predicts a 0.5 m step; this run stepped to 0.3 m" in capsys.readouterr().err
+
+
 def test_run_slider_plant_file_and_numbered_names(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     gains = _gains(tmp_path)

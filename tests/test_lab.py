@@ -39,6 +39,7 @@ FIGURES = {
     "part4_pi_error",
     "part4_root_locus",
     "part5_pid_step",
+    "part5_designs",
     "part5_slider",
 }
 
@@ -409,13 +410,15 @@ def test_builtin_report_reads_as_a_grader_expects(builtin_report):
     same = all(pid[n] == pytest.approx(tuned[n], rel=5e-4) for n in ("kp", "kd", "ki"))
     assert ("Gains of the experiment, the pre-lab's tuned PID" in md) == same
     assert ("**not** the pre-lab's tuned gains" in md) == (not same)
-    # A tuned gain on the tuner's box is flagged.
-    from tuning.design.problem import DEFAULT_BOUNDS
-
-    box = {n: DEFAULT_BOUNDS[n] for n in ("kp", "kd", "ki")}  # the gains the lab tunes
+    # A tuned gain on the tuner's box is flagged: on a limit of the cart (kp, kd's upper ends)
+    # by what sets it, on another end of the box as the box's answer.
+    box = results["prelab"]["pid"]["bounds"]  # the gains the lab tunes, kp and kd from the cart
+    assert set(box) == {"kp", "kd", "ki"} and box["kp"][1] == pytest.approx(600.0)
     hit = {n for n, (lo, hi) in box.items() if not lo * 1.01 < tuned[n] < hi * 0.99}
     assert set(results["prelab"]["pid"]["on_bounds"]) == hit
-    assert ("sit on the tuner's search box" in md) == bool(hit)
+    arbitrary = {n for n in hit if not (n in ("kp", "kd") and tuned[n] >= box[n][1] * 0.99)}
+    assert ("sit on the tuner's search box" in md) == bool(arbitrary)
+    assert results["prelab"]["pid"]["binding"] in md
 
 
 def test_slider_moves_end_at_each_setpoint(builtin_report):
@@ -446,10 +449,11 @@ def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
     results = json.loads((out / "results.json").read_text())
     recordings = results["data"]["recordings"]
     assert recordings["tap"] == "tap.toml" and recordings["p_step"] == "p50.toml"
-    assert set(results["data"]["missing"]) == {"ramp", "p_error", "pi", "pid"}
+    assert recordings["pid"] == "pd.toml"  # pd/pd.toml: the folder's only run of Part (v)
+    assert set(results["data"]["missing"]) == {"ramp", "p_error", "pi"}
     assert results["data"]["synthetic"] is None
     md = (out / "report.md").read_text()
-    for part in ("(iii) (open-loop", "(iii) (P control", "(iv)", "(v)"):
+    for part in ("(iii) (open-loop", "(iii) (P control", "(iv)"):
         assert f"No recording for Part {part}" in md
     values = {k: v["value"] for k, v in results["values"].items()}
     # The real tap: the full fit reproduces the coast within a fraction of a millimetre
@@ -468,15 +472,16 @@ def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
     refit = results["part_ii"]["refit"]
     assert refit["rms_after"] < refit["rms_before"]
     assert 0.5 < values["B_eq_p50"] < 15
-    assert "e_inf_measured" not in values and "pid_measured_rise_time" not in values
+    assert "e_inf_measured" not in values and "pid_measured_settling_time" in values
     # The P-control bounds on f_c from the real Part (ii): lower <= upper.
     bounds = results["part_iii"]["p_control_bounds"]["p_step"]
     assert 0 < bounds["lower"] <= bounds["upper"]
     assert (out / "report.html").is_file()
     assert {p.stem for p in (out / "figures").glob("*.png")} == FIGURES
+    _real_part_v_designs(results, md, json.loads((out / "gains.json").read_text()))
     # Wording for the parts without recordings; B_eq of the tap and of Part (ii) discussed;
     # slider moves that miss the design problem flagged.
-    assert "Gains of the experiment" not in md and "simulated and measured error" not in md
+    assert "simulated and measured error" not in md
     agreement = results["part_ii"]["B_eq_agreement"]
     assert agreement["B_eq_tap"] == pytest.approx(values["B_eq_tap_fit"])
     assert agreement["B_eq_step"] == pytest.approx(values["B_eq_p50_coulomb"])
@@ -491,3 +496,42 @@ def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
     ]
     assert results["part_v"]["slider_failing_moves"] == failing
     assert ("miss the design problem" in md or "misses the design problem" in md) == bool(failing)
+
+
+def _real_part_v_designs(results, md, gains):
+    """Part (v) on the real recordings: the pre-lab's design and the one tuned for the cart as
+    measured, each with its band, margins and chance of meeting the spec, and the recording's
+    PD run (kp 55, kd 5) against its own prediction; gains.json carries the tuned design's
+    prediction for ``jaxcart run`` to check a run against."""
+    section = results["part_v"]["designs"]
+    designs = {d["design"]: d for d in section["designs"]}
+    # The model error: how far the fitted cart misses the recorded steps (P 50, its repeat, PD)
+    assert {m["recording"] for m in section["misses"]} == {"p50.toml", "p50_repeat.toml", "pd.toml"}
+    assert section["model_error"]["settling_time"] > 0
+    assert set(designs) == {"prelab", "retuned", "recording"}
+    for d in designs.values():
+        p = d["prediction"]
+        settling = p["metrics"]["settling_time"]
+        lo, hi = settling["band"]
+        assert 0.3 < lo <= settling["nominal"] <= hi
+        miss = section["model_error"]["settling_time"]
+        fit_lo, fit_hi = settling["band_fit"]
+        assert (lo, hi) == pytest.approx((fit_lo - miss, fit_hi + miss))
+        assert 0.0 <= p["p_meet"] <= 1.0 and p["carts"] >= 19 and p["level"] == 0.9
+        m, gm = d["margins"], d["margins"]["gain_margin"]
+        assert m["phase_margin"] > 0 and (gm == "inf" or gm > 1)
+        assert 1.0 <= m["peak_sensitivity"] < 3.0 and m["ripple"] > 0
+        assert f"{d['label']} |" in md or f"| {d['label']}" in md
+    pd = designs["recording"]
+    assert (pd["controller"]["kp"], pd["controller"]["kd"], pd["controller"]["tau"]) == (
+        55.0,
+        5.0,
+        0.0,
+    )
+    assert "measured" in pd and pd["check"]["metrics"][0]["name"] == "settling_time"
+    assert f"{pd['measured']['settling_time']:.3f} s" in md  # the measured run, in the table
+    assert "The measured run (pd.toml" in md and "P(spec)" in md and "peak sensitivity" in md
+    assert "check" not in designs["prelab"] and "check" not in designs["retuned"]
+    assert gains["prediction"] == designs["retuned"]["prediction"]
+    assert gains["controller"]["kp"] == designs["retuned"]["controller"]["kp"]
+    assert set(gains["margins"]) >= {"gain_margin", "phase_margin", "peak_sensitivity", "ripple"}

@@ -42,6 +42,7 @@ from jaxcart.plantspec import FORMAT, read_plant_file
 from jaxcart.plausibility import LAB_VOLTAGE
 from tuning.design.grid_blocks import feasible_mask
 from tuning.design.losses import Spec
+from tuning.design.margins import Margins, margins
 from tuning.design.problem import HANDOUT_START
 
 #: The page's simulator: the exact one (event-exact friction, hard clip at the 6 V limit).
@@ -131,7 +132,9 @@ class Design:
     checks: the metrics against the spec; meets: the spec is met; poles: closed-loop poles of
     the linear digital loop as s = ln(z)/Ts [1/s] (no 6 V limit, no friction); stable: every
     |z| < 1; nominal: the same gains on the handout's plant when the design plant is a fitted
-    one (else None)."""
+    one (else None); margins: the gain and phase margins, the peak sensitivity and the
+    encoder's ripple of the gains on the design plant, its delay included
+    (:func:`tuning.design.margins.margins`)."""
 
     settings: Settings
     response: object
@@ -142,6 +145,7 @@ class Design:
     stable: bool
     nominal: object = None
     excursion: float = 0.0
+    margins: Margins | None = None
 
     @property
     def on_track(self) -> bool:
@@ -318,7 +322,8 @@ class DesignProblem:
         excursion = float(np.max(np.abs(y - y[0]))) if np.all(np.isfinite(y)) else math.inf
         checks = checks_of(info, self.spec, excursion) if info is not None else ()
         meets = info is not None and info.meets(self.spec.settling_time, self.spec.overshoot)
-        z = loop_poles(self.plant, pid, self._plant_ss(pid.sample_time))
+        plant_ss = self._plant_ss(pid.sample_time)
+        z = loop_poles(self.plant, pid, plant_ss)
         nominal = None
         if self.nominal_plant is not None:
             nominal = jc.simulate(self.nominal_plant, pid, experiment, solver=EXACT)
@@ -332,6 +337,7 @@ class DesignProblem:
             stable=bool(np.all(np.abs(z) < 1.0)),
             nominal=nominal,
             excursion=excursion,
+            margins=margins(self.plant, pid, plant_ss=plant_ss),
         )
 
     def _plant_ss(self, sample_time: float):

@@ -535,7 +535,28 @@ def metrics_html(design: Design, problem: DesignProblem) -> str:
             "travel (it would hit the end stop)</p>"
         )
     table = '<table style="border-spacing:6px 2px;font-size:90%;white-space:nowrap">'
-    return title + table + "".join(rows) + "</table>"
+    return title + table + "".join(rows) + "</table>" + margins_html(design.margins)
+
+
+def margins_html(m) -> str:
+    """The design's margins on the design plant in one line (and the hunting warning in red):
+    gain and phase margins, peak sensitivity, the encoder's ripple."""
+    if m is None:
+        return ""
+    gm = (
+        "∞"
+        if not math.isfinite(m.gain_margin)
+        else f"{m.gain_margin:.3g} ({m.gain_margin_db:.1f} dB)"
+    )
+    delay = f", its {1e3 * m.delay:.3g} ms delay" if m.delay else ""
+    text = (
+        f"<p data-metric='margins' style='font-size:90%'>margins (linear loop{delay}): gain "
+        f"{gm}, phase {m.phase_margin:.1f}°, peak sensitivity {m.peak_sensitivity:.2f}; "
+        f"one encoder count moves the command by {m.ripple:.3g} V</p>"
+    )
+    if m.hunting:
+        text += f"<p style='font-size:90%;color:#cf222e'>{html.escape(m.hunting)}</p>"
+    return text
 
 
 def _note(problem: DesignProblem) -> str:

@@ -10,8 +10,10 @@ the voltage ripple the encoder causes, and whether integral action will hunt.
   delay [s] it tolerates (phase margin / crossover frequency); peak sensitivity Ms = max |S|
   (1.2-2 is the usual range; 1/Ms is the least distance of the Nyquist curve from -1). All on
   the loop's linear part as the hardware runs it: the cart sampled with a zero-order hold
-  behind its fitted delay, and the PID exactly (:mod:`jaxcart.control_systems`), with
-  python-control's margins on its frequency response up to the Nyquist frequency pi/Ts.
+  behind its fitted delay (its state space from :mod:`jaxcart.control_systems`), and the PID
+  exactly, its frequency response on a log grid up to the Nyquist frequency pi/Ts and the
+  crossovers interpolated on it (``tests/test_margins.py`` holds them to python-control's
+  margins and to the closed loop's eigenvalues; a few milliseconds, for the design page).
   Friction, the drive's limits and the encoder are left out: the margins describe the loop
   while the command stays inside its limits.
 - ripple: the change of the command when the encoder reads one count more, within one sample,
@@ -25,7 +27,7 @@ the voltage ripple the encoder causes, and whether integral action will hunt.
 >>> import jaxcart as jc
 >>> m = margins(jc.handout_plant(), jc.PID(kp=40.0, kd=5.0, ki=5.0))
 >>> bool(m.phase_margin > 30.0), bool(m.peak_sensitivity < 2.0)
-True True
+(True, True)
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from jaxcart.params import ENCODER_RESOLUTION
 from jaxcart.plausibility import plant_delay
 
 #: Points of the frequency grid, log-spaced from :data:`LOWEST` [rad/s] to pi/Ts.
-GRID = 4000
+GRID = 2000
 LOWEST = 1e-2
 #: The encoder's parameter (its count [m]).
 COUNT = Quantization.params[0].name
@@ -105,8 +107,52 @@ def _plain(x):
 
 
 def loop_transfer(plant, pid) -> control.TransferFunction:
-    """L(z) = C(z) P(z): the PID and the ZOH cart behind its delay, Ts = the PID's."""
+    """L(z) = C(z) P(z) as a python-control system: the PID and the ZOH cart behind its delay,
+    Ts = the PID's (what the margins are python-control's margins of; the tests compare)."""
     return cs.controller_tf(pid) * cs.plant_tf(plant, pid.sample_time)
+
+
+def loop_response(plant, pid, omega, plant_ss=None) -> np.ndarray:
+    """L(e^{j w Ts}) at the frequencies ``omega`` [rad/s]: the sampled cart behind its delay
+    from its state space (:func:`jaxcart.control_systems.plant_ss`, or ``plant_ss`` given),
+    C (zI - A)^-1 B + D, times the PID's transfer function
+    kp + ki Ts/(z - 1) + kd (z - 1)/((tau + Ts) z - tau) (:mod:`hw.control_law`)."""
+    ts = float(pid.sample_time)
+    sys = cs.plant_ss(plant, ts) if plant_ss is None else plant_ss
+    z = np.exp(1j * np.asarray(omega, dtype=float) * ts)
+    n = sys.A.shape[0]
+    resolvent = z[:, None, None] * np.eye(n)[None] - sys.A[None]
+    x = np.linalg.solve(resolvent, np.broadcast_to(sys.B, (z.size, n, 1)).astype(complex))
+    p = (sys.C @ x)[:, 0, 0] + sys.D[0, 0]
+    kp, ki, kd, tau = (float(getattr(pid, k)) for k in ("kp", "ki", "kd", "tau"))
+    c = kp + ki * ts / (z - 1.0) + kd * (z - 1.0) / ((tau + ts) * z - tau)
+    return c * p
+
+
+def _crossings(x, y) -> list[float]:
+    """Where ``y`` changes sign along ``x`` (linear between the points)."""
+    i = np.flatnonzero(np.sign(y[:-1]) * np.sign(y[1:]) < 0)
+    return [float(x[k] - y[k] * (x[k + 1] - x[k]) / (y[k + 1] - y[k])) for k in i]
+
+
+def crossovers(omega, response) -> tuple[float, float, float, float]:
+    """(gain margin, phase crossover [rad/s], phase margin [deg], gain crossover [rad/s]) of a
+    frequency response: the least gain margin above 1 (where the phase crosses -180 deg, the
+    imaginary part changes sign with the real part negative) and the least phase margin (at
+    each frequency where |L| crosses 1), each interpolated linearly in log frequency."""
+    logw = np.log(omega)
+    gm, wpc = math.inf, math.nan
+    for lw in _crossings(logw, response.imag):
+        value = np.interp(lw, logw, response.real) + 1j * np.interp(lw, logw, response.imag)
+        if value.real < 0 and 1.0 / abs(value) > 1.0 and 1.0 / abs(value) < gm:
+            gm, wpc = 1.0 / abs(value), math.exp(lw)
+    pm, wgc = math.inf, math.nan
+    phase = np.unwrap(np.angle(response))
+    for lw in _crossings(logw, np.log(np.abs(response))):
+        margin = (math.degrees(np.interp(lw, logw, phase)) + 180.0 + 180.0) % 360.0 - 180.0
+        if margin < pm:
+            pm, wgc = margin, math.exp(lw)
+    return gm, wpc, pm, wgc
 
 
 def ripple(pid, count: float = ENCODER_RESOLUTION) -> float:
@@ -140,23 +186,16 @@ def hunting(plant, pid) -> str:
     )
 
 
-def margins(plant, pid) -> Margins:
-    """The :class:`Margins` of ``pid`` on ``plant`` (its linear part, delay included). The
-    gain margin is the factor by which the gains may grow (a loop with integral action on the
-    cart is stable only above some gain too: that lower margin is not the one reported); the
-    phase margin the least over the gain crossovers."""
-    loop = loop_transfer(plant, pid)
+def margins(plant, pid, *, plant_ss=None) -> Margins:
+    """The :class:`Margins` of ``pid`` on ``plant`` (its linear part, delay included;
+    ``plant_ss``: its sampled state space where the caller keeps it). The gain margin is the
+    factor by which the gains may grow (a loop with integral action on the cart is stable only
+    above some gain too: that lower margin is not the one reported); the phase margin the
+    least over the gain crossovers."""
     ts = float(pid.sample_time)
     omega = np.geomspace(LOWEST, math.pi / ts * (1 - 1e-6), GRID)
-    frd = control.frd(loop, omega)
-    gms, pms, _, wpcs, wgcs, _ = (
-        np.atleast_1d(np.asarray(x, dtype=float))
-        for x in control.stability_margins(frd, returnall=True, method="frd")
-    )
-    up = [(g, w) for g, w in zip(gms, wpcs, strict=True) if g > 1.0]
-    gm, wpc = min(up) if up else (math.inf, math.nan)
-    pm, wgc = min(zip(pms, wgcs, strict=True)) if pms.size else (math.inf, math.nan)
-    response = np.asarray(loop(np.exp(1j * omega * ts)), dtype=complex).ravel()
+    response = loop_response(plant, pid, omega, plant_ss)
+    gm, wpc, pm, wgc = crossovers(omega, response)
     sensitivity = np.abs(1.0 / (1.0 + response))
     peak = int(np.argmax(sensitivity))
     delay_margin = math.radians(pm) / wgc if wgc > 0 and math.isfinite(pm) else math.inf

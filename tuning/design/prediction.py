@@ -59,7 +59,9 @@ class Prediction:
     {name: array over the drawn carts} of :data:`METRICS`; meets: whether each drawn cart meets
     the spec; values: each drawn cart's varied values; sensitivity: {name: {"stderr" [SI],
     metric: change per standard error}} at the fitted cart (central differences, one standard
-    error each way); names: the varied values; experiment: what was simulated."""
+    error each way); experiment: what was simulated; model_error: {metric: how far the model
+    misses the cart's own recorded steps} (:mod:`tuning.design.calibration`; {} without
+    recordings), by which :meth:`interval` and :meth:`position_band` widen the fit's band."""
 
     controller: object
     spec: Spec
@@ -75,6 +77,7 @@ class Prediction:
     values: list = field(default_factory=list)
     sensitivity: dict = field(default_factory=dict)
     experiment: object = None
+    model_error: dict = field(default_factory=dict)
 
     @property
     def n(self) -> int:
@@ -86,14 +89,41 @@ class Prediction:
         """The share of the drawn carts on which the design meets the spec."""
         return float(np.mean(self.meets)) if self.meets.size else math.nan
 
+    def fit_interval(self, metric: str) -> tuple[float, float]:
+        """The band of ``metric`` over the drawn carts (:func:`band_of`): the fit's alone."""
+        lo, hi = band_of(self.metrics[metric], self.level)
+        return float(lo), float(hi)
+
     def interval(self, metric: str) -> tuple[float, float]:
-        """The band of ``metric`` over the drawn carts (:func:`band_of`)."""
-        return band_of(self.metrics[metric], self.level)
+        """The band of ``metric``: the fit's, widened on both sides by the model's error in it
+        (:attr:`model_error`; an overshoot no lower than 0)."""
+        lo, hi = self.fit_interval(metric)
+        miss = float(self.model_error.get(metric, 0.0))
+        low = lo - miss
+        return (max(low, 0.0) if metric == "overshoot" else low), hi + miss
+
+    def position_band(self) -> tuple[np.ndarray, np.ndarray]:
+        """The position's band [m] at each time: the fit's, widened in time by the model's
+        error in the settling time (the least of the band's low edge and the most of its high
+        edge within that many seconds either side)."""
+        from scipy.ndimage import maximum_filter1d, minimum_filter1d  # (one path needs it)
+
+        lo, hi = (np.asarray(x, dtype=float) for x in self.band)
+        dt = float(self.time[1] - self.time[0]) if self.time.size > 1 else 1.0
+        k = int(round(float(self.model_error.get("settling_time", 0.0)) / dt))
+        if k <= 0:
+            return lo, hi
+        size = 2 * k + 1
+        return (
+            minimum_filter1d(lo, size, mode="nearest"),
+            maximum_filter1d(hi, size, mode="nearest"),
+        )
 
     def to_json(self) -> dict:
         """The prediction as a gains file and ``jaxcart run`` read it (:mod:`hw.predicted`):
-        for each metric its nominal value and band, the chance of meeting the spec, each
-        value's standard error and the metrics' change per standard error."""
+        for each metric its nominal value and band (the fit's and the model error's; the fit's
+        alone as ``band_fit``), the chance of meeting the spec, each value's standard error and
+        the metrics' change per standard error."""
         return {
             "level": self.level,
             "carts": self.n,
@@ -111,6 +141,8 @@ class Prediction:
         return {
             "nominal": _plain(self.nominal[metric]),
             "band": [_plain(x) for x in self.interval(metric)],
+            "band_fit": [_plain(x) for x in self.fit_interval(metric)],
+            "model_error": _plain(self.model_error.get(metric, 0.0)),
         }
 
 

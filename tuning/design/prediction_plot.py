@@ -58,7 +58,7 @@ def plot_predictions(panels, path, *, title: str | None = None, zoom: bool = Tru
 def _panel(ax, panel: Panel) -> None:
     p = panel.prediction
     t = np.asarray(p.time, dtype=float)
-    lo, hi = (np.asarray(x, dtype=float) for x in p.band)
+    lo, hi = p.position_band()
     ax.fill_between(
         t,
         lo,
@@ -66,7 +66,7 @@ def _panel(ax, panel: Panel) -> None:
         color=BAND_COLOR,
         alpha=0.25,
         lw=0,
-        label=f"{p.level:.0%} band, {p.n} carts drawn from the fit",
+        label=_band_label(p),
         zorder=2,
     )
     if panel.measured is not None:
@@ -89,6 +89,13 @@ def _panel(ax, panel: Panel) -> None:
     ax.grid(True, alpha=0.3)
 
 
+def _band_label(p) -> str:
+    """The band's legend entry: its level and what it holds."""
+    miss = float(p.model_error.get("settling_time", 0.0))
+    text = f"{p.level:.0%} band, {p.n} carts drawn from the fit"
+    return text + (f", ±{miss * 1e3:.0f} ms the model's miss" if miss > 0 else "")
+
+
 def _s(x) -> str:
     return f"{x:.3f}" if np.isfinite(x) else "never"
 
@@ -100,7 +107,9 @@ def _zoom(ax, predictions, panels) -> None:
     start = float(predictions[0].nominal_position[0])
     step = target - start
     sign = 1.0 if step >= 0 else -1.0
-    far = max(sign * float(np.max(sign * p.band[1 if sign > 0 else 0])) for p in predictions)
+    far = max(
+        sign * float(np.max(sign * p.position_band()[1 if sign > 0 else 0])) for p in predictions
+    )
     for panel in panels:
         if panel.measured is not None:
             far = max(far, sign * float(np.max(sign * np.asarray(panel.measured[1]))))

@@ -7,9 +7,13 @@ chosen structure over every recording, the mechanics shared and a drive limit fr
 where the data show one, and the same structure on the driven runs alone, for a B_eq beside
 the tap's. :func:`compute` takes the cart from there (fitting only where there is no
 diagnosis: ``--no-diagnosis``, or recordings it could not diagnose, with
-:func:`tuning.estimation.fit.fit`, ``per_recording``); :func:`retune` tunes the PID on it (the
-lab runs it beside Part (v) and puts its result in the cart with :func:`with_retune`);
-:func:`render` writes the section and the plant file.
+:func:`tuning.estimation.fit.fit`, ``per_recording``), with its uncertainty (the fit's standard
+errors and the drive's spread from run to run, :mod:`tuning.design.uncertainty`); :func:`retune`
+tunes the PID for the cart as measured (:func:`tuning.design.for_cart.design_for_cart`: robust
+over that uncertainty, inside the limits the cart sets; the lab runs it beside Part (v) and
+puts its result in the cart with :func:`with_retune`); :func:`render` writes the section and
+the plant file (its [fit] table holds the uncertainty, for ``jaxcart tune --plant ...
+--robust``).
 """
 
 from __future__ import annotations
@@ -20,7 +24,8 @@ from dataclasses import dataclass
 
 from jaxcart import plantspec
 from jaxcart.plantspec import write_plant_file
-from tuning.design.tune import tune
+from tuning.design import uncertainty as cart_uncertainty
+from tuning.design.for_cart import design_for_cart
 from tuning.estimation.diagnose.as_fit import fit_result
 from tuning.estimation.engine.parameters import bounds
 from tuning.estimation.fit import Estimate
@@ -43,19 +48,27 @@ class JointCart:
     without a tap to compare with); tap: Part (i)'s (B_eq, its standard error) [kg/s] or None;
     names: each recording's file name; source: where the fit comes from, in words; tuned: the
     PID re-tuned on the fitted cart (a :class:`tuning.design.result.TuneResult`; None until
-    the lab has it: :func:`retune`, :func:`with_retune`)."""
+    the lab has it: :func:`retune`, :func:`with_retune`); uncertainty: the fit's
+    (:class:`tuning.design.uncertainty.CartUncertainty`); design: the PID tuned for the cart as
+    measured (a :class:`tuning.design.for_cart.CartDesign`; None until the lab has it)."""
 
     fit: object
     driven: object
     tap: tuple | None
     names: tuple
     source: str = "the joint diagnosis"
-    tuned: object = None
+    uncertainty: object = None
+    design: object = None
 
     @property
     def plant(self):
         """The fitted cart (the drive's limit at the median of the runs)."""
         return self.fit.plant()
+
+    @property
+    def tuned(self):
+        """The design's :class:`tuning.design.result.TuneResult` (None before the re-tune)."""
+        return None if self.design is None else self.design.tuned
 
     def agreement(self) -> tuple[float, float] | None:
         """(difference of the driven runs' B_eq from the tap's [kg/s], in standard errors of
@@ -98,18 +111,20 @@ def compute(
         joint, alone = _fitted(inputs, runs, tap_b_eq, start or {}, fit, say)
         source = "a joint fit of its own (no diagnosis)"
     names = tuple(s.name for s in joint.segments)
-    return JointCart(joint, alone, tap_b_eq, names, source)
+    uncertain = cart_uncertainty.from_fit(joint, source=source)
+    return JointCart(joint, alone, tap_b_eq, names, source, uncertain)
 
 
-def retune(c: JointCart):
-    """The PID tuned on the fitted cart, with ``jaxcart tune``'s settings (one tuner, one
-    answer): a :class:`tuning.design.result.TuneResult`."""
-    return tune(_design_plant(c.fit), progress=False)
+def retune(c: JointCart, executor=None):
+    """The PID tuned for the cart as measured, with ``jaxcart tune``'s settings (one tuner, one
+    answer), robust over the fit's uncertainty: a :class:`tuning.design.for_cart.CartDesign`
+    (its prediction's exact runs through ``executor``, the command's helpers, where given)."""
+    return design_for_cart(c.uncertainty, executor=executor)
 
 
-def with_retune(c: JointCart | None, tuned) -> JointCart | None:
-    """The cart with its re-tuned PID (:func:`retune`'s result)."""
-    return None if c is None else dataclasses.replace(c, tuned=tuned)
+def with_retune(c: JointCart | None, design) -> JointCart | None:
+    """The cart with its design (:func:`retune`'s result)."""
+    return None if c is None else dataclasses.replace(c, design=design)
 
 
 def _diagnosed(diagnosis, tap_b_eq, say):
@@ -141,15 +156,6 @@ def _fitted(inputs, runs, tap_b_eq, start, fit, say):
     return joint, alone
 
 
-def _design_plant(joint):
-    """The fitted cart as the tuner's design model: its mechanics and drive, without the
-    sensor (the tuner's loop reads the position itself)."""
-    plant = joint.plant()
-    return dataclasses.replace(
-        plant, effects=tuple(e for e in plant.effects if e.stage != "sensor")
-    )
-
-
 def model_of(c: JointCart | None, before):
     """The lab's :class:`tuning.lab.model.CartModel` after the joint fit (``before`` without
     one): Part (v) simulates the measured run on it."""
@@ -158,8 +164,12 @@ def model_of(c: JointCart | None, before):
     e = c.fit.params
     b, f = e["B_eq"], e.get("f_c")
     where = "the joint fit of every recording"
+    if b.value is None:  # not identified: the fit held it (its note says at what and why)
+        b_value, where_b = b.held_at, f"{where}, which held it at {fmt(b.held_at)} kg/s"
+    else:
+        b_value, where_b = b.value, where
     model = dataclasses.replace(
-        before, B_eq=b.value, B_eq_source=where, B_eq_stderr=b.stderr, base=c.plant
+        before, B_eq=b_value, B_eq_source=where_b, B_eq_stderr=b.stderr, base=c.plant
     )
     if f is not None and f.value is not None:
         model = dataclasses.replace(model, f_c=f.value, f_c_source=where)
@@ -194,7 +204,15 @@ def to_json(c: JointCart | None) -> dict | None:
         "driven_only_B_eq": None if c.driven is None else c.driven.to_json(),
         "tap_B_eq": None if c.tap is None else {"value": c.tap[0], "stderr": c.tap[1]},
         "B_eq_difference": None if agree is None else {"kg/s": agree[0], "sigmas": agree[1]},
-        "retuned": {"kp": g.kp, "ki": g.ki, "kd": g.kd, "meets": c.tuned.meets},
+        "retuned": {
+            "kp": g.kp,
+            "ki": g.ki,
+            "kd": g.kd,
+            "meets": c.tuned.meets,
+            "binding": c.design.binding,
+            "prediction": c.design.prediction.to_json(),
+            "margins": c.design.margins.to_json(),
+        },
         "plant_file": PLANT_FILE,
     }
 
@@ -207,7 +225,8 @@ def render(lab: Lab, c: JointCart | None) -> None:
         doc.paragraph("No driven recording was given: the cart is the tap's (Part (i)).")
         return
 
-    write_plant_file(lab.out / PLANT_FILE, c.plant, fit={"source": f"jaxcart lab, {c.source}"})
+    fit = {"source": f"jaxcart lab, {c.source}", **cart_uncertainty.fit_table(c.uncertainty)}
+    write_plant_file(lab.out / PLANT_FILE, c.plant, fit=fit)
     doc.paragraph(_structure_text(c))
     rows = []
     for name, est in c.fit.params.items():
@@ -224,12 +243,17 @@ def render(lab: Lab, c: JointCart | None) -> None:
         numeric=[False, True],
     )
     doc.paragraph(_agreement_text(c))
-    g, t = c.tuned.gains, c.tuned
+    g, t, p = c.tuned.gains, c.tuned, c.design.prediction
+    lo, hi = p.interval("settling_time")
     doc.paragraph(
-        f"Part (v) on this cart: the PID re-tuned on it is kp = {fmt(g.kp)} V/m, ki = "
-        f"{fmt(g.ki)} V/(m s), kd = {fmt(g.kd)} V s/m; on the exact simulator it settles in "
-        f"{fmt(t.exact.settling_time)} s with {fmt(t.exact.overshoot)} % overshoot "
-        f"({'meets' if t.meets else 'does not meet'} the handout's spec)."
+        f"Part (v) on this cart: the PID tuned for the cart as measured (robust over "
+        f"{len(t.plant_set or [])} carts drawn from this fit's uncertainty) is kp = "
+        f"{fmt(g.kp)} V/m, ki = {fmt(g.ki)} V/(m s), kd = {fmt(g.kd)} V s/m; on the fitted "
+        f"cart (exact simulator) it settles in {fmt(p.nominal['settling_time'])} s with "
+        f"{fmt(p.nominal['overshoot'])} % overshoot, in {fmt(lo)}-{fmt(hi)} s on "
+        f"{p.level:.0%} of carts drawn from the fit, meeting the handout's spec on "
+        f"{p.p_meet:.0%} of them. What limits it: {c.design.binding}. Part (v) shows it beside "
+        "the pre-lab's design, with its margins."
     )
 
 

@@ -88,7 +88,9 @@ class Lab:
     out: the report folder; inputs: the recordings found; doc: the report; fmt: the figures'
     format ("png", "svg" or "pdf"); diagnosis: whether the report has the diagnosis section;
     results: the results.json document, assembled by the report; gains: the PID written to
-    gains.json (with ``gains_metrics``), or None; figures: every figure written, relative paths.
+    gains.json (with ``gains_metrics`` and ``gains_extra``: its prediction and margins, which
+    ``jaxcart run`` checks a run against), or None; figures: every figure written, relative
+    paths.
     """
 
     out: Path
@@ -102,6 +104,7 @@ class Lab:
     gains: object = None
     gains_metrics: dict = field(default_factory=dict)
     gains_source: str = "jaxcart lab: pre-lab design (handout model)"
+    gains_extra: dict = field(default_factory=dict)
     figures: list = field(default_factory=list)
 
     def say(self, text: str) -> None:

@@ -354,9 +354,11 @@ def _add_repeat(inputs: Inputs, slot: str, recording) -> bool:
 
 
 def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
-    """Experiment files one folder down (``repeat/p50_repeat.toml``) that are further runs of
-    a part this folder has: the cart's joint fit and the report use them too. (A folder of
-    student sub-folders holds no experiment file itself: that is ``jaxcart class``.)"""
+    """Experiment files one folder down: further runs of a part this folder has
+    (``repeat/p50_repeat.toml``: the cart's joint fit and the report use them too), or the
+    run of a part it has none of (``pd/pd.toml``: Part (v)'s recording; of several, the first
+    by path, the others its repeats). (A folder of student sub-folders holds no experiment
+    file itself: that is ``jaxcart class``.)"""
     for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
         for path in sorted(sub.glob("*.toml")):
             try:
@@ -370,12 +372,15 @@ def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
                 recording = _read_experiment(path)
             if recording is None:
                 continue
-            slot, _reason = guess_slot(recording)
+            slot, reason = guess_slot(recording)
+            where = str(path.relative_to(folder))
             if slot in inputs.recordings:
                 _add_repeat(inputs, slot, recording)
+            elif slot is not None:
+                inputs.recordings[slot] = recording
+                inputs.how[slot] = f"guessed: {reason}; from {sub.name}/ (the only run of it)"
             else:
-                where = str(path.relative_to(folder))
-                inputs.unused.append((where, "in a sub-folder: name it in lab.toml to use it"))
+                inputs.unused.append((where, reason))
 
 
 def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:

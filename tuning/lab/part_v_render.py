@@ -1,5 +1,7 @@
-"""Part (v) of the report drawn from its result (:class:`tuning.lab.part_v.PIDResult`): the PID
-step against the recording, and the slider moves."""
+"""Part (v) of the report drawn from its results: the PID step against the recording, the
+slider moves (:class:`tuning.lab.part_v.PIDResult`), and the designs on the cart as measured
+with their bands, margins and the measured run against its prediction
+(:class:`tuning.lab.part_v_design.Designs`)."""
 
 from __future__ import annotations
 
@@ -7,19 +9,146 @@ import math
 
 import numpy as np
 
+from hw.predicted import check_lines
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.plots import plot_runs, reference_run
-from tuning.lab.context import HANDOUT_B_EQ, V_SAT
+from tuning.design.prediction_plot import Panel, plot_predictions
+from tuning.lab.context import HANDOUT_B_EQ, V_SAT, fmt
 from tuning.lab.model import render_source, run, seconds
 from tuning.lab.part_v import OVERSHOOT_SPEC, SETTLING_SPEC, PIDResult
 
 
-def render(lab, r: PIDResult) -> None:
-    """Part (v)'s section."""
+def render(lab, r: PIDResult, designs=None) -> None:
+    """Part (v)'s section (``designs``: :class:`tuning.lab.part_v_design.Designs` or None)."""
     lab.doc.heading("Part (v): the PID design")
     render_source(lab.doc, r.recording, "pid")
     _step(lab, r)
+    render_designs(lab, designs)
     _slider(lab, r)
+
+
+def render_designs(lab, d) -> None:
+    """The subsection: every design on the cart as measured, side by side."""
+    doc = lab.doc
+    doc.heading("The designs on the cart as measured", 3)
+    if d is None:
+        doc.note("No driven recording: there is no fitted cart to predict the designs on.")
+        return
+    first = d.designs[0].prediction
+    doc.paragraph(
+        f"Each design's 0.5 m step on the cart fitted from every recording ({d.source}), and "
+        f"on {first.n} carts drawn from that fit: each fitted value from its standard error, "
+        f"each run's drive limit from the spread of the runs' own. The band holds "
+        f"{first.level:.0%} of such carts (a run of the design lies inside it with that "
+        "probability, if the cart is as the fit says); P(spec) is the share of them on which "
+        "the design settles under 1 s with under 5 % overshoot, within 6 V and the track's "
+        "0.814 m. Exact simulator throughout."
+    )
+    doc.table(
+        ["design", "kp, ki, kd", "settling [s]", f"{first.level:.0%} band [s]", "overshoot [%]",
+         f"{first.level:.0%} band [%]", "P(spec)", "measured"],
+        [_prediction_row(x) for x in d.designs],
+        numeric=[False, False, True, False, True, False, True, False],
+    )  # fmt: skip
+    _misses(lab, d)
+    path, rel = lab.figure_path("part5_designs")
+    plot_predictions(
+        [Panel(x.label, x.prediction, x.run) for x in d.designs],
+        path,
+        title="Part (v): each design on the cart as measured",
+    )
+    doc.figure(rel, "Part (v): each design's step with its band; the measured run in grey.")
+    _margins(lab, d)
+    for x in d.designs:
+        if x.check is not None:
+            where = "inside" if x.check["inside"] else "outside"
+            doc.paragraph(
+                f"The measured run ({d.recording}, {x.label}) against its prediction, on its "
+                f"own step and horizon: {where} the band. "
+                + "; ".join(check_lines(x.check))
+                + ". The run is one of the recordings the cart was fitted to (its drive limit "
+                "among the runs' spread)."
+            )
+
+
+def _misses(lab, d) -> None:
+    """How far the fitted cart misses each recorded step: the model error in every band."""
+    if not d.misses:
+        lab.doc.paragraph(
+            "No closed-loop step was recorded: the bands are the fit's alone (how far the "
+            "model misses a step of this cart is not known)."
+        )
+        return
+    e = d.model_error
+    lab.doc.paragraph(
+        "The fit's standard errors say how well the recordings pin the model's values, not "
+        "how right the model is; the recorded steps say that. Each is simulated on the fitted "
+        "cart with its own controller, step and drive limit, and compared with the recording; "
+        f"the largest miss, {e['settling_time'] * 1e3:.3g} ms in time and "
+        f"{e['overshoot']:.3g} % in overshoot, widens every band above on both sides."
+    )
+    lab.doc.table(
+        ["recording", "enters the 2 % band [s]: measured, simulated",
+         "settling time [s]: measured, simulated", "overshoot [%]: measured, simulated"],
+        [
+            [m.name, f"{seconds(m.entering[0])}, {seconds(m.entering[1])}",
+             f"{seconds(m.settling[0])}, {seconds(m.settling[1])}",
+             f"{m.overshoot[0]:.2f}, {m.overshoot[1]:.2f}"]
+            for m in d.misses
+        ],
+        numeric=[False, True, True, True],
+    )  # fmt: skip
+
+
+def _prediction_row(x) -> list[str]:
+    p, c = x.prediction, x.controller
+    (s_lo, s_hi), (o_lo, o_hi) = p.interval("settling_time"), p.interval("overshoot")
+    measured = "-"
+    if x.measured is not None:
+        measured = f"{seconds(x.measured.settling_time)} s, {x.measured.overshoot:.2f} %"
+    return [
+        x.label,
+        f"{c.kp:.4g}, {c.ki:.4g}, {c.kd:.4g}",
+        seconds(p.nominal["settling_time"]),
+        f"{seconds(s_lo)}-{seconds(s_hi)}",
+        f"{p.nominal['overshoot']:.2f}",
+        f"{o_lo:.2f}-{o_hi:.2f}",
+        f"{p.p_meet:.0%}",
+        measured,
+    ]
+
+
+def _margins(lab, d) -> None:
+    """The margins of each design on the fitted cart, and the warnings they carry."""
+    doc = lab.doc
+    delay = d.designs[0].margins.delay
+    behind = f"with its {delay * 1e3:.3g} ms delay" if delay else "(the fit has no delay)"
+    doc.paragraph(
+        f"Margins of each design on the fitted cart: the sampled loop (1 ms, zero-order hold) "
+        f"{behind}, python-control's margins of C(z) P(z) (friction "
+        "and the drive's limits left out); the ripple is how far one encoder count moves the "
+        "command within a sample, kp q + kd q / (tau + Ts)."
+    )
+    doc.table(
+        ["design", "gain margin", "phase margin [deg]", "delay margin [ms]",
+         "peak sensitivity Ms", "ripple [V]"],
+        [
+            [x.label, _gm(x.margins), fmt(x.margins.phase_margin, 3),
+             fmt(x.margins.delay_margin * 1e3, 3), fmt(x.margins.peak_sensitivity, 3),
+             fmt(x.margins.ripple, 3)]
+            for x in d.designs
+        ],
+        numeric=[False, True, True, True, True, True],
+    )  # fmt: skip
+    for x in d.designs:
+        if x.margins.hunting:
+            doc.note(f"{x.label}: {x.margins.hunting}.")
+
+
+def _gm(m) -> str:
+    if not math.isfinite(m.gain_margin):
+        return "∞"
+    return f"{m.gain_margin:.3g} ({m.gain_margin_db:.1f} dB)"
 
 
 def _label(r) -> str:
@@ -161,8 +290,9 @@ def _failing_note(r) -> str:
         + f" miss{'' if len(failing) > 1 else 'es'} the design problem ({'; '.join(why)}): "
         f"the gains were tuned on the handout's model (B_eq = {HANDOUT_B_EQ} kg/s, a 0.5 m "
         f"step) and these moves run on the fitted one (B_eq = {m.B_eq:.3f} kg/s, "
-        f"f_c = {m.f_c:.3f} N) with 0.2 and 0.4 m steps. Retune on the fitted model "
-        f"(`jaxcart tune --plant PLANT.toml`) or robustly (`jaxcart tune --robust`)."
+        f"f_c = {m.f_c:.3f} N) with 0.2 and 0.4 m steps. Retune for the cart as measured "
+        f"(`jaxcart tune --plant cart_plant.toml --robust`, as the lab does for `gains.json` "
+        f"where it has a driven recording)."
     )
 
 

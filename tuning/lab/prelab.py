@@ -296,6 +296,8 @@ def to_json(p: Prelab) -> dict:
             "tune_seconds": p.tuned.seconds,
             "tune_message": p.tuned.message,
             "on_bounds": {n: {"side": s, "bound": b} for n, (s, b) in p.on_bounds.items()},
+            "bounds": {n: list(b) for n, b in p.tuned.bounds.items()},
+            "binding": p.tuned.binding,
         },
     }
 
@@ -361,10 +363,11 @@ def _render_design(lab, p: Prelab) -> None:
         f"{res.iterations} iterations, from the handout's kp = 40, kd = 5, ki = 5; the same "
         f"tuner with the same settings as here) found the gains below in {res.seconds:.1f} s; "
         f"the metrics are those of the exact simulator (hard clip, 1 ms digital loop). "
-        f"{message}."
+        f"{message}. What limits the gains: {res.binding}."
     )
-    if p.on_bounds:
-        doc.note(_on_bounds_note(g, p.on_bounds))
+    box = {n: v for n, v in p.on_bounds.items() if not (n in res.limits and v[0] == "upper")}
+    if box:  # on an end of the box that the cart does not set
+        doc.note(_on_bounds_note(g, box))
     rows = [
         ["kp", f"{g.kp:.4g}", "V/m"],
         ["kd", f"{g.kd:.4g}", "V s/m"],
@@ -391,16 +394,9 @@ def _on_bounds_note(g, on_bounds: dict) -> str:
         f"({b:g} {units.get(n, '')})".replace(" )", ")")
         for n, (side, b) in on_bounds.items()
     )
-    why = ""
-    if on_bounds.get("kp", ("",))[0] == "upper":
-        why = (
-            " The cap on kp is deliberate: beyond it the loop is near bang-bang and "
-            "settles only a few milliseconds sooner on the model, while unmodelled delay "
-            "and amplifier dynamics make such gains chatter on a real cart."
-        )
     return (
         f"The tuned gains sit on the tuner's search box: {listed}. This is the box's "
-        f"answer, not the problem's: gains beyond it may do better on the model.{why} "
+        f"answer, not the problem's: gains beyond it may do better on the model. "
         f"`jaxcart tune --bound NAME=LO,HI` widens the box."
     )
 

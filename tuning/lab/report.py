@@ -51,6 +51,7 @@ from tuning.lab import (
     part_iii_render,
     part_iv,
     part_v,
+    part_v_design,
     part_v_render,
     prelab,
 )
@@ -240,6 +241,7 @@ class LabResults:
     part_v: part_v.PIDResult
     diagnosis: object = None
     cart: object = None
+    designs: object = None
 
 
 def compute(
@@ -262,7 +264,8 @@ def compute(
 
     Two pieces run in threads beside the parts, each collected here before any result that
     holds it is built: the joint diagnosis (it needs only the recordings; while one compiles,
-    the other fits) and the PID's re-tune on the fitted cart (beside Part (v))."""
+    the other fits) and the PID's design for the fitted cart (beside Part (v)); Part (v)'s
+    designs are predicted on that cart once it has its design."""
     if executor is not None:
         fit = functools.partial(fit, executor=executor)
     recordings = inputs.recordings
@@ -282,12 +285,17 @@ def compute(
     joint = cart.compute(inputs, tap_b, found, start=known, fit=fit, say=say)
     retune = None
     if joint is not None:
-        say("the cart: the PID re-tuned on the fitted cart")
-        retune = Background(cart.retune, joint)
+        say("the cart: the PID tuned for the cart as measured (robust over its uncertainty)")
+        retune = Background(cart.retune, joint, executor=executor)
     model = cart.model_of(joint, friction.model)
     pid = part_v.compute(recordings.get("pid"), model, pre.gains, say=say)
     joint = cart.with_retune(joint, retune.result() if retune is not None else None)
-    return LabResults(pre, tap, step, part_ii.agreement(step), friction, pi, pid, found, joint)
+    designs = part_v_design.compute(
+        recordings.get("pid"), joint, pre.gains, inputs.runs(), executor=executor, say=say
+    )
+    return LabResults(
+        pre, tap, step, part_ii.agreement(step), friction, pi, pid, found, joint, designs
+    )
 
 
 def values(r: LabResults) -> list:
@@ -299,6 +307,7 @@ def values(r: LabResults) -> list:
         *part_iii.values(r.part_iii),
         *part_iv.values(r.part_iv),
         *part_v.values(r.part_v),
+        *part_v_design.values(r.designs),
     ]
 
 
@@ -328,7 +337,7 @@ def render(lab: Lab, r: LabResults) -> None:
     part_ii.render(lab, r.part_ii, r.agreement)
     part_iii_render.render(lab, r.part_iii)
     part_iv.render(lab, r.part_iv)
-    part_v_render.render(lab, r.part_v)
+    part_v_render.render(lab, r.part_v, r.designs)
     lab.results.update(
         {
             "prelab": prelab.to_json(r.prelab),
@@ -336,7 +345,10 @@ def render(lab: Lab, r: LabResults) -> None:
             "part_ii": part_ii.to_json(r.part_ii, r.agreement, diagnosis=lab.diagnosis),
             "part_iii": part_iii.to_json(r.part_iii),
             "part_iv": part_iv.to_json(r.part_iv),
-            "part_v": part_v.to_json(r.part_v),
+            "part_v": {
+                **part_v.to_json(r.part_v),
+                "designs": part_v_design.to_json(r.designs),
+            },
         }
     )
     if r.diagnosis is not None:
@@ -346,9 +358,14 @@ def render(lab: Lab, r: LabResults) -> None:
     lab.results["cart"] = cart.to_json(r.cart)
     lab.gains = r.prelab.gains
     lab.gains_metrics = lab.results["prelab"]["pid"]["metrics"]
-    if r.cart is not None:  # the gains to run on this cart: re-tuned on it
+    if r.cart is not None:  # the gains to run on this cart: tuned for it as measured
         lab.gains, lab.gains_metrics = r.cart.tuned.gains, r.cart.tuned.exact.as_dict()
-        lab.gains_source = "jaxcart lab: PID re-tuned on the cart fitted from the recordings"
+        lab.gains_source = "jaxcart lab: PID tuned for the cart as measured (the recordings)"
+        lab.gains_extra = {
+            "prediction": r.designs.get("retuned").prediction.to_json(),
+            "margins": r.cart.design.margins.to_json(),
+            "binding": r.cart.design.binding,
+        }
 
 
 # ---------------------------------------------------------------- sections
@@ -486,4 +503,5 @@ def _write(lab: Lab) -> None:
             force=True,
             source=lab.gains_source,
             metrics=lab.gains_metrics,
+            **lab.gains_extra,
         )

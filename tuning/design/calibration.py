@@ -1,0 +1,99 @@
+"""How far the model of the cart misses the cart's own recorded steps: the model error a
+prediction carries besides the fit's uncertainty.
+
+The band of :mod:`tuning.design.prediction` is what the fit's standard errors and the drive's
+run-to-run spread allow. A model that leaves something out (a slightly weaker drive, a lag it
+takes for a delay, a heavier cart it fits with a lower B_eq) misses by more, and its standard
+errors do not say so: they measure how well the data pin the values of the model, not how
+right the model is. The recordings say it. Each closed-loop step the lab recorded (P 50, PI,
+the pre-lab's PID, ...) is simulated on the fitted cart with that run's own controller, step
+and drive values (its ``v_sat@k``: the drive's spread is in the band already), and its
+metrics are compared with the recording's:
+
+- the time the step first enters its 2 % settling band [s] and its settling time [s] (where
+  both runs settle within the recording): the larger miss of the two is the run's time miss;
+- its overshoot [%].
+
+The model error of a metric is the largest miss over the recordings; a prediction's band
+(:meth:`tuning.design.prediction.Prediction.interval`) is widened by it on both sides. A fit
+that reproduces its steps exactly adds nothing. (The recordings were fitted: this is the
+least the model misses by, not a held-out bound.)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from jaxcart.metrics import SETTLING_BAND, step_info
+from tuning.design.prediction import step_run
+
+
+@dataclass(frozen=True)
+class StepMiss:
+    """One recorded step against its simulation on the fitted cart: name; entering,
+    settling (measured, simulated) [s]; overshoot (measured, simulated) [%]."""
+
+    name: str
+    entering: tuple
+    settling: tuple
+    overshoot: tuple
+
+    @property
+    def time(self) -> float:
+        """The run's time miss [s]: the larger of its entering and settling misses where both
+        runs reach them (nan where neither does)."""
+        misses = [abs(a - b) for a, b in (self.entering, self.settling) if _finite(a, b)]
+        return max(misses) if misses else math.nan
+
+    def to_json(self) -> dict:
+        return {
+            "recording": self.name,
+            "entering": list(self.entering),
+            "settling_time": list(self.settling),
+            "overshoot": list(self.overshoot),
+        }
+
+
+def _finite(*xs) -> bool:
+    return all(math.isfinite(x) for x in xs)
+
+
+def entering(time, position, reference, band: float = SETTLING_BAND) -> float:
+    """When a step first enters its settling band [s] (inf: never)."""
+    y, r = np.asarray(position, dtype=float), np.asarray(reference, dtype=float)
+    inside = np.abs(y - r[-1]) <= band * abs(r[-1] - y[0])
+    return float(np.asarray(time)[np.argmax(inside)] - time[0]) if inside.any() else math.inf
+
+
+def is_step(recording) -> bool:
+    """A closed-loop recording whose reference is one step from the cart's start."""
+    r = recording.reference
+    if recording.kind != "closed_loop" or r is None or recording.controller is None:
+        return False
+    r = np.asarray(r, dtype=float)
+    return bool(np.ptp(r[1:]) <= 1e-12 and r[-1] != float(recording.position[0]))
+
+
+def step_miss(cart, recording) -> StepMiss:
+    """A recorded step against the exact simulation of its own controller and experiment on
+    ``cart`` (a plant with that run's drive values)."""
+    y, _, sim = step_run((cart, recording.controller, recording.experiment))
+    t, r = np.asarray(recording.time, dtype=float), np.asarray(recording.reference, dtype=float)
+    measured = step_info(recording.as_response(), v_limit=float(recording.controller.v_limit))
+    return StepMiss(
+        recording.path.name,
+        (entering(t, recording.position, r), entering(t, y, r)),
+        (float(measured.settling_time), sim["settling_time"]),
+        (float(measured.overshoot), sim["overshoot"]),
+    )
+
+
+def model_error(misses) -> dict:
+    """{"settling_time": the largest time miss [s], "overshoot": the largest overshoot miss
+    [%]} over ``misses`` (0 where none applies)."""
+    times = [m.time for m in misses if math.isfinite(m.time)]
+    overs = [abs(a - b) for m in misses for a, b in [m.overshoot] if _finite(a, b)]
+    return {"settling_time": max(times, default=0.0), "overshoot": max(overs, default=0.0)}
