@@ -89,6 +89,10 @@ ITERATIONS = (8, 8, 8, 8)
 MIN_SAMPLES = 200
 #: Free slots of every candidate (B_eq + two effects' parameters), so one compile serves all.
 K_MAX = 5
+#: An exact polish weighs each recording by its own misfit at its start, and again at the
+#: values it reached while the weights move by more than this share, at most REWEIGHTS times.
+REWEIGHT = 0.2
+REWEIGHTS = 4
 #: Structures polished on the exact simulator (the best by score after the smooth fits).
 POLISH = 4
 #: Structures re-fitted from the best-scoring one's values after the search, besides those
