@@ -314,3 +314,17 @@ def test_the_real_cart_named_by_prediction(real_four):
     assert "not one drive's limit" in old.why[C.PER_RUN]
     assert search.eligible(named)
     assert search.select(named) is named
+
+
+def test_the_tap_alone_gives_the_cart_beside_the_driven_runs(tmp_path):
+    """Tap, a P and a PD step of one cart (v_sat 4.6 V and 5.5 V): the structure fitted on the
+    tap alone from values 5 % off the truth recovers B_eq and f_c within 1 % (the cart's
+    values alone: no drive acts in a tap), as the driven runs alone do."""
+    search, truths = _search(PER_RUN, tmp_path)
+    best = _at_truth(search, truths, ("coulomb", "saturation", C.PER_RUN))
+    off = {"B_eq": 1.05, "f_c": 0.95}
+    best.values = {n: v * off.get(n, 1.0) for n, v in best.values.items()}
+    alone = crossval.taps_alone(search, best)
+    assert alone["recordings"] == [0] and set(alone["parameters"]) == {"B_eq", "f_c"}
+    for n in ("B_eq", "f_c"):
+        assert alone["parameters"][n]["value"] == pytest.approx(truths[0][n], rel=0.01), n

@@ -265,6 +265,9 @@ class Diagnosis:
     #: (:func:`tuning.estimation.diagnose.crossval.driven_alone`; {"recordings": names,
     #: "parameters": {name: {"value", "stderr", "unit"}}, "rms" [m]}), else {}.
     driven_alone: dict = field(default_factory=dict)
+    #: The same on the taps alone (:func:`tuning.estimation.diagnose.crossval.taps_alone`):
+    #: the tap's B_eq beside the driven runs', a consistency check of the one cart.
+    taps_alone: dict = field(default_factory=dict)
 
     @property
     def floor_ratio(self) -> float:
@@ -405,6 +408,7 @@ class Diagnosis:
             "remainder": self.remainder,
             "cross_validation": self.cross_validation,
             "driven_alone": self.driven_alone,
+            "taps_alone": self.taps_alone,
         }
 
 

@@ -810,9 +810,10 @@ class Search:
         explained = cv["explained"]
         suggestions, misfit = self.misfit(best, cv)
         corrections = [PARAM_ERRORS[p][0] for p in best.corrections]
-        driven = crossval.driven_alone(self, best)
-        if driven:
-            driven["recordings"] = [list(per_recording)[i] for i in driven["recordings"]]
+        driven, taps = crossval.driven_alone(self, best), crossval.taps_alone(self, best)
+        for apart in (driven, taps):
+            if apart:
+                apart["recordings"] = [list(per_recording)[i] for i in apart["recordings"]]
         return Diagnosis(
             names,
             "diagnosed",
@@ -846,6 +847,7 @@ class Search:
             per_recording=per_recording,
             cross_validation=cv,
             driven_alone=driven,
+            taps_alone=taps,
             repeat=level,
             remainder=C._remainder(best, segments),
         )
