@@ -93,6 +93,9 @@ K_MAX = 5
 #: values it reached while the weights move by more than this share, at most REWEIGHTS times.
 REWEIGHT = 0.2
 REWEIGHTS = 4
+#: A structure richer than the lead by one value is re-fitted from the lead's values with that
+#: value at this many points over its plausible range (and its own).
+SPREAD = 3
 #: Structures polished on the exact simulator (the best by score after the smooth fits).
 POLISH = 4
 #: Structures re-fitted from the best-scoring one's values after the search, besides those
