@@ -89,6 +89,13 @@ ITERATIONS = (8, 8, 8, 8)
 MIN_SAMPLES = 200
 #: Free slots of every candidate (B_eq + two effects' parameters), so one compile serves all.
 K_MAX = 5
+#: An exact polish weighs each recording by its own misfit at its start, and again at the
+#: values it reached while the weights move by more than this share, at most REWEIGHTS times.
+REWEIGHT = 0.2
+REWEIGHTS = 4
+#: A structure richer than the lead by one value is re-fitted from the lead's values with that
+#: value at this many points over its plausible range (and its own).
+SPREAD = 3
 #: Structures polished on the exact simulator (the best by score after the smooth fits).
 POLISH = 4
 #: Structures re-fitted from the best-scoring one's values after the search, besides those
@@ -261,6 +268,9 @@ class Diagnosis:
     #: (:func:`tuning.estimation.diagnose.crossval.driven_alone`; {"recordings": names,
     #: "parameters": {name: {"value", "stderr", "unit"}}, "rms" [m]}), else {}.
     driven_alone: dict = field(default_factory=dict)
+    #: The same on the taps alone (:func:`tuning.estimation.diagnose.crossval.taps_alone`):
+    #: the tap's B_eq beside the driven runs', a consistency check of the one cart.
+    taps_alone: dict = field(default_factory=dict)
 
     @property
     def floor_ratio(self) -> float:
@@ -401,6 +411,7 @@ class Diagnosis:
             "remainder": self.remainder,
             "cross_validation": self.cross_validation,
             "driven_alone": self.driven_alone,
+            "taps_alone": self.taps_alone,
         }
 
 

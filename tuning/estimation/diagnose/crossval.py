@@ -39,7 +39,7 @@ from tuning.estimation.diagnose import core as C
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
 from tuning.estimation.engine.lm import marquardt_step
-from tuning.estimation.engine.noise import MISFIT_RATIO
+from tuning.estimation.engine.noise import MISFIT_RATIO, RecordingNoise
 
 #: Gauss-Newton iterations of a held-out recording's own values fitted to it (its drive limit,
 #: a tap's start state: one or two values, from the joint fit's, close already).
@@ -426,20 +426,34 @@ def annotate(per_recording: dict, cv: dict) -> None:
 
 def driven_alone(search, best, iterations: int = DRIVEN_ITERATIONS) -> dict:
     """``best`` fitted on the driven runs alone, every motorless recording (a tap) left out:
-    whether the closed-loop runs give the cart's B_eq the tap gives, under this model.
+    whether the closed-loop runs give the cart's B_eq the tap gives, under this model
+    (:func:`fitted_apart`)."""
+    return fitted_apart(search, best, True, iterations)
 
-    The shared values and the runs' own (a drive limit free per run) are re-fitted by the exact
-    Gauss-Newton from the joint values, through the search's memo. Returns {} without both a
-    tap and a driven run, else {"recordings": their indices, "parameters": {shared name:
-    {"value", "stderr", "unit"}}, "rms" [m]}; the standard errors are the engine's robust
-    ones, widened for model error as the diagnosis's own are."""
-    order = [i for i, seg in enumerate(search.segments) if seg.motor]
+
+def taps_alone(search, best, iterations: int = DRIVEN_ITERATIONS) -> dict:
+    """``best``'s cart values fitted on the motorless recordings (taps) alone, every driven
+    run left out (:func:`fitted_apart`; the drive's values act nowhere there)."""
+    return fitted_apart(search, best, False, iterations)
+
+
+def fitted_apart(search, best, motor: bool, iterations: int = DRIVEN_ITERATIONS) -> dict:
+    """``best`` fitted on the recordings whose motor is (``motor``) or is not connected alone:
+    the shared values and the recordings' own (a drive limit per run, a tap's start state)
+    re-fitted by the exact Gauss-Newton from the joint values, each recording weighed by its
+    own misfit, through the search's memo. Returns {} unless the diagnosis has recordings of
+    both kinds, else {"recordings": their indices, "parameters": {shared name: {"value",
+    "stderr", "unit"}} (the cart's alone for taps), "rms" [m]}; the standard errors are the
+    engine's robust ones, widened for model error as the diagnosis's own are."""
+    order = [i for i, seg in enumerate(search.segments) if seg.motor == motor]
     if not order or len(order) == len(search.segments):
         return {}
     sub = Subset.of(best, search, order)
+    start = sub.values(best.values)
+    noise = RecordingNoise(sub.segments, C.FLOOR_FACTOR)
     values, jac, names, _ = C._polish(
-        sub.cand, sub.segments, sub.plants, sub.values(best.values), sub.layout, iterations,
-        memo=sub.memo,
+        sub.cand, sub.segments, sub.plants, start, sub.layout, iterations, memo=sub.memo,
+        weights=noise.weights(sub.residuals(start)),
     )  # fmt: skip
     residuals = sub.residuals(values)
     out = {"recordings": order, "parameters": {}, "rms": C._rms(residuals)}
@@ -447,11 +461,15 @@ def driven_alone(search, best, iterations: int = DRIVEN_ITERATIONS) -> dict:
         return out
     # The covariance takes the Jacobian per unit of each fitted coordinate (a log for some).
     slopes = np.array([P.value_slope(n, values[n]) for n in names])
-    cov = C.covariance(sub.segments, names, values, jac * slopes, residuals, search.widen_above)
+    cov = C.covariance(
+        sub.segments, names, values, jac * slopes, residuals, search.widen_above,
+        noise.weights(residuals),
+    )  # fmt: skip
     for n in _shared(best):
-        out["parameters"][n] = {
-            "value": values[n],
-            "stderr": cov.stderr({n: 1.0}),
-            "unit": P.spec(n).unit,
-        }
+        if motor or not P.is_drive(n):
+            out["parameters"][n] = {
+                "value": values[n],
+                "stderr": cov.stderr({n: 1.0}),
+                "unit": P.spec(n).unit,
+            }
     return out

@@ -140,20 +140,24 @@ def _per_recording_section(d) -> list:
 
 
 def _driven_alone_lines(d) -> list:
-    """The shared values from the driven runs alone beside the joint ones (with a tap)."""
-    alone = d.driven_alone
-    if not alone or not alone["parameters"]:
-        return []
-    each = ", ".join(
-        f"{n} = {_num(p['value'])} +/- {_num(p['stderr'])} {p['unit']} (jointly "
-        f"{_num(d.parameters[n]['value'])})"
-        for n, p in alone["parameters"].items()
-    )
-    return [
-        "",
-        f"Fitted on the driven runs alone ({', '.join(alone['recordings'])}; their own values "
-        f"free too), the structure gives {each}, at {_mm(alone['rms'])} RMS over those runs.",
-    ]
+    """The cart's values from the taps alone and from the driven runs alone beside the joint
+    ones (with both): whether the recordings agree on one cart."""
+    lines = []
+    for alone, what in ((d.taps_alone, "the taps"), (d.driven_alone, "the driven runs")):
+        if not alone or not alone["parameters"]:
+            continue
+        each = ", ".join(
+            f"{n} = {_num(p['value'])} +/- {_num(p['stderr'])} {p['unit']} (jointly "
+            f"{_num(d.parameters[n]['value'])})"
+            for n, p in alone["parameters"].items()
+            if n in d.parameters
+        )
+        lines += [
+            "",
+            f"Fitted on {what} alone ({', '.join(alone['recordings'])}; their own values free "
+            f"too), the structure gives {each}, at {_mm(alone['rms'])} RMS over those runs.",
+        ]
+    return lines
 
 
 def _cross_validation_lines(cv) -> list:
