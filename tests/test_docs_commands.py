@@ -355,6 +355,17 @@ def _run(cmd: str, folder: Path) -> Ran:
     return Ran(int(status or 0), buffer.getvalue(), folder)
 
 
+def _port_5006():
+    """The port `jaxcart app` serves on as shown, one run at a time: each xdist worker runs
+    every shown command (and another checkout's suite may too), so the runs take a lock."""
+    import fcntl
+    import tempfile
+
+    lock = open(Path(tempfile.gettempdir()) / "jaxcart-docs-app-5006.lock", "w")  # noqa: SIM115
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    return contextlib.closing(lock)  # (closing the file releases the lock)
+
+
 @contextlib.contextmanager
 def _app_opens_and_closes():
     """`jaxcart app` serves until Ctrl-C and opens the browser: here the browser fetches the
@@ -447,7 +458,7 @@ def ran(tmp_path_factory) -> dict[str, Ran]:
             hw.pacing.SYSTEM_TIMER = FakeClock().timer
         try:
             if s.text == "jaxcart app":
-                with _app_opens_and_closes() as pages:
+                with _port_5006(), _app_opens_and_closes() as pages:
                     out[s.text] = _run(s.text, folders[s.folder])
                 assert pages and pages[0][0] == 200 and "<html" in pages[0][1].lower()
             else:

@@ -146,3 +146,26 @@ def test_check_says_when_no_single_value_explains_a_run():
     check = check_run({"overshoot": 9.0}, prediction)  # 80 standard errors of B_eq
     assert check["outside"][0]["explained_by"] == []
     assert "leaves out" in check_lines(check)[-1]
+
+
+def test_the_model_error_is_the_largest_miss_of_the_recorded_steps_at_the_designs_scale():
+    """tuning.design.calibration: a first-order step 0.5 (1 - exp(-t/0.1)) enters its 2 % band
+    at 0.1 ln 50 = 0.391 s (to the 1 ms sample); a run's time miss is the larger of its
+    entering and settling misses, a settling miss only where the recording settles within the
+    design's 3 s horizon (a PI run creeping to 7.24 s against 7.59 s simulated counts by its
+    entering miss, 3 ms); the model error is the largest over the runs."""
+    from tuning.design.calibration import StepMiss, entering, model_error
+
+    t = np.arange(0.0, 2.0, 1e-3)
+    y = 0.5 * (1.0 - np.exp(-t / 0.1))
+    assert entering(t, y, np.full_like(t, 0.5)) == pytest.approx(0.1 * math.log(50.0), abs=1e-3)
+    assert entering(t, 0.2 * y, np.full_like(t, 0.5)) == math.inf
+    p50 = StepMiss("p50.toml", (0.573, 0.560), (0.939, 0.920), (5.8, 5.5))
+    pi = StepMiss("pi.toml", (0.772, 0.769), (7.238, 7.592), (33.5, 33.3))
+    p10 = StepMiss("p10.toml", (math.inf, math.inf), (math.inf, math.inf), (0.0, 0.0))
+    assert pi.time == pytest.approx(0.003) and p50.time == pytest.approx(0.019)
+    assert math.isnan(p10.time)
+    error = model_error([p50, pi, p10])
+    assert error["settling_time"] == pytest.approx(0.019)
+    assert error["overshoot"] == pytest.approx(0.3)
+    assert model_error([]) == {"settling_time": 0.0, "overshoot": 0.0}
