@@ -43,6 +43,7 @@ from tuning.estimation.diagnose.core import (
 )
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
+from tuning.estimation.engine.covariance import determined
 from tuning.estimation.engine.noise import RecordingNoise
 from tuning.estimation.engine.starts import start_values
 
@@ -371,8 +372,12 @@ class Search:
             c.values, c.residuals, c.rms_exact = values, res, C._rms(res)
             c.score = C.score(c, c.residuals, self.noise)
             # The significance test's standard errors at these values: the exact re-fit's
-            # Jacobian, not the smooth fit's at the values it started from.
-            if jac.size:
+            # Jacobian, not the smooth fit's at the values it started from; unless it leaves
+            # a parameter undetermined that the smooth one determined (Coulomb under PI at
+            # the truth: a step of f_c or B_eq moves where the cart sticks by a sample, and
+            # both columns are that jump).
+            p = len(c.free) + len(self.nuis)
+            if jac.size and (determined(jac[:, :p]) or not determined(c.jac[:, :p])):
                 c.jac = jac
             again = ", continued" if id(c) in self.polished_once else ""
             self.polished_once.add(id(c))
