@@ -79,7 +79,12 @@ PENALTY_PER_EFFECT = 12.0
 FLOOR_FACTOR = 1.5
 #: Near-ties: another structure within this many criterion units of the best is named too.
 TIE = 6.0
+#: The smoothing widths of round 1's continuation (times each effect's own), widest first.
 WIDTHS = (4.0, 1.0, 0.3, 0.1)
+#: ... and of the later rounds, which start from fitted values: at the widest the dry friction
+#: they fitted is smoothed into another model, and its steps are spent walking away (the real
+#: P 50 run's saturation + Coulomb + mass, 1.17 mm at the narrowest, is 2.04 mm at 4x).
+LATER_WIDTHS = WIDTHS[1:]
 #: Round 1 is also fitted straight from the start at narrow widths: the continuation can lead
 #: astray where a wide width changes the physics (static friction smoothed wide is a larger
 #: Coulomb friction, and a ramp that breaks away late fits B_eq at its bound with f_c = 0;
@@ -1198,14 +1203,18 @@ def _misfits(rms, floor) -> bool:
     return misfits(rms, floor)
 
 
-def _pair_starts(grown, starts_all) -> list:
+def _pair_starts(grown, starts_all, base) -> list:
     """Start values of combined structures: the seed's fitted values over the addition's over
-    the defaults."""
+    the defaults. A structure that scores worse than the ``base``line it nests has not fitted
+    (the real P 50 run: Coulomb alone ends at f_c 2.9 N and 9.9 mm, the baseline at 8.2 mm),
+    and its values are not a start (from them saturation + Coulomb stays at 9.9 mm; from the
+    saturation's values and f_c's start it reaches 1.19 mm)."""
     starts = []
     for c, a, b in grown:
         s = {k: starts_all[Layout.kind(k)] for k in c.free}
-        s.update({k: v for k, v in b.values.items() if k in c.free})
-        s.update({k: v for k, v in a.values.items() if k in c.free})
+        for fitted in (b, a):
+            if fitted.score <= base.score:
+                s.update({k: v for k, v in fitted.values.items() if k in c.free})
         starts.append(s)
     return starts
 

@@ -27,6 +27,7 @@ from tuning.estimation.diagnose.core import (
     FLOOR_FACTOR,
     ITERATIONS,
     K_MAX,
+    LATER_WIDTHS,
     NESTED,
     PARAM_ERRORS,
     PER_RUN,
@@ -42,6 +43,7 @@ from tuning.estimation.diagnose.core import (
 )
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
+from tuning.estimation.engine.covariance import determined
 from tuning.estimation.engine.noise import RecordingNoise
 from tuning.estimation.engine.starts import start_values
 
@@ -194,13 +196,18 @@ class Search:
         problems = [
             (tuple(c.free) + tuple(self.nuis), s, {}) for c, s in zip(cands, starts, strict=True)
         ]
+        # Padded to round 1's size, or half of it where the round fits: two compiled shapes
+        # (kept on disk), and a small round costs about half a full one.
         n_pad = max(len(self.round1), len(cands))
+        if len(cands) <= (n_pad + 1) // 2:
+            n_pad = (n_pad + 1) // 2
         problems = problems + [problems[0]] * (n_pad - len(problems))
         t_fit = _time.perf_counter()
+        widths = WIDTHS if number == 1 else LATER_WIDTHS
         results = self.fitter.fit(
             problems,
-            WIDTHS,
-            ITERATIONS,
+            widths,
+            ITERATIONS[-len(widths) :],
             kmax=K_MAX + self.extra + len(self.nuis),
             progress=lambda w, c: say(f"  width x{w:g}: smooth RMS {C._fmt_list(c, self.fitter)}"),
             share=self.processes,
@@ -365,8 +372,12 @@ class Search:
             c.values, c.residuals, c.rms_exact = values, res, C._rms(res)
             c.score = C.score(c, c.residuals, self.noise)
             # The significance test's standard errors at these values: the exact re-fit's
-            # Jacobian, not the smooth fit's at the values it started from.
-            if jac.size:
+            # Jacobian, not the smooth fit's at the values it started from; unless it leaves
+            # a parameter undetermined that the smooth one determined (Coulomb under PI at
+            # the truth: a step of f_c or B_eq moves where the cart sticks by a sample, and
+            # both columns are that jump).
+            p = len(c.free) + len(self.nuis)
+            if jac.size and (determined(jac[:, :p]) or not determined(c.jac[:, :p])):
                 c.jac = jac
             again = ", continued" if id(c) in self.polished_once else ""
             self.polished_once.add(id(c))
@@ -378,7 +389,8 @@ class Search:
     def fit_round(self, grown, number, what):
         """Fit the (candidate, seed, addition) triples of one round and keep them."""
         t1 = _time.perf_counter()
-        self.run_round([c for c, _, _ in grown], C._pair_starts(grown, self.starts_all), number)
+        starts = C._pair_starts(grown, self.starts_all, self.round1[0])
+        self.run_round([c for c, _, _ in grown], starts, number)
         self.say(f"round {number} ({what}): {_time.perf_counter() - t1:.1f} s")
         self.cands += [c for c, _, _ in grown]
         return [c for c, _, _ in grown]
@@ -391,7 +403,16 @@ class Search:
         t0 = _time.perf_counter()
         starts1 = [{k: self.starts_all[Layout.kind(k)] for k in c.free} for c in self.round1]
         self.run_round(self.round1, starts1, 1)
-        self.direct(self.round1, starts1)
+        # A structure that ends worse than the baseline it nests has not fitted: its second
+        # try starts from the baseline's fitted values, its own parameters at their starts.
+        base = self.round1[0]
+        self.direct(
+            self.round1,
+            [
+                s if c.score <= base.score else {**s, **{k: base.values[k] for k in base.free}}
+                for c, s in zip(self.round1, starts1, strict=True)
+            ],
+        )
         self.say(f"round 1 (compile + fit + exact checks): {_time.perf_counter() - t0:.1f} s")
         self.cands = list(self.round1)
         self.locate()
@@ -406,7 +427,6 @@ class Search:
             c for c in sorted(self.round1[1:], key=lambda c: c.rms_smooth)[:1] if c not in first
         ]
         self.polish_all([(c, dict(c.values)) for c in first])
-        base = self.round1[0]
         explained = min(c.rms_exact for c in self.round1) <= FLOOR_FACTOR * self.floor
         if explained:
             self.say("round 2 skipped: a single structure reaches the encoder floor")

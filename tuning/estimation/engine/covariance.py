@@ -119,6 +119,13 @@ def _inverse(jac):
     return scale, js, (v * inv_w) @ v.T, (v * np.sqrt(inv_w)) @ v.T, singular
 
 
+def determined(jac) -> bool:
+    """Whether the data determine every parameter of J (no column zero or in the span of
+    others)."""
+    jac = np.asarray(jac, dtype=float)
+    return bool(np.all(np.isfinite(jac))) and not np.any(_inverse(jac)[-1])
+
+
 def covariances(jac, residuals, models, quantizations, weights=None) -> Covariances:
     """Robust and naive covariances (module docstring) of the parameters of J.
 
