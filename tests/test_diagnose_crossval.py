@@ -328,3 +328,17 @@ def test_the_tap_alone_gives_the_cart_beside_the_driven_runs(tmp_path):
     assert alone["recordings"] == [0] and set(alone["parameters"]) == {"B_eq", "f_c"}
     for n in ("B_eq", "f_c"):
         assert alone["parameters"][n]["value"] == pytest.approx(truths[0][n], rel=0.01), n
+
+
+def test_a_part_dropped_leaves_what_it_stands_on():
+    """The selection drops one part at a time: Stribeck friction without its fall is stiction
+    (the independent generator's late lurch on a ramp: named Stribeck at 0.004 mm against the
+    baseline, stiction predicts it as well held out); stiction without its breakaway level is
+    Coulomb friction; a part nothing stands on just goes."""
+    assert C.without_part(("stribeck",), "stribeck") == ("stiction",)
+    assert C.without_part(("stiction", "delay"), "stiction") == ("delay", "coulomb")
+    assert C.without_part(("coulomb", "saturation", C.PER_RUN), C.PER_RUN) == (
+        "coulomb",
+        "saturation",
+    )
+    assert C.without_part(("coulomb", "mass"), "mass") == ("coulomb",)

@@ -1365,6 +1365,17 @@ def _structure(parts, runs=()) -> Candidate:
     return Candidate("+".join(parts), tuple(parts), tuple(dict.fromkeys(free)), runs=tuple(runs))
 
 
+def without_part(parts, part) -> tuple:
+    """``parts`` without ``part``, keeping what it stands on (``Effect.requires``): Stribeck
+    friction without its fall is stiction, not the baseline."""
+    rest = [p for p in parts if p != part]
+    for r in REGISTRY[part].requires if part in REGISTRY else ():
+        standing = rest + [x for x in REGISTRY[part].requires if x != r]
+        if r not in rest and not any(r in REGISTRY[q].requires for q in standing if q in REGISTRY):
+            rest.append(r)
+    return tuple(rest)
+
+
 def _swap_tie(best, cands, plant, segments, base_plants, layout, memo, noise):
     """({}, None), or when ``best`` corrects M or gamma_scale and the structure with the other
     (values from :func:`swapped_correction`, or its own fit where that scores better) is

@@ -659,7 +659,7 @@ class Search:
     def without(self, c, part):
         """The structure of ``c`` without ``part``, fitted on the exact simulator from ``c``'s
         values (a structure the search has not made yet is made here)."""
-        parts = tuple(p for p in c.parts if p != part)
+        parts = C.without_part(c.parts, part)
         made = C._structure(parts, c.runs if PER_RUN in parts else ())
         sub = next((x for x in self.cands if set(x.parts) == set(parts)), None)
         start = self._start_from(c, sub or made)
