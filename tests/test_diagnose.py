@@ -317,3 +317,25 @@ def test_exact_memo_reruns_only_the_recordings_a_value_moves(tmp_path):
         assert all(np.array_equal(a, b) for a, b in zip(r, fresh, strict=True))
         C.exact_residuals(*args, dict(values, B_eq=values["B_eq"] * 1.01), search.layout, memo)
         assert memo.made == 7
+
+
+def test_an_effect_is_a_candidate_only_where_the_recordings_can_show_it():
+    """A difference between the directions needs the cart sliding both ways, the lesser at
+    least a fifth of the greater (a step's overshoot of a few mm in 0.4 m shows none); a dead
+    band by direction needs the drive pushing both ways; a tilt needs a tap (in a driven run
+    it is a drive offset)."""
+    from jaxcart.effects import REGISTRY
+    from tuning.estimation.diagnose.core import candidate_list
+    from tuning.estimation.engine.coverage import Coverage
+
+    step = Coverage(span=0.4, right=0.40, left=0.008, push_right=6.0, push_left=1.7, driven=True)
+    out_back = Coverage(span=0.4, right=0.30, left=0.43, push_right=6.0, push_left=6.0, driven=True)
+    assert not step.shows("both_ways") and out_back.shows("both_ways")
+    assert "slides both ways" in step.lacks(REGISTRY["coulomb_asymmetry"])
+    assert step.lacks(REGISTRY["deadzone_asymmetry"]) == ""
+    assert "a tap" in out_back.lacks(REGISTRY["tilt"])
+    names = {c.name for c in candidate_list(True, (), step)}
+    assert {"coulomb_asymmetry", "viscous_asymmetry", "tilt"}.isdisjoint(names)
+    assert {"coulomb", "deadzone_asymmetry", "voltage_offset"} <= names
+    both = {c.name for c in candidate_list(True, (), out_back)}
+    assert {"coulomb_asymmetry", "viscous_asymmetry"} <= both

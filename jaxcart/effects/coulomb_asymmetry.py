@@ -45,6 +45,8 @@ class CoulombAsymmetry(Effect):
     sided = True
     summary = "Coulomb friction by direction: f_c + f_c_asym sliding right, f_c - f_c_asym left"
     requires = ("coulomb",)
+    # Sliding one way only, the asymmetry is that way's level: f_c's.
+    needs = ("both_ways",)
     shows_in = ("sign_velocity", "position")
     params = (
         Param(

@@ -40,6 +40,8 @@ class DeadzoneAsymmetry(Effect):
     order = 39  # just before the dead band (40) it shifts
     summary = "dead band by direction: commands in [-(dz - a), dz + a] move nothing"
     requires = ("deadzone",)
+    # Pushed one way only, the shifted band is that side's edge: the deadzone's.
+    needs = ("drive_both_ways",)
     shows_in = ("command", "sign_velocity")
     params = (
         Param(

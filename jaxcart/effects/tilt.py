@@ -41,6 +41,9 @@ class Tilt(Effect):
     stage = "force"
     summary = "tilted track: a constant force f_tilt along +y"
     shows_in = ("position", "command")
+    # In a driven run it is a drive offset (voltage_offset); a tap, where only the tilt pulls,
+    # tells them apart.
+    needs = ("tap",)
     params = (
         Param(
             "f_tilt",

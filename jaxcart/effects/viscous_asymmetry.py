@@ -40,6 +40,8 @@ class ViscousAsymmetry(Effect):
     stage = "force"
     summary = "viscous friction by direction: B_eq + B_asym sliding right, B_eq - B_asym left"
     shows_in = ("sign_velocity",)
+    # Sliding one way only, the asymmetry is that way's coefficient: B_eq's.
+    needs = ("both_ways",)
     params = (
         Param(
             "B_asym",

@@ -499,13 +499,17 @@ def prepare(rec, controller=None) -> Segment:
 # ---------------------------------------------------------------- candidates
 
 
-def candidate_list(motor: bool, runs=()) -> list[Candidate]:
+def candidate_list(motor: bool, runs=(), coverage=None) -> list[Candidate]:
     """Round 1: the baseline, each correction and effect alone, and with two runs or more of
-    a driven cart (``runs``: their recording indices) each drive limit free per run."""
+    a driven cart (``runs``: their recording indices) each drive limit free per run; an effect
+    only where the recordings meet its data conditions (``coverage``, a
+    :class:`~tuning.estimation.engine.coverage.Coverage`; None: every effect)."""
     out = [Candidate("baseline", (), ("B_eq",))]
     names = list(PARAM_ERRORS) + list(effect_params())
     for n in names:
         if n in motor_only() and not motor:
+            continue
+        if coverage is not None and n in REGISTRY and coverage.lacks(REGISTRY[n]):
             continue
         out.append(_structure((n,), runs))
     if len(runs) >= 2:

@@ -44,6 +44,7 @@ from tuning.estimation.diagnose.core import (
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
 from tuning.estimation.engine.covariance import determined
+from tuning.estimation.engine.coverage import Coverage
 from tuning.estimation.engine.noise import RecordingNoise
 from tuning.estimation.engine.starts import start_values
 
@@ -164,7 +165,11 @@ class Search:
         self.layout = self.fitter.layout
         self.memo = C.ExactMemo(executor=executor)
         self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
-        self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs)
+        commands = [
+            r.command if s.motor else None for r, s in zip(recordings, segments, strict=True)
+        ]
+        self.coverage = Coverage.of(segments, commands)
+        self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs, self.coverage)
         self.starts_all = start_values(segments, recordings, self.base_plants, P.superset())
         motor = [p for p, s in zip(self.base_plants, segments, strict=True) if s.motor]
         self.ref_plant = motor[0] if motor else self.base_plants[0]
