@@ -27,6 +27,7 @@ PLOTTING = {
     "tuning/lab/figures.py",
     "tuning/design/grid.py",
     "tuning/lab/classfigures.py",
+    "tuning/design/prediction_plot.py",
 }
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -252,3 +253,44 @@ def test_class_figures(tmp_path):
     )
     drawn = draw(result, tmp_path / "figures")
     assert [p.name for p, _ in drawn] == ["distributions.png", "overlays.png"]
+
+
+def _prediction(tau: float, miss: float = 0.0):
+    """A design's prediction for the figure: a first-order step to 0.5 m (time constant
+    ``tau`` [s]) with a band of +-10 % in tau over 40 carts, 30 of which meet the spec."""
+    from tuning.design.losses import Spec
+    from tuning.design.prediction import Prediction
+
+    t = np.linspace(0.0, 3.0, 3001)
+    y = lambda tc: 0.5 * (1.0 - np.exp(-t / tc))  # noqa: E731
+    settle = np.full(40, 4.0 * tau)
+    return Prediction(
+        controller=None,
+        spec=Spec(),
+        level=0.9,
+        time=t,
+        reference=np.full(t.size, 0.5),
+        nominal_position=y(tau),
+        nominal_command=np.zeros(t.size),
+        nominal={"settling_time": 4.0 * tau},
+        band=(y(1.1 * tau), y(0.9 * tau)),
+        metrics={"settling_time": settle * np.linspace(0.9, 1.1, 40)},
+        meets=np.arange(40) < 30,
+        model_error={"settling_time": miss} if miss else {},
+    )
+
+
+def test_prediction_figure(tmp_path):
+    """Part (v)'s designs side by side, each with its band, one with its measured run: drawn
+    at its real size (tests/figcheck.py checks nothing is cut off or said twice)."""
+    from tuning.design.prediction_plot import Panel, plot_predictions
+
+    a, b = _prediction(0.15, miss=0.05), _prediction(0.2, miss=0.05)  # one cart: one miss
+    measured = (a.time, 0.5 * (1.0 - np.exp(-a.time / 0.17)))
+    path = plot_predictions(
+        [Panel("pre-lab design", a), Panel("tuned for the cart as measured", b, measured)],
+        tmp_path / "designs.png",
+        title="Part (v): each design on the cart as measured",
+    )
+    height, width = _pixels(path)
+    assert width > height > 0
