@@ -548,10 +548,19 @@ class Search:
         return number
 
     def seeds(self, level):
-        """The structures of the last round that beat every structure before it."""
+        """The structures of the last round that beat every structure before it, but those
+        whose drive limits per run are not one drive's (:func:`~.core._per_run_inconsistency`):
+        grown, they stay unnameable and take the round's slots (the real tap, P 50 runs and
+        PD run: a current limit per run at 0.69 A seeded two rounds, and saturation per run
+        with Coulomb and the delay was never fitted)."""
         this = {id(c) for c in level}
         before = min(c.score for c in self.cands if id(c) not in this)
-        return self.promising(level, before)[:SEEDS]
+        sound = [
+            c
+            for c in level
+            if not (PER_RUN in c.parts and C._per_run_inconsistency(c.values, self.peaks(c)))
+        ]
+        return self.promising(sound, before)[:SEEDS]
 
     def backward(self, seen, number):
         """Backward step: the best structure with a part that is not significant (a delay gone
