@@ -159,8 +159,7 @@ class Effect:
     covers: ClassVar[float] = 0.0
     #: the other data conditions the recordings must meet for the effect to be a candidate
     #: (tuning.estimation.engine.coverage.NEEDS: "both_ways", the cart slides both ways;
-    #: "drive_both_ways", the drive pushes both ways; "tap_and_drive", a tap beside a driven
-    #: run)
+    #: "drive_both_ways", the drive pushes both ways; "tap", a tap among the recordings)
     needs: ClassVar[tuple[str, ...]] = ()
     #: effects whose parameters a candidate of this one frees and names too (stiction is
     #: static friction above a kinetic level: it stands on Coulomb friction)

@@ -40,7 +40,6 @@ NEEDS = {
     ),
     "drive_both_ways": f"the drive pushes both ways (commands beyond +-{PUSH:g} V)",
     "tap": "a recording with the motor unplugged (a tap)",
-    "tap_and_drive": "a recording with the motor unplugged (a tap) beside a driven run",
 }
 
 
@@ -50,9 +49,9 @@ class Coverage:
 
     span: the range of their positions together [m]; right, left: the distance the cart slides
     towards +y and -y, over every recording [m]; push_right, push_left: the largest command
-    towards +y and -y of the driven runs [V] (recorded, else replayed from the controller on
-    the recorded positions); motorless, driven: a recording with the motor unplugged, one with
-    it connected."""
+    towards +y and -y of the driven runs' recorded commands [V] (a run without one adds
+    nothing); motorless, driven: a recording with the motor unplugged, one with it
+    connected."""
 
     span: float = 0.0
     right: float = 0.0
@@ -95,8 +94,6 @@ class Coverage:
             return min(self.push_right, self.push_left) >= PUSH
         if need == "tap":
             return self.motorless
-        if need == "tap_and_drive":
-            return self.motorless and self.driven
         raise ValueError(f"unknown data condition {need!r}: one of {', '.join(NEEDS)}")
 
     def lacks(self, cls) -> str:
