@@ -97,9 +97,10 @@ METHODS = {
 }
 #: Carts of the cart problem: the fitted one and those drawn from its uncertainty.
 CART_CARTS = 24
-#: The real recordings' cart (../shared/realdata: tap, P 50 and its repeat), as ``jaxcart lab``
-#: fitted it at 491d7e4: B_eq [kg/s], f_c [N], delay [s] with their standard errors, and the
-#: amplifier's limit [V] of each driven run (the plant file's [fit] table, cart_plant.toml).
+#: The cart of the lab's real recordings (a tap, a P 50 step and its repeat; docs/diagnose.md),
+#: as ``jaxcart lab`` fitted it at 491d7e4: B_eq [kg/s], f_c [N], delay [s] with their
+#: standard errors, and the amplifier's limit [V] of each driven run (the plant file's [fit]
+#: table, cart_plant.toml).
 REAL_CART = {
     "values": dict(B_eq=1.5165, f_c=0.43274, delay=0.011877, v_sat=5.0884),
     "fit": {
