@@ -33,6 +33,13 @@ N_TRAIN = 11
 #: more cautious, and with a drive that varies much from run to run, some of them carts no
 #: design moves 0.5 m in a second).
 TRAIN_WIDTH = 1.0
+#: The design keeps its overshoot under this fraction of the settling band. The settling time
+#: jumps where the overshoot crosses the band: a design tuned to settle fastest overshoots just
+#: inside it (1.8-2.0 % of a 2 % band), and a true cart that overshoots a little more than
+#: predicted leaves the band and settles one oscillation later (the independent generator's
+#: carts: 64-225 ms late, outside their bands). Under half the band, a true overshoot up to
+#: twice the predicted one still settles where it first enters the band.
+EDGE = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,6 +75,12 @@ def training_carts(uncertainty: CartUncertainty, n: int = N_TRAIN, *, seed: int 
     return [design_plant(p) for p in [uncertainty.nominal_cart(), *drawn]]
 
 
+def clear_of_the_edge(spec: Spec) -> Spec:
+    """``spec`` with its overshoot bound at most :data:`EDGE` times the settling band [%]: the
+    design is tuned to it and judged (predicted, checked) against ``spec`` itself."""
+    return dataclasses.replace(spec, overshoot=min(spec.overshoot, 100.0 * EDGE * spec.band))
+
+
 def design_for_cart(
     uncertainty: CartUncertainty,
     *,
@@ -95,7 +108,7 @@ def design_for_cart(
     carts = training_carts(uncertainty, n_train, seed=seed)
     tuned = tune(
         carts[0],
-        spec=spec,
+        spec=clear_of_the_edge(spec),
         start=start,
         free=free,
         controller=controller,
