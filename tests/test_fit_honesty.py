@@ -97,7 +97,7 @@ def test_noise_floor_against_the_true_positions():
         rec = make_recording(truth, jc.PID(kp=20.0), jc.ramp(0.2, horizon=2.0), seed=4, noise=noise)
         seg = F.prepare(rec, ("B_eq",), {}, F.FitSettings())
         # About its mean: a constant offset (the count's phase in noisy data) is y0's part.
-        err = seg.measured - rec.true_position
+        err = seg.target - rec.true_position
         assert F.noise_floor([seg]) == pytest.approx(np.std(err), rel=0.1), noise
 
 

@@ -60,19 +60,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hw.control_law import PID
 from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
-from jaxcart.files import signal64
 from jaxcart.parallel import put, sharded_map
-from jaxcart.params import ENCODER_RESOLUTION, Plant
+from jaxcart.params import Plant
 from jaxcart.plantspec import handout_plant
 from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing, continuation
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.covariance import covariances
+from tuning.estimation.engine.covariance import Covariance, covariance
 from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
 from tuning.estimation.engine.lm import (
     LM_DAMPING,
@@ -88,10 +86,10 @@ from tuning.estimation.engine.noise import (
     floor_of,
     misfits,
     noise_level,
-    widened_for_model_error,
 )
 from tuning.estimation.engine.parameters import base_name
-from tuning.estimation.engine.segments import coasting_segment, initial_state
+from tuning.estimation.engine.segments import Segment
+from tuning.estimation.engine.segments import prepare as prepare_segment
 
 #: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
 ALIASES = {"v_limit": "v_sat"}
@@ -248,32 +246,6 @@ class Estimate:
         else:
             out["stderr_naive"] = _finite(self.stderr_naive)
         return out
-
-
-@dataclass(frozen=True, eq=False)
-class Segment:
-    """One recording prepared for fitting: the samples ``start:stop`` of it.
-
-    name: the recording's file name; plant: the plant it ran on (starting values applied);
-    controller: its PID (a placeholder for taps and open loop); experiment: the segment as an
-    :class:`Experiment` (y0, yd0 = the starting guesses); time: recording time of each sample
-    [s]; measured: positions [m] (for encoder data the middle of each count); nuisance: the
-    per-segment values fitted too (:class:`Nuisance`); params: the fitted plant parameters that act
-    on this plant; quantization: the encoder count found in the data [m] (0: not quantized).
-    """
-
-    recording: object
-    name: str
-    plant: Plant
-    controller: PID
-    experiment: Experiment
-    time: np.ndarray
-    measured: np.ndarray
-    start: int
-    stop: int
-    nuisance: tuple
-    params: tuple[str, ...]
-    quantization: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -591,21 +563,17 @@ def _initial_value(name, value):
 
 
 def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
-    """A recording as a :class:`Segment`: the coasting part of a tap (nuisance y0, yd0), or the
-    whole run of a closed or open loop (nuisance y0: the encoder reads 0 at the start, the
-    cart is somewhere within that count)."""
-    name = _name(recording)
+    """A recording as the engine's :class:`Segment` (:func:`~.engine.segments.prepare`: the
+    coasting part of a tap, or the whole run of a closed or open loop) with what this fit adds:
+    the plant with the start ``values`` (and each fitted effect it lacks at a start where it acts
+    on these data), the fitted ``params`` that act on it, and its nuisance values: a tap's y0,
+    yd0 (free); a run's y0 (bounded: the encoder reads 0 at the start, the cart is somewhere
+    within that count)."""
+    seg = prepare_segment(recording, quantization=settings.quantization, margin=settings.tap_margin)
+    gains = seg.controller
+    if seg.kind == "closed_loop" and gains.ki == 0 and gains.kp == 0 and gains.kd == 0:
+        raise UserError(f"{seg.name}: [controller] has all gains 0; give the gains that ran")
     raw = np.asarray(recording.position, dtype=float)
-    n = raw.size
-    if n < 10:
-        raise UserError(f"{name}: only {n} samples; a fit needs a recording of at least 10")
-    if not np.all(np.isfinite(raw)):
-        raise UserError(f"{name}: column y has non-finite values; remove those rows")
-    q = encoder_count(raw) if settings.quantization is None else float(settings.quantization)
-    # A count says the cart is somewhere in [y, y + q): its best estimate is the middle.
-    y = raw + q / 2
-    ts = float(recording.sample_time)
-    time = np.asarray(recording.time, dtype=float)
     plant = with_values(recording.plant(), values)
     canon = [canonical(p) for p in params]
     peaks = _peaks(recording, plant)
@@ -616,59 +584,19 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
             start = starts[b] if plantspec.param(b).size else P.start_for(b, peaks, raw.mean())
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
-    exp = recording.experiment
-    if recording.kind == "tap":
-        try:
-            start, stop = coasting_segment(
-                raw, ts, margin=settings.tap_margin, quantization=q or ENCODER_RESOLUTION
-            )
-        except ValueError as exc:
-            raise UserError(f"{name}: {exc}; check that column y is the cart position") from None
-        if stop - start < 20:
-            raise UserError(
-                f"{name}: the coasting part found ({time[start]:.3f} s to "
-                f"{time[stop - 1]:.3f} s) is shorter than 20 samples; "
-                "record a longer tap"
-            )
-        y0, yd0 = initial_state(time, y, start)
+    if seg.kind == "tap":
         nuisance = (
             Nuisance("y0", 0.0, NUISANCE_SCALE["y0"]),
             Nuisance("yd0", 0.0, NUISANCE_SCALE["yd0"]),
         )
     else:
-        # The run starts where the encoder was zeroed: y0 lies within the first count, widened
-        # by 4 noise levels either side where the data are not whole counts (a bounded nuisance).
-        start, stop = 0, n
-        y0, yd0 = float(y[0]), float(exp.yd0)
+        # y0 lies within the first count, widened by 4 noise levels either side where the data
+        # are not whole counts (a bounded nuisance).
         sigma = 0.0 if encoder_count(raw) > 0 else noise_level(raw)
-        width = q + 8 * sigma
+        width = seg.quantization + 8 * sigma
+        y0 = seg.experiment.y0
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    signal = put(signal64(recording)[start:stop], float)
-    experiment = dataclasses.replace(exp, signal=signal, y0=y0, yd0=yd0)
-    controller = recording.controller
-    if controller is None:
-        controller = PID(sample_time=ts)
-    if (
-        recording.kind == "closed_loop"
-        and controller.ki == 0
-        and controller.kp == 0
-        and controller.kd == 0
-    ):
-        raise UserError(f"{name}: [controller] has all gains 0; give the gains that ran")
-    return Segment(
-        recording,
-        name,
-        plant,
-        controller,
-        experiment,
-        time[start:stop],
-        y[start:stop],
-        start,
-        stop,
-        nuisance,
-        acting,
-        q,
-    )
+    return dataclasses.replace(seg, plant=plant, nuisance=nuisance, params=acting)
 
 
 def _peaks(recording, plant) -> dict:
@@ -678,11 +606,6 @@ def _peaks(recording, plant) -> dict:
         return {}
     top = float(np.max(np.abs(np.asarray(recording.command, dtype=float))))
     return {"command": top, "current": top / float(plant.Rm)}
-
-
-def _name(recording) -> str:
-    path = getattr(recording, "path", None)
-    return str(getattr(path, "name", path) or "recording")
 
 
 # ---------------------------------------------------------------- the model
@@ -775,12 +698,16 @@ class _Problem:
                 index += 1
             layout.append((ps, tuple(nu)))
         self.layout = _Layout(self.params, tuple(layout), settings.substeps)
+        # The name of every entry of theta: the parameters, then each segment's nuisances.
+        self.entries = list(self.params) + [
+            f"{v.name}@{k}" for k, seg in enumerate(segments) for v in seg.nuisance
+        ]
         self.evaluations = 0  # smooth-model points evaluated (r and J)
         self.theta0 = np.asarray(theta, dtype=float)
         # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
         # nearly the same length then share one compiled residual function.
-        self.sizes = [s.measured.size for s in segments]
-        self.observed = np.concatenate([s.measured for s in segments])
+        self.sizes = [s.target.size for s in segments]
+        self.observed = np.concatenate([s.target for s in segments])
         padded = [-(-n // PAD) * PAD for n in self.sizes]
         # On the device once: host leaves would be transferred again at every evaluation.
         self.data = jax.tree.map(
@@ -798,7 +725,7 @@ class _Problem:
         self.measured = put(
             np.concatenate(
                 [
-                    np.pad(s.measured, (0, n - s.measured.size))
+                    np.pad(s.target, (0, n - s.target.size))
                     for s, n in zip(segments, padded, strict=True)
                 ]
             )
@@ -806,7 +733,7 @@ class _Problem:
         self.weight = put(
             np.concatenate(
                 [
-                    np.pad(np.ones(s.measured.size), (0, n - s.measured.size))
+                    np.pad(np.ones(s.target.size), (0, n - s.target.size))
                     for s, n in zip(segments, padded, strict=True)
                 ]
             )
@@ -1124,8 +1051,8 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
         return theta, r, jac
 
     theta, r, jac = polish(theta, r, jac)
-    theta, r, jac, cov = _identify(problem, theta, r, jac, active, notes, settings, run, polish)
-    result = _result(problem, params, values0, theta, r, cov, active, notes, run, exact)
+    theta, r, jac, judged = _identify(problem, theta, r, jac, active, notes, settings, run, polish)
+    result = _result(problem, params, values0, theta, r, judged, active, notes, run, exact)
     result = dataclasses.replace(result, seconds=_time.perf_counter() - t_start)
     # The warnings travel with the result (printed once, by whoever shows it).
     if exact:
@@ -1222,32 +1149,18 @@ def _optimize(problem, active, settings, run):
     return theta, r, jac
 
 
-class _Covariance(NamedTuple):
-    """The covariances of the final fit over the active entries ``idx`` of theta (internal
-    units): robust (HAC, widened for model error where the model misfits), naive."""
-
-    idx: np.ndarray
-    hac: np.ndarray
-    naive: np.ndarray
-    se: np.ndarray  # robust standard errors (widened where the model misfits)
-    floor: float
-    n_eff: float
-    misfit: str
-
-
 def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
     """Identifiability: the worst determined parameter held at its start value and the rest
     refitted, until every relative standard error is within ``max_rel_stderr``. Returns
-    (theta, r, J, :class:`_Covariance`)."""
+    (theta, r, J, (the engine's :class:`Covariance` over the active entries of theta in
+    internal units, widened where the model misfits; the noise floor [m]; why the model
+    misfits or ""))."""
     p = problem.n_params
     while True:
         idx = np.flatnonzero(active)
-        hac, naive, singular = covariances(
-            jac[:, idx],
-            problem.split(r),
-            problem.split(r + problem.observed),  # the model's positions decide the runs
-            [s.quantization for s in problem.segments],
-        )
+        names = [problem.entries[i] for i in idx]
+        cov = covariance(problem.segments, names, None, jac[:, idx], problem.split(r))
+        hac, singular = cov.robust, cov.singular
         # Relative standard errors (for log-scaled parameters the log-space error is that).
         rel = np.sqrt(np.diag(hac)) * np.asarray(
             [
@@ -1279,36 +1192,34 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         narrow = settings.widths[-1]
         theta, r, jac = run.lm(label, problem, theta, active, narrow, settings.lm_iterations)
         theta, r, jac = polish(theta, r, jac)
-    return theta, r, jac, _final_covariance(problem, r, idx, hac, naive, run)
+    return theta, r, jac, _widened(problem, r, cov)
 
 
-def _final_covariance(problem, r, idx, hac, naive, run) -> _Covariance:
-    """The standard errors of the final fit, widened where the model misfits."""
+def _widened(problem, r, cov: Covariance) -> tuple:
+    """(``cov`` with its standard errors widened where the model misfits, the noise floor [m],
+    why the model misfits or "")."""
     floor = noise_floor(problem.segments)
     n_eff = effective_samples(problem.split(r))
-    se = np.sqrt(np.diag(hac))
     misfit = ""
     if misfits(_rms(r), floor):
-        se = widened_for_model_error(se, np.diag(naive), r.size, n_eff)
         misfit = (
             f"the model does not explain the data: RMS {_rms(r) * 1e3:.3g} mm is "
             f"{_rms(r) / floor:.0f} times the encoder/noise level {floor * 1e3:.2g} mm; the "
             f"residual is worth {n_eff:.0f} independent samples of {r.size}, and the standard "
             "errors are widened to that; an effect may be missing (jaxcart diagnose)"
         )
-        driven = sum(s.recording.kind != "tap" for s in problem.segments)
+        driven = sum(s.motor for s in problem.segments)
         if driven >= 2 and not any("@" in n for n in problem.params):
             misfit += (
                 ", or the drive differs from run to run (--per-recording v_sat with v_sat in "
                 "--params)"
             )
-    return _Covariance(idx, hac, naive, se, floor, n_eff, misfit)
+    return dataclasses.replace(cov, n_eff=n_eff, widened=bool(misfit)), floor, misfit
 
 
 def _estimates(problem, params, theta, cov, active, notes) -> dict:
     """{name as asked: :class:`Estimate`} of every fitted parameter."""
-    se_internal = dict(zip(cov.idx.tolist(), cov.se, strict=True))
-    se_naive = dict(zip(cov.idx.tolist(), np.sqrt(np.diag(cov.naive)), strict=True))
+    se_internal, se_naive = _errors(problem, cov)
     out = {}
     for asked, name in zip(params, problem.params, strict=True):
         i = problem.params.index(name)
@@ -1329,10 +1240,18 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
     return out
 
 
+def _errors(problem, cov) -> tuple[dict, dict]:
+    """({index in theta: standard error}, {index in theta: naive standard error}) of the
+    entries of ``cov`` (internal units)."""
+    idx = [problem.entries.index(n) for n in cov.names]
+    naive = np.sqrt(np.diag(cov.naive))
+    return dict(zip(idx, cov.stderrs(), strict=True)), dict(zip(idx, naive, strict=True))
+
+
 def _correlation(problem, cov) -> dict:
     """{(a, b): correlation} of the identified plant parameters."""
     out = {}
-    hac, idx = cov.hac, cov.idx
+    hac, idx = cov.robust, [problem.entries.index(n) for n in cov.names]
     ident = [j for j, i in enumerate(idx) if i < problem.n_params]
     for a in ident:
         for b in ident:
@@ -1344,8 +1263,7 @@ def _correlation(problem, cov) -> dict:
 
 def _segment_fits(problem, theta, cov, exact, narrow) -> list:
     """A :class:`SegmentFit` per recording: before and after, smooth and exact, nuisances."""
-    se_internal = dict(zip(cov.idx.tolist(), cov.se, strict=True))
-    se_naive = dict(zip(cov.idx.tolist(), np.sqrt(np.diag(cov.naive)), strict=True))
+    se_internal, se_naive = _errors(problem, cov)
     r0, _ = problem.evaluate(problem.theta0, narrow)
     before = problem.split(r0 + problem.observed)
     r_smooth, _ = problem.evaluate(theta, narrow)
@@ -1368,14 +1286,13 @@ def _segment_fits(problem, theta, cov, exact, narrow) -> list:
             )
         plant = seg.plant.replace(**assemble(seg.plant, pv))
         fits = (before[k], after[k], before_exact[k], after_exact[k])
-        out.append(
-            SegmentFit(seg.name, seg.recording.kind, seg.time, seg.measured, *fits, nuis, plant)
-        )
+        out.append(SegmentFit(seg.name, seg.kind, seg.time, seg.target, *fits, nuis, plant))
     return out
 
 
-def _result(problem, params, values0, theta, r, cov, active, notes, run, exact) -> FitResult:
+def _result(problem, params, values0, theta, r, judged, active, notes, run, exact) -> FitResult:
     """The :class:`FitResult` of a finished fit (``seconds`` filled in by the caller)."""
+    cov, floor, misfit = judged
     estimates = _estimates(problem, params, theta, cov, active, notes)
     values = {**values0}
     for seg in problem.segments:
@@ -1400,15 +1317,15 @@ def _result(problem, params, values0, theta, r, cov, active, notes, run, exact) 
         run.history,
         exact,
         run.stages,
-        cov.floor,
+        floor,
         cov.n_eff,
-        cov.misfit,
+        misfit,
     )
 
 
 def noise_floor(segments) -> float:
     """RMS position error [m] a correct model leaves on these segments (:func:`floor_of`)."""
-    return floor_of((seg.measured, seg.quantization) for seg in segments)
+    return floor_of((seg.target, seg.quantization) for seg in segments)
 
 
 def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:

@@ -38,6 +38,7 @@ import numpy as np
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
+from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.lm import marquardt_step
 from tuning.estimation.engine.noise import MISFIT_RATIO, RecordingNoise
 
@@ -461,7 +462,7 @@ def fitted_apart(search, best, motor: bool, iterations: int = DRIVEN_ITERATIONS)
         return out
     # The covariance takes the Jacobian per unit of each fitted coordinate (a log for some).
     slopes = np.array([P.value_slope(n, values[n]) for n in names])
-    cov = C.covariance(
+    cov = covariance(
         sub.segments, names, values, jac * slopes, residuals, search.widen_above,
         noise.weights(residuals),
     )  # fmt: skip
