@@ -106,11 +106,11 @@ def loglinear_beq(
 
     The velocity (central differences of position, ``window`` [s] moving average) is taken over
     the coasting part (``segment`` = sample indices (start, stop); default: found as
-    :func:`tuning.estimation.fit.coasting_segment` does) until it falls below ``min_fraction`` of
-    its
-    starting value (below that the encoder's counts dominate ln|v|). A least-squares line
-    ln|v| = a + b t gives B_eq = -b m, with m = M + M_J of the recording's plant unless
-    ``mass`` [kg] is given. ``stderr`` is the regression's (independent-error assumption).
+    :func:`tuning.estimation.engine.segments.coasting_segment` does) until it falls below
+    ``min_fraction`` of its starting value (below that the encoder's counts dominate ln|v|). A
+    least-squares line ln|v| = a + b t gives B_eq = -b m, with m = M + M_J of the recording's
+    plant unless ``mass`` [kg] is given. ``stderr`` is the regression's (independent-error
+    assumption).
     """
     _require(recording, "tap", "the log-linear B_eq method")
     y = np.asarray(recording.position, dtype=float)

@@ -218,7 +218,7 @@ class Diagnosis:
 
     left_out / corrected_parameters: the effects and parameter corrections of the chosen
     structure (the corrected plant holds them). When ``explained`` is False no candidate
-    reaches :data:`tuning.estimation.fit.MISFIT_RATIO` times the encoder floor: the chosen
+    reaches :data:`tuning.estimation.engine.noise.MISFIT_RATIO` times the encoder floor: the chosen
     structure is
     only the best approximation, and the verdict says so first."""
 

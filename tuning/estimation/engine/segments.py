@@ -28,8 +28,8 @@ class Segment:
 
     A fit of fixed structure (:func:`tuning.estimation.fit.fit`) adds its own: ``plant``, the
     plant the recording ran on with the start values; ``nuisance``, the per-recording values
-    fitted beside the plant (:class:`tuning.estimation.fit.Nuisance`); ``params``, the fitted
-    parameters that act on this plant.
+    fitted beside the plant (:class:`tuning.estimation.fitting.model.Nuisance`); ``params``,
+    the fitted parameters that act on this plant.
     """
 
     name: str
