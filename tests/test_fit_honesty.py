@@ -14,7 +14,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.synthetic import make_recording, write_recording
 from tuning.estimation import fit as F
-from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples
+from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples, floor_of
 from tuning.estimation.fitting import model
 
 Q = jc.ENCODER_RESOLUTION
@@ -99,7 +99,7 @@ def test_noise_floor_against_the_true_positions():
         seg = F.prepare(rec, ("B_eq",), {}, F.FitSettings())
         # About its mean: a constant offset (the count's phase in noisy data) is y0's part.
         err = seg.target - rec.true_position
-        assert F.noise_floor([seg]) == pytest.approx(np.std(err), rel=0.1), noise
+        assert floor_of([seg]) == pytest.approx(np.std(err), rel=0.1), noise
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.9])

@@ -61,7 +61,7 @@ from jaxcart.errors import UserError
 from jaxcart.smoothing import continuation
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.covariance import Covariance, covariance
-from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
+from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.lm import (
     LM_TOLERANCE,
     LM_TOLERANCE_WIDE,
@@ -82,10 +82,8 @@ from tuning.estimation.engine.segments import prepare as prepare_segment
 from tuning.estimation.fitting.files import fit_table, load_fitted_plant, write_fitted_plant
 from tuning.estimation.fitting.model import NUISANCE_SCALE, Nuisance, _Problem
 from tuning.estimation.fitting.names import (
-    LINEAR_SCALE,
     _drives_nothing,
     _initial_value,
-    _log_scaled,
     assemble,
     canonical,
     default_start,
@@ -93,7 +91,6 @@ from tuning.estimation.fitting.names import (
     not_fitted,
     parse_params,
     plant_values,
-    to_value,
     unit_of,
     with_values,
 )
@@ -104,7 +101,7 @@ from tuning.estimation.fitting.result import Estimate, FitResult, SegmentFit, _r
 __all__ = [
     "Estimate", "FitResult", "FitSettings", "Nuisance", "SegmentFit", "assemble", "canonical",
     "cross_predict", "default_start", "fit", "fit_table", "fittable", "load_fitted_plant",
-    "noise_floor", "not_fitted", "parse_params", "plant_values", "plot_fit", "prepare",
+    "not_fitted", "parse_params", "plant_values", "plot_fit", "prepare",
     "unit_of", "with_values", "write_fitted_plant"
 ]  # fmt: skip
 
@@ -190,8 +187,8 @@ def _peaks(recording, plant) -> dict:
 
 
 def _exact_polish(problem, theta, active, jac, iterations):
-    """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
-    gauss_newton`: residuals and forward-difference Jacobian both from
+    """The engine's exact polish (:func:`~tuning.estimation.engine.exact_polish.polish`:
+    Gauss-Newton, residuals and forward-difference Jacobian both from
     :func:`jaxcart.exact.simulate_exact`), started from the smooth fit, in the internal
     coordinates (each entry moves at most MAX_STEP per iteration, as in the engine's
     :func:`~tuning.estimation.engine.lm.levenberg_marquardt`; a column the exact model's
@@ -222,15 +219,17 @@ def _exact_polish(problem, theta, active, jac, iterations):
             made[np.asarray(x, dtype=float).tobytes()] = np.concatenate(pos) - problem.observed
 
     low, high = problem.theta_bounds()
-    done = gauss_newton(
+    done = polish(
         residual,
+        [problem.entries[i] for i in idx],
         theta[idx],
-        np.full(idx.size, 1e-6),  # internal units: a relative step of 1e-6 for the logs
-        (low[idx], high[idx]),
         iterations,
-        max_step=MAX_STEP,
         reference=np.linalg.norm(jac[:, idx], axis=0),
-        staircase=STAIRCASE,
+        bounds=(low[idx], high[idx]),
+        slopes=np.ones(idx.size),  # internal units: the staircase's secant over +-STAIRCASE
+        steps=1e-6,  # a relative step of 1e-6 for the logs
+        max_step=MAX_STEP,
+        shortest=1 / 64,
         prefetch=prefetch,
     )
     theta = theta.copy()
@@ -461,8 +460,8 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         rel = np.sqrt(np.diag(hac)) * np.asarray(
             [
                 1.0
-                if i >= p or _log_scaled(problem.params[i])
-                else LINEAR_SCALE / max(abs(float(to_value(problem.params[i], theta[i]))), 1e-3)
+                if i >= p or P.is_log(problem.params[i])
+                else P.LINEAR_SCALE / max(abs(float(P.to_value(problem.params[i], theta[i]))), 1e-3)
                 for i in idx
             ]
         )
@@ -480,7 +479,7 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         i = int(idx[worst])
         name = problem.params[i]
         notes[name] = _why(name, worst, idx, hac, singular, zero, problem, theta)
-        held_at = float(to_value(name, problem.theta0[i]))
+        held_at = float(P.to_value(name, problem.theta0[i]))
         run.say(f"{name}: {notes[name]}; holding it at {held_at:.4g}, {problem.start_source(name)}")
         active[i] = False
         theta[i] = problem.theta0[i]
@@ -494,7 +493,7 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
 def _widened(problem, r, cov: Covariance) -> tuple:
     """(``cov`` with its standard errors widened where the model misfits, the noise floor [m],
     why the model misfits or "")."""
-    floor = noise_floor(problem.segments)
+    floor = floor_of(problem.segments)
     n_eff = effective_samples(problem.split(r))
     misfit = ""
     if misfits(_rms(r), floor):
@@ -520,7 +519,7 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
     for asked, name in zip(params, problem.params, strict=True):
         i = problem.params.index(name)
         if active[i]:
-            value = float(to_value(name, theta[i]))
+            value = float(P.to_value(name, theta[i]))
             slope = P.value_slope(name, value)
             out[asked] = Estimate(
                 asked,
@@ -530,7 +529,7 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
                 edge=P.at_edge(name, value),
             )
         else:
-            held = float(to_value(name, problem.theta0[i]))
+            held = float(P.to_value(name, problem.theta0[i]))
             note = f"{notes[name]}; held at {held:.4g}, {problem.start_source(name)}"
             out[asked] = Estimate(asked, None, None, identifiable=False, note=note, held_at=held)
     return out
@@ -596,9 +595,9 @@ def _result(problem, params, values0, theta, r, judged, active, notes, run, exac
     per_run: dict = {}
     for i, name in enumerate(problem.params):
         if "@" in name:
-            per_run.setdefault(base_name(name), []).append(float(to_value(name, theta[i])))
+            per_run.setdefault(base_name(name), []).append(float(P.to_value(name, theta[i])))
         else:
-            values[name] = float(to_value(name, theta[i]))
+            values[name] = float(P.to_value(name, theta[i]))
     # The cart's plant holds a parameter free per recording at the median of its runs.
     values.update({n: float(np.median(v)) for n, v in per_run.items()})
     narrow = problem.settings.widths[-1]
@@ -619,16 +618,11 @@ def _result(problem, params, values0, theta, r, judged, active, notes, run, exac
     )
 
 
-def noise_floor(segments) -> float:
-    """RMS position error [m] a correct model leaves on these segments (:func:`floor_of`)."""
-    return floor_of((seg.target, seg.quantization) for seg in segments)
-
-
 def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:
     """Why parameter ``name`` (entry j of idx) is not identifiable, in one line."""
     i = int(idx[j])
     p = len(problem.params)
-    if _log_scaled(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
+    if P.is_log(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
         return (
             f"not identifiable: the fit drives it towards 0 ({math.exp(theta[i]):.2g}); the "
             "data favour a model without it, or the model misses what they show"

@@ -38,7 +38,7 @@ from jaxcart.params import ENCODER_RESOLUTION
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
-from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton, jacobian
+from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
 from tuning.estimation.engine.noise import MISFIT_RATIO, repeatability
 from tuning.estimation.engine.segments import recording_name
@@ -635,13 +635,13 @@ def cost_to_reach(cand, reach, noise) -> float:
 def _polish(
     cand, segments, base_plants, values, layout, iterations=3, memo=None, target=None, weights=None
 ):
-    """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
-    gauss_newton`, forward differences, within :func:`~.parameters.bounds`) in the values
+    """The engine's exact polish (:func:`~tuning.estimation.engine.exact_polish.polish`:
+    Gauss-Newton on the exact simulator, forward differences, within the bounds) in the values
     themselves, a few parameters; ``weights``: each recording's weight in the joint least
     squares (:meth:`~tuning.estimation.engine.noise.RecordingNoise.weights`; equal when None).
     Returns (values, the forward-difference Jacobian of the exact residual [m per unit of each
     value] at them or None, the values' names in its column order, whether it converged);
-    ``target``: the (weighted) cost worth fitting for (see :func:`exact_gauss_newton`)."""
+    ``target``: the (weighted) cost worth fitting for (see there)."""
     names = list(values)
     roots = np.sqrt(np.ones(len(segments)) if weights is None else np.asarray(weights))
     rows = np.concatenate([np.full(s.target.size, w) for s, w in zip(segments, roots, strict=True)])
@@ -657,9 +657,11 @@ def _polish(
     def prefetch(xs):
         exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
 
-    done = exact_gauss_newton(
-        cand, names, values, residual, segments, iterations, prefetch if memo else None, target
-    )
+    done = polish(
+        residual, names, [values[n] for n in names], iterations,
+        reference=smooth_reference(cand, names, values, segments),
+        prefetch=prefetch if memo else None, target=target,
+    )  # fmt: skip
     out = at(done.x) if done.improved else values
     jac = None if done.jac is None else done.jac / rows[:, None]  # the plain residual's
     return out, jac, names, done.converged
@@ -670,80 +672,12 @@ def values_key(values: dict) -> tuple:
     return tuple(sorted((k, float(v)) for k, v in values.items()))
 
 
-def difference_floors(names) -> np.ndarray:
-    """The least forward-difference step of each value of ``names``: a time or a position
-    [s, m] 1e-7, any other (a force, a gain) 1e-6."""
-    return np.array(
-        [
-            1e-7 if Layout.kind(n) in P.NUISANCE or P.spec(n).unit in ("s", "m") else 1e-6
-            for n in names
-        ]
-    )
-
-
-def difference_steps(names, x) -> np.ndarray:
-    """Forward-difference steps of the values ``x`` of ``names``: 1e-4 of each, at least its
-    floor (:func:`difference_floors`)."""
-    return 1e-4 * np.abs(np.asarray(x, dtype=float)) + difference_floors(names)
-
-
-def exact_gauss_newton(
-    cand, names, values, residual, segments, iterations, prefetch=None, target=None
-):
-    """The engine's exact Gauss-Newton (:func:`~tuning.estimation.engine.exact_polish.
-    gauss_newton`) on ``residual`` (a function of the vector of ``names``' values) from
-    ``values``, within :func:`~.parameters.bounds`, as every exact re-fit of a diagnosis takes
-    it (the polish, the held-out re-fits); ``prefetch``: makes the runs of several vectors at
-    once (the Jacobian's columns); ``target``: a cost [m^2] worth fitting for (see
-    :func:`~tuning.estimation.engine.exact_polish.gauss_newton`)."""
-    low = np.array([P.bounds(n)[0] for n in names], dtype=float)
-    high = np.array([P.bounds(n)[1] for n in names], dtype=float)
-    x0 = np.clip(np.array([values[n] for n in names], dtype=float), low, high)
-    return gauss_newton(
-        residual,
-        x0,
-        lambda x: difference_steps(names, x),
-        (low, high),
-        iterations,
-        shortest=0.25,
-        prefetch=prefetch,
-        target=target,
-        **_staircase(cand, names, values, segments),
-    )
-
-
-def _staircase(cand, names, values, segments) -> dict:
-    """Where the exact output moves in steps of a value (a breakaway at f_s snapped to a
-    sample, a controller reading whole counts), a forward difference is flat: the secant spans
-    STAIRCASE of its internal coordinate, where the smooth fit's Jacobian sees the value act
-    (:func:`~tuning.estimation.engine.exact_polish.jacobian`'s ``reference`` and
-    ``staircase``)."""
-    slopes = np.array([P.value_slope(n, values[n]) for n in names])
-    return {
-        "reference": _smooth_norms(cand, names, slopes, segments),
-        "staircase": STAIRCASE * np.abs(slopes),
-    }
-
-
-def exact_jacobian(cand, names, values, residual, segments, prefetch=None) -> np.ndarray:
-    """The forward-difference Jacobian of ``residual`` (a function of the vector of ``names``'
-    values) at ``values``, as :func:`exact_gauss_newton` takes it [m per unit of each value]."""
-    x = np.array([values[n] for n in names], dtype=float)
-    steps = difference_steps(names, x)
-    return jacobian(
-        residual,
-        x,
-        residual(x),
-        steps,
-        prefetch=prefetch,
-        **_staircase(cand, names, values, segments),
-    )
-
-
-def _smooth_norms(cand, names, slopes, segments):
+def smooth_reference(cand, names, values, segments):
     """Column norms of ``cand``'s batch-fit Jacobian (its free slots, then the nuisances) per
     unit of each value of ``names`` (0 where it has none): where the smooth model sees a value
-    act, a flat exact difference quotient is the staircase."""
+    act, a flat exact difference quotient is the staircase (the exact polish's ``reference``,
+    :func:`~tuning.estimation.engine.exact_polish.polish`)."""
+    slopes = np.array([P.value_slope(n, values[n]) for n in names])
     jac = getattr(cand, "jac", None)
     order = list(cand.free) + [n for n in names if n not in cand.free]
     if jac is None or jac.ndim != 2 or jac.shape[1] < len(order):

@@ -149,7 +149,7 @@ class Search:
         segments = self.segments
         # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data
         # that are not whole counts (jaxcart fit's floor).
-        self.floor = floor_of((s.target, s.quantization) for s in segments)
+        self.floor = floor_of(segments)
         self.widen_above = FLOOR_FACTOR * self.floor  # above it the residual is model error
         # Each recording against its own floor: the criterion and the joint fits' weights.
         self.noise = RecordingNoise(segments, FLOOR_FACTOR)

@@ -58,16 +58,6 @@ class Layout:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
-    def expand(self, names) -> tuple:
-        """``names`` with each per-recording name replaced by its copies."""
-        out = []
-        for n in names:
-            if n in self.per_recording:
-                out += [f"{n}@{i}" for i, own in self.copies.items() if n in own]
-            else:
-                out.append(n)
-        return tuple(out)
-
     def slots_of(self, i: int) -> list:
         """The slot of each superset name in recording ``i``: its own copy where it has one."""
         own = self.copies.get(i, {})

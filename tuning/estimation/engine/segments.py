@@ -50,12 +50,6 @@ class Segment:
     def motor(self) -> bool:
         return self.kind != "tap"
 
-    def count_index(self) -> np.ndarray:
-        """The whole encoder count of every target sample (needs quantization > 0). The target
-        is the middle of its count, n + 1/2 counts: rounded, half of them would tie and go to
-        the even neighbour, merging two counts into one."""
-        return np.floor(self.target / self.quantization)
-
 
 def recording_name(recording) -> str:
     """The recording's file name ("recording" where it has none)."""

@@ -26,12 +26,9 @@ from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
     _default_start,
     _element,
-    _log_scaled,
     assemble,
     canonical,
     default_start,
-    to_theta,
-    to_value,
 )
 
 #: Nuisance values and their internal units (the optimizer's unit step): y0, the initial
@@ -86,7 +83,7 @@ def _positions(theta, data, smoothing, layout: _Layout):
         data, layout.segments, strict=True
     ):
         plant = plant.replace(
-            **assemble(plant, {p: to_value(p, theta[i], jnp) for p, i in params}, jnp)
+            **assemble(plant, {p: P.to_value(p, theta[i], jnp) for p, i in params}, jnp)
         )
         # The base values are data (a traced array), so that recordings differing only in them
         # share one compilation.
@@ -145,7 +142,7 @@ class _Problem:
         self.settings = settings
         index = len(self.params)
         layout = []
-        theta = [to_theta(p, self._start_value(p)) for p in self.params]
+        theta = [P.to_theta(p, self._start_value(p)) for p in self.params]
         for k, seg in enumerate(segments):
             # A parameter free per recording maps to this recording's own copy (``v_sat@k``).
             own = [f"{p}@{k}" if f"{p}@{k}" in self.params else p for p in seg.params]
@@ -215,7 +212,7 @@ class _Problem:
             if base in s.params or p in s.params
         ]
         value = values[0] if values else _default_start(p.split("@")[0])
-        if _log_scaled(p) and not value > 0:
+        if P.is_log(p) and not value > 0:
             value = _default_start(p.split("@")[0])
         return value
 
@@ -267,7 +264,7 @@ class _Problem:
         """(plant values {name: value}, nuisance {name: value}) of segment k at theta."""
         params, _ = self.layout.segments[k]
         return (
-            {p: float(to_value(p, theta[i])) for p, i in params},
+            {p: float(P.to_value(p, theta[i])) for p, i in params},
             {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
         )
 
@@ -278,7 +275,7 @@ class _Problem:
         low = np.full(self.theta0.size, -np.inf)
         high = np.full(self.theta0.size, np.inf)
         for i, name in enumerate(self.params):
-            low[i], high[i] = (to_theta(name, b) for b in P.bounds(name))
+            low[i], high[i] = (P.to_theta(name, b) for b in P.bounds(name))
         for k in range(len(self.segments)):
             for v, i in self.nuisance_index(k):
                 if v.bounded:
@@ -337,10 +334,6 @@ class _Problem:
     def split(self, r):
         """Per-segment parts of a vector over all samples."""
         return np.split(np.asarray(r), np.cumsum(self.sizes)[:-1])
-
-    def split_rows(self, a):
-        """Per-segment row blocks of a matrix over all samples."""
-        return np.split(np.asarray(a), np.cumsum(self.sizes)[:-1], axis=0)
 
 
 def _padded_experiment(experiment: Experiment, n: int) -> Experiment:

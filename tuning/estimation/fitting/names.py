@@ -138,28 +138,11 @@ def with_values(plant: Plant, values: dict) -> Plant:
     return plantspec.build_plant(values, base=plant, check=False)
 
 
-_log_scaled = P.is_log
-LINEAR_SCALE = P.LINEAR_SCALE
-
-
-def to_value(name: str, theta, xp=np):
-    """A parameter's value [SI] from its internal coordinate (:mod:`.engine.parameters`)."""
-    return xp.exp(theta) if P.is_log(name) else LINEAR_SCALE * theta
-
-
-def to_theta(name: str, value: float) -> float:
-    """The internal coordinate of a parameter value (inverse of :func:`to_value`)."""
-    return P.to_theta(name, value)
-
-
 def plant_values(plant: Plant, names=None) -> dict:
     """{name: float} of those ``names`` (default: every fittable one) the plant has."""
     names = fittable() if names is None else names
     have = set(plant.param_names())
     return {n: float(plant.get(n)) for n in names if n in have}
-
-
-# ---------------------------------------------------------------- segments
 
 
 def _default_start(name: str) -> float:
