@@ -24,26 +24,27 @@ from tuning.estimation.diagnose import diagnose, render_markdown
 from tuning.estimation.diagnose.core import (
     CORRECTION_MARGIN,
     K_MAX,
+    MIN_COASTING,
     PER_RUN,
     PLAUSIBLE,
     SIGNIFICANCE,
     Candidate,
     Diagnosis,
-    covariance,
     extend,
     fitter_scale,
     implausible,
-    prepare,
     significance,
     swapped_correction,
 )
 from tuning.estimation.diagnose.report import figure_title
+from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
     MISFIT_RATIO,
     effective_samples,
     misfits,
     widened_for_model_error,
 )
+from tuning.estimation.engine.segments import prepare
 
 Q = 2.275e-5
 FLOOR = Q / math.sqrt(12)
@@ -329,7 +330,7 @@ def test_a_recording_no_candidate_explains_says_so(tmp_path):
     assert "physics outside the effects library" in d.suggestions
     # The standard errors: the fit's widening of the robust ones.
     best = next(c for c in d.candidates if c.name == d.chosen)
-    segs = [prepare(rec)]
+    segs = [prepare(rec, min_coasting=MIN_COASTING)]
     names = list(best.free)
     jac = best.jac / fitter_scale(segs)
     plain = covariance(segs, names, best.values, jac, best.residuals)

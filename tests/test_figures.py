@@ -22,7 +22,7 @@ from jaxcart.synthetic import make_recording
 #: The modules that draw the figures the tool writes, each covered below.
 PLOTTING = {
     "jaxcart/plots.py",
-    "tuning/estimation/fit.py",
+    "tuning/estimation/fitting/plot.py",
     "tuning/estimation/diagnose/report.py",
     "tuning/lab/figures.py",
     "tuning/design/grid.py",

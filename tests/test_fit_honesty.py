@@ -14,7 +14,8 @@ import pytest
 import jaxcart as jc
 from jaxcart.synthetic import make_recording, write_recording
 from tuning.estimation import fit as F
-from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples
+from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples, floor_of
+from tuning.estimation.fitting import model
 
 Q = jc.ENCODER_RESOLUTION
 TRUTH = {"B_eq": 3.0, "f_c": 0.5}
@@ -62,7 +63,7 @@ def test_a_missing_effect_is_flagged_and_its_errors_widened(tap, good):
 
 
 def test_an_optimizer_at_its_cap_says_so(tap, good):
-    layout_traces = dict(F.TRACES)
+    layout_traces = dict(model.TRACES)
     capped = F.fit(
         [tap],
         ("B_eq", "f_c"),
@@ -76,12 +77,12 @@ def test_an_optimizer_at_its_cap_says_so(tap, good):
     assert any("stopped at its iteration cap (1)" in w for w in capped.warnings)
     assert F.fit_table(capped)["converged"] is False
     # Same recording and parameters, another width and cap: the compiled program is reused.
-    assert F.TRACES == layout_traces
+    assert model.TRACES == layout_traces
 
 
 def test_batched_trials_equal_single_runs(tap):
     seg = F.prepare(tap, ("B_eq", "f_c"), {}, QUICK)
-    problem = F._Problem([seg], ("B_eq", "f_c"), QUICK)
+    problem = model._Problem([seg], ("B_eq", "f_c"), QUICK)
     points = problem.theta0 + np.array([[0.0, 0.0, 0.0, 0.0], [0.1, -0.2, 0.5, 0.3]])
     r_k, j_k = problem.evaluate_batch(points, 1e-3)
     for k, theta in enumerate(points):
@@ -97,8 +98,8 @@ def test_noise_floor_against_the_true_positions():
         rec = make_recording(truth, jc.PID(kp=20.0), jc.ramp(0.2, horizon=2.0), seed=4, noise=noise)
         seg = F.prepare(rec, ("B_eq",), {}, F.FitSettings())
         # About its mean: a constant offset (the count's phase in noisy data) is y0's part.
-        err = seg.measured - rec.true_position
-        assert F.noise_floor([seg]) == pytest.approx(np.std(err), rel=0.1), noise
+        err = seg.target - rec.true_position
+        assert floor_of([seg]) == pytest.approx(np.std(err), rel=0.1), noise
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.9])

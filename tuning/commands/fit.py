@@ -319,10 +319,11 @@ def format_result(result) -> str:
 def classic_estimates(recordings, result=None) -> list:
     """[(recording name, ClassicEstimate)] of the methods that apply to each recording."""
     from tuning.estimation import classic
+    from tuning.estimation.engine.segments import recording_name
 
     out = []
     for rec in recordings:
-        name = classic._name(rec)
+        name = recording_name(rec)
         try:
             if rec.kind == "tap":
                 out.append((name, classic.loglinear_beq(rec)))

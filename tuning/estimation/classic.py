@@ -30,6 +30,7 @@ import numpy as np
 
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
+from tuning.estimation.engine.segments import recording_name
 
 
 @dataclass(frozen=True)
@@ -62,11 +63,6 @@ class ClassicEstimate:
         }
 
 
-def _name(recording) -> str:
-    path = getattr(recording, "path", None)
-    return str(getattr(path, "name", path) or "recording")
-
-
 def _velocity(position, sample_time: float, window: float) -> np.ndarray:
     """Central differences of position [m/s], smoothed by a centred moving average of
     ``window`` [s] (edges padded with the end values)."""
@@ -90,7 +86,8 @@ def _count(position, quantization) -> float:
 def _require(recording, kind: str, what: str):
     if recording.kind != kind:
         raise UserError(
-            f"{_name(recording)}: {what} needs a {kind!r} recording, this one is {recording.kind!r}"
+            f"{recording_name(recording)}: {what} needs a {kind!r} recording, this one is "
+            f"{recording.kind!r}"
         )
 
 
@@ -109,11 +106,11 @@ def loglinear_beq(
 
     The velocity (central differences of position, ``window`` [s] moving average) is taken over
     the coasting part (``segment`` = sample indices (start, stop); default: found as
-    :func:`tuning.estimation.fit.coasting_segment` does) until it falls below ``min_fraction`` of
-    its
-    starting value (below that the encoder's counts dominate ln|v|). A least-squares line
-    ln|v| = a + b t gives B_eq = -b m, with m = M + M_J of the recording's plant unless
-    ``mass`` [kg] is given. ``stderr`` is the regression's (independent-error assumption).
+    :func:`tuning.estimation.engine.segments.coasting_segment` does) until it falls below
+    ``min_fraction`` of its starting value (below that the encoder's counts dominate ln|v|). A
+    least-squares line ln|v| = a + b t gives B_eq = -b m, with m = M + M_J of the recording's
+    plant unless ``mass`` [kg] is given. ``stderr`` is the regression's (independent-error
+    assumption).
     """
     _require(recording, "tap", "the log-linear B_eq method")
     y = np.asarray(recording.position, dtype=float)
@@ -125,7 +122,7 @@ def loglinear_beq(
         try:
             segment = coasting_segment(y, ts)
         except ValueError as exc:
-            raise UserError(f"{_name(recording)}: {exc}") from None
+            raise UserError(f"{recording_name(recording)}: {exc}") from None
     start, stop = segment
     v = _velocity(y, ts, window)[start:stop]
     speed = np.abs(v)
@@ -133,7 +130,7 @@ def loglinear_beq(
     end = int(keep[0]) if keep.size else speed.size
     if end < 10:
         raise UserError(
-            f"{_name(recording)}: the coasting part has only {end} samples above "
+            f"{recording_name(recording)}: the coasting part has only {end} samples above "
             f"{min_fraction:.0%} of its starting speed; record a longer tap"
         )
     tt, lv = t[start : start + end], np.log(speed[:end])
@@ -196,7 +193,7 @@ def ramp_breakaway_fc(
     moving = np.flatnonzero(run[:-1] >= min(hold_n, y.size))
     if moving.size == 0:
         raise UserError(
-            f"{_name(recording)}: the cart never moves {counts} counts for {hold} s; "
+            f"{recording_name(recording)}: the cart never moves {counts} counts for {hold} s; "
             "ramp the voltage higher or record longer"
         )
     k = int(moving[0])
@@ -232,7 +229,7 @@ def pcontrol_fc_bounds(
     """
     _require(recording, "closed_loop", "the P-control f_c bounds")
     pid = recording.controller
-    name = _name(recording)
+    name = recording_name(recording)
     if pid is None or pid.ki != 0 or not pid.kp > 0:
         raise UserError(
             f"{name}: the f_c bounds need proportional control (kp > 0, ki = 0); "

@@ -51,31 +51,18 @@ import dataclasses
 import math
 import sys
 import time as _time
-from dataclasses import dataclass, field
-from functools import partial
-from pathlib import Path
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from hw.control_law import PID
 from jaxcart import plantspec
 from jaxcart.errors import UserError
-from jaxcart.experiments import Experiment
-from jaxcart.files import signal64
-from jaxcart.parallel import put, sharded_map
-from jaxcart.params import ENCODER_RESOLUTION, Plant
-from jaxcart.plantspec import handout_plant
-from jaxcart.smooth_sim import simulate_smooth
-from jaxcart.smoothing import Smoothing, continuation
-from jaxcart.workers import SERIAL
+from jaxcart.smoothing import continuation
 from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.covariance import covariances
-from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton
+from tuning.estimation.engine.covariance import Covariance, covariance
+from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.lm import (
-    LM_DAMPING,
     LM_TOLERANCE,
     LM_TOLERANCE_WIDE,
     MAX_STEP,
@@ -88,90 +75,35 @@ from tuning.estimation.engine.noise import (
     floor_of,
     misfits,
     noise_level,
-    widened_for_model_error,
 )
 from tuning.estimation.engine.parameters import base_name
-from tuning.estimation.engine.segments import coasting_segment, initial_state
+from tuning.estimation.engine.segments import Segment
+from tuning.estimation.engine.segments import prepare as prepare_segment
+from tuning.estimation.fitting.files import fit_table, load_fitted_plant, write_fitted_plant
+from tuning.estimation.fitting.model import NUISANCE_SCALE, Nuisance, _Problem
+from tuning.estimation.fitting.names import (
+    _drives_nothing,
+    _initial_value,
+    assemble,
+    canonical,
+    default_start,
+    fittable,
+    not_fitted,
+    parse_params,
+    plant_values,
+    unit_of,
+    with_values,
+)
+from tuning.estimation.fitting.plot import plot_fit
+from tuning.estimation.fitting.result import Estimate, FitResult, SegmentFit, _rms
 
-#: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
-ALIASES = {"v_limit": "v_sat"}
-
-
-def not_fitted() -> dict:
-    """{parameter: why} of the parameters a fit does not offer: a sensor's, read from the data."""
-    return {
-        p.name: f"the sensor's {p.doc} is read from each recording (every position is a whole "
-        "number of them); it is not fitted"
-        for cls in plantspec.REGISTRY.values()
-        for p in cls.params
-        if p.role == "sensor"
-    }
-
-
-def fittable() -> tuple:
-    """Parameters a fit offers: the plant's corrections and every registered effect's (naming
-    one adds its effect; a vector such as f_track is fitted element by element, as f_track[0],
-    f_track[1], ...), from the registry as it is now."""
-    skip = not_fitted()
-    effects = [p.name for c in plantspec.REGISTRY.values() for p in c.params if p.name not in skip]
-    return P.CORRECTABLE + tuple(effects)
-
-
-def default_start() -> dict:
-    """Starting values [SI] for parameters a plant does not have yet: each one's declared start
-    (a vector's, element by element)."""
-    out = {}
-    for n in fittable():
-        if n in ("B_eq", "M"):
-            continue
-        decl = plantspec.param(n)
-        out[n] = (decl.start,) * decl.size if decl.size else decl.start
-    return out
-
-
-def unit_of(name: str) -> str:
-    """The SI unit of a fitted name (``v_sat@2``, ``f_track[1]``, the alias ``v_limit``)."""
-    try:
-        return plantspec.unit(canonical(base_name(name)))
-    except KeyError:
-        return ""
-
-
-#: Nuisance values and their internal units (the optimizer's unit step): y0, the initial
-#: position [m]; yd0, the initial velocity [m/s].
-NUISANCE_SCALE = {"y0": 1e-3, "yd0": 0.1}
-
-
-class Nuisance(NamedTuple):
-    """A per-recording value fitted beside the plant: value = base + scale * theta, or, when
-    ``bounded``, base + scale * sigmoid(theta) (within [base, base + scale]). name: "y0" [m] or
-    "yd0" [m/s]."""
-
-    name: str
-    base: float
-    scale: float
-    bounded: bool = False
-
-    def value(self, theta, xp=np):
-        if self.bounded:
-            return self.base + self.scale / (1 + xp.exp(-theta))
-        return self.base + self.scale * theta
-
-    def slope(self, theta) -> float:
-        """d value / d theta."""
-        if self.bounded:
-            e = math.exp(-abs(float(theta)))
-            return self.scale * e / (1 + e) ** 2
-        return self.scale
-
-
-#: Points per batched evaluation (every call is padded to a multiple: one compiled program):
-#: the damping values one Levenberg-Marquardt iteration tries at once.
-LM_BATCH = len(LM_DAMPING)
-#: Bounded nuisance values stay within sigmoid(+-BOUNDED_LIMIT) of their range.
-BOUNDED_LIMIT = 6.0
-#: Segments are padded to a multiple of this many samples (fewer recompilations).
-PAD = 256
+#: The public entry: ``jaxcart fit``'s functions and types, wherever they are written.
+__all__ = [
+    "Estimate", "FitResult", "FitSettings", "Nuisance", "SegmentFit", "assemble", "canonical",
+    "cross_predict", "default_start", "fit", "fit_table", "fittable", "load_fitted_plant",
+    "not_fitted", "parse_params", "plant_values", "plot_fit", "prepare",
+    "unit_of", "with_values", "write_fitted_plant"
+]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -205,407 +137,18 @@ class FitSettings:
     quantization: float | None = None
 
 
-@dataclass(frozen=True)
-class Estimate:
-    """One fitted value: value [SI] and its standard error (HAC, see the module docstring);
-    both None when the parameter is not identifiable from the data (``note`` says why)."""
-
-    name: str
-    value: float | None
-    stderr: float | None
-    identifiable: bool = True
-    stderr_naive: float | None = None
-    note: str = ""
-    held_at: float | None = None  # the value a parameter not identified is held at [SI]
-    #: ("upper" | "lower", bound [SI]) where the value sits on an edge of the range the fit
-    #: holds it in (engine.parameters.at_edge): then it is no estimate
-    edge: tuple | None = None
-
-    @property
-    def edge_note(self) -> str:
-        """One line saying the value is on an edge of its range ("" when it is not)."""
-        if self.edge is None:
-            return ""
-        side, _ = self.edge
-        lo, hi = P.bounds(canonical(base_name(self.name)))
-        unit = unit_of(self.name)
-        return (
-            f"{self.name} = {self.value:.4g} {unit} is at the {side} edge of its allowed range "
-            f"[{lo:.4g}, {hi:.4g}] {unit}: the data push it beyond what the fit allows, so it "
-            "is no estimate (a step recorded late, data in other units, or an effect left "
-            "out: jaxcart diagnose)"
-        )
-
-    def to_json(self) -> dict:
-        out = {"value": _finite(self.value), "stderr": _finite(self.stderr)}
-        if self.edge is not None:
-            out["at_edge"] = {"side": self.edge[0], "bound": self.edge[1]}
-        if not self.identifiable:
-            out["identifiable"] = False
-            out["note"] = self.note
-            if self.held_at is not None:
-                out["held_at"] = _finite(self.held_at)
-        else:
-            out["stderr_naive"] = _finite(self.stderr_naive)
-        return out
-
-
-@dataclass(frozen=True, eq=False)
-class Segment:
-    """One recording prepared for fitting: the samples ``start:stop`` of it.
-
-    name: the recording's file name; plant: the plant it ran on (starting values applied);
-    controller: its PID (a placeholder for taps and open loop); experiment: the segment as an
-    :class:`Experiment` (y0, yd0 = the starting guesses); time: recording time of each sample
-    [s]; measured: positions [m] (for encoder data the middle of each count); nuisance: the
-    per-segment values fitted too (:class:`Nuisance`); params: the fitted plant parameters that act
-    on this plant; quantization: the encoder count found in the data [m] (0: not quantized).
-    """
-
-    recording: object
-    name: str
-    plant: Plant
-    controller: PID
-    experiment: Experiment
-    time: np.ndarray
-    measured: np.ndarray
-    start: int
-    stop: int
-    nuisance: tuple
-    params: tuple[str, ...]
-    quantization: float = 0.0
-
-
-@dataclass(frozen=True, eq=False)
-class SegmentFit:
-    """The fit seen on one segment: the measured positions and the model's before and after
-    (smooth at the narrowest width, and exact) [m], their RMS errors [m], fitted nuisance."""
-
-    name: str
-    kind: str
-    time: np.ndarray
-    measured: np.ndarray
-    before: np.ndarray
-    after: np.ndarray
-    before_exact: np.ndarray | None
-    after_exact: np.ndarray | None
-    nuisance: dict
-    plant: Plant
-
-    @property
-    def rms_before(self) -> float:
-        return _rms(self.before - self.measured)
-
-    @property
-    def rms_after(self) -> float:
-        return _rms(self.after - self.measured)
-
-    @property
-    def rms_before_exact(self) -> float | None:
-        return None if self.before_exact is None else _rms(self.before_exact - self.measured)
-
-    @property
-    def rms_after_exact(self) -> float | None:
-        return None if self.after_exact is None else _rms(self.after_exact - self.measured)
-
-
-@dataclass(frozen=True, eq=False)
-class FitResult:
-    """The outcome of :func:`fit`.
-
-    params: {name as asked: :class:`Estimate`}; values: every plant value the fit used, by
-    canonical name (fitted, or held) [SI]; segments: a :class:`SegmentFit` per recording;
-    correlation: {(a, b): correlation} of the identified parameters; n_data: samples fitted;
-    seconds: wall time [s]; smoothing: the narrowest smoothing used (None for a diagnosis's
-    fit, whose values are the exact simulator's); history: (width [m/s],
-    Levenberg-Marquardt iterations, RMS [m]) per width (at the narrowest, of the run kept:
-    the continuation's or the direct start's); exact_polish: True when the last polish
-    ran on the exact simulator; stages: each optimizer run ({"stage", "iterations", "cap",
-    "converged"}, and "superseded": True for the continuation's runs where the direct start
-    at the narrowest width was kept instead: they do not count for ``converged``);
-    noise_floor: the RMS error [m] a correct model would leave (encoder count q/sqrt(12) and
-    white noise); n_effective: independent samples the final residual is worth
-    (:func:`effective_samples`); misfit: why the model does not explain the data ("" when it
-    does: RMS within :data:`MISFIT_RATIO` of the noise floor), in which case the standard errors
-    are widened to what the residual supports.
-    """
-
-    params: dict
-    values: dict
-    segments: list
-    correlation: dict
-    n_data: int
-    seconds: float
-    smoothing: Smoothing | None
-    history: list = field(default_factory=list)
-    exact_polish: bool = False
-    stages: list = field(default_factory=list)
-    noise_floor: float = 0.0
-    n_effective: float = 0.0
-    misfit: str = ""
-    #: The fitted plant itself, effects included, where the fit made one (a diagnosis's chosen
-    #: structure, :func:`tuning.estimation.diagnose.as_fit.fit_result`); None: from ``values``.
-    cart: Plant | None = None
-
-    @property
-    def converged(self) -> bool:
-        """False when an optimizer stopped at its iteration cap (the fit may be unfinished)."""
-        return all(
-            s["converged"]
-            for s in self.stages
-            if not s.get("superseded") and not s.get("intermediate")
-        )
-
-    @property
-    def warnings(self) -> list[str]:
-        """One line for each thing the numbers do not show: a model that does not explain the
-        data, a parameter held at its start value, an optimizer stopped at its cap."""
-        out = [self.misfit] if self.misfit else []
-        out += [e.edge_note for e in self.params.values() if e.edge is not None]
-        held = {n: e for n, e in self.params.items() if not e.identifiable}
-        for n, e in held.items():
-            out.append(f"{n}: {e.note}; the other errors are conditional on that value")
-        for s in self.stages:
-            if not s["converged"] and not s.get("superseded") and not s.get("intermediate"):
-                out.append(
-                    f"{s['stage']} stopped at its iteration cap ({s['cap']}) before converging; "
-                    "the values may not be the best fit"
-                )
-        return out
-
-    def _total(self, attr) -> float | None:
-        parts = [(getattr(s, attr), s.measured.size) for s in self.segments]
-        if any(v is None for v, _ in parts):
-            return None
-        return math.sqrt(sum(v * v * n for v, n in parts) / sum(n for _, n in parts))
-
-    @property
-    def rms_before(self) -> float:
-        """RMS position error [m] of the smooth model with the starting values."""
-        return self._total("rms_before")
-
-    @property
-    def rms_after(self) -> float:
-        """RMS position error [m] of the smooth model with the fitted values."""
-        return self._total("rms_after")
-
-    @property
-    def rms_before_exact(self) -> float | None:
-        return self._total("rms_before_exact")
-
-    @property
-    def rms_after_exact(self) -> float | None:
-        """RMS position error [m] of the exact simulator with the fitted values."""
-        return self._total("rms_after_exact")
-
-    def per_recording_json(self) -> dict:
-        """{recording name: {parameter: {"value", "stderr"}, "rms_before", "rms_after"}} of the
-        parameters fitted per recording (``name@k``), with each recording's exact RMS [m]."""
-        out = {}
-        for k, seg in enumerate(self.segments):
-            own = {
-                n.split("@")[0]: e.to_json() for n, e in self.params.items() if n.endswith(f"@{k}")
-            }
-            if own:
-                names = [s.name for s in self.segments]
-                key = seg.name if names.count(seg.name) == 1 else f"{seg.name} #{k + 1}"
-                out[key] = {
-                    "parameters": own,
-                    "rms_before": seg.rms_before_exact,
-                    "rms_after": seg.rms_after_exact,
-                }
-        return out
-
-    def plant(self, base: Plant | None = None) -> Plant:
-        """The fitted plant for closed-loop use: ``base`` (default: :attr:`cart` where the fit
-        made one, else the first closed- or open-loop recording's plant, else the handout's)
-        with the fitted values."""
-        if base is None and self.cart is not None:
-            return self.cart
-        if base is None:
-            driven = [s.plant for s in self.segments if s.plant.motor_connected]
-            base = driven[0] if driven else handout_plant()
-        return with_values(base, assemble(base, self.values))
-
-    def to_json(self) -> dict:
-        """{"params": {name: {"value", "stderr"}}, "rms_before", "rms_after" [m], ...}: the
-        RMS values are the exact simulator's where it ran, else the smooth model's."""
-        exact = self.rms_after_exact is not None
-        return {
-            "params": {n: e.to_json() for n, e in self.params.items()},
-            "rms_before": self.rms_before_exact if exact else self.rms_before,
-            "rms_after": self.rms_after_exact if exact else self.rms_after,
-            "rms_before_smooth": self.rms_before,
-            "rms_after_smooth": self.rms_after,
-            "n_data": self.n_data,
-            "recordings": [
-                {
-                    "name": s.name,
-                    "kind": s.kind,
-                    "start_time": float(s.time[0]),
-                    "stop_time": float(s.time[-1]),
-                    "rms_before": s.rms_before_exact,
-                    "rms_after": s.rms_after_exact,
-                    "rms_before_smooth": s.rms_before,
-                    "rms_after_smooth": s.rms_after,
-                    "nuisance": {k: e.to_json() for k, e in s.nuisance.items()},
-                }
-                for s in self.segments
-            ],
-            "correlation": {f"{a},{b}": c for (a, b), c in self.correlation.items()},
-            "values": dict(self.values),
-            "seconds": self.seconds,
-            "model_explains_data": not self.misfit,
-            "noise_floor": self.noise_floor,
-            "n_effective": self.n_effective,
-            "optimizer": list(self.stages),
-            "converged": self.converged,
-            "held": {n: e.held_at for n, e in self.params.items() if not e.identifiable},
-            "per_recording": self.per_recording_json(),
-            "warnings": self.warnings,
-        }
-
-
-# ---------------------------------------------------------------- names and plants
-
-
-def canonical(name: str) -> str:
-    """The plant's name for a parameter (``v_limit`` -> ``v_sat``)."""
-    return ALIASES.get(name, name)
-
-
-def parse_params(text) -> tuple[str, ...]:
-    """Parameter names from "B_eq,f_c" (or a sequence of names), checked against the known."""
-    names = [n.strip() for n in text.split(",")] if isinstance(text, str) else list(text)
-    names = [n for n in names if n]
-    known = _known_names()
-    expanded = []
-    for n in names:
-        skip = not_fitted()
-        if canonical(n) in skip:
-            raise UserError(f"--params: {n}: {skip[canonical(n)]}")
-        if base_name(n) in known and "[" in n:
-            expanded.append(n)  # one element of a vector, as returned by the fit
-            continue
-        size = plantspec.param(canonical(n)).size if canonical(n) in known else 0
-        if size:
-            expanded += [f"{n}[{i}]" for i in range(size)]
-            continue
-        expanded.append(n)
-        if canonical(n) not in known:
-            raise UserError(
-                f"--params: unknown parameter {n!r}; fit any of "
-                f"{', '.join(fittable())} (v_limit = v_sat), or another plant "
-                f"parameter: {', '.join(sorted(known))}"
-            )
-    if len({canonical(n) for n in expanded}) != len(expanded):
-        raise UserError(f"--params {','.join(names)}: a parameter is named twice")
-    return tuple(expanded)
-
-
-def _element(name: str) -> int | None:
-    return int(name[name.index("[") + 1 : -1]) if "[" in name else None
-
-
-def assemble(plant: Plant, values: dict, xp=np) -> dict:
-    """{name: value} with vector elements ("f_track[2]") gathered into their vectors (the
-    plant's current vector where an element is not given); scalars pass through."""
-    out, vectors = {}, {}
-    for name, value in values.items():
-        i = _element(name)
-        if i is None:
-            out[name] = value
-            continue
-        base = base_name(name)
-        if base not in vectors:
-            have = plant.get(base) if base in plant.param_names() else default_start()[base]
-            vectors[base] = list(have) if isinstance(have, tuple) else list(xp.asarray(have))
-        vectors[base][i] = value
-    for base, items in vectors.items():
-        out[base] = (
-            xp.stack([xp.asarray(v) for v in items])
-            if xp is not np
-            else tuple(float(v) for v in items)
-        )
-    return out
-
-
-def _known_names() -> set:
-    return set(fittable()) | set(plantspec.parameter_names())
-
-
-def _drives_nothing(name: str, plant: Plant) -> bool:
-    """True for an effect's parameter of the drive (amplifier, motor) on an unplugged motor."""
-    return (
-        not plant.motor_connected
-        and plantspec.effect_of_param(base_name(name)) is not None
-        and P.is_drive(name)
-    )
-
-
-def with_values(plant: Plant, values: dict) -> Plant:
-    """``plant`` with named values [SI] through the plant spec (a name of an effect the plant
-    lacks adds it). Names the plant cannot have (a drive effect on a tap) are ignored."""
-    values = {canonical(k): v for k, v in values.items()}
-    values = {k: v for k, v in values.items() if not _drives_nothing(k, plant)}
-    return plantspec.build_plant(values, base=plant, check=False)
-
-
-_log_scaled = P.is_log
-LINEAR_SCALE = P.LINEAR_SCALE
-
-
-def to_value(name: str, theta, xp=np):
-    """A parameter's value [SI] from its internal coordinate (:mod:`.engine.parameters`)."""
-    return xp.exp(theta) if P.is_log(name) else LINEAR_SCALE * theta
-
-
-def to_theta(name: str, value: float) -> float:
-    """The internal coordinate of a parameter value (inverse of :func:`to_value`)."""
-    return P.to_theta(name, value)
-
-
-def plant_values(plant: Plant, names=None) -> dict:
-    """{name: float} of those ``names`` (default: every fittable one) the plant has."""
-    names = fittable() if names is None else names
-    have = set(plant.param_names())
-    return {n: float(plant.get(n)) for n in names if n in have}
-
-
-# ---------------------------------------------------------------- segments
-
-
-def _default_start(name: str) -> float:
-    start = default_start().get(base_name(name), 1.0)
-    return float(start[_element(name)] if isinstance(start, tuple) else start)
-
-
-def _initial_value(name, value):
-    """A starting value [SI]: a float, or a tuple of floats for a vector parameter."""
-    try:
-        if isinstance(value, list | tuple | np.ndarray):
-            return tuple(float(v) for v in value)
-        return float(value)
-    except (TypeError, ValueError):
-        raise UserError(f"initial value {name} = {value!r}: give a number (SI units)") from None
-
-
 def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
-    """A recording as a :class:`Segment`: the coasting part of a tap (nuisance y0, yd0), or the
-    whole run of a closed or open loop (nuisance y0: the encoder reads 0 at the start, the
-    cart is somewhere within that count)."""
-    name = _name(recording)
+    """A recording as the engine's :class:`Segment` (:func:`~.engine.segments.prepare`: the
+    coasting part of a tap, or the whole run of a closed or open loop) with what this fit adds:
+    the plant with the start ``values`` (and each fitted effect it lacks at a start where it acts
+    on these data), the fitted ``params`` that act on it, and its nuisance values: a tap's y0,
+    yd0 (free); a run's y0 (bounded: the encoder reads 0 at the start, the cart is somewhere
+    within that count)."""
+    seg = prepare_segment(recording, quantization=settings.quantization, margin=settings.tap_margin)
+    gains = seg.controller
+    if seg.kind == "closed_loop" and gains.ki == 0 and gains.kp == 0 and gains.kd == 0:
+        raise UserError(f"{seg.name}: [controller] has all gains 0; give the gains that ran")
     raw = np.asarray(recording.position, dtype=float)
-    n = raw.size
-    if n < 10:
-        raise UserError(f"{name}: only {n} samples; a fit needs a recording of at least 10")
-    if not np.all(np.isfinite(raw)):
-        raise UserError(f"{name}: column y has non-finite values; remove those rows")
-    q = encoder_count(raw) if settings.quantization is None else float(settings.quantization)
-    # A count says the cart is somewhere in [y, y + q): its best estimate is the middle.
-    y = raw + q / 2
-    ts = float(recording.sample_time)
-    time = np.asarray(recording.time, dtype=float)
     plant = with_values(recording.plant(), values)
     canon = [canonical(p) for p in params]
     peaks = _peaks(recording, plant)
@@ -616,59 +159,19 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
             start = starts[b] if plantspec.param(b).size else P.start_for(b, peaks, raw.mean())
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
-    exp = recording.experiment
-    if recording.kind == "tap":
-        try:
-            start, stop = coasting_segment(
-                raw, ts, margin=settings.tap_margin, quantization=q or ENCODER_RESOLUTION
-            )
-        except ValueError as exc:
-            raise UserError(f"{name}: {exc}; check that column y is the cart position") from None
-        if stop - start < 20:
-            raise UserError(
-                f"{name}: the coasting part found ({time[start]:.3f} s to "
-                f"{time[stop - 1]:.3f} s) is shorter than 20 samples; "
-                "record a longer tap"
-            )
-        y0, yd0 = initial_state(time, y, start)
+    if seg.kind == "tap":
         nuisance = (
             Nuisance("y0", 0.0, NUISANCE_SCALE["y0"]),
             Nuisance("yd0", 0.0, NUISANCE_SCALE["yd0"]),
         )
     else:
-        # The run starts where the encoder was zeroed: y0 lies within the first count, widened
-        # by 4 noise levels either side where the data are not whole counts (a bounded nuisance).
-        start, stop = 0, n
-        y0, yd0 = float(y[0]), float(exp.yd0)
+        # y0 lies within the first count, widened by 4 noise levels either side where the data
+        # are not whole counts (a bounded nuisance).
         sigma = 0.0 if encoder_count(raw) > 0 else noise_level(raw)
-        width = q + 8 * sigma
+        width = seg.quantization + 8 * sigma
+        y0 = seg.experiment.y0
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    signal = put(signal64(recording)[start:stop], float)
-    experiment = dataclasses.replace(exp, signal=signal, y0=y0, yd0=yd0)
-    controller = recording.controller
-    if controller is None:
-        controller = PID(sample_time=ts)
-    if (
-        recording.kind == "closed_loop"
-        and controller.ki == 0
-        and controller.kp == 0
-        and controller.kd == 0
-    ):
-        raise UserError(f"{name}: [controller] has all gains 0; give the gains that ran")
-    return Segment(
-        recording,
-        name,
-        plant,
-        controller,
-        experiment,
-        time[start:stop],
-        y[start:stop],
-        start,
-        stop,
-        nuisance,
-        acting,
-        q,
-    )
+    return dataclasses.replace(seg, plant=plant, nuisance=nuisance, params=acting)
 
 
 def _peaks(recording, plant) -> dict:
@@ -680,295 +183,12 @@ def _peaks(recording, plant) -> dict:
     return {"command": top, "current": top / float(plant.Rm)}
 
 
-def _name(recording) -> str:
-    path = getattr(recording, "path", None)
-    return str(getattr(path, "name", path) or "recording")
-
-
-# ---------------------------------------------------------------- the model
-
-
-class _Layout(NamedTuple):
-    """Static description of theta: which entries go where (hashable: a jit static)."""
-
-    params: tuple[str, ...]  # canonical names, theta[0:len(params)] (logs)
-    segments: tuple  # per segment: ((param name, index), ...), ((Nuisance, index), ...)
-    substeps: int
-
-
-def _positions(theta, data, smoothing, layout: _Layout):
-    """Simulated positions of every segment, concatenated [m]."""
-    out = []
-    for (plant, controller, experiment, base), (params, nuisance) in zip(
-        data, layout.segments, strict=True
-    ):
-        plant = plant.replace(
-            **assemble(plant, {p: to_value(p, theta[i], jnp) for p, i in params}, jnp)
-        )
-        # The base values are data (a traced array), so that recordings differing only in them
-        # share one compilation.
-        values = {
-            v.name: v._replace(base=base[j]).value(theta[i], jnp)
-            for j, (v, i) in enumerate(nuisance)
-        }
-        experiment = dataclasses.replace(experiment, **values)
-        res = simulate_smooth(
-            plant, controller, experiment, smoothing=smoothing, substeps=layout.substeps
-        )
-        out.append(res.position)
-    return jnp.concatenate(out)
-
-
-def _residuals_jacobian(theta, data, measured, weight, smoothing, layout):
-    """(r, dr/dtheta) of one theta: forward mode (a few parameters, many samples)."""
-    TRACES[layout] = TRACES.get(layout, 0) + 1  # runs when traced, not when called
-
-    def residuals(th):
-        r = (_positions(th, data, smoothing, layout) - measured) * weight
-        return r, r
-
-    jac, r = jax.jacfwd(residuals, has_aux=True)(theta)
-    return r, jac
-
-
-_BATCHED: dict = {}
-#: How often the residual function was traced, per layout (tests check it is once).
-TRACES: dict = {}
-
-
-def _batched_residuals(layout: _Layout):
-    """``run(thetas (K, m), data, measured, weight, smoothing) -> (r (K, n), J (K, n, m))``:
-    one compiled program per layout, sharded over the devices (:mod:`jaxcart.parallel`).
-    The CPU's per-step loop overhead dominates a single run, so K trial points cost little more
-    than one."""
-    if layout not in _BATCHED:
-        _BATCHED[layout] = sharded_map(
-            partial(_residuals_jacobian, layout=layout), name="fit-residuals", static=layout
-        )
-    return _BATCHED[layout]
-
-
-_positions_jit = jax.jit(_positions, static_argnames="layout")
-
-
-class _Problem:
-    """Segments, theta's layout and the compiled residual function."""
-
-    def __init__(self, segments, params, settings: FitSettings, executor=None):
-        self.segments = segments
-        self.executor = executor or SERIAL
-        self.params = tuple(canonical(p) for p in params)
-        self.n_params = len(self.params)
-        self.settings = settings
-        index = len(self.params)
-        layout = []
-        theta = [to_theta(p, self._start_value(p)) for p in self.params]
-        for k, seg in enumerate(segments):
-            # A parameter free per recording maps to this recording's own copy (``v_sat@k``).
-            own = [f"{p}@{k}" if f"{p}@{k}" in self.params else p for p in seg.params]
-            ps = tuple((p, self.params.index(q)) for p, q in zip(seg.params, own, strict=True))
-            nu = []
-            for v in seg.nuisance:
-                nu.append((v._replace(base=0.0), index))
-                start = 0.0 if v.bounded else (getattr(seg.experiment, v.name) - v.base) / v.scale
-                theta.append(float(start))
-                index += 1
-            layout.append((ps, tuple(nu)))
-        self.layout = _Layout(self.params, tuple(layout), settings.substeps)
-        self.evaluations = 0  # smooth-model points evaluated (r and J)
-        self.theta0 = np.asarray(theta, dtype=float)
-        # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
-        # nearly the same length then share one compiled residual function.
-        self.sizes = [s.measured.size for s in segments]
-        self.observed = np.concatenate([s.measured for s in segments])
-        padded = [-(-n // PAD) * PAD for n in self.sizes]
-        # On the device once: host leaves would be transferred again at every evaluation.
-        self.data = jax.tree.map(
-            put,
-            tuple(
-                (
-                    s.plant,
-                    s.controller,
-                    _padded_experiment(s.experiment, n),
-                    np.asarray([v.base for v in s.nuisance], dtype=float),
-                )
-                for s, n in zip(segments, padded, strict=True)
-            ),
-        )
-        self.measured = put(
-            np.concatenate(
-                [
-                    np.pad(s.measured, (0, n - s.measured.size))
-                    for s, n in zip(segments, padded, strict=True)
-                ]
-            )
-        )
-        self.weight = put(
-            np.concatenate(
-                [
-                    np.pad(np.ones(s.measured.size), (0, n - s.measured.size))
-                    for s, n in zip(segments, padded, strict=True)
-                ]
-            )
-        )
-        self.rows = np.concatenate(
-            [
-                np.arange(n) + off
-                for n, off in zip(self.sizes, np.cumsum([0, *padded[:-1]]), strict=True)
-            ]
-        )
-
-    def _start_value(self, p) -> float:
-        k, base = P.recording_of(p), base_name(p)
-        segs = self.segments if k is None else [self.segments[k]]
-        i = _element(p.split("@")[0])
-        values = [
-            float(s.plant.get(base) if i is None else s.plant.get(base)[i])
-            for s in segs
-            if base in s.params or p in s.params
-        ]
-        value = values[0] if values else _default_start(p.split("@")[0])
-        if _log_scaled(p) and not value > 0:
-            value = _default_start(p.split("@")[0])
-        return value
-
-    def start_source(self, p) -> str:
-        """Where parameter ``p``'s start value comes from, in words (for a value held)."""
-        base = base_name(p)
-        declared = default_start().get(base)
-        if base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
-            where = "the recordings' plant (the handout's appendix, a plant file or [plant])"
-        elif declared is not None and math.isclose(
-            self._start_value(p), declared if not isinstance(declared, tuple) else declared[0]
-        ):
-            where = "the effect's declared typical value"
-        else:
-            where = "the recordings' plant (a plant file, [plant] or --initial)"
-        return f"its start value from {where}; give another with --initial {base}=VALUE"
-
-    def smoothing(self, width) -> Smoothing:
-        return Smoothing(voltage=self.settings.voltage_width, velocity=width, position=1e-6)
-
-    def evaluate(self, theta, width):
-        """(r, J) over the recorded samples, numpy float64; r = inf where the simulation is not
-        finite."""
-        th = put(theta, float)
-        if th.size == 0:
-            r = _positions_jit(th, self.data, self.smoothing(width), self.layout) - self.measured
-            r = np.asarray(r)[self.rows]
-            return r, np.zeros((r.size, 0))
-        r, jac = self.evaluate_batch(th[None, :], width)
-        return r[0], jac[0]
-
-    def evaluate_batch(self, thetas, width):
-        """(r (K, n), J (K, n, m)) of K points theta at once (one program, padded to
-        :data:`LM_BATCH` points); r = inf for a point whose simulation is not finite."""
-        thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
-        k = thetas.shape[0]
-        size = -(-k // LM_BATCH) * LM_BATCH
-        padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - k, axis=0)])
-        self.evaluations += k
-        r, jac = _batched_residuals(self.layout)(
-            put(padded, float), self.data, self.measured, self.weight, self.smoothing(width)
-        )
-        r, jac = np.asarray(r)[:k, self.rows], np.asarray(jac)[:k, self.rows]
-        bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(jac), axis=(1, 2)))
-        r[bad] = np.inf
-        return r, jac
-
-    def segment_values(self, theta, k):
-        """(plant values {name: value}, nuisance {name: value}) of segment k at theta."""
-        params, _ = self.layout.segments[k]
-        return (
-            {p: float(to_value(p, theta[i])) for p, i in params},
-            {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
-        )
-
-    def theta_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """(low, high) of every entry of theta: the plant's values inside what a cart of this
-        lab has (engine.parameters.bounds), each bounded nuisance within +-BOUNDED_LIMIT (its
-        sigmoid keeps a slope there), the other nuisances free."""
-        low = np.full(self.theta0.size, -np.inf)
-        high = np.full(self.theta0.size, np.inf)
-        for i, name in enumerate(self.params):
-            low[i], high[i] = (to_theta(name, b) for b in P.bounds(name))
-        for k in range(len(self.segments)):
-            for v, i in self.nuisance_index(k):
-                if v.bounded:
-                    low[i], high[i] = -BOUNDED_LIMIT, BOUNDED_LIMIT
-        return low, high
-
-    def clip_bounded(self, theta, reset=False):
-        """theta within :meth:`theta_bounds`, with ``reset`` each bounded nuisance at 0, the
-        middle of its range."""
-        theta = np.clip(np.asarray(theta, dtype=float), *self.theta_bounds())
-        if reset:
-            for k in range(len(self.segments)):
-                for v, i in self.nuisance_index(k):
-                    if v.bounded:
-                        theta[i] = 0.0
-        return theta
-
-    def nuisance_index(self, k):
-        """((Nuisance with its base, index in theta), ...) of segment k."""
-        idx = [i for _, i in self.layout.segments[k][1]]
-        return tuple(zip(self.segments[k].nuisance, idx, strict=True))
-
-    def simulate_exact(self, theta):
-        """Exact-simulator positions of each segment at theta (list of arrays) [m]."""
-        return self.simulate_exact_many([theta])[0]
-
-    def simulate_exact_many(self, thetas):
-        """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
-        (the executor's ``map``: several at a time)."""
-        from tuning.estimation.engine.exact_runs import exact_position
-
-        jobs = []
-        for theta in thetas:
-            for k, seg in enumerate(self.segments):
-                values, nuisance = self.segment_values(theta, k)
-                plant = seg.plant.replace(**assemble(seg.plant, values))
-                jobs.append(
-                    (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
-                )
-        runs = self.executor.map(exact_position, jobs, list(self.sizes) * len(thetas))
-        n = len(self.segments)
-        return [runs[i : i + n] for i in range(0, len(runs), n)]
-
-    def exact_residuals(self, theta):
-        """Exact-simulator positions minus the measured ones, all segments [m]."""
-        return np.concatenate(self.simulate_exact(theta)) - self.observed
-
-    def exact_available(self) -> bool:
-        """True when the exact simulator models every effect of every segment's plant."""
-        try:
-            self.simulate_exact(self.theta0)
-        except (ImportError, NotImplementedError):
-            return False
-        return True
-
-    def split(self, r):
-        """Per-segment parts of a vector over all samples."""
-        return np.split(np.asarray(r), np.cumsum(self.sizes)[:-1])
-
-    def split_rows(self, a):
-        """Per-segment row blocks of a matrix over all samples."""
-        return np.split(np.asarray(a), np.cumsum(self.sizes)[:-1], axis=0)
-
-
-def _padded_experiment(experiment: Experiment, n: int) -> Experiment:
-    """The experiment continued to n samples (its last signal value held)."""
-    signal = np.asarray(experiment.signal, dtype=float)
-    signal = np.pad(signal, (0, n - signal.size), mode="edge")
-    return dataclasses.replace(experiment, signal=put(signal, float))
-
-
 # ---------------------------------------------------------------- optimizers
 
 
 def _exact_polish(problem, theta, active, jac, iterations):
-    """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
-    gauss_newton`: residuals and forward-difference Jacobian both from
+    """The engine's exact polish (:func:`~tuning.estimation.engine.exact_polish.polish`:
+    Gauss-Newton, residuals and forward-difference Jacobian both from
     :func:`jaxcart.exact.simulate_exact`), started from the smooth fit, in the internal
     coordinates (each entry moves at most MAX_STEP per iteration, as in the engine's
     :func:`~tuning.estimation.engine.lm.levenberg_marquardt`; a column the exact model's
@@ -999,15 +219,17 @@ def _exact_polish(problem, theta, active, jac, iterations):
             made[np.asarray(x, dtype=float).tobytes()] = np.concatenate(pos) - problem.observed
 
     low, high = problem.theta_bounds()
-    done = gauss_newton(
+    done = polish(
         residual,
+        [problem.entries[i] for i in idx],
         theta[idx],
-        np.full(idx.size, 1e-6),  # internal units: a relative step of 1e-6 for the logs
-        (low[idx], high[idx]),
         iterations,
-        max_step=MAX_STEP,
         reference=np.linalg.norm(jac[:, idx], axis=0),
-        staircase=STAIRCASE,
+        bounds=(low[idx], high[idx]),
+        slopes=np.ones(idx.size),  # internal units: the staircase's secant over +-STAIRCASE
+        steps=1e-6,  # a relative step of 1e-6 for the logs
+        max_step=MAX_STEP,
+        shortest=1 / 64,
         prefetch=prefetch,
     )
     theta = theta.copy()
@@ -1124,8 +346,8 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
         return theta, r, jac
 
     theta, r, jac = polish(theta, r, jac)
-    theta, r, jac, cov = _identify(problem, theta, r, jac, active, notes, settings, run, polish)
-    result = _result(problem, params, values0, theta, r, cov, active, notes, run, exact)
+    theta, r, jac, judged = _identify(problem, theta, r, jac, active, notes, settings, run, polish)
+    result = _result(problem, params, values0, theta, r, judged, active, notes, run, exact)
     result = dataclasses.replace(result, seconds=_time.perf_counter() - t_start)
     # The warnings travel with the result (printed once, by whoever shows it).
     if exact:
@@ -1222,38 +444,24 @@ def _optimize(problem, active, settings, run):
     return theta, r, jac
 
 
-class _Covariance(NamedTuple):
-    """The covariances of the final fit over the active entries ``idx`` of theta (internal
-    units): robust (HAC, widened for model error where the model misfits), naive."""
-
-    idx: np.ndarray
-    hac: np.ndarray
-    naive: np.ndarray
-    se: np.ndarray  # robust standard errors (widened where the model misfits)
-    floor: float
-    n_eff: float
-    misfit: str
-
-
 def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
     """Identifiability: the worst determined parameter held at its start value and the rest
     refitted, until every relative standard error is within ``max_rel_stderr``. Returns
-    (theta, r, J, :class:`_Covariance`)."""
+    (theta, r, J, (the engine's :class:`Covariance` over the active entries of theta in
+    internal units, widened where the model misfits; the noise floor [m]; why the model
+    misfits or ""))."""
     p = problem.n_params
     while True:
         idx = np.flatnonzero(active)
-        hac, naive, singular = covariances(
-            jac[:, idx],
-            problem.split(r),
-            problem.split(r + problem.observed),  # the model's positions decide the runs
-            [s.quantization for s in problem.segments],
-        )
+        names = [problem.entries[i] for i in idx]
+        cov = covariance(problem.segments, names, None, jac[:, idx], problem.split(r))
+        hac, singular = cov.robust, cov.singular
         # Relative standard errors (for log-scaled parameters the log-space error is that).
         rel = np.sqrt(np.diag(hac)) * np.asarray(
             [
                 1.0
-                if i >= p or _log_scaled(problem.params[i])
-                else LINEAR_SCALE / max(abs(float(to_value(problem.params[i], theta[i]))), 1e-3)
+                if i >= p or P.is_log(problem.params[i])
+                else P.LINEAR_SCALE / max(abs(float(P.to_value(problem.params[i], theta[i]))), 1e-3)
                 for i in idx
             ]
         )
@@ -1271,7 +479,7 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         i = int(idx[worst])
         name = problem.params[i]
         notes[name] = _why(name, worst, idx, hac, singular, zero, problem, theta)
-        held_at = float(to_value(name, problem.theta0[i]))
+        held_at = float(P.to_value(name, problem.theta0[i]))
         run.say(f"{name}: {notes[name]}; holding it at {held_at:.4g}, {problem.start_source(name)}")
         active[i] = False
         theta[i] = problem.theta0[i]
@@ -1279,41 +487,39 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         narrow = settings.widths[-1]
         theta, r, jac = run.lm(label, problem, theta, active, narrow, settings.lm_iterations)
         theta, r, jac = polish(theta, r, jac)
-    return theta, r, jac, _final_covariance(problem, r, idx, hac, naive, run)
+    return theta, r, jac, _widened(problem, r, cov)
 
 
-def _final_covariance(problem, r, idx, hac, naive, run) -> _Covariance:
-    """The standard errors of the final fit, widened where the model misfits."""
-    floor = noise_floor(problem.segments)
+def _widened(problem, r, cov: Covariance) -> tuple:
+    """(``cov`` with its standard errors widened where the model misfits, the noise floor [m],
+    why the model misfits or "")."""
+    floor = floor_of(problem.segments)
     n_eff = effective_samples(problem.split(r))
-    se = np.sqrt(np.diag(hac))
     misfit = ""
     if misfits(_rms(r), floor):
-        se = widened_for_model_error(se, np.diag(naive), r.size, n_eff)
         misfit = (
             f"the model does not explain the data: RMS {_rms(r) * 1e3:.3g} mm is "
             f"{_rms(r) / floor:.0f} times the encoder/noise level {floor * 1e3:.2g} mm; the "
             f"residual is worth {n_eff:.0f} independent samples of {r.size}, and the standard "
             "errors are widened to that; an effect may be missing (jaxcart diagnose)"
         )
-        driven = sum(s.recording.kind != "tap" for s in problem.segments)
+        driven = sum(s.motor for s in problem.segments)
         if driven >= 2 and not any("@" in n for n in problem.params):
             misfit += (
                 ", or the drive differs from run to run (--per-recording v_sat with v_sat in "
                 "--params)"
             )
-    return _Covariance(idx, hac, naive, se, floor, n_eff, misfit)
+    return dataclasses.replace(cov, n_eff=n_eff, widened=bool(misfit)), floor, misfit
 
 
 def _estimates(problem, params, theta, cov, active, notes) -> dict:
     """{name as asked: :class:`Estimate`} of every fitted parameter."""
-    se_internal = dict(zip(cov.idx.tolist(), cov.se, strict=True))
-    se_naive = dict(zip(cov.idx.tolist(), np.sqrt(np.diag(cov.naive)), strict=True))
+    se_internal, se_naive = _errors(problem, cov)
     out = {}
     for asked, name in zip(params, problem.params, strict=True):
         i = problem.params.index(name)
         if active[i]:
-            value = float(to_value(name, theta[i]))
+            value = float(P.to_value(name, theta[i]))
             slope = P.value_slope(name, value)
             out[asked] = Estimate(
                 asked,
@@ -1323,16 +529,24 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
                 edge=P.at_edge(name, value),
             )
         else:
-            held = float(to_value(name, problem.theta0[i]))
+            held = float(P.to_value(name, problem.theta0[i]))
             note = f"{notes[name]}; held at {held:.4g}, {problem.start_source(name)}"
             out[asked] = Estimate(asked, None, None, identifiable=False, note=note, held_at=held)
     return out
 
 
+def _errors(problem, cov) -> tuple[dict, dict]:
+    """({index in theta: standard error}, {index in theta: naive standard error}) of the
+    entries of ``cov`` (internal units)."""
+    idx = [problem.entries.index(n) for n in cov.names]
+    naive = np.sqrt(np.diag(cov.naive))
+    return dict(zip(idx, cov.stderrs(), strict=True)), dict(zip(idx, naive, strict=True))
+
+
 def _correlation(problem, cov) -> dict:
     """{(a, b): correlation} of the identified plant parameters."""
     out = {}
-    hac, idx = cov.hac, cov.idx
+    hac, idx = cov.robust, [problem.entries.index(n) for n in cov.names]
     ident = [j for j, i in enumerate(idx) if i < problem.n_params]
     for a in ident:
         for b in ident:
@@ -1344,8 +558,7 @@ def _correlation(problem, cov) -> dict:
 
 def _segment_fits(problem, theta, cov, exact, narrow) -> list:
     """A :class:`SegmentFit` per recording: before and after, smooth and exact, nuisances."""
-    se_internal = dict(zip(cov.idx.tolist(), cov.se, strict=True))
-    se_naive = dict(zip(cov.idx.tolist(), np.sqrt(np.diag(cov.naive)), strict=True))
+    se_internal, se_naive = _errors(problem, cov)
     r0, _ = problem.evaluate(problem.theta0, narrow)
     before = problem.split(r0 + problem.observed)
     r_smooth, _ = problem.evaluate(theta, narrow)
@@ -1368,14 +581,13 @@ def _segment_fits(problem, theta, cov, exact, narrow) -> list:
             )
         plant = seg.plant.replace(**assemble(seg.plant, pv))
         fits = (before[k], after[k], before_exact[k], after_exact[k])
-        out.append(
-            SegmentFit(seg.name, seg.recording.kind, seg.time, seg.measured, *fits, nuis, plant)
-        )
+        out.append(SegmentFit(seg.name, seg.kind, seg.time, seg.target, *fits, nuis, plant))
     return out
 
 
-def _result(problem, params, values0, theta, r, cov, active, notes, run, exact) -> FitResult:
+def _result(problem, params, values0, theta, r, judged, active, notes, run, exact) -> FitResult:
     """The :class:`FitResult` of a finished fit (``seconds`` filled in by the caller)."""
+    cov, floor, misfit = judged
     estimates = _estimates(problem, params, theta, cov, active, notes)
     values = {**values0}
     for seg in problem.segments:
@@ -1383,9 +595,9 @@ def _result(problem, params, values0, theta, r, cov, active, notes, run, exact) 
     per_run: dict = {}
     for i, name in enumerate(problem.params):
         if "@" in name:
-            per_run.setdefault(base_name(name), []).append(float(to_value(name, theta[i])))
+            per_run.setdefault(base_name(name), []).append(float(P.to_value(name, theta[i])))
         else:
-            values[name] = float(to_value(name, theta[i]))
+            values[name] = float(P.to_value(name, theta[i]))
     # The cart's plant holds a parameter free per recording at the median of its runs.
     values.update({n: float(np.median(v)) for n, v in per_run.items()})
     narrow = problem.settings.widths[-1]
@@ -1400,22 +612,17 @@ def _result(problem, params, values0, theta, r, cov, active, notes, run, exact) 
         run.history,
         exact,
         run.stages,
-        cov.floor,
+        floor,
         cov.n_eff,
-        cov.misfit,
+        misfit,
     )
-
-
-def noise_floor(segments) -> float:
-    """RMS position error [m] a correct model leaves on these segments (:func:`floor_of`)."""
-    return floor_of((seg.measured, seg.quantization) for seg in segments)
 
 
 def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:
     """Why parameter ``name`` (entry j of idx) is not identifiable, in one line."""
     i = int(idx[j])
     p = len(problem.params)
-    if _log_scaled(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
+    if P.is_log(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
         return (
             f"not identifiable: the fit drives it towards 0 ({math.exp(theta[i]):.2g}); the "
             "data favour a model without it, or the model misses what they show"
@@ -1455,122 +662,3 @@ def cross_predict(
     return fit(
         recordings, (), initial=values, settings=settings, progress=progress, executor=executor
     )
-
-
-def _finite(x):
-    """x as a float, or None where it is missing or not finite (JSON has no inf or nan)."""
-    return float(x) if x is not None and math.isfinite(x) else None
-
-
-def _rms(x) -> float:
-    x = np.asarray(x, dtype=float)
-    return float(np.sqrt(np.mean(x * x))) if x.size else 0.0
-
-
-# ---------------------------------------------------------------- fitted-plant files
-
-
-def fit_table(result: FitResult, sources=()) -> dict:
-    """What a fit knows, for a plant file's [fit] table: the structure fitted, every fitted
-    parameter's value and standard error, the parameters held or not identifiable (the value
-    held at, why), the RMS before and after and the noise floor [m], whether the model explains
-    the data and the optimizers converged, the warnings, the recordings."""
-    doc = result.to_json()
-    fitted = {n: e for n, e in result.params.items() if e.identifiable and e.value is not None}
-    held = {n: e.note for n, e in result.params.items() if not e.identifiable}
-    table = {
-        "structure": list(result.plant().structure) or ["nominal"],
-        "fitted": [canonical(n) for n in fitted],
-        "value": {canonical(n): e.value for n, e in fitted.items()},
-        "stderr": {canonical(n): e.stderr for n, e in fitted.items()},
-        "held": [canonical(n) for n in held],
-        "held_at": {
-            canonical(n): e.held_at
-            for n, e in result.params.items()
-            if not e.identifiable and e.held_at is not None
-        },
-        "why_held": {canonical(n): note or "" for n, note in held.items()},
-        "rms_before": doc["rms_before"],
-        "rms_after": doc["rms_after"],
-        "noise_floor": result.noise_floor,
-        "model_explains_data": not result.misfit,
-        "converged": result.converged,
-        "warnings": result.warnings,
-        "recordings": [str(x) for x in sources],
-    }
-    return {k: v for k, v in table.items() if v is not None}
-
-
-def write_fitted_plant(path, result: FitResult, *, sources=(), force: bool = False) -> Path:
-    """Write the fitted plant as a plant file (TOML, :mod:`jaxcart.plantspec`) with a [fit]
-    table (:func:`fit_table`); refuses to overwrite unless ``force``."""
-    return plantspec.write_plant_file(
-        path, result.plant(), fit=fit_table(result, sources), force=force
-    )
-
-
-def load_fitted_plant(path) -> Plant:
-    """The plant of a plant file (written by ``jaxcart fit --out`` or ``diagnose``)."""
-    return plantspec.read_plant_file(path)[0]
-
-
-# ---------------------------------------------------------------- overlay plot
-
-
-def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:
-    """Overlay of each recording and the model before and after the fit (exact simulator solid,
-    smooth simulator dashed), with the residuals below; saves a PNG at ``path``."""
-    from matplotlib.figure import Figure
-
-    segs = result.segments
-    fig = Figure(figsize=(8.0 * min(len(segs), 2) ** 0.5 + 1, 5.5), layout="constrained")
-    axes = fig.subplots(2, len(segs), squeeze=False, sharex="col", height_ratios=(3, 2))
-    for k, seg in enumerate(segs):
-        ax, ax_r = axes[0, k], axes[1, k]
-        t = seg.time
-        ax.plot(t, seg.measured, color="black", lw=2.2, alpha=0.35, label="recorded")
-        if seg.before_exact is not None:
-            ax.plot(t, seg.before_exact, color="0.55", ls=":", lw=1.2, label="model before (exact)")
-        else:
-            ax.plot(t, seg.before, color="0.55", ls=":", lw=1.2, label="model before (smooth)")
-        if seg.after_exact is not None:
-            ax.plot(t, seg.after_exact, color="tab:blue", lw=1.2, label="fitted model (exact)")
-        ax.plot(t, seg.after, color="tab:orange", ls="--", lw=1.2, label="fitted model (smooth)")
-        ax.set_ylabel("position y [m]")
-        ax.set_title(f"{seg.name} ({seg.kind}, {t[0]:.3f} to {t[-1]:.3f} s)", fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-        if seg.after_exact is not None:
-            ax_r.plot(
-                t,
-                (seg.after_exact - seg.measured) * 1e3,
-                color="tab:blue",
-                lw=1.0,
-                label=f"exact, RMS {seg.rms_after_exact * 1e3:.3g} mm",
-            )
-        ax_r.plot(
-            t,
-            (seg.after - seg.measured) * 1e3,
-            color="tab:orange",
-            ls="--",
-            lw=1.0,
-            label=f"smooth, RMS {seg.rms_after * 1e3:.3g} mm",
-        )
-        ax_r.axhline(0.0, color="0.5", lw=0.6)
-        ax_r.set_xlabel("time t [s]")
-        ax_r.set_ylabel("model - recorded [mm]")
-        ax_r.grid(alpha=0.3)
-        ax_r.legend(fontsize=8, loc="best")
-    fitted = ", ".join(
-        f"{n} = {e.value:.4g} ± {e.stderr:.2g} {unit_of(n)}".rstrip()
-        if e.identifiable
-        else f"{n}: not identifiable"
-        for n, e in result.params.items()
-    )
-    if not fitted:  # a prediction (cross_predict): show the values it ran with
-        held = ", ".join(f"{n} = {v:.4g}" for n, v in result.values.items() if n in fittable())
-        fitted = f"prediction with {held or 'the nominal plant'}"
-    fig.suptitle(f"jaxcart fit: {fitted}", fontsize=11)
-    from hw.atomicio import save_figure
-
-    return save_figure(fig, path, dpi=dpi)

@@ -28,6 +28,8 @@ def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> lis
     """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
     state refitted). One row per recording, in their order (see :func:`cross_table`)."""
     from tuning.estimation import fit as F
+    from tuning.estimation.engine.segments import recording_name
+    from tuning.estimation.fitting.result import _finite
 
     alone = F.fit([rec], params, progress=progress, executor=executor)
     values = {n: float(alone.values[F.canonical(n)]) for n in params}
@@ -40,10 +42,10 @@ def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> lis
             pred = F.cross_predict(values, [other], progress=progress, executor=executor)
         rows.append(
             {
-                "fitted_on": F._name(rec),
-                "predicting": F._name(other),
-                "rms": F._finite(pred.rms_after_exact),
-                "rms_smooth": F._finite(pred.rms_after),
+                "fitted_on": recording_name(rec),
+                "predicting": recording_name(other),
+                "rms": _finite(pred.rms_after_exact),
+                "rms_smooth": _finite(pred.rms_after),
                 "values": values,
                 "held": held,
             }

@@ -34,14 +34,14 @@ import numpy as np
 
 from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
-from jaxcart.errors import UserError
-from jaxcart.files import signal64
+from jaxcart.params import ENCODER_RESOLUTION
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.batch import Layout, Segment
-from tuning.estimation.engine.exact_polish import STAIRCASE, gauss_newton, jacobian
+from tuning.estimation.engine.batch import Layout
+from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
 from tuning.estimation.engine.noise import MISFIT_RATIO, repeatability
+from tuning.estimation.engine.segments import recording_name
 
 PARAM_ERRORS = {"mass": ("M",), "gain": ("gamma_scale",)}
 #: The part that frees the drive's limits per recording: on several runs of one cart each run
@@ -92,6 +92,8 @@ LATER_WIDTHS = WIDTHS[1:]
 DIRECT_WIDTHS = (0.01, 0.001)
 ITERATIONS = (8, 8, 8, 8)
 MIN_SAMPLES = 200
+#: A tap's coasting part shorter than this many samples is not diagnosed.
+MIN_COASTING = 50
 #: Free slots of every candidate (B_eq + two effects' parameters), so one compile serves all.
 K_MAX = 5
 #: An exact polish weighs each recording by its own misfit at its start, and again at the
@@ -216,7 +218,7 @@ class Diagnosis:
 
     left_out / corrected_parameters: the effects and parameter corrections of the chosen
     structure (the corrected plant holds them). When ``explained`` is False no candidate
-    reaches :data:`tuning.estimation.fit.MISFIT_RATIO` times the encoder floor: the chosen
+    reaches :data:`tuning.estimation.engine.noise.MISFIT_RATIO` times the encoder floor: the chosen
     structure is
     only the best approximation, and the verdict says so first."""
 
@@ -428,14 +430,9 @@ def _times(ratio: float) -> str:
 # ---------------------------------------------------------------- preparing
 
 
-def _name(rec) -> str:
-    path = getattr(rec, "path", None)
-    return str(getattr(path, "name", path) or "recording")
-
-
 def _excitation(rec, q) -> str | None:
     y = np.asarray(rec.position, dtype=float)
-    name = _name(rec)
+    name = recording_name(rec)
     if y.size < MIN_SAMPLES:
         return (
             f"{name}: too short to say anything ({y.size} samples, "
@@ -443,57 +440,13 @@ def _excitation(rec, q) -> str | None:
         )
     if not np.all(np.isfinite(y)):
         return f"{name}: column y has non-finite values; remove those rows"
-    counts = np.ptp(y) / (q or 2.275e-5)
+    counts = np.ptp(y) / (q or ENCODER_RESOLUTION)
     if counts < MIN_COUNTS:
         return (
             f"{name}: no excitation: the cart moves {np.ptp(y) * 1e3:.3f} mm "
             f"({counts:.0f} encoder counts) in the whole recording; nothing to diagnose"
         )
     return None
-
-
-def prepare(rec, controller=None) -> Segment:
-    from tuning.estimation.engine.noise import encoder_count
-    from tuning.estimation.engine.segments import coasting_segment, initial_state
-
-    raw = np.asarray(rec.position, dtype=float)
-    q = encoder_count(raw)
-    y = raw + q / 2
-    ts = float(rec.sample_time)
-    time = np.asarray(rec.time, dtype=float)
-    exp = rec.experiment
-    if rec.kind == "tap":
-        try:
-            start, stop = coasting_segment(raw, ts, quantization=q or 2.275e-5)
-        except ValueError as exc:
-            raise UserError(f"{_name(rec)}: {exc}") from None
-        if stop - start < 50:
-            raise UserError(f"{_name(rec)}: the coasting part is under 50 samples; tap longer")
-        y0, yd0 = initial_state(time, y, start)
-    else:
-        start, stop = 0, raw.size
-        y0, yd0 = float(y[0]), float(exp.yd0)
-    import jax.numpy as jnp
-
-    signal = jnp.asarray(signal64(rec)[start:stop])
-    experiment = dataclasses.replace(exp, signal=signal, y0=y0, yd0=yd0)
-    if controller is None:
-        controller = rec.controller
-    if controller is None:
-        from hw.control_law import PID
-
-        controller = PID(sample_time=ts)
-    return Segment(
-        name=_name(rec),
-        kind=rec.kind,
-        experiment=experiment,
-        controller=controller,
-        target=y[start:stop],
-        time=time[start:stop],
-        start=start,
-        quantization=q,
-        motor=rec.kind != "tap",
-    )
 
 
 # ---------------------------------------------------------------- candidates
@@ -682,13 +635,13 @@ def cost_to_reach(cand, reach, noise) -> float:
 def _polish(
     cand, segments, base_plants, values, layout, iterations=3, memo=None, target=None, weights=None
 ):
-    """Gauss-Newton on the exact simulator (:func:`~tuning.estimation.engine.exact_polish.
-    gauss_newton`, forward differences, within :func:`~.parameters.bounds`) in the values
+    """The engine's exact polish (:func:`~tuning.estimation.engine.exact_polish.polish`:
+    Gauss-Newton on the exact simulator, forward differences, within the bounds) in the values
     themselves, a few parameters; ``weights``: each recording's weight in the joint least
     squares (:meth:`~tuning.estimation.engine.noise.RecordingNoise.weights`; equal when None).
     Returns (values, the forward-difference Jacobian of the exact residual [m per unit of each
     value] at them or None, the values' names in its column order, whether it converged);
-    ``target``: the (weighted) cost worth fitting for (see :func:`exact_gauss_newton`)."""
+    ``target``: the (weighted) cost worth fitting for (see there)."""
     names = list(values)
     roots = np.sqrt(np.ones(len(segments)) if weights is None else np.asarray(weights))
     rows = np.concatenate([np.full(s.target.size, w) for s, w in zip(segments, roots, strict=True)])
@@ -704,9 +657,11 @@ def _polish(
     def prefetch(xs):
         exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
 
-    done = exact_gauss_newton(
-        cand, names, values, residual, segments, iterations, prefetch if memo else None, target
-    )
+    done = polish(
+        residual, names, [values[n] for n in names], iterations,
+        reference=smooth_reference(cand, names, values, segments),
+        prefetch=prefetch if memo else None, target=target,
+    )  # fmt: skip
     out = at(done.x) if done.improved else values
     jac = None if done.jac is None else done.jac / rows[:, None]  # the plain residual's
     return out, jac, names, done.converged
@@ -717,80 +672,12 @@ def values_key(values: dict) -> tuple:
     return tuple(sorted((k, float(v)) for k, v in values.items()))
 
 
-def difference_floors(names) -> np.ndarray:
-    """The least forward-difference step of each value of ``names``: a time or a position
-    [s, m] 1e-7, any other (a force, a gain) 1e-6."""
-    return np.array(
-        [
-            1e-7 if Layout.kind(n) in P.NUISANCE or P.spec(n).unit in ("s", "m") else 1e-6
-            for n in names
-        ]
-    )
-
-
-def difference_steps(names, x) -> np.ndarray:
-    """Forward-difference steps of the values ``x`` of ``names``: 1e-4 of each, at least its
-    floor (:func:`difference_floors`)."""
-    return 1e-4 * np.abs(np.asarray(x, dtype=float)) + difference_floors(names)
-
-
-def exact_gauss_newton(
-    cand, names, values, residual, segments, iterations, prefetch=None, target=None
-):
-    """The engine's exact Gauss-Newton (:func:`~tuning.estimation.engine.exact_polish.
-    gauss_newton`) on ``residual`` (a function of the vector of ``names``' values) from
-    ``values``, within :func:`~.parameters.bounds`, as every exact re-fit of a diagnosis takes
-    it (the polish, the held-out re-fits); ``prefetch``: makes the runs of several vectors at
-    once (the Jacobian's columns); ``target``: a cost [m^2] worth fitting for (see
-    :func:`~tuning.estimation.engine.exact_polish.gauss_newton`)."""
-    low = np.array([P.bounds(n)[0] for n in names], dtype=float)
-    high = np.array([P.bounds(n)[1] for n in names], dtype=float)
-    x0 = np.clip(np.array([values[n] for n in names], dtype=float), low, high)
-    return gauss_newton(
-        residual,
-        x0,
-        lambda x: difference_steps(names, x),
-        (low, high),
-        iterations,
-        shortest=0.25,
-        prefetch=prefetch,
-        target=target,
-        **_staircase(cand, names, values, segments),
-    )
-
-
-def _staircase(cand, names, values, segments) -> dict:
-    """Where the exact output moves in steps of a value (a breakaway at f_s snapped to a
-    sample, a controller reading whole counts), a forward difference is flat: the secant spans
-    STAIRCASE of its internal coordinate, where the smooth fit's Jacobian sees the value act
-    (:func:`~tuning.estimation.engine.exact_polish.jacobian`'s ``reference`` and
-    ``staircase``)."""
-    slopes = np.array([P.value_slope(n, values[n]) for n in names])
-    return {
-        "reference": _smooth_norms(cand, names, slopes, segments),
-        "staircase": STAIRCASE * np.abs(slopes),
-    }
-
-
-def exact_jacobian(cand, names, values, residual, segments, prefetch=None) -> np.ndarray:
-    """The forward-difference Jacobian of ``residual`` (a function of the vector of ``names``'
-    values) at ``values``, as :func:`exact_gauss_newton` takes it [m per unit of each value]."""
-    x = np.array([values[n] for n in names], dtype=float)
-    steps = difference_steps(names, x)
-    return jacobian(
-        residual,
-        x,
-        residual(x),
-        steps,
-        prefetch=prefetch,
-        **_staircase(cand, names, values, segments),
-    )
-
-
-def _smooth_norms(cand, names, slopes, segments):
+def smooth_reference(cand, names, values, segments):
     """Column norms of ``cand``'s batch-fit Jacobian (its free slots, then the nuisances) per
     unit of each value of ``names`` (0 where it has none): where the smooth model sees a value
-    act, a flat exact difference quotient is the staircase."""
+    act, a flat exact difference quotient is the staircase (the exact polish's ``reference``,
+    :func:`~tuning.estimation.engine.exact_polish.polish`)."""
+    slopes = np.array([P.value_slope(n, values[n]) for n in names])
     jac = getattr(cand, "jac", None)
     order = list(cand.free) + [n for n in names if n not in cand.free]
     if jac is None or jac.ndim != 2 or jac.shape[1] < len(order):
@@ -804,80 +691,6 @@ def _smooth_norms(cand, names, slopes, segments):
             for n, slope in zip(names, slopes, strict=True)
         ]
     )
-
-
-@dataclass
-class Covariance:
-    """Parameter covariances of one fit, natural units: ``robust`` (the engine's run-clustered
-    sandwich with the encoder floor, :func:`tuning.estimation.engine.covariance.covariances`),
-    ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); a parameter the data do not
-    determine has inf in its row and column; ``n`` residuals worth ``n_eff`` independent ones
-    (:func:`tuning.estimation.engine.noise.effective_samples`); ``widened``: the residual is
-    model error, and every standard error is widened as ``jaxcart fit`` widens its own
-    (:func:`tuning.estimation.engine.noise.widened_for_model_error`)."""
-
-    names: list
-    robust: np.ndarray
-    naive: np.ndarray
-    n: int
-    n_eff: float
-    widened: bool
-
-    def stderr(self, weights: dict) -> float:
-        """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
-        difference ({"f_s": 1, "f_c": -1}); nan where one of them is not determined."""
-        from tuning.estimation.engine.noise import widened_for_model_error
-
-        if any(n not in self.names for n in weights):
-            return math.nan
-        # Only the named entries: 0 * inf of an undetermined other one would be nan.
-        i = [self.names.index(n) for n in weights]
-        a = np.array(list(weights.values()), dtype=float)
-        robust = self.robust[np.ix_(i, i)]
-        if not np.all(np.isfinite(robust)):
-            return math.nan
-        var = float(a @ robust @ a)
-        se = math.sqrt(max(var, 0.0))
-        if self.widened:
-            naive = max(float(a @ self.naive[np.ix_(i, i)] @ a), 0.0)
-            se = float(widened_for_model_error(se, naive, self.n, self.n_eff))
-        return se
-
-
-def covariance(
-    segments, names, values, jac, residuals, widen_above=None, weights=None
-) -> Covariance:
-    """Robust and naive covariances in natural units (the engine's,
-    :func:`tuning.estimation.engine.covariance.covariances`, of the fitted parameters: J per
-    unit of each one's logarithm for a log-fitted one; runs by the model's positions, the
-    residuals plus the targets); with an RMS residual above ``widen_above`` [m] the standard
-    errors are widened for model error
-    (:func:`tuning.estimation.engine.noise.widened_for_model_error`; :func:`diagnose` passes
-    the criterion's floor, FLOOR_FACTOR times q / sqrt(12): what the criterion counts as
-    structure to explain is not the encoder's own error); ``weights``: each recording's in a
-    weighted joint fit."""
-    from tuning.estimation.engine.covariance import covariances
-    from tuning.estimation.engine.noise import effective_samples
-
-    jac = np.asarray(jac, dtype=float)
-    r = np.concatenate(residuals)
-    p = len(names)
-    jac = jac[:, :p]
-    nan = np.full((p, p), np.nan)
-    with np.errstate(over="ignore", invalid="ignore"):
-        finite = np.all(np.isfinite(jac)) and np.all(np.isfinite(r))
-        finite = finite and np.all(np.isfinite(jac.T @ jac))
-    if not finite:  # a smooth fit that ran away: no standard errors
-        return Covariance(list(names), nan, nan, r.size, 1.0, False)
-    models = [np.asarray(x) + seg.target for x, seg in zip(residuals, segments, strict=True)]
-    cov = covariances(jac, residuals, models, [seg.quantization for seg in segments], weights)
-    # d value / d theta (log parameters).
-    dv = np.array([P.value_slope(n, values[n]) for n in names])
-    d = np.outer(dv, dv)
-    rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
-    widened = widen_above is not None and rms > widen_above
-    n_eff = effective_samples(residuals) if widened else float(r.size)
-    return Covariance(list(names), cov.robust * d, cov.naive * d, int(r.size), n_eff, widened)
 
 
 def at_bound(name: str, value: float) -> str:
@@ -926,8 +739,9 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
 
     parts: the structure's parts (:attr:`Candidate.parts`); values: its fitted values;
     stderr: ``f(weights) -> standard error`` of a linear combination of parameters
-    (:meth:`Covariance.stderr`); peaks: {"command": largest |command| sent [V], "current":
-    largest |armature current| [A]} of the structure's own run (saturation, current limit);
+    (:meth:`~.engine.covariance.Covariance.stderr`); peaks: {"command": largest |command|
+    sent [V], "current": largest |armature current| [A]} of the structure's own run
+    (saturation, current limit);
     start: the start plant's M and gamma_scale.
 
     Each item's strength is its distance from the values where it does nothing: f_c from 0

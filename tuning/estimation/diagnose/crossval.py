@@ -38,6 +38,8 @@ import numpy as np
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
+from tuning.estimation.engine.covariance import covariance
+from tuning.estimation.engine.exact_polish import polish, values_jacobian
 from tuning.estimation.engine.lm import marquardt_step
 from tuning.estimation.engine.noise import MISFIT_RATIO, RecordingNoise
 
@@ -204,13 +206,12 @@ def exact_jacobian(search, c) -> np.ndarray:
     def residual(x):
         return np.concatenate(search.exact(c, at(x))[0])
 
-    jac = C.exact_jacobian(
-        c,
-        names,
-        c.values,
+    jac = values_jacobian(
         residual,
-        search.segments,
-        lambda xs: search.prefetch([(c, at(x)) for x in xs]),
+        names,
+        [c.values[n] for n in names],
+        reference=C.smooth_reference(c, names, c.values, search.segments),
+        prefetch=lambda xs: search.prefetch([(c, at(x)) for x in xs]),
     )
     c.jac_exact = (key, jac)
     return jac
@@ -284,9 +285,10 @@ def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> 
             sub.layout, sub.memo,
         )  # fmt: skip
 
-    done = C.exact_gauss_newton(
-        sub.cand, renamed, held, residual, sub.segments, iterations, prefetch
-    )
+    done = polish(
+        residual, renamed, [held[n] for n in renamed], iterations,
+        reference=C.smooth_reference(sub.cand, renamed, held, sub.segments), prefetch=prefetch,
+    )  # fmt: skip
     return {**values, **dict(zip(own, (float(v) for v in done.x), strict=True))}
 
 
@@ -461,7 +463,7 @@ def fitted_apart(search, best, motor: bool, iterations: int = DRIVEN_ITERATIONS)
         return out
     # The covariance takes the Jacobian per unit of each fitted coordinate (a log for some).
     slopes = np.array([P.value_slope(n, values[n]) for n in names])
-    cov = C.covariance(
+    cov = covariance(
         sub.segments, names, values, jac * slopes, residuals, search.widen_above,
         noise.weights(residuals),
     )  # fmt: skip

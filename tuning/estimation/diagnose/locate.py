@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from jaxcart.effects import REGISTRY
+from jaxcart.params import ENCODER_RESOLUTION
 
 #: The parameter corrections a residual correlated with a signal can point to.
 _CORRECTIONS = {"command": ("gain (gamma_scale)",), "acceleration": ("mass (M)",)}
@@ -63,7 +64,7 @@ def regimes(seg, command, v_limit):
     n = y.size
     vel = smooth_velocity(y, ts)
     acc = smooth_velocity(vel, ts, 0.02)
-    q = seg.quantization or 2.275e-5
+    q = seg.quantization or ENCODER_RESOLUTION
     slow = np.abs(vel) < max(q / 0.02, 1e-4)
     label = np.full(n, -1)
     moving_dir = np.sign(vel) * (~slow)

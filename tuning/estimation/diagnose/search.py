@@ -43,9 +43,10 @@ from tuning.estimation.diagnose.core import (
 )
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
-from tuning.estimation.engine.covariance import determined
+from tuning.estimation.engine.covariance import Covariance, covariance, determined
 from tuning.estimation.engine.coverage import Coverage
 from tuning.estimation.engine.noise import RecordingNoise
+from tuning.estimation.engine.segments import prepare, recording_name
 from tuning.estimation.engine.starts import start_values
 
 
@@ -82,7 +83,7 @@ def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagno
     t_start = _time.perf_counter()
     if not isinstance(recordings, list | tuple):
         recordings = [recordings]
-    names = [C._name(r) for r in recordings]
+    names = [recording_name(r) for r in recordings]
     messages, checks, controllers, read_counts = _checks(recordings, say)
     if messages:
         for m in messages:
@@ -133,7 +134,10 @@ class Search:
         from tuning.estimation.engine.noise import floor_of
 
         self.recordings, self.say, self.processes = recordings, say, processes
-        segments = [C.prepare(r, c) for r, c in zip(recordings, controllers, strict=True)]
+        segments = [
+            prepare(r, c, min_coasting=C.MIN_COASTING)
+            for r, c in zip(recordings, controllers, strict=True)
+        ]
         start_plant = start if start is not None else handout_plant()
         base_plants = []
         for rec in recordings:
@@ -145,7 +149,7 @@ class Search:
         segments = self.segments
         # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data
         # that are not whole counts (jaxcart fit's floor).
-        self.floor = floor_of((s.target, s.quantization) for s in segments)
+        self.floor = floor_of(segments)
         self.widen_above = FLOOR_FACTOR * self.floor  # above it the residual is model error
         # Each recording against its own floor: the criterion and the joint fits' weights.
         self.noise = RecordingNoise(segments, FLOOR_FACTOR)
@@ -280,12 +284,12 @@ class Search:
             out.update({f"{k}@{i}": v for i, v in each.items()})
         return out
 
-    def cov_of(self, c) -> C.Covariance:
+    def cov_of(self, c) -> Covariance:
         """``c``'s parameter covariances at its values (free slots and nuisances)."""
         jac = c.jac / C.fitter_scale(self.segments)
         names = list(c.free) + self.nuis
         weights = self.noise.weights(c.residuals)
-        return C.covariance(
+        return covariance(
             self.segments, names, c.values, jac, c.residuals, self.widen_above, weights
         )
 

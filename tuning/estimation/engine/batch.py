@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -26,30 +25,6 @@ from tuning.estimation.engine.lm import marquardt_step
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
 VOLTAGE_WIDTH = 4e-3
-
-
-@dataclass
-class Segment:
-    """One recording prepared for fitting: the part fitted, its target and its experiment."""
-
-    name: str
-    kind: str
-    experiment: object  # jaxcart Experiment of the fitted part (y0, yd0 the start guesses)
-    controller: object
-    target: np.ndarray  # measured position, middle of the count [m]
-    time: np.ndarray
-    start: int
-    quantization: float
-    motor: bool
-    #: The controller reads the recorded counts: the plant's quantization sensor is in the
-    #: loop, and the simulated position is compared, not the reading (core._counts_in_loop).
-    counts_in_loop: bool = False
-
-    def count_index(self) -> np.ndarray:
-        """The whole encoder count of every target sample (needs quantization > 0). The target
-        is the middle of its count, n + 1/2 counts: rounded, half of them would tie and go to
-        the even neighbour, merging two counts into one."""
-        return np.floor(self.target / self.quantization)
 
 
 class Layout:
@@ -82,16 +57,6 @@ class Layout:
 
     def index(self, name: str) -> int:
         return self.names.index(name)
-
-    def expand(self, names) -> tuple:
-        """``names`` with each per-recording name replaced by its copies."""
-        out = []
-        for n in names:
-            if n in self.per_recording:
-                out += [f"{n}@{i}" for i, own in self.copies.items() if n in own]
-            else:
-                out.append(n)
-        return tuple(out)
 
     def slots_of(self, i: int) -> list:
         """The slot of each superset name in recording ``i``: its own copy where it has one."""

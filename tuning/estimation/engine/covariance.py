@@ -20,9 +20,13 @@ internal parameters); a caller converts to natural units with the value slopes.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.noise import effective_samples, widened_for_model_error
 
 
 class Covariances(NamedTuple):
@@ -167,3 +171,87 @@ def covariances(jac, residuals, models, quantizations, weights=None) -> Covarian
         cov[singular, :] = np.inf
         cov[:, singular] = np.inf
     return Covariances(robust, naive, singular)
+
+
+@dataclass
+class Covariance:
+    """Parameter covariances of one fit (``jaxcart fit``'s and ``jaxcart diagnose``'s), natural
+    units (or a fit's internal ones, :func:`covariance`): ``robust`` (the engine's run-clustered
+    sandwich with the encoder floor, :func:`tuning.estimation.engine.covariance.covariances`),
+    ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); a parameter the data do not
+    determine has inf in its row and column; ``n`` residuals worth ``n_eff`` independent ones
+    (:func:`tuning.estimation.engine.noise.effective_samples`); ``widened``: the residual is
+    model error, and every standard error is widened as ``jaxcart fit`` widens its own
+    (:func:`tuning.estimation.engine.noise.widened_for_model_error`)."""
+
+    names: list
+    robust: np.ndarray
+    naive: np.ndarray
+    n: int
+    n_eff: float
+    widened: bool
+
+    def stderr(self, weights: dict) -> float:
+        """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
+        difference ({"f_s": 1, "f_c": -1}); nan where one of them is not determined."""
+        if any(n not in self.names for n in weights):
+            return math.nan
+        # Only the named entries: 0 * inf of an undetermined other one would be nan.
+        i = [self.names.index(n) for n in weights]
+        a = np.array(list(weights.values()), dtype=float)
+        robust = self.robust[np.ix_(i, i)]
+        if not np.all(np.isfinite(robust)):
+            return math.nan
+        var = float(a @ robust @ a)
+        se = math.sqrt(max(var, 0.0))
+        if self.widened:
+            naive = max(float(a @ self.naive[np.ix_(i, i)] @ a), 0.0)
+            se = float(widened_for_model_error(se, naive, self.n, self.n_eff))
+        return se
+
+    def stderrs(self) -> np.ndarray:
+        """The standard error of every entry (inf where the data do not determine it), widened
+        as :meth:`stderr` widens one."""
+        se = np.sqrt(np.diag(self.robust))
+        if self.widened:
+            se = widened_for_model_error(se, np.diag(self.naive), self.n, self.n_eff)
+        return se
+
+    @property
+    def singular(self) -> np.ndarray:
+        """True for each entry the data do not determine (its variance not finite)."""
+        return ~np.isfinite(np.diag(self.robust))
+
+
+def covariance(
+    segments, names, values, jac, residuals, widen_above=None, weights=None
+) -> Covariance:
+    """Robust and naive covariances in natural units (the engine's,
+    :func:`tuning.estimation.engine.covariance.covariances`, of the fitted parameters: J per
+    unit of each one's logarithm for a log-fitted one; runs by the model's positions, the
+    residuals plus the targets); with an RMS residual above ``widen_above`` [m] the standard
+    errors are widened for model error
+    (:func:`tuning.estimation.engine.noise.widened_for_model_error`; :func:`diagnose` passes
+    the criterion's floor, FLOOR_FACTOR times q / sqrt(12): what the criterion counts as
+    structure to explain is not the encoder's own error); ``weights``: each recording's in a
+    weighted joint fit. ``values`` None: in the units of J's columns (``jaxcart fit``'s
+    internal coordinates)."""
+    jac = np.asarray(jac, dtype=float)
+    r = np.concatenate(residuals)
+    p = len(names)
+    jac = jac[:, :p]
+    nan = np.full((p, p), np.nan)
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.all(np.isfinite(jac)) and np.all(np.isfinite(r))
+        finite = finite and np.all(np.isfinite(jac.T @ jac))
+    if not finite:  # a smooth fit that ran away: no standard errors
+        return Covariance(list(names), nan, nan, r.size, 1.0, False)
+    models = [np.asarray(x) + seg.target for x, seg in zip(residuals, segments, strict=True)]
+    cov = covariances(jac, residuals, models, [seg.quantization for seg in segments], weights)
+    # d value / d theta (log parameters); None: the internal units themselves.
+    dv = np.ones(p) if values is None else np.array([P.value_slope(n, values[n]) for n in names])
+    d = np.outer(dv, dv)
+    rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+    widened = widen_above is not None and rms > widen_above
+    n_eff = effective_samples(residuals) if widened else float(r.size)
+    return Covariance(list(names), cov.robust * d, cov.naive * d, int(r.size), n_eff, widened)

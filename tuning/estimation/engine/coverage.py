@@ -63,7 +63,7 @@ class Coverage:
 
     @classmethod
     def of(cls, segments, commands) -> Coverage:
-        """The coverage of prepared ``segments`` (:class:`~.batch.Segment`); ``commands``: each
+        """The coverage of prepared ``segments`` (:class:`~.segments.Segment`); ``commands``: each
         segment's command [V] or None (a tap, or a command neither recorded nor replayable)."""
         ys = [np.asarray(s.target, dtype=float) for s in segments]
         right = left = 0.0

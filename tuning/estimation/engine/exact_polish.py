@@ -14,10 +14,12 @@ of 24 and moved the fitted values by under 3e-5 standard errors and the standard
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
 
+from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.lm import gauss_newton_step
 
 #: Secant half-width in a fit's internal units (3 % of a log-fitted parameter) where the exact
@@ -141,3 +143,79 @@ def gauss_newton(
             converged = True
             break
     return Polished(x, r, jac, improved, done, converged)
+
+
+def difference_floors(names) -> np.ndarray:
+    """The least forward-difference step of each value of ``names``: a time or a position
+    [s, m] 1e-7, any other (a force, a gain) 1e-6."""
+    return np.array(
+        [
+            1e-7 if P.base_name(n) in P.NUISANCE or P.spec(n).unit in ("s", "m") else 1e-6
+            for n in names
+        ]
+    )
+
+
+def difference_steps(names, x) -> np.ndarray:
+    """Forward-difference steps of the values ``x`` of ``names``: 1e-4 of each, at least its
+    floor (:func:`difference_floors`)."""
+    return 1e-4 * np.abs(np.asarray(x, dtype=float)) + difference_floors(names)
+
+
+def _staircase(names, x, reference, slopes) -> dict:
+    """Where the exact output moves in steps of a value (a breakaway at f_s snapped to a
+    sample, a controller reading whole counts), a forward difference is flat: the secant spans
+    STAIRCASE of its internal coordinate (``slopes``: d value / d coordinate of each; default
+    :func:`~.parameters.value_slope`), where the smooth fit's Jacobian sees the value act
+    (``reference``: its column norms per unit of each value; :func:`jacobian`)."""
+    if slopes is None:
+        slopes = [P.value_slope(n, v) for n, v in zip(names, x, strict=True)]
+    return {"reference": reference, "staircase": STAIRCASE * np.abs(np.asarray(slopes))}
+
+
+def polish(
+    residual, names, x, iterations, *, reference, bounds=None, slopes=None, steps=None,
+    max_step=None, shortest=0.25, prefetch=None, target=None,
+) -> Polished:  # fmt: skip
+    """The exact polish of every fit of the engine (``jaxcart fit``'s last step, a diagnosis's
+    polish and held-out re-fits): :func:`gauss_newton` on ``residual`` (a function of the
+    vector ``x`` of ``names``' coordinates) from ``x``, within ``bounds`` ((low, high); default
+    :func:`~.parameters.bounds`), the staircase's secants of :func:`_staircase` (``reference``,
+    ``slopes``); ``prefetch``: makes the runs of several vectors at once (the Jacobian's
+    columns); ``target``: a cost [m^2] worth fitting for (see :func:`gauss_newton`).
+
+    The coordinates are the values themselves unless the caller says otherwise: forward
+    differences of :func:`difference_steps` (``steps``: others, a number or one per entry),
+    no limit on a step (``max_step``), a step halved down to ``shortest`` of it. ``jaxcart
+    fit`` polishes in its internal coordinates (a logarithm for a positive parameter): steps
+    of 1e-6, at most MAX_STEP, slopes 1 (on its runs the value coordinates' steps of 1e-4
+    merge M and B_eq into one correlated pair where they are one combination, and leave a
+    track-friction element 4 standard errors off)."""
+    if bounds is None:
+        bounds = tuple(np.array([P.bounds(n)[k] for n in names], dtype=float) for k in (0, 1))
+    x = np.asarray(x, dtype=float)
+    if steps is None:
+        steps = partial(difference_steps, names)
+    return gauss_newton(
+        residual,
+        np.clip(x, *bounds),
+        steps if callable(steps) else np.broadcast_to(np.asarray(steps, dtype=float), x.shape),
+        bounds,
+        iterations,
+        max_step=max_step,
+        shortest=shortest,
+        prefetch=prefetch,
+        target=target,
+        **_staircase(names, x, reference, slopes),
+    )
+
+
+def values_jacobian(residual, names, x, *, reference, slopes=None, prefetch=None) -> np.ndarray:
+    """The forward-difference Jacobian of ``residual`` (a function of the vector of ``names``'
+    values) at their values ``x``, as :func:`polish` takes it [m per unit of each value]."""
+    x = np.asarray(x, dtype=float)
+    steps = difference_steps(names, x)
+    return jacobian(
+        residual, x, residual(x), steps, prefetch=prefetch,
+        **_staircase(names, x, reference, slopes),
+    )  # fmt: skip

@@ -18,7 +18,7 @@ import numpy as np
 class ExactJob(NamedTuple):
     """One recording's exact run, as a helper process gets it: the controller, the plant and
     the experiment; the measured ``target`` [m]; ``counts_in_loop`` and ``motor`` of its
-    :class:`~tuning.estimation.engine.batch.Segment`."""
+    :class:`~tuning.estimation.engine.segments.Segment`."""
 
     controller: object
     plant: object

@@ -83,14 +83,15 @@ def widened_for_model_error(stderr, naive_variance, n: int, n_eff: float) -> np.
     return np.maximum(stderr, np.sqrt(naive_variance * tau))
 
 
-def floor_of(data) -> float:
-    """RMS position error [m] a correct model leaves on recorded positions: for each
-    (positions [m], encoder count q [m] or 0) of ``data``, the encoder's q / sqrt(12), or for
-    data that are not whole counts their white noise (:func:`noise_level`); weighted by
-    samples, at least :data:`FLOOR_MIN`. Shared by ``jaxcart fit`` and ``jaxcart diagnose``."""
+def floor_of(segments) -> float:
+    """RMS position error [m] a correct model leaves on prepared ``segments``
+    (:class:`~.segments.Segment`: positions ``target`` [m], encoder count ``quantization`` [m]
+    or 0): the encoder's q / sqrt(12), or for data that are not whole counts their white noise
+    (:func:`noise_level`); weighted by samples, at least :data:`FLOOR_MIN`. Shared by
+    ``jaxcart fit`` and ``jaxcart diagnose``."""
     total = n = 0
-    for positions, q in data:
-        positions = np.asarray(positions, dtype=float)
+    for seg in segments:
+        positions, q = np.asarray(seg.target, dtype=float), seg.quantization
         # Encoder data are whole counts (their noise is in the counts); other data: white noise.
         var = q**2 / 12 if q > 0 else noise_level(positions) ** 2
         total += positions.size * var
@@ -154,7 +155,7 @@ class RecordingNoise:
     squares with the weights :meth:`weights` (iteratively reweighted)."""
 
     def __init__(self, segments, factor: float = 1.0):
-        self.floors = np.array([factor * floor_of([(s.target, s.quantization)]) for s in segments])
+        self.floors = np.array([factor * floor_of([s]) for s in segments])
         runs = [max(count_runs(s.target, s.quantization), 1.0) for s in segments]
         self.n_eff = np.full(len(runs), float(np.mean(runs)))
         self.sizes = np.array([s.target.size for s in segments], dtype=float)

@@ -1,10 +1,117 @@
-"""Parts of a recording worth fitting: a tap's coasting part and a run's start state."""
+"""Recordings prepared for fitting: the one :class:`Segment` and :func:`prepare` of every fit
+of the engine (``jaxcart fit`` and ``jaxcart diagnose``): a tap's coasting part and its start
+state, a driven run whole, every position the middle of its encoder count."""
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import numpy as np
 
+from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
+
+
+@dataclass(eq=False)
+class Segment:
+    """One recording prepared for fitting: the samples ``start:stop`` of it.
+
+    name: the recording's file name; kind: "tap", "closed_loop" or "open_loop"; experiment:
+    the part fitted as an :class:`~jaxcart.experiments.Experiment` (y0, yd0 the start guesses);
+    controller: the PID that ran (a placeholder for taps and open loop); target: measured
+    positions, the middle of each count [m]; time: recording time of each sample [s];
+    quantization: the encoder count found in the data [m] (0: not quantized); motor: the
+    motor drives the cart (not a tap); counts_in_loop: the controller reads the recorded
+    counts, so the plant's quantization sensor is in the loop and the simulated position is
+    compared, not the reading (the diagnosis's ``core._counts_in_loop``).
+
+    A fit of fixed structure (:func:`tuning.estimation.fit.fit`) adds its own: ``plant``, the
+    plant the recording ran on with the start values; ``nuisance``, the per-recording values
+    fitted beside the plant (:class:`tuning.estimation.fitting.model.Nuisance`); ``params``,
+    the fitted parameters that act on this plant.
+    """
+
+    name: str
+    kind: str
+    experiment: object
+    controller: object
+    target: np.ndarray
+    time: np.ndarray
+    start: int
+    stop: int
+    quantization: float
+    counts_in_loop: bool = False
+    plant: object = None
+    nuisance: tuple = ()
+    params: tuple = ()
+
+    @property
+    def motor(self) -> bool:
+        return self.kind != "tap"
+
+
+def recording_name(recording) -> str:
+    """The recording's file name ("recording" where it has none)."""
+    path = getattr(recording, "path", None)
+    return str(getattr(path, "name", path) or "recording")
+
+
+def prepare(
+    recording, controller=None, *, quantization=None, margin: float = 0.02, min_coasting: int = 20
+) -> Segment:
+    """``recording`` as a :class:`Segment`: a tap's coasting part (:func:`coasting_segment`,
+    ``margin`` [s] after the push; at least ``min_coasting`` samples) with its start state
+    (:func:`initial_state`), or a closed or open loop's whole run (y0: the first position).
+    controller: the PID that ran (default the recording's); quantization: the encoder count
+    [m] (None: found in the data, :func:`~.noise.encoder_count`)."""
+    from hw.control_law import PID
+    from jaxcart.files import signal64
+    from jaxcart.parallel import put
+    from tuning.estimation.engine.noise import encoder_count
+
+    name = recording_name(recording)
+    raw = np.asarray(recording.position, dtype=float)
+    n = raw.size
+    if n < 10:
+        raise UserError(f"{name}: only {n} samples; a fit needs a recording of at least 10")
+    if not np.all(np.isfinite(raw)):
+        raise UserError(f"{name}: column y has non-finite values; remove those rows")
+    q = encoder_count(raw) if quantization is None else float(quantization)
+    y = raw + q / 2  # a count says the cart is somewhere in [y, y + q): the middle
+    ts = float(recording.sample_time)
+    time = np.asarray(recording.time, dtype=float)
+    exp = recording.experiment
+    if recording.kind == "tap":
+        start, stop = _coasting(name, raw, ts, time, margin, q, min_coasting)
+        y0, yd0 = initial_state(time, y, start)
+    else:
+        start, stop = 0, n
+        y0, yd0 = float(y[0]), float(exp.yd0)
+    signal = put(signal64(recording)[start:stop], float)
+    experiment = dataclasses.replace(exp, signal=signal, y0=y0, yd0=yd0)
+    if controller is None:
+        controller = recording.controller
+    if controller is None:
+        controller = PID(sample_time=ts)
+    return Segment(
+        name, recording.kind, experiment, controller, y[start:stop], time[start:stop],
+        start, stop, q,
+    )  # fmt: skip
+
+
+def _coasting(name, raw, ts, time, margin, q, least) -> tuple[int, int]:
+    """(start, stop) of a tap's coasting part, or a UserError saying why there is none."""
+    try:
+        start, stop = coasting_segment(raw, ts, margin=margin, quantization=q or ENCODER_RESOLUTION)
+    except ValueError as exc:
+        raise UserError(f"{name}: {exc}; check that column y is the cart position") from None
+    if stop - start < least:
+        raise UserError(
+            f"{name}: the coasting part found ({time[start]:.3f} s to {time[stop - 1]:.3f} s) "
+            f"is shorter than {least} samples; record a longer tap"
+        )
+    return start, stop
 
 
 def coasting_segment(

@@ -1,0 +1,343 @@
+"""A fit's model of fixed structure: theta's layout (the fitted parameters, then each
+recording's nuisance values), the smooth simulator's residuals and their Jacobian (forward mode,
+several points in one batched, sharded program), and the exact simulator's runs
+(:class:`_Problem`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcart import plantspec
+from jaxcart.experiments import Experiment
+from jaxcart.parallel import put, sharded_map
+from jaxcart.smooth_sim import simulate_smooth
+from jaxcart.smoothing import Smoothing
+from jaxcart.workers import SERIAL
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.lm import LM_DAMPING
+from tuning.estimation.engine.parameters import base_name
+from tuning.estimation.fitting.names import (
+    _default_start,
+    _element,
+    assemble,
+    canonical,
+    default_start,
+)
+
+#: Nuisance values and their internal units (the optimizer's unit step): y0, the initial
+#: position [m]; yd0, the initial velocity [m/s].
+NUISANCE_SCALE = {"y0": 1e-3, "yd0": 0.1}
+
+
+class Nuisance(NamedTuple):
+    """A per-recording value fitted beside the plant: value = base + scale * theta, or, when
+    ``bounded``, base + scale * sigmoid(theta) (within [base, base + scale]). name: "y0" [m] or
+    "yd0" [m/s]."""
+
+    name: str
+    base: float
+    scale: float
+    bounded: bool = False
+
+    def value(self, theta, xp=np):
+        if self.bounded:
+            return self.base + self.scale / (1 + xp.exp(-theta))
+        return self.base + self.scale * theta
+
+    def slope(self, theta) -> float:
+        """d value / d theta."""
+        if self.bounded:
+            e = math.exp(-abs(float(theta)))
+            return self.scale * e / (1 + e) ** 2
+        return self.scale
+
+
+#: Points per batched evaluation (every call is padded to a multiple: one compiled program):
+#: the damping values one Levenberg-Marquardt iteration tries at once.
+LM_BATCH = len(LM_DAMPING)
+#: Bounded nuisance values stay within sigmoid(+-BOUNDED_LIMIT) of their range.
+BOUNDED_LIMIT = 6.0
+#: Segments are padded to a multiple of this many samples (fewer recompilations).
+PAD = 256
+
+
+class _Layout(NamedTuple):
+    """Static description of theta: which entries go where (hashable: a jit static)."""
+
+    params: tuple[str, ...]  # canonical names, theta[0:len(params)] (logs)
+    segments: tuple  # per segment: ((param name, index), ...), ((Nuisance, index), ...)
+    substeps: int
+
+
+def _positions(theta, data, smoothing, layout: _Layout):
+    """Simulated positions of every segment, concatenated [m]."""
+    out = []
+    for (plant, controller, experiment, base), (params, nuisance) in zip(
+        data, layout.segments, strict=True
+    ):
+        plant = plant.replace(
+            **assemble(plant, {p: P.to_value(p, theta[i], jnp) for p, i in params}, jnp)
+        )
+        # The base values are data (a traced array), so that recordings differing only in them
+        # share one compilation.
+        values = {
+            v.name: v._replace(base=base[j]).value(theta[i], jnp)
+            for j, (v, i) in enumerate(nuisance)
+        }
+        experiment = dataclasses.replace(experiment, **values)
+        res = simulate_smooth(
+            plant, controller, experiment, smoothing=smoothing, substeps=layout.substeps
+        )
+        out.append(res.position)
+    return jnp.concatenate(out)
+
+
+def _residuals_jacobian(theta, data, measured, weight, smoothing, layout):
+    """(r, dr/dtheta) of one theta: forward mode (a few parameters, many samples)."""
+    TRACES[layout] = TRACES.get(layout, 0) + 1  # runs when traced, not when called
+
+    def residuals(th):
+        r = (_positions(th, data, smoothing, layout) - measured) * weight
+        return r, r
+
+    jac, r = jax.jacfwd(residuals, has_aux=True)(theta)
+    return r, jac
+
+
+_BATCHED: dict = {}
+#: How often the residual function was traced, per layout (tests check it is once).
+TRACES: dict = {}
+
+
+def _batched_residuals(layout: _Layout):
+    """``run(thetas (K, m), data, measured, weight, smoothing) -> (r (K, n), J (K, n, m))``:
+    one compiled program per layout, sharded over the devices (:mod:`jaxcart.parallel`).
+    The CPU's per-step loop overhead dominates a single run, so K trial points cost little more
+    than one."""
+    if layout not in _BATCHED:
+        _BATCHED[layout] = sharded_map(
+            partial(_residuals_jacobian, layout=layout), name="fit-residuals", static=layout
+        )
+    return _BATCHED[layout]
+
+
+_positions_jit = jax.jit(_positions, static_argnames="layout")
+
+
+class _Problem:
+    """Segments, theta's layout and the compiled residual function."""
+
+    def __init__(self, segments, params, settings, executor=None):
+        self.segments = segments
+        self.executor = executor or SERIAL
+        self.params = tuple(canonical(p) for p in params)
+        self.n_params = len(self.params)
+        self.settings = settings
+        index = len(self.params)
+        layout = []
+        theta = [P.to_theta(p, self._start_value(p)) for p in self.params]
+        for k, seg in enumerate(segments):
+            # A parameter free per recording maps to this recording's own copy (``v_sat@k``).
+            own = [f"{p}@{k}" if f"{p}@{k}" in self.params else p for p in seg.params]
+            ps = tuple((p, self.params.index(q)) for p, q in zip(seg.params, own, strict=True))
+            nu = []
+            for v in seg.nuisance:
+                nu.append((v._replace(base=0.0), index))
+                start = 0.0 if v.bounded else (getattr(seg.experiment, v.name) - v.base) / v.scale
+                theta.append(float(start))
+                index += 1
+            layout.append((ps, tuple(nu)))
+        self.layout = _Layout(self.params, tuple(layout), settings.substeps)
+        # The name of every entry of theta: the parameters, then each segment's nuisances.
+        self.entries = list(self.params) + [
+            f"{v.name}@{k}" for k, seg in enumerate(segments) for v in seg.nuisance
+        ]
+        self.evaluations = 0  # smooth-model points evaluated (r and J)
+        self.theta0 = np.asarray(theta, dtype=float)
+        # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
+        # nearly the same length then share one compiled residual function.
+        self.sizes = [s.target.size for s in segments]
+        self.observed = np.concatenate([s.target for s in segments])
+        padded = [-(-n // PAD) * PAD for n in self.sizes]
+        # On the device once: host leaves would be transferred again at every evaluation.
+        self.data = jax.tree.map(
+            put,
+            tuple(
+                (
+                    s.plant,
+                    s.controller,
+                    _padded_experiment(s.experiment, n),
+                    np.asarray([v.base for v in s.nuisance], dtype=float),
+                )
+                for s, n in zip(segments, padded, strict=True)
+            ),
+        )
+        self.measured = put(
+            np.concatenate(
+                [
+                    np.pad(s.target, (0, n - s.target.size))
+                    for s, n in zip(segments, padded, strict=True)
+                ]
+            )
+        )
+        self.weight = put(
+            np.concatenate(
+                [
+                    np.pad(np.ones(s.target.size), (0, n - s.target.size))
+                    for s, n in zip(segments, padded, strict=True)
+                ]
+            )
+        )
+        self.rows = np.concatenate(
+            [
+                np.arange(n) + off
+                for n, off in zip(self.sizes, np.cumsum([0, *padded[:-1]]), strict=True)
+            ]
+        )
+
+    def _start_value(self, p) -> float:
+        k, base = P.recording_of(p), base_name(p)
+        segs = self.segments if k is None else [self.segments[k]]
+        i = _element(p.split("@")[0])
+        values = [
+            float(s.plant.get(base) if i is None else s.plant.get(base)[i])
+            for s in segs
+            if base in s.params or p in s.params
+        ]
+        value = values[0] if values else _default_start(p.split("@")[0])
+        if P.is_log(p) and not value > 0:
+            value = _default_start(p.split("@")[0])
+        return value
+
+    def start_source(self, p) -> str:
+        """Where parameter ``p``'s start value comes from, in words (for a value held)."""
+        base = base_name(p)
+        declared = default_start().get(base)
+        if base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
+            where = "the recordings' plant (the handout's appendix, a plant file or [plant])"
+        elif declared is not None and math.isclose(
+            self._start_value(p), declared if not isinstance(declared, tuple) else declared[0]
+        ):
+            where = "the effect's declared typical value"
+        else:
+            where = "the recordings' plant (a plant file, [plant] or --initial)"
+        return f"its start value from {where}; give another with --initial {base}=VALUE"
+
+    def smoothing(self, width) -> Smoothing:
+        return Smoothing(voltage=self.settings.voltage_width, velocity=width, position=1e-6)
+
+    def evaluate(self, theta, width):
+        """(r, J) over the recorded samples, numpy float64; r = inf where the simulation is not
+        finite."""
+        th = put(theta, float)
+        if th.size == 0:
+            r = _positions_jit(th, self.data, self.smoothing(width), self.layout) - self.measured
+            r = np.asarray(r)[self.rows]
+            return r, np.zeros((r.size, 0))
+        r, jac = self.evaluate_batch(th[None, :], width)
+        return r[0], jac[0]
+
+    def evaluate_batch(self, thetas, width):
+        """(r (K, n), J (K, n, m)) of K points theta at once (one program, padded to
+        :data:`LM_BATCH` points); r = inf for a point whose simulation is not finite."""
+        thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
+        k = thetas.shape[0]
+        size = -(-k // LM_BATCH) * LM_BATCH
+        padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - k, axis=0)])
+        self.evaluations += k
+        r, jac = _batched_residuals(self.layout)(
+            put(padded, float), self.data, self.measured, self.weight, self.smoothing(width)
+        )
+        r, jac = np.asarray(r)[:k, self.rows], np.asarray(jac)[:k, self.rows]
+        bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(jac), axis=(1, 2)))
+        r[bad] = np.inf
+        return r, jac
+
+    def segment_values(self, theta, k):
+        """(plant values {name: value}, nuisance {name: value}) of segment k at theta."""
+        params, _ = self.layout.segments[k]
+        return (
+            {p: float(P.to_value(p, theta[i])) for p, i in params},
+            {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
+        )
+
+    def theta_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of every entry of theta: the plant's values inside what a cart of this
+        lab has (engine.parameters.bounds), each bounded nuisance within +-BOUNDED_LIMIT (its
+        sigmoid keeps a slope there), the other nuisances free."""
+        low = np.full(self.theta0.size, -np.inf)
+        high = np.full(self.theta0.size, np.inf)
+        for i, name in enumerate(self.params):
+            low[i], high[i] = (P.to_theta(name, b) for b in P.bounds(name))
+        for k in range(len(self.segments)):
+            for v, i in self.nuisance_index(k):
+                if v.bounded:
+                    low[i], high[i] = -BOUNDED_LIMIT, BOUNDED_LIMIT
+        return low, high
+
+    def clip_bounded(self, theta, reset=False):
+        """theta within :meth:`theta_bounds`, with ``reset`` each bounded nuisance at 0, the
+        middle of its range."""
+        theta = np.clip(np.asarray(theta, dtype=float), *self.theta_bounds())
+        if reset:
+            for k in range(len(self.segments)):
+                for v, i in self.nuisance_index(k):
+                    if v.bounded:
+                        theta[i] = 0.0
+        return theta
+
+    def nuisance_index(self, k):
+        """((Nuisance with its base, index in theta), ...) of segment k."""
+        idx = [i for _, i in self.layout.segments[k][1]]
+        return tuple(zip(self.segments[k].nuisance, idx, strict=True))
+
+    def simulate_exact(self, theta):
+        """Exact-simulator positions of each segment at theta (list of arrays) [m]."""
+        return self.simulate_exact_many([theta])[0]
+
+    def simulate_exact_many(self, thetas):
+        """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
+        (the executor's ``map``: several at a time)."""
+        from tuning.estimation.engine.exact_runs import exact_position
+
+        jobs = []
+        for theta in thetas:
+            for k, seg in enumerate(self.segments):
+                values, nuisance = self.segment_values(theta, k)
+                plant = seg.plant.replace(**assemble(seg.plant, values))
+                jobs.append(
+                    (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
+                )
+        runs = self.executor.map(exact_position, jobs, list(self.sizes) * len(thetas))
+        n = len(self.segments)
+        return [runs[i : i + n] for i in range(0, len(runs), n)]
+
+    def exact_residuals(self, theta):
+        """Exact-simulator positions minus the measured ones, all segments [m]."""
+        return np.concatenate(self.simulate_exact(theta)) - self.observed
+
+    def exact_available(self) -> bool:
+        """True when the exact simulator models every effect of every segment's plant."""
+        try:
+            self.simulate_exact(self.theta0)
+        except (ImportError, NotImplementedError):
+            return False
+        return True
+
+    def split(self, r):
+        """Per-segment parts of a vector over all samples."""
+        return np.split(np.asarray(r), np.cumsum(self.sizes)[:-1])
+
+
+def _padded_experiment(experiment: Experiment, n: int) -> Experiment:
+    """The experiment continued to n samples (its last signal value held)."""
+    signal = np.asarray(experiment.signal, dtype=float)
+    signal = np.pad(signal, (0, n - signal.size), mode="edge")
+    return dataclasses.replace(experiment, signal=put(signal, float))
