@@ -63,7 +63,8 @@ def test_fast_suite_says_what_one_recording_cannot_tell(fast_results):
 
 def _judged(case, **fields):
     """judge() of a made-up diagnosis of ``case`` (no fit): its fields as given."""
-    from tuning.estimation.diagnose.core import Candidate, Diagnosis
+    from tuning.estimation.diagnose.core import Candidate
+    from tuning.estimation.diagnose.result import Diagnosis
 
     parts = fields.pop("parts", ())
     d = Diagnosis(["a"], "diagnosed", [], [], rms_before=1e-3, rms_after=1e-5, **fields)

@@ -13,6 +13,7 @@ from jaxcart.files import read_experiment
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import crossval
 from tuning.estimation.diagnose.report import render_markdown
+from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.search import Search
 from tuning.estimation.diagnose.suite import CASES, Case, make_case
 
@@ -91,7 +92,7 @@ def test_a_run_held_out_is_predicted_given_its_own_drive_limit(tmp_path):
         assert f["held_out"] and f["predicted_rms"] < FACTOR * max(f["fitted_rms"], search.floor)
     assert cv["own"] == ["v_sat"] and cv["ratio"] < crossval.WORSE
     assert "its own v_sat fitted to it" in cv["text"]
-    d = C.Diagnosis(_names(search), "diagnosed", [], [], rms_before=1e-2, rms_after=1e-5)
+    d = Diagnosis(_names(search), "diagnosed", [], [], rms_before=1e-2, rms_after=1e-5)
     d.baseline = {"B_eq": {"value": 1.5, "stderr": 0.01}}
     entry = {"kind": "x", "parameters": {}, "rms_before": 1e-2, "rms_after": 1e-5}
     d.per_recording = {n: dict(entry) for n in [*_names(search), "extra"]}

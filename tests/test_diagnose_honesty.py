@@ -29,7 +29,6 @@ from tuning.estimation.diagnose.core import (
     PLAUSIBLE,
     SIGNIFICANCE,
     Candidate,
-    Diagnosis,
     extend,
     fitter_scale,
     implausible,
@@ -37,6 +36,7 @@ from tuning.estimation.diagnose.core import (
     swapped_correction,
 )
 from tuning.estimation.diagnose.report import figure_title
+from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
     MISFIT_RATIO,

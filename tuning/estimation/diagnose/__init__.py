@@ -5,7 +5,7 @@ the model with it, and the fit improving (``jaxcart diagnose``; docs/diagnose.md
     print(render_markdown(d)); plot_diagnosis(d, "diagnosis.png"); d.to_json()
 """
 
-from tuning.estimation.diagnose.core import Diagnosis
+from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.search import diagnose
 
 __all__ = ["Diagnosis", "diagnose", "plot_diagnosis", "render_markdown", "write_outputs"]

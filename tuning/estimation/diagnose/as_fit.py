@@ -15,7 +15,7 @@ from tuning.estimation.fit import Estimate, FitResult, SegmentFit, plant_values
 
 
 def fit_result(d) -> FitResult:
-    """The :class:`FitResult` of :class:`~.core.Diagnosis` ``d`` (status "diagnosed"): its
+    """The :class:`FitResult` of :class:`~.result.Diagnosis` ``d`` (status "diagnosed"): its
     shared values and each recording's own (``v_sat@2``) with standard errors, each
     recording's exact runs before (the handout's model, B_eq fitted) and after, and the
     fitted cart (effects included) as :attr:`FitResult.cart`."""

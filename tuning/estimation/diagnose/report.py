@@ -1,4 +1,4 @@
-"""Drawing and writing a :class:`~tuning.estimation.diagnose.core.Diagnosis`: Markdown, figure,
+"""Drawing and writing a :class:`~tuning.estimation.diagnose.result.Diagnosis`: Markdown, figure,
 JSON,
 corrected plant file (nothing is written over an existing file without ``force``)."""
 
@@ -289,7 +289,7 @@ def _significance() -> str:
 
 
 def figure_title(d, width: int = 95) -> str:
-    """The figure's title: :attr:`~tuning.estimation.diagnose.core.Diagnosis.headline`, wrapped."""
+    """The figure's title: :attr:`~.result.Diagnosis.headline`, wrapped."""
     import textwrap
 
     return "\n".join(textwrap.wrap(d.headline, width)[:3])

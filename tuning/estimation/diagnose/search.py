@@ -2,7 +2,7 @@
 
     recordings --checks--> segments --round 1: every single structure, one batch--> scores
         --pairs, forward selection, backward step (batches)--> exact polish of the best
-        --significance, ties, swapped corrections--> :class:`~.core.Diagnosis`
+        --significance, ties, swapped corrections--> :class:`~.result.Diagnosis`
 
 Each round fits its candidate structures in one batch (:class:`~tuning.estimation.engine.
 batch.BatchFitter`), re-checks them on the exact simulator and scores them
@@ -39,8 +39,8 @@ from tuning.estimation.diagnose.core import (
     SPREAD,
     TIE,
     WIDTHS,
-    Diagnosis,
 )
+from tuning.estimation.diagnose.result import Diagnosis, _times
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import BatchFitter, Layout
 from tuning.estimation.engine.covariance import Covariance, covariance, determined
@@ -872,7 +872,7 @@ class Search:
                 f"{f['judged_rms'] / f['repeat']:.2g} times what that run repeats "
                 f"({f['repeat'] * 1e3:.3g} mm)"
                 if f["repeat"]
-                else f"{C._times(f['judged_rms'] / f['floor'])} times its encoder floor "
+                else f"{_times(f['judged_rms'] / f['floor'])} times its encoder floor "
                 f"{f['floor'] * 1e3:.2g} mm, and no repeat of that run to compare with"
             )
             for f in beyond
