@@ -78,7 +78,7 @@ AMPLIFIER_VOLTAGE = 24.0
 #: times too large, in mV, takes nearly all).
 MOTION_FRACTION = 0.02
 #: Fewer encoder counts of motion than this in a whole recording: the cart did not move (the
-#: diagnosis's own floor, tuning.estimation.diagnose.core.MIN_COUNTS).
+#: diagnosis's own floor, tuning.estimation.diagnose.policy.MIN_COUNTS).
 MIN_MOTION_COUNTS = 20
 
 _printed: set[str] = set()

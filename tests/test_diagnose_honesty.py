@@ -22,18 +22,20 @@ from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.estimation.diagnose import diagnose, render_markdown
 from tuning.estimation.diagnose.core import (
-    CORRECTION_MARGIN,
-    K_MAX,
-    MIN_COASTING,
     PER_RUN,
-    PLAUSIBLE,
-    SIGNIFICANCE,
     Candidate,
     extend,
     fitter_scale,
     implausible,
     significance,
     swapped_correction,
+)
+from tuning.estimation.diagnose.policy import (
+    CORRECTION_MARGIN,
+    K_MAX,
+    MIN_COASTING,
+    PLAUSIBLE,
+    SIGNIFICANCE,
 )
 from tuning.estimation.diagnose.report import figure_title
 from tuning.estimation.diagnose.result import Diagnosis

@@ -104,7 +104,7 @@ def test_a_search_compiles_its_step_once(search):
     """The step's tangents: from the first fit on, the most any problem of the search can need
     (K_MAX shared values and a recording's own two slots), so no later round compiles the
     step again; without ``max_shared``, what the fits so far needed, never fewer."""
-    from tuning.estimation.diagnose.core import K_MAX
+    from tuning.estimation.diagnose.policy import K_MAX
     from tuning.estimation.engine.batch import BatchFitter
 
     fitter = BatchFitter(

@@ -36,6 +36,19 @@ from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
 from jaxcart.params import ENCODER_RESOLUTION
 from jaxcart.workers import SERIAL
+from tuning.estimation.diagnose.policy import (
+    AT_BOUND,
+    CORRECTION_MARGIN,
+    K_MAX,
+    MIN_COUNTS,
+    MIN_SAMPLES,
+    PENALTY_PER_EFFECT,
+    PENALTY_PER_PARAM,
+    PER_ROUND,
+    RUN_SPREAD,
+    SIGNIFICANCE,
+    TIE,
+)
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
 from tuning.estimation.engine.exact_polish import polish
@@ -70,77 +83,6 @@ def motor_only() -> set:
     """Parts that act only with the motor connected: effects of the drive alone, and the
     parameter corrections (a tap cannot tell M from B_eq)."""
     return {n for n in effect_params() if REGISTRY[n].drive_only()} | set(PARAM_ERRORS)
-
-
-#: Information criterion: penalty per free parameter (times log n_eff) and per added effect.
-PENALTY_PER_PARAM = 1.0
-PENALTY_PER_EFFECT = 12.0
-#: The encoder floor of the criterion: RMS below FLOOR_FACTOR * q / sqrt(12) explains nothing.
-FLOOR_FACTOR = 1.5
-#: Near-ties: another structure within this many criterion units of the best is named too.
-TIE = 6.0
-#: The smoothing widths of round 1's continuation (times each effect's own), widest first.
-WIDTHS = (4.0, 1.0, 0.3, 0.1)
-#: ... and of the later rounds, which start from fitted values: at the widest the dry friction
-#: they fitted is smoothed into another model, and its steps are spent walking away (the real
-#: P 50 run's saturation + Coulomb + mass, 1.17 mm at the narrowest, is 2.04 mm at 4x).
-LATER_WIDTHS = WIDTHS[1:]
-#: Round 1 is also fitted straight from the start at narrow widths: the continuation can lead
-#: astray where a wide width changes the physics (static friction smoothed wide is a larger
-#: Coulomb friction, and a ramp that breaks away late fits B_eq at its bound with f_c = 0;
-#: from the start at these widths it finds the truth).
-DIRECT_WIDTHS = (0.01, 0.001)
-ITERATIONS = (8, 8, 8, 8)
-MIN_SAMPLES = 200
-#: A tap's coasting part shorter than this many samples is not diagnosed.
-MIN_COASTING = 50
-#: Free slots of every candidate (B_eq + two effects' parameters), so one compile serves all.
-K_MAX = 5
-#: An exact polish weighs each recording by its own misfit at its start, and again at the
-#: values it reached while the weights move by more than this share, at most REWEIGHTS times.
-REWEIGHT = 0.2
-REWEIGHTS = 4
-#: A structure richer than the lead by one value is re-fitted from the lead's values with that
-#: value at this many points over its plausible range (and its own).
-SPREAD = 3
-#: Structures polished on the exact simulator (the best by score after the smooth fits).
-POLISH = 4
-#: Structures re-fitted from the best-scoring one's values after the search, besides those
-#: nested in it (the best by score).
-NESTED = 8
-#: Such a re-fit stops after its first Jacobian where the linearised fit cannot come within
-#: this factor of the cost [m^2] at which the structure would tie with the best (the exact
-#: model is piecewise smooth: its linearisation may miss a basin by far less than this).
-SCREEN = 4.0
-MIN_COUNTS = 20
-#: A drive's limit changes from run to run with the supply and the motor's temperature by tens
-#: of percent; a run's own limit this many times below what another run of the same drive
-#: demonstrably drew is not the drive's, but something that run shows and the model lacks
-#: (:func:`_per_run_inconsistency`). On the lab's real runs, a PD run held back early in its
-#: travel fits a current limit of 0.66-0.69 A where the P 50 runs drew 1.5-2.3 A (2.3-3.4
-#: times), and a voltage limit of 3.9 V where the P 50 repeat had 5.9 V (1.5 times).
-RUN_SPREAD = 2.0
-#: The drive limits free per run are named only when two runs' values differ by more than this
-#: many standard errors (a Wald test: z > 3 leaves a chance of about 1e-3 that noise alone put
-#: them apart); an effect's or a correction's z (see :func:`significance` for each strength and
-#: neutral value) is reported, its place decided by held-out prediction.
-SIGNIFICANCE = 3.0
-#: A parameter correction is named only when it exceeds this share of the start plant's value
-#: (an equivalence margin: the appendix gives M to two digits,
-#: 0.94 kg; a controller that reads whole encoder counts, which the simulation does not model,
-#: moves a fitted M by 0.02-0.15 % on recordings with no mass error, a true error is 10 % and
-#: more).
-CORRECTION_MARGIN = 0.01
-#: A fitted value within this relative distance of a bound of :data:`~batch.BOUNDS` (a share
-#: of the range for a parameter not fitted as a logarithm) sits at that bound.
-AT_BOUND = 1e-2
-#: Ranges of the plant's own parameters a real cart of this lab has (declared with them,
-#: jaxcart.plantspec): the fits are held inside them; a value at their edge is flagged.
-PLAUSIBLE = {n: P.spec(n).plausible for n in P.CORRECTABLE}
-#: Forward selection (round 3 on): the best structures of the last round extended, and at
-#: most this many new structures per round (the batch keeps round 1's shape: no new compile).
-SEEDS = 3
-PER_ROUND = 6
 
 
 @dataclass

@@ -36,6 +36,7 @@ import time as _time
 import numpy as np
 
 from tuning.estimation.diagnose import core as C
+from tuning.estimation.diagnose.policy import FLOOR_FACTOR
 from tuning.estimation.engine import parameters as P
 from tuning.estimation.engine.batch import Layout
 from tuning.estimation.engine.covariance import covariance
@@ -330,7 +331,7 @@ def cross_validate(search, best, names, levels) -> dict:
     folds = []
     for k in range(len(segments)):
         why = impossible(best, segments, k) if len(segments) > 1 else ""
-        floor = float(search.noise.floors[k]) / C.FLOOR_FACTOR
+        floor = float(search.noise.floors[k]) / FLOOR_FACTOR
         repeat = levels.get(k)
         level = max(MISFIT_RATIO * floor, repeat or 0.0)
         # A single recording is judged by its fit: its stretches carry what the rest lacks
@@ -452,7 +453,7 @@ def fitted_apart(search, best, motor: bool, iterations: int = DRIVEN_ITERATIONS)
         return {}
     sub = Subset.of(best, search, order)
     start = sub.values(best.values)
-    noise = RecordingNoise(sub.segments, C.FLOOR_FACTOR)
+    noise = RecordingNoise(sub.segments, FLOOR_FACTOR)
     values, jac, names, _ = C._polish(
         sub.cand, sub.segments, sub.plants, start, sub.layout, iterations, memo=sub.memo,
         weights=noise.weights(sub.residuals(start)),

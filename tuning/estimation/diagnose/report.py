@@ -283,7 +283,7 @@ def _item_of(name: str) -> str:
 
 
 def _significance() -> str:
-    from tuning.estimation.diagnose.core import SIGNIFICANCE
+    from tuning.estimation.diagnose.policy import SIGNIFICANCE
 
     return f"{SIGNIFICANCE:g}"
 

@@ -22,15 +22,15 @@ import numpy as np
 from jaxcart import plantspec
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import crossval, locate
-from tuning.estimation.diagnose.core import (
+from tuning.estimation.diagnose.core import PARAM_ERRORS, PER_RUN
+from tuning.estimation.diagnose.policy import (
     DIRECT_WIDTHS,
     FLOOR_FACTOR,
     ITERATIONS,
     K_MAX,
     LATER_WIDTHS,
+    MIN_COASTING,
     NESTED,
-    PARAM_ERRORS,
-    PER_RUN,
     POLISH,
     REWEIGHT,
     REWEIGHTS,
@@ -135,7 +135,7 @@ class Search:
 
         self.recordings, self.say, self.processes = recordings, say, processes
         segments = [
-            prepare(r, c, min_coasting=C.MIN_COASTING)
+            prepare(r, c, min_coasting=MIN_COASTING)
             for r, c in zip(recordings, controllers, strict=True)
         ]
         start_plant = start if start is not None else handout_plant()
