@@ -9,8 +9,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hw.control_law import PID
 from jaxcart.errors import UserError
+from jaxcart.files import signal64
+from jaxcart.parallel import put
 from jaxcart.params import ENCODER_RESOLUTION
+from tuning.estimation.engine.noise import encoder_count
 
 
 @dataclass(eq=False)
@@ -65,11 +69,6 @@ def prepare(
     (:func:`initial_state`), or a closed or open loop's whole run (y0: the first position).
     controller: the PID that ran (default the recording's); quantization: the encoder count
     [m] (None: found in the data, :func:`~.noise.encoder_count`)."""
-    from hw.control_law import PID
-    from jaxcart.files import signal64
-    from jaxcart.parallel import put
-    from tuning.estimation.engine.noise import encoder_count
-
     name = recording_name(recording)
     raw = np.asarray(recording.position, dtype=float)
     n = raw.size
