@@ -302,18 +302,32 @@ def _real_fit(search, parts):
 def test_the_real_cart_named_by_prediction(real_four):
     """On the real tap, P 50 runs and PD run jointly: each recording weighed by its own misfit
     keeps the tap within 2x of what it reaches alone (0.21 mm) and B_eq within 15 % of the
-    tap's 1.505 kg/s; a current limit free per run at 0.69 A in the PD run, below the 1.5-2.3 A
-    the P 50 runs drew, is not one drive's and is not named; Coulomb friction, the drive
-    limit per run and the delay each improve the held-out prediction (none is dropped)."""
+    tap's 1.505 kg/s; Coulomb friction, the drive limit per run and the delay each improve the
+    held-out prediction (none is dropped). The PD run, held back early in its travel, draws a
+    current limit of its own (0.69 A, below the 1.5-2.3 A the P 50 runs drew): beside the
+    voltage limits it brings the PD run from 6.8 to under 2.5 mm, the others as they were, and
+    predicts better held out, so it may be named, with the caution that more than one drive
+    varies from run to run."""
     search = real_four
     named = _real_fit(search, ("coulomb", "saturation", "delay", C.PER_RUN))
-    old = _real_fit(search, ("coulomb", "saturation", "delay", "current_limit", C.PER_RUN))
-    search.round1, search.cands = [named], [named, old]
-    assert C._rms([named.residuals[0]]) < 2 * 0.21e-3
-    assert named.values["B_eq"] == pytest.approx(1.505, rel=0.15)
-    assert not search.eligible(old)
-    assert "not one drive's limit" in old.why[C.PER_RUN]
-    assert search.eligible(named)
+    limited = _real_fit(search, ("coulomb", "saturation", "delay", "current_limit", C.PER_RUN))
+    search.round1, search.cands = [named], [named, limited]
+    for c in (named, limited):
+        assert C._rms([c.residuals[0]]) < 2 * 0.21e-3
+        assert c.values["B_eq"] == pytest.approx(1.505, rel=0.15)
+        assert search.eligible(c), c.why_not
+    rms = [[C._rms([r]) for r in c.residuals] for c in (named, limited)]
+    assert rms[1][3] < 2.5e-3 < 5e-3 < rms[0][3]  # the PD run
+    assert rms[1][1:3] == pytest.approx(rms[0][1:3], rel=0.05)  # the P 50 runs
+    assert search.held_score(limited) < search.held_score(named)
+    peaks = search.peaks(limited)
+    assert "more than one drive varies" in C._per_run_inconsistency(limited.values, peaks)
+    # The P 50 runs' current limits sit above what they drew (not determined there): the
+    # cart's limit is the PD run's, where it acts.
+    acts = [C._acts("i_max", f"i_max@{i}", limited.values[f"i_max@{i}"], peaks) for i in (1, 2, 3)]
+    assert acts == [False, False, True]
+    plant = C._cart_plant(limited, search.base_plants, search.segments, peaks)
+    assert plant.effect("current_limit").i_max == pytest.approx(limited.values["i_max@3"])
     assert search.select(named) is named
 
 

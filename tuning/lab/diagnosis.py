@@ -67,7 +67,11 @@ def render(lab, d, agreement=None) -> None:
         return
     rows = []
     for name, rec in d.per_recording.items():
-        own = ", ".join(f"{n} = {p['value']:.4g} {p['unit']}" for n, p in rec["parameters"].items())
+        own = ", ".join(
+            f"{n} = {p['value']:.4g} {p['unit']}"
+            + ("" if p.get("acts", True) else " (does not act)")
+            for n, p in rec["parameters"].items()
+        )
         held = rec.get("predicted_rms")
         # Predicted by the others' fit (diagnose/crossval.py); "*": with the joint values.
         held = "-" if held is None else _mm(held) + ("" if rec.get("held_out", True) else "*")

@@ -24,7 +24,14 @@ def fit_result(d) -> FitResult:
     params = {n: _estimate(n, p) for n, p in d.parameters.items() if p.get("value") is not None}
     segments = []
     for k, (rec, trace) in enumerate(zip(d.per_recording.values(), d.traces, strict=True)):
-        params.update({f"{n}@{k}": _estimate(f"{n}@{k}", p) for n, p in rec["parameters"].items()})
+        # A drive limit above what its run drove is not determined there: not a run's value.
+        params.update(
+            {
+                f"{n}@{k}": _estimate(f"{n}@{k}", p)
+                for n, p in rec["parameters"].items()
+                if p.get("acts", True)
+            }
+        )
         measured = np.asarray(trace["measured"])
         before, after = np.asarray(trace["baseline"]), np.asarray(trace["after"])
         segments.append(

@@ -485,9 +485,6 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
     for part in parts:
         if part == PER_RUN:
             out[PER_RUN] = _per_run_significance(values, stderr)
-            odd = _per_run_inconsistency(values, peaks)
-            if odd:
-                out[PER_RUN] = {"z": out[PER_RUN]["z"], "why": odd}
             continue
         params = effect_params().get(part) or PARAM_ERRORS.get(part, ())
         views = []
@@ -573,9 +570,11 @@ def _min_size(weights) -> float | None:
 
 
 def _per_run_inconsistency(values, peaks) -> str:
-    """Why the drive limits free per run are not one drive's ("" when they can be): a run's own
-    limit below what another run of the same drive demonstrably drew (its own limit where it
-    acts, else its largest command or current) by more than :data:`RUN_SPREAD`."""
+    """Why the drive limits free per run are more than one drive's spread ("" when they are
+    not): a run's own limit below what another run of the same drive demonstrably drew (its own
+    limit where it acts, else its largest command or current) by more than :data:`RUN_SPREAD`.
+    Such a structure does not seed the forward selection, and where it is named for its
+    held-out prediction the verdict says so."""
     for n in per_run_params():
         signal = next(REGISTRY[e].limits for e in effect_params() if n in effect_params()[e])
         own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
@@ -589,10 +588,10 @@ def _per_run_inconsistency(values, peaks) -> str:
         if shown[high] > RUN_SPREAD * acting[low]:
             unit, ratio = P.spec(n).unit, shown[high] / acting[low]
             return (
-                f"{n} = {acting[low]:.3g} {unit} in run {low + 1} is {ratio:.2g}"
-                f" times below what run {high + 1} drove ({signal} {shown[high]:.3g} {unit}): "
-                f"not one drive's limit from run to run (at most {RUN_SPREAD:g} times): run "
-                f"{low + 1} shows something the structure does not have"
+                f"run {low + 1}'s {n} is {ratio:.2g} times below what run {high + 1} drove "
+                f"({signal} {shown[high]:.3g} {unit}): "
+                f"more than one drive varies from run to run (at most {RUN_SPREAD:g} times): "
+                f"run {low + 1} may show something the library does not model"
             )
     return ""
 
@@ -813,14 +812,21 @@ def _current_peaks(cand, segments, base_plants, values, layout) -> dict:
     return peaks
 
 
-def _cart_plant(best, base_plants, segments):
+def _cart_plant(best, base_plants, segments, peaks):
     """The cart's plant of ``best`` (the first driven run's); a drive limit free per run at
-    the median of the runs' values (each run's own is in the per-recording results)."""
-    values = dict(best.values)
+    the median of the runs' values where it acts (:func:`_acts`: above what a run drove, its
+    value is not determined), each run's own in the per-recording results."""
+    # no run's own copy: exact_plants would give the first driven run its own, not the median
+    values = {
+        k: v
+        for k, v in best.values.items()
+        if "@" not in k or Layout.kind(k) not in per_run_params()
+    }
     for n in per_run_params():
-        own = [v for k, v in best.values.items() if "@" in k and Layout.kind(k) == n]
+        own = {k: v for k, v in best.values.items() if "@" in k and Layout.kind(k) == n}
+        acting = [v for k, v in own.items() if _acts(n, k, v, peaks)]
         if own:
-            values[n] = float(np.median(own))
+            values[n] = float(np.median(acting or list(own.values())))
     cand = _structure(tuple(p for p in best.parts if p != PER_RUN))
     plants = exact_plants(cand, base_plants, values)
     motor = [p for p, s in zip(plants, segments, strict=True) if s.motor]
@@ -866,8 +872,16 @@ def _remainder(best, segments) -> str:
     return text + (f" (in {segments[k].name})" if len(segments) > 1 else "")
 
 
-def _per_recording(best, names, segments, base, cov) -> dict:
-    """{recording name: {"parameters": its own values, "rms_before", "rms_after" [m]}}."""
+def _acts(name, key, value, peaks) -> bool:
+    """Whether drive limit ``name``'s value in run ``key`` (``i_max@2``) is below what that run
+    drove (``peaks``' ``{command,current}@i``), so that it acts (any other value: True)."""
+    signal = next((REGISTRY[e].limits for e in effect_params() if name in effect_params()[e]), "")
+    return not signal or value < peaks.get(f"{signal}@{P.recording_of(key)}", math.inf)
+
+
+def _per_recording(best, names, segments, base, cov, peaks) -> dict:
+    """{recording name: {"parameters": its own values ("acts": False for a limit above what
+    that run drove: {command,current}@i of ``peaks``), "rms_before", "rms_after" [m]}}."""
     out = {}
     for i, (name, seg) in enumerate(zip(names, segments, strict=True)):
         own = {}
@@ -878,6 +892,7 @@ def _per_recording(best, names, segments, base, cov) -> dict:
                     "value": best.values[k],
                     "stderr": cov.stderr({k: 1.0}),
                     "unit": P.spec(n).unit,
+                    "acts": _acts(n, k, best.values[k], peaks),
                 }
         if names.count(name) > 1:  # recordings of one name told apart by their place
             name = f"{name} #{i + 1}"

@@ -49,10 +49,11 @@ SCREEN = 4.0
 MIN_COUNTS = 20
 #: A drive's limit changes from run to run with the supply and the motor's temperature by tens
 #: of percent; a run's own limit this many times below what another run of the same drive
-#: demonstrably drew is not the drive's, but something that run shows and the model lacks
-#: (:func:`~.core._per_run_inconsistency`). On the lab's real runs, a PD run held back early in its
-#: travel fits a current limit of 0.66-0.69 A where the P 50 runs drew 1.5-2.3 A (2.3-3.4
-#: times), and a voltage limit of 3.9 V where the P 50 repeat had 5.9 V (1.5 times).
+#: demonstrably drew is more than one drive's spread (:func:`~.core._per_run_inconsistency`):
+#: such a structure does not seed the forward selection (grown, it takes the slots other
+#: effects need), and where held-out prediction names it the verdict says so. On the lab's
+#: real runs, a PD run held back early in its travel fits a current limit of 0.68 A where the
+#: P 50 runs drew 1.5-2.3 A (2.3-3.4 times).
 RUN_SPREAD = 2.0
 #: The drive limits free per run are named only when two runs' values differ by more than this
 #: many standard errors (a Wald test: z > 3 leaves a chance of about 1e-3 that noise alone put

@@ -127,6 +127,7 @@ def _per_recording_section(d) -> list:
     for name, rec in d.per_recording.items():
         own = ", ".join(
             f"{n} = {_num(p['value'])} +/- {_num(p['stderr'])} {p['unit']}"
+            + ("" if p.get("acts", True) else " (above what the run drove: does not act)")
             for n, p in rec["parameters"].items()
         )
         predicted = _mm(rec.get("predicted_rms"))

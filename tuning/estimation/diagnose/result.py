@@ -63,6 +63,9 @@ class Diagnosis:
     #: Each recording: its own values of the parameters free per run ({"parameters": {name:
     #: {"value", "stderr", "unit"}}}), its RMS before and after [m].
     per_recording: dict = field(default_factory=dict)
+    #: Where a run's own drive limit is far below what another run drew: more than one drive
+    #: varies (said beside the limits; "" otherwise).
+    drive_spread: str = ""
     #: What the cart repeats [m]: the RMS spread of repeated runs of one experiment (None
     #: without repeats); below it a model of the cart cannot be judged.
     repeat: float | None = None
@@ -104,9 +107,11 @@ class Diagnosis:
             f"{n} = {p['value']:.3g} {p['unit']} in {name}"
             for name, rec in self.per_recording.items()
             for n, p in rec.get("parameters", {}).items()
+            if p.get("acts", True)
         ]
         if own:
-            found.append("the drive's limit differs from run to run: " + ", ".join(own))
+            spread = f" ({self.drive_spread})" if self.drive_spread else ""
+            found.append("the drive's limit differs from run to run: " + ", ".join(own) + spread)
         return found
 
     def _context(self) -> str:
@@ -214,6 +219,7 @@ class Diagnosis:
             "plant_file": self.plant_file,
             "seconds": self.seconds,
             "per_recording": self.per_recording,
+            "drive_spread": self.drive_spread,
             "repeat": self.repeat,
             "remainder": self.remainder,
             "cross_validation": self.cross_validation,

@@ -386,7 +386,9 @@ class Search:
             # the truth: a step of f_c or B_eq moves where the cart sticks by a sample, and
             # both columns are that jump).
             p = len(c.free) + len(self.nuis)
-            if jac.size and (determined(jac[:, :p]) or not determined(c.jac[:, :p])):
+            if jac.size and (
+                c.jac is None or determined(jac[:, :p]) or not determined(c.jac[:, :p])
+            ):
                 c.jac = jac
             again = ", continued" if id(c) in self.polished_once else ""
             self.polished_once.add(id(c))
@@ -543,7 +545,9 @@ class Search:
             if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
                 self.say("forward selection ends: a structure explains the recording")
                 break
-            if number > 3 and not self.predicts_better(lead, level):
+            # Judged by the round's best structure, one whose drive limits are more than a
+            # drive's spread included: it is not grown, but what it predicts is the round's.
+            if number > 3 and not self.predicts_better(min(level, key=lambda c: c.score), level):
                 break
             seeds = self.seeds(level)  # the polish may have improved earlier structures too
             grown = C.extend(seeds, additions, seen, kmax=kmax) if seeds else []
@@ -651,16 +655,51 @@ class Search:
                     for e in set(c.effects) - set(lead.effects)
                 )
             ]
-            if not inside + others + richer:
+            limits = self._other_limits(done)
+            if not inside + others + richer + limits:
                 break
-            done.update(id(c) for c in inside + others + richer)
+            done.update(id(c) for c in inside + others + richer + [c for c, _ in limits])
             self.polish_all([(c, self._from(lead, c)) for c in inside])
             self.polish_all([(c, start) for c in richer for start in self._spread(lead, c)])
+            self.polish_all(limits)
             # The others are re-fitted for near-ties: one that cannot come near the best
             # eligible score of the lead and the structures inside it stops early.
             eligible = [c.score for c in [lead, *inside] if self.eligible(c)]
             reach = min(eligible) + TIE if eligible else None
             self.polish_all([(c, self._from(lead, c)) for c in others], reach)
+
+    def _other_limits(self, done) -> list:
+        """(structure, start) pairs: the best-scoring structure with the drive limits free per
+        run but without one limit of the drive (of the POLISH best-scoring: a poor structure is
+        not worth the exact runs), beside that limit free per run too, from its
+        values and that limit's own from the best-scoring structure that fitted it per run.
+        Within a batch's slots the forward selection grows one limit per run, and a structure
+        whose limits spread more than one drive's does not seed it (the real PD run, held back
+        early in its travel, draws a current limit of its own beside the voltage limit every
+        driven run shows: 7.0 -> 2.0 mm, the others as they were, each recording predicted
+        better held out)."""
+        out = []
+        for e in C.effect_params():
+            if not C.REGISTRY[e].limits:
+                continue
+            near = sorted(self.cands, key=lambda c: c.score)[:POLISH]
+            bases = [c for c in near if PER_RUN in c.parts and e not in c.parts]
+            if not bases:
+                continue
+            base = min(bases, key=lambda c: c.score)
+            parts = (*[p for p in base.parts if p != PER_RUN], e, PER_RUN)
+            c = next((x for x in self.cands if set(x.parts) == set(parts)), None)
+            c = c or C._structure(parts, base.runs)
+            own = [k for k in c.free if k not in base.values]
+            donors = [x for x in self.cands if all(k in x.values for k in own)]
+            if id(c) in done or not donors:
+                continue
+            donor = min(donors, key=lambda x: x.score)
+            if all(x is not c for x in self.cands):
+                c.round = base.round
+                self.cands.append(c)
+            out.append((c, {**base.values, **{k: donor.values[k] for k in own}}))
+        return out
 
     def _spread(self, lead, c) -> list:
         """Starts of ``c`` from ``lead``'s values, its value ``lead`` lacks at each of
@@ -898,7 +937,8 @@ class Search:
             for seg, rb, ra in zip(segments, base.residuals, best.residuals, strict=True)
         ]
         level = max(self.repeat.values()) if self.repeat else None
-        per_recording = C._per_recording(best, names, segments, base, cov)
+        peaks = self.peaks(best)
+        per_recording = C._per_recording(best, names, segments, base, cov, peaks)
         # Judged by prediction: each recording (each stretch of a single one) held out of the
         # fit and predicted, against what that experiment repeats or its encoder floor.
         cv = crossval.cross_validate(self, best, list(per_recording), self.repeat)
@@ -929,18 +969,27 @@ class Search:
             tests=self.tests,
             candidates=sorted(self.cands, key=lambda c: c.score),
             chosen=best.name,
-            plant=C._cart_plant(best, self.base_plants, segments),
+            plant=C._cart_plant(best, self.base_plants, segments, peaks),
             seconds=C._elapsed(t_start),
             traces=traces,
             explained=explained,
             misfit=misfit,
             suggestions=suggestions,
-            implausible=C.implausible(best.values, best.free),
+            # a drive limit above what its run drove is not that run's value (at a bound or not)
+            implausible=C.implausible(
+                best.values,
+                [
+                    k
+                    for k in best.free
+                    if "@" not in k or C._acts(Layout.kind(k), k, best.values[k], peaks)
+                ],
+            ),
             not_significant=dropped,
             significance=dict(best.z),
             unidentifiable=unident,
             start_values={n: self.neutral[n] for n in corrections},
             per_recording=per_recording,
+            drive_spread=C._per_run_inconsistency(best.values, peaks) if best.runs else "",
             cross_validation=cv,
             driven_alone=driven,
             taps_alone=taps,
