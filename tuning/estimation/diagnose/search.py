@@ -678,6 +678,8 @@ class Search:
         early in its travel, draws a current limit of its own beside the voltage limit every
         driven run shows: 7.0 -> 2.0 mm, the others as they were, each recording predicted
         better held out)."""
+        if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
+            return []  # a structure explains the recordings already
         out = []
         for e in C.effect_params():
             if not C.REGISTRY[e].limits:
