@@ -86,7 +86,7 @@ class Diagnosis:
     def floor_ratio(self) -> float:
         return self.rms_after / self.floor if self.floor > 0 else math.nan
 
-    def _found(self) -> list:
+    def _found(self, spread: bool = True) -> list:
         found = []
         if self.left_out:
             found.append("left out: " + ", ".join(self.left_out))
@@ -110,8 +110,8 @@ class Diagnosis:
             if p.get("acts", True)
         ]
         if own:
-            spread = f" ({self.drive_spread})" if self.drive_spread else ""
-            found.append("the drive's limit differs from run to run: " + ", ".join(own) + spread)
+            note = f" ({self.drive_spread})" if spread and self.drive_spread else ""
+            found.append("the drive's limit differs from run to run: " + ", ".join(own) + note)
         return found
 
     def _context(self) -> str:
@@ -172,7 +172,7 @@ class Diagnosis:
         """A short form of the verdict (the figure's title)."""
         if self.status != "diagnosed":
             return self.verdict
-        found = self._found()
+        found = self._found(spread=False)  # the title: the caution is in the verdict
         if not self.explained:
             text = (
                 f"NOT EXPLAINED: best approximation ({'; '.join(found) or 'baseline'}) at "
