@@ -50,7 +50,7 @@ MIN_COUNTS = 20
 #: A drive's limit changes from run to run with the supply and the motor's temperature by tens
 #: of percent; a run's own limit this many times below what another run of the same drive
 #: demonstrably drew is more than one drive's spread
-#: (:func:`~.significance.per_run_inconsistency`): such a structure does not seed the forward
+#: (:func:`~.per_run.per_run_inconsistency`): such a structure does not seed the forward
 #: selection (grown, it takes the slots other effects need), and where held-out prediction
 #: names it the verdict says so. On the lab's
 #: real runs, a PD run held back early in its travel fits a current limit of 0.68 A where the

@@ -23,6 +23,7 @@ import numpy as np
 from jaxcart import plantspec
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import crossval, locate
+from tuning.estimation.diagnose import per_run as R
 from tuning.estimation.diagnose import significance as S
 from tuning.estimation.diagnose.core import PARAM_ERRORS, PER_RUN
 from tuning.estimation.diagnose.policy import (
@@ -579,7 +580,7 @@ class Search:
     def seeds(self, level):
         """The structures of the last round that beat every structure before it, but those
         whose drive limits per run are not one drive's
-        (:func:`~.significance.per_run_inconsistency`): grown, they stay unnameable and take
+        (:func:`~.per_run.per_run_inconsistency`): grown, they stay unnameable and take
         the round's slots (the real tap, P 50 runs and PD run: a current limit per run at
         0.69 A seeded two rounds, and saturation per run with Coulomb and the delay was never
         fitted)."""
@@ -588,7 +589,7 @@ class Search:
         sound = [
             c
             for c in level
-            if not (PER_RUN in c.parts and S.per_run_inconsistency(c.values, self.peaks(c)))
+            if not (PER_RUN in c.parts and R.per_run_inconsistency(c.values, self.peaks(c)))
         ]
         return self.promising(sound, before)[:SEEDS]
 
@@ -944,7 +945,7 @@ class Search:
         ]
         level = max(self.repeat.values()) if self.repeat else None
         peaks = self.peaks(best)
-        per_recording = S.per_recording(best, names, segments, base, cov, peaks)
+        per_recording = R.per_recording(best, names, segments, base, cov, peaks)
         # Judged by prediction: each recording (each stretch of a single one) held out of the
         # fit and predicted, against what that experiment repeats or its encoder floor.
         cv = crossval.cross_validate(self, best, list(per_recording), self.repeat)
@@ -975,7 +976,7 @@ class Search:
             tests=self.tests,
             candidates=sorted(self.cands, key=lambda c: c.score),
             chosen=best.name,
-            plant=S.cart_plant(best, self.base_plants, segments, peaks),
+            plant=R.cart_plant(best, self.base_plants, segments, peaks),
             seconds=C._elapsed(t_start),
             traces=traces,
             explained=explained,
@@ -987,7 +988,7 @@ class Search:
                 [
                     k
                     for k in best.free
-                    if "@" not in k or S.acts(Layout.kind(k), k, best.values[k], peaks)
+                    if "@" not in k or R.acts(Layout.kind(k), k, best.values[k], peaks)
                 ],
             ),
             not_significant=dropped,
@@ -995,7 +996,7 @@ class Search:
             unidentifiable=unident,
             start_values={n: self.neutral[n] for n in corrections},
             per_recording=per_recording,
-            drive_spread=S.per_run_inconsistency(best.values, peaks) if best.runs else "",
+            drive_spread=R.per_run_inconsistency(best.values, peaks) if best.runs else "",
             cross_validation=cv,
             driven_alone=driven,
             taps_alone=taps,
