@@ -12,6 +12,7 @@ import pytest
 from jaxcart.files import read_experiment
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import crossval
+from tuning.estimation.diagnose import per_run as R
 from tuning.estimation.diagnose.report import render_markdown
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.search import Search
@@ -321,12 +322,12 @@ def test_the_real_cart_named_by_prediction(real_four):
     assert rms[1][1:3] == pytest.approx(rms[0][1:3], rel=0.05)  # the P 50 runs
     assert search.held_score(limited) < search.held_score(named)
     peaks = search.peaks(limited)
-    assert "more than one drive varies" in C._per_run_inconsistency(limited.values, peaks)
+    assert "more than one drive varies" in R.per_run_inconsistency(limited.values, peaks)
     # The P 50 runs' current limits sit above what they drew (not determined there): the
     # cart's limit is the PD run's, where it acts.
-    acts = [C._acts("i_max", f"i_max@{i}", limited.values[f"i_max@{i}"], peaks) for i in (1, 2, 3)]
+    acts = [R.acts("i_max", f"i_max@{i}", limited.values[f"i_max@{i}"], peaks) for i in (1, 2, 3)]
     assert acts == [False, False, True]
-    plant = C._cart_plant(limited, search.base_plants, search.segments, peaks)
+    plant = R.cart_plant(limited, search.base_plants, search.segments, peaks)
     assert plant.effect("current_limit").i_max == pytest.approx(limited.values["i_max@3"])
     assert search.select(named) is named
 

@@ -26,8 +26,6 @@ from tuning.estimation.diagnose.core import (
     Candidate,
     extend,
     fitter_scale,
-    implausible,
-    significance,
     swapped_correction,
 )
 from tuning.estimation.diagnose.policy import (
@@ -39,6 +37,7 @@ from tuning.estimation.diagnose.policy import (
 )
 from tuning.estimation.diagnose.report import figure_title
 from tuning.estimation.diagnose.result import Diagnosis
+from tuning.estimation.diagnose.significance import implausible, significance
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
     MISFIT_RATIO,

@@ -49,16 +49,17 @@ SCREEN = 4.0
 MIN_COUNTS = 20
 #: A drive's limit changes from run to run with the supply and the motor's temperature by tens
 #: of percent; a run's own limit this many times below what another run of the same drive
-#: demonstrably drew is more than one drive's spread (:func:`~.core._per_run_inconsistency`):
-#: such a structure does not seed the forward selection (grown, it takes the slots other
-#: effects need), and where held-out prediction names it the verdict says so. On the lab's
+#: demonstrably drew is more than one drive's spread
+#: (:func:`~.per_run.per_run_inconsistency`): such a structure does not seed the forward
+#: selection (grown, it takes the slots other effects need), and where held-out prediction
+#: names it the verdict says so. On the lab's
 #: real runs, a PD run held back early in its travel fits a current limit of 0.68 A where the
 #: P 50 runs drew 1.5-2.3 A (2.3-3.4 times).
 RUN_SPREAD = 2.0
 #: The drive limits free per run are named only when two runs' values differ by more than this
 #: many standard errors (a Wald test: z > 3 leaves a chance of about 1e-3 that noise alone put
-#: them apart); an effect's or a correction's z (see :func:`~.core.significance` for each
-#: strength and neutral value) is reported, its place decided by held-out prediction.
+#: them apart); an effect's or a correction's z (see :func:`~.significance.significance` for
+#: each strength and neutral value) is reported, its place decided by held-out prediction.
 SIGNIFICANCE = 3.0
 #: A parameter correction is named only when it exceeds this share of the start plant's value
 #: (an equivalence margin: the appendix gives M to two digits,

@@ -7,8 +7,9 @@
 Each round fits its candidate structures in one batch (:class:`~tuning.estimation.engine.
 batch.BatchFitter`), re-checks them on the exact simulator and scores them
 (:func:`~.core.score`); the structure named is the best-scoring one whose every effect is
-significant and physically sized (:func:`~.core.significance`). The helpers it calls (the
-exact re-check and polish, the covariances, the scores) live in :mod:`.core`.
+significant and physically sized (:func:`~.significance.significance`). The helpers it calls (the
+exact re-check and polish, the covariances, the scores) live in :mod:`.core`; which parts
+are named (significance, drive limits per run, implausible values) in :mod:`.significance`.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ import numpy as np
 from jaxcart import plantspec
 from tuning.estimation.diagnose import core as C
 from tuning.estimation.diagnose import crossval, locate
+from tuning.estimation.diagnose import per_run as R
+from tuning.estimation.diagnose import significance as S
 from tuning.estimation.diagnose.core import PARAM_ERRORS, PER_RUN
 from tuning.estimation.diagnose.policy import (
     DIRECT_WIDTHS,
@@ -294,9 +297,10 @@ class Search:
         )
 
     def eligible(self, c) -> bool:
-        """Every effect and correction of ``c`` significant (:func:`~.core.significance`), at
-        its current values (assessed once per set of values), and needed: a baseline within the
-        misfit level already explains the recording, and nothing is named."""
+        """Every effect and correction of ``c`` significant
+        (:func:`~.significance.significance`), at its current values (assessed once per set of
+        values), and needed: a baseline within the misfit level already explains the recording,
+        and nothing is named."""
         base = self.round1[0]
         key = (tuple(sorted(c.values.items())), base.rms_exact)
         if c.assessed != key:
@@ -309,7 +313,7 @@ class Search:
                 }
             elif c.parts:
                 stderr = self.cov_of(c).stderr
-                sig = C.significance(c.parts, c.values, stderr, self.peaks(c), self.neutral)
+                sig = S.significance(c.parts, c.values, stderr, self.peaks(c), self.neutral)
                 c.z = {k: v["z"] for k, v in sig.items()}
                 c.why = {k: v["why"] for k, v in sig.items()}
             c.assessed = key
@@ -575,16 +579,17 @@ class Search:
 
     def seeds(self, level):
         """The structures of the last round that beat every structure before it, but those
-        whose drive limits per run are not one drive's (:func:`~.core._per_run_inconsistency`):
-        grown, they stay unnameable and take the round's slots (the real tap, P 50 runs and
-        PD run: a current limit per run at 0.69 A seeded two rounds, and saturation per run
-        with Coulomb and the delay was never fitted)."""
+        whose drive limits per run are not one drive's
+        (:func:`~.per_run.per_run_inconsistency`): grown, they stay unnameable and take
+        the round's slots (the real tap, P 50 runs and PD run: a current limit per run at
+        0.69 A seeded two rounds, and saturation per run with Coulomb and the delay was never
+        fitted)."""
         this = {id(c) for c in level}
         before = min(c.score for c in self.cands if id(c) not in this)
         sound = [
             c
             for c in level
-            if not (PER_RUN in c.parts and C._per_run_inconsistency(c.values, self.peaks(c)))
+            if not (PER_RUN in c.parts and R.per_run_inconsistency(c.values, self.peaks(c)))
         ]
         return self.promising(sound, before)[:SEEDS]
 
@@ -596,7 +601,7 @@ class Search:
             return
         pruned = []
         for part in lead.parts:
-            if any(lead.why.get(item) for item in C._items(part)):
+            if any(lead.why.get(item) for item in S.items(part)):
                 c = C._structure(tuple(x for x in lead.parts if x != part), lead.runs)
                 if frozenset(c.parts) not in seen:
                     seen.add(frozenset(c.parts))
@@ -843,7 +848,7 @@ class Search:
         for item in dropped:
             self.say(f"  not named: {item['effect']} of {item['structure']} ({item['why']})")
         # M or gamma_scale corrected: the other may fit as well (only ratios are identifiable).
-        unident, swapped = C._swap_tie(
+        unident, swapped = S.swap_tie(
             best, cands, self.ref_plant, self.segments, self.base_plants, self.layout,
             self.memo, self.noise,
         )  # fmt: skip
@@ -855,7 +860,7 @@ class Search:
     def plausible_of(self, best, swapped):
         """Of two structures that fit equally well, the one whose values a cart of this lab
         has (a heavier cart with a plausible B_eq rather than a weaker motor with B_eq near 0)."""
-        if not C.implausible(best.values, best.free) or C.implausible(swapped.values, swapped.free):
+        if not S.implausible(best.values, best.free) or S.implausible(swapped.values, swapped.free):
             return best
         if swapped.jac is None:  # values mapped from best's: an exact re-fit gives its own
             values, arrays, _ = self.polished(swapped, dict(swapped.values))
@@ -940,7 +945,7 @@ class Search:
         ]
         level = max(self.repeat.values()) if self.repeat else None
         peaks = self.peaks(best)
-        per_recording = C._per_recording(best, names, segments, base, cov, peaks)
+        per_recording = R.per_recording(best, names, segments, base, cov, peaks)
         # Judged by prediction: each recording (each stretch of a single one) held out of the
         # fit and predicted, against what that experiment repeats or its encoder floor.
         cv = crossval.cross_validate(self, best, list(per_recording), self.repeat)
@@ -971,19 +976,19 @@ class Search:
             tests=self.tests,
             candidates=sorted(self.cands, key=lambda c: c.score),
             chosen=best.name,
-            plant=C._cart_plant(best, self.base_plants, segments, peaks),
+            plant=R.cart_plant(best, self.base_plants, segments, peaks),
             seconds=C._elapsed(t_start),
             traces=traces,
             explained=explained,
             misfit=misfit,
             suggestions=suggestions,
             # a drive limit above what its run drove is not that run's value (at a bound or not)
-            implausible=C.implausible(
+            implausible=S.implausible(
                 best.values,
                 [
                     k
                     for k in best.free
-                    if "@" not in k or C._acts(Layout.kind(k), k, best.values[k], peaks)
+                    if "@" not in k or R.acts(Layout.kind(k), k, best.values[k], peaks)
                 ],
             ),
             not_significant=dropped,
@@ -991,7 +996,7 @@ class Search:
             unidentifiable=unident,
             start_values={n: self.neutral[n] for n in corrections},
             per_recording=per_recording,
-            drive_spread=C._per_run_inconsistency(best.values, peaks) if best.runs else "",
+            drive_spread=R.per_run_inconsistency(best.values, peaks) if best.runs else "",
             cross_validation=cv,
             driven_alone=driven,
             taps_alone=taps,

@@ -1,0 +1,105 @@
+"""Each driven run's own drive limits (a structure with the limits free per run): whether a
+run's limit acts (below what that run drove), whether the runs' limits are one drive's spread,
+each recording's own values, and the cart's plant at the median of the limits that act. Whether
+they differ between runs at all is a significance test (:mod:`.significance`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from jaxcart.effects import REGISTRY
+from tuning.estimation.diagnose.core import (
+    PER_RUN,
+    _rms,
+    _structure,
+    effect_params,
+    exact_plants,
+    per_run_params,
+)
+from tuning.estimation.diagnose.policy import RUN_SPREAD
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.batch import Layout
+
+
+def per_run_inconsistency(values, peaks) -> str:
+    """Why the drive limits free per run are more than one drive's spread ("" when they are
+    not): a run's own limit below what another run of the same drive demonstrably drew (its own
+    limit where it acts, else its largest command or current) by more than :data:`RUN_SPREAD`.
+    Such a structure does not seed the forward selection, and where it is named for its
+    held-out prediction the verdict says so."""
+    for n in per_run_params():
+        signal = next(REGISTRY[e].limits for e in effect_params() if n in effect_params()[e])
+        own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
+        peak = {i: peaks.get(f"{signal}@{i}", math.inf) for i in own}
+        acting = {i: v for i, v in own.items() if v < peak[i]}
+        if len(own) < 2 or not acting:
+            continue
+        low = min(acting, key=acting.get)
+        shown = {i: min(v, peak[i]) for i, v in own.items()}
+        high = max(shown, key=shown.get)
+        if shown[high] > RUN_SPREAD * acting[low]:
+            unit, ratio = P.spec(n).unit, shown[high] / acting[low]
+            return (
+                f"run {low + 1}'s {n} is {ratio:.2g} times below what run {high + 1} drove "
+                f"({signal} {shown[high]:.3g} {unit}): "
+                f"more than one drive varies from run to run (at most {RUN_SPREAD:g} times): "
+                f"run {low + 1} may show something the library does not model"
+            )
+    return ""
+
+
+def acts(name, key, value, peaks) -> bool:
+    """Whether drive limit ``name``'s value in run ``key`` (``i_max@2``) is below what that run
+    drove (``peaks``' ``{command,current}@i``), so that it acts (any other value: True)."""
+    signal = next((REGISTRY[e].limits for e in effect_params() if name in effect_params()[e]), "")
+    return not signal or value < peaks.get(f"{signal}@{P.recording_of(key)}", math.inf)
+
+
+def cart_plant(best, base_plants, segments, peaks):
+    """The cart's plant of ``best`` (the first driven run's); a drive limit free per run at
+    the median of the runs' values where it acts (:func:`acts`: above what a run drove, its
+    value is not determined), each run's own in the per-recording results."""
+    # no run's own copy: exact_plants would give the first driven run its own, not the median
+    values = {
+        k: v
+        for k, v in best.values.items()
+        if "@" not in k or Layout.kind(k) not in per_run_params()
+    }
+    for n in per_run_params():
+        own = {k: v for k, v in best.values.items() if "@" in k and Layout.kind(k) == n}
+        acting = [v for k, v in own.items() if acts(n, k, v, peaks)]
+        if own:
+            values[n] = float(np.median(acting or list(own.values())))
+    cand = _structure(tuple(p for p in best.parts if p != PER_RUN))
+    plants = exact_plants(cand, base_plants, values)
+    motor = [p for p, s in zip(plants, segments, strict=True) if s.motor]
+    return motor[0] if motor else plants[0]
+
+
+def per_recording(best, names, segments, base, cov, peaks) -> dict:
+    """{recording name: {"parameters": its own values ("acts": False for a limit above what
+    that run drove: {command,current}@i of ``peaks``), "rms_before", "rms_after" [m]}}."""
+    out = {}
+    for i, (name, seg) in enumerate(zip(names, segments, strict=True)):
+        own = {}
+        for k in best.free:
+            if k.endswith(f"@{i}") and Layout.kind(k) not in P.NUISANCE:
+                n = Layout.kind(k)
+                own[n] = {
+                    "value": best.values[k],
+                    "stderr": cov.stderr({k: 1.0}),
+                    "unit": P.spec(n).unit,
+                    "acts": acts(n, k, best.values[k], peaks),
+                }
+        if names.count(name) > 1:  # recordings of one name told apart by their place
+            name = f"{name} #{i + 1}"
+        out[name] = {
+            "kind": seg.kind,
+            "parameters": own,
+            "rms_before": _rms([base.residuals[i]]),
+            "rms_after": _rms([best.residuals[i]]),
+        }
+    return out

@@ -1,0 +1,304 @@
+"""Which parts of a structure are named: each effect's strength against its standard error (a
+Wald test, :func:`significance`; the drive limits free per run: do they differ between runs),
+values at a bound or outside what a cart of this lab has (:func:`implausible`), and the tie of
+M with gamma_scale (:func:`swap_tie`). Each run's own limits are in :mod:`.per_run`; the
+structures themselves, their exact runs and scores in :mod:`.core`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from jaxcart import plantspec
+from jaxcart.effects import REGISTRY
+from tuning.estimation.diagnose.core import (
+    PARAM_ERRORS,
+    PER_RUN,
+    _rms,
+    _structure,
+    effect_params,
+    exact_residuals,
+    per_run_params,
+    plant_of,
+    score,
+    swapped_correction,
+)
+from tuning.estimation.diagnose.policy import (
+    AT_BOUND,
+    CORRECTION_MARGIN,
+    SIGNIFICANCE,
+    TIE,
+)
+from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine.batch import Layout
+
+
+def at_bound(name: str, value: float) -> str:
+    """Which bound ("lower", "upper") ``value`` sits at, of :data:`~batch.BOUNDS` (within
+    :data:`AT_BOUND`: relative for a parameter fitted as a logarithm, else a tenth of it as a
+    share of the range); "" for none."""
+    if Layout.kind(name) not in P.superset() and Layout.kind(name) not in P.NUISANCE:
+        return ""
+    lo, hi = P.bounds(name)
+    if P.is_log(name):
+        if value <= lo * math.exp(AT_BOUND):
+            return "lower"
+        if value >= hi * math.exp(-AT_BOUND):
+            return "upper"
+        return ""
+    tol = 0.1 * AT_BOUND * (hi - lo)
+    if value <= lo + tol:
+        return "lower"
+    if value >= hi - tol:
+        return "upper"
+    return ""
+
+
+def _strengths(part, values, peaks, start):
+    """Each item a part names: (item, its strength, the strength's weights for its standard
+    error, what the strength measures, where the item does nothing). The strength is the
+    distance from the values where the item does nothing, positive when it acts: each effect
+    declares its own (``Effect.strengths``); a correction is its distance from the start
+    plant's value beyond :data:`CORRECTION_MARGIN`."""
+    if part in effect_params():
+        for effect in P.named_by(part):
+            yield from REGISTRY[effect].strengths(values, peaks)
+    for name in PARAM_ERRORS.get(part, ()):
+        was = start[name]
+        yield (
+            name,
+            abs(values[name] - was) - CORRECTION_MARGIN * abs(was),
+            {name: math.copysign(1.0, values[name] - was)},
+            f"{name} = {values[name]:.4g}",
+            f"{CORRECTION_MARGIN:.0%} of the start plant's {was:.4g}",
+        )
+
+
+def significance(parts, values, stderr, peaks=None, start=None) -> dict:
+    """Is each effect (and parameter correction) of a structure there? A Wald test.
+
+    parts: the structure's parts (:attr:`~.core.Candidate.parts`); values: its fitted values;
+    stderr: ``f(weights) -> standard error`` of a linear combination of parameters
+    (:meth:`~.engine.covariance.Covariance.stderr`); peaks: {"command": largest |command|
+    sent [V], "current": largest |armature current| [A]} of the structure's own run
+    (saturation, current limit);
+    start: the start plant's M and gamma_scale.
+
+    Each item's strength is its distance from the values where it does nothing: f_c from 0
+    (Coulomb), f_s - f_c from 0 (stiction: static above kinetic), delay, deadzone and k_s from
+    0, v_sat and i_max below the largest command and current of the run (a limit above them
+    never acts), M and gamma_scale beyond :data:`CORRECTION_MARGIN` of the start plant's.
+    z = strength / standard error; an item is significant when z > :data:`SIGNIFICANCE` and
+    none of its part's parameters sits at a bound (:func:`at_bound`: the fit wanted a value
+    beyond the range, its standard error means nothing). Returns {item: {"z", "why"}} ("why"
+    empty when significant)."""
+    peaks = peaks or {}
+    start = start or {"M": 0.94, "gamma_scale": 1.0}
+    out = {}
+    for part in parts:
+        if part == PER_RUN:
+            out[PER_RUN] = _per_run_significance(values, stderr)
+            continue
+        params = effect_params().get(part) or PARAM_ERRORS.get(part, ())
+        views = []
+        for vals, pk, run in _views(params, values, peaks):
+            bound = _bound_text(params, vals, per_run=run is not None)
+            for item, strength, weights, what, neutral in _strengths(part, vals, pk, start):
+                if run is not None:
+                    weights = {_own(n, run, values): w for n, w in weights.items()}
+                    what = f"{what} in run {run + 1}"
+                z, why = _judge(item, strength, weights, stderr, what, neutral, bound)
+                views.append((item, z, why))
+        for item in dict.fromkeys(v[0] for v in views):
+            # Of a part free per run, the run where it is clearest.
+            mine = [v for v in views if v[0] == item]
+            best = max(mine, key=lambda v: (not v[2], v[1] if math.isfinite(v[1]) else -math.inf))
+            out[item] = {"z": float(best[1]), "why": best[2]}
+    return out
+
+
+def _own(name: str, run: int, values: dict) -> str:
+    """``name@run`` where the run has its own copy of the parameter, else ``name``."""
+    return f"{name}@{run}" if f"{name}@{run}" in values else name
+
+
+def _views(params, values, peaks):
+    """(values, peaks, run) to judge a part at: once, or once per run for a part whose
+    parameters are free per run (each run's own values and its own largest command)."""
+    runs = sorted({P.recording_of(k) for k in values if "@" in k and Layout.kind(k) in params})
+    own = [i for i in runs if any(f"{n}@{i}" in values for n in params if n not in P.NUISANCE)]
+    if not own:
+        yield values, peaks, None
+        return
+    for i in own:
+        vals = {**values, **{n: values[f"{n}@{i}"] for n in params if f"{n}@{i}" in values}}
+        pk = {k: peaks.get(f"{k}@{i}", v) for k, v in peaks.items() if "@" not in k}
+        yield vals, pk, i
+
+
+def _bound_text(params, vals, per_run: bool) -> str:
+    """Why a part's parameter at a bound makes it untestable ("" for none); a drive limit
+    free per run may sit at its upper bound in a run it does not limit."""
+    for n in params:
+        side = at_bound(n, vals[n])
+        if side and not (per_run and side == "upper"):
+            return f"{n} = {vals[n]:.4g} sits at its {side} bound"
+    return ""
+
+
+def _judge(item, strength, weights, stderr, what, neutral, bound, gate=False) -> tuple[float, str]:
+    """(z, why) of one item: its strength must act (be positive), be determined by the data
+    (a standard error), and exceed the least size worth naming that its parameter declares
+    (``Param.min_size``). z is the Wald statistic of the strength; with ``gate`` it must also
+    exceed :data:`SIGNIFICANCE` (the drive limits' difference between runs). Whether an effect
+    or a correction is there at all is decided by what it predicts (the search's selection by
+    held-out prediction): a Wald test with standard errors widened for model error rejected
+    Coulomb friction on a real P 50 step (z = 2.2) that predicts its end 2.6 times better."""
+    se = stderr(weights)
+    z = strength / se if se > 0 and math.isfinite(se) else math.nan
+    if not math.isfinite(strength):
+        z = math.inf if strength > 0 else math.nan
+    least = _min_size(weights)
+    if bound:
+        return z, bound
+    if not math.isfinite(z):
+        return z, f"{what}: its standard error is not defined"
+    if strength <= 0:
+        idle = "is within" if item in P.CORRECTABLE else "does not act: not past"
+        return z, f"{what} {idle} {neutral}"
+    if gate and z <= SIGNIFICANCE:
+        return z, f"{what} is {z:.1f} standard errors from {neutral} ({SIGNIFICANCE:g} needed)"
+    if least and strength < least:
+        return z, f"{what} is {strength:.3g} from {neutral}: under {least:g}, too small to matter"
+    return z, ""
+
+
+def _min_size(weights) -> float | None:
+    """The least size worth naming of the strength's leading parameter, if it declares one."""
+    name = Layout.kind(next(iter(weights)))
+    try:
+        return P.spec(name).min_size
+    except KeyError:
+        return None
+
+
+def _per_run_significance(values, stderr) -> dict:
+    """Do the drive limits differ between runs? The largest difference between two runs' own
+    values of a limit, as a Wald test (and beyond the limit's least size worth naming)."""
+    best = {"z": math.nan, "why": "no drive limit is free per run"}
+    for n in per_run_params():
+        own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
+        if len(own) < 2:
+            continue
+        hi = max(own, key=own.get)
+        lo = min(own, key=own.get)
+        unit = P.spec(n).unit
+        what = (
+            f"{n} from {own[lo]:.3g} {unit} (run {lo + 1}) to {own[hi]:.3g} {unit} (run {hi + 1})"
+        )
+        z, why = _judge(
+            PER_RUN,
+            own[hi] - own[lo],
+            {f"{n}@{hi}": 1.0, f"{n}@{lo}": -1.0},
+            stderr,
+            what,
+            "the same value in every run",
+            "",
+            gate=True,
+        )
+        if math.isnan(best["z"]) or (not why and best["why"]) or z > best["z"]:
+            best = {"z": z, "why": why}
+    return best
+
+
+def implausible(values: dict, free, track: float | None = None) -> list:
+    """Lines for fitted values a real cart of this lab does not have: any free parameter at
+    the edge of its plausible range or at a bound of its fit (:func:`at_bound`: the data ask
+    for a value beyond it), a spring's rest point off the track. Such values are never
+    written into a plant file (:func:`tuning.estimation.diagnose.report.write_outputs`)."""
+    if track is None:
+        from jaxcart.params import TRACK_LENGTH
+
+        track = TRACK_LENGTH
+    out = []
+    for n in free:
+        if n not in values or Layout.kind(n) in P.NUISANCE:
+            continue
+        v = values[n]
+        unit = plantspec.unit(Layout.kind(n))
+        unit = f" {unit}" if unit and unit != "1" else ""
+        side = at_bound(n, v)
+        rng = P.spec(n).plausible
+        if side and rng is not None:
+            out.append(
+                f"{n} = {v:.4g}{unit} is outside what a cart of this lab has "
+                f"({rng[0]:.3g}-{rng[1]:.3g}{unit}): the data ask for a value beyond it"
+            )
+        elif side:
+            out.append(
+                f"{n} = {v:.4g}{unit} sits at its {side} bound (the fit wanted a value "
+                "beyond its range)"
+            )
+        elif P.spec(n).unit == "m" and P.spec(n).neutral is None and abs(v) > track / 2:
+            out.append(f"{n} = {v:.4g} m is off the {track:g} m track")
+    return out
+
+
+def items(part) -> tuple:
+    """The items a part names (:func:`significance`'s keys)."""
+    if part == PER_RUN:
+        return (PER_RUN,)
+    return PARAM_ERRORS.get(part) or P.named_by(part)
+
+
+def swap_tie(best, cands, plant, segments, base_plants, layout, memo, noise):
+    """({}, None), or when ``best`` corrects M or gamma_scale and the structure with the other
+    (values from :func:`~.core.swapped_correction`, or its own fit where that scores better) is
+    within :data:`TIE`: the facts for the verdict and that structure."""
+    swap = swapped_correction(best.parts, best.values, plant)
+    if swap is None:
+        return {}, None
+    parts, values = swap
+    other = _structure(parts, best.runs)
+    keys = list(other.free) + [k for k in best.values if "@" in k]
+    other.values = {k: values[k] for k in keys}
+    other.residuals = exact_residuals(other, segments, base_plants, other.values, layout, memo)[0]
+    other.rms_exact = _rms(other.residuals)
+    other.score = score(other, other.residuals, noise)
+    fitted = next((c for c in cands if set(c.parts) == set(parts)), None)
+    if fitted is not None and fitted.score < other.score:
+        other = fitted
+    if not other.score <= best.score + TIE:
+        return {}, None
+    pm = plant_of(best, base_plants, segments)
+    ratios = {"gamma/m": float(pm.gamma / pm.m), "c/m": float(pm.c / pm.m)}
+    corr = {c.corrections[0]: c for c in (best, other)}
+    mass, gain = corr["mass"], corr["gain"]
+    b_eq = sorted([best.values["B_eq"], other.values["B_eq"]])
+    note = (
+        "M and gamma_scale cannot be told apart from "
+        + ("this recording" if len(segments) == 1 else "these recordings")
+        + f": with B_eq free only gamma/m = {ratios['gamma/m']:.4g} N/(V kg) and c/m = "
+        f"{ratios['c/m']:.4g} 1/s are identifiable (M = {mass.values['M']:.4g} kg with "
+        f"B_eq = {mass.values['B_eq']:.4g} kg/s, or gamma_scale = "
+        f"{gain.values['gamma_scale']:.4g} with B_eq = {gain.values['B_eq']:.4g} kg/s, fit "
+        "equally well), so B_eq is not settled; diagnose a tap of the same cart with it "
+        "(jaxcart diagnose RUN.toml TAP.toml) to separate them"
+    )
+    facts = {
+        "parameters": ["M", "gamma_scale"],
+        "ratios": ratios,
+        "alternatives": [
+            {
+                "structure": c.name,
+                "values": {k: v for k, v in c.values.items() if "@" not in k},
+                "rms": c.rms_exact,
+                "score": c.score,
+                "implausible": implausible(c.values, c.free),
+            }
+            for c in (best, other)
+        ],
+        "B_eq": b_eq,
+        "note": note,
+    }
+    return facts, other
