@@ -7,9 +7,10 @@
 Each round fits its candidate structures in one batch (:class:`~tuning.estimation.engine.
 batch.BatchFitter`), re-checks them on the exact simulator and scores them
 (:func:`~.core.score`); the structure named is the best-scoring one whose every effect is
-significant and physically sized (:func:`~.significance.significance`). The helpers it calls (the
-exact re-check and polish, the covariances, the scores) live in :mod:`.core`; which parts
-are named (significance, drive limits per run, implausible values) in :mod:`.significance`.
+significant and physically sized (:func:`~.significance.significance`). The helpers it
+calls (the exact re-check and polish, the covariances, the scores) live in :mod:`.core`;
+which parts are named (significance, implausible values) in :mod:`.significance`; each run's
+own drive limits in :mod:`.per_run`.
 """
 
 from __future__ import annotations
@@ -580,10 +581,10 @@ class Search:
     def seeds(self, level):
         """The structures of the last round that beat every structure before it, but those
         whose drive limits per run are not one drive's
-        (:func:`~.per_run.per_run_inconsistency`): grown, they stay unnameable and take
-        the round's slots (the real tap, P 50 runs and PD run: a current limit per run at
-        0.69 A seeded two rounds, and saturation per run with Coulomb and the delay was never
-        fitted)."""
+        (:func:`~.per_run.per_run_inconsistency`): grown, they take the round's slots (the
+        real tap, P 50 runs and PD run: a current limit per run at 0.69 A seeded two rounds,
+        and saturation per run with Coulomb and the delay was never fitted); the final polish
+        adds such a limit to the best structure instead (:meth:`_other_limits`)."""
         this = {id(c) for c in level}
         before = min(c.score for c in self.cands if id(c) not in this)
         sound = [
@@ -685,11 +686,10 @@ class Search:
         better held out)."""
         if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
             return []  # a structure explains the recordings already
-        out = []
+        out, near = [], sorted(self.cands, key=lambda c: c.score)[:POLISH]
         for e in C.effect_params():
             if not C.REGISTRY[e].limits:
                 continue
-            near = sorted(self.cands, key=lambda c: c.score)[:POLISH]
             bases = [c for c in near if PER_RUN in c.parts and e not in c.parts]
             if not bases:
                 continue
