@@ -23,8 +23,8 @@ def test_ctrl_c_ends_a_blocked_command(tmp_path):
     """The worker blocks for ever in a call that never returns to Python (as XLA does); a
     SIGINT ends the process with status 130 (its speed is the machine's: not asserted)."""
     # The child takes Python's own Ctrl-C handler and unblocks SIGINT whatever it inherited
-    # from the test process, and says "ready" from the worker thread, once the main thread is
-    # in its waiting loop (a SIGINT before it would be a plain KeyboardInterrupt).
+    # from the test process, and says "ready" from the worker thread; the main thread may still
+    # be starting it (Thread.start waits for it), and a SIGINT there ends it the same way.
     code = (
         "import signal, threading\n"
         "signal.signal(signal.SIGINT, signal.default_int_handler)\n"

@@ -22,8 +22,8 @@ SLICE = 0.1
 def run(func, *args):
     """``func(*args)`` in a worker thread; its result, or its exception re-raised here. A
     KeyboardInterrupt while waiting ends the process at once with status 130."""
-    worker = Background(func, *args, name="jaxcart-command")
-    try:
+    try:  # the start too: Thread.start waits for the worker, which may already be running
+        worker = Background(func, *args, name="jaxcart-command")
         while worker.alive():
             worker.join(SLICE)
     except KeyboardInterrupt:
