@@ -61,7 +61,8 @@ class Diagnosis:
     #: The start plant's values of the corrected parameters (the corrections are from these).
     start_values: dict = field(default_factory=dict)
     #: Each recording: its own values of the parameters free per run ({"parameters": {name:
-    #: {"value", "stderr", "unit"}}}), its RMS before and after [m].
+    #: {"value", "stderr", "unit", "acts"}}}; "acts" False for a limit above what the run
+    #: drove, not determined there), its RMS before and after [m].
     per_recording: dict = field(default_factory=dict)
     #: Where a run's own drive limit is far below what another run drew: more than one drive
     #: varies (said beside the limits; "" otherwise).

@@ -985,11 +985,7 @@ class Search:
             # a drive limit above what its run drove is not that run's value (at a bound or not)
             implausible=S.implausible(
                 best.values,
-                [
-                    k
-                    for k in best.free
-                    if "@" not in k or R.acts(Layout.kind(k), k, best.values[k], peaks)
-                ],
+                [k for k in best.free if R.acts(Layout.kind(k), k, best.values[k], peaks)],
             ),
             not_significant=dropped,
             significance=dict(best.z),
