@@ -340,3 +340,31 @@ def test_an_effect_is_a_candidate_only_where_the_recordings_can_show_it():
     assert {"coulomb", "deadzone_asymmetry", "voltage_offset"} <= names
     both = {c.name for c in candidate_list(True, (), out_back)}
     assert {"coulomb_asymmetry", "viscous_asymmetry"} <= both
+
+
+def test_a_part_fitted_to_where_it_does_nothing_leaves_the_structure_it_led_to(tmp_path):
+    """The independent generator's Coulomb friction by direction, on a reference out and back:
+    with M free (fitted within 1 % of the start plant's, a correction one would not name,
+    absorbing what its recording carries and no candidate models: the amplifier's 0.1 ms lag)
+    Coulomb by direction fits best by far; a dead band by direction fits better only while M
+    is held. The structure named is the best one without its idle part, with the truth's
+    values (0.3 N and 0.1 N either way), not the dead band."""
+    from tuning.estimation.diagnose.search import _idle_parts
+    from tuning.estimation.diagnose.suite import make_recordings
+
+    sig = {
+        "coulomb": {"why": "", "idle": False, "part": "coulomb"},
+        "M": {"why": "M = 0.9416 is within ...", "idle": True, "part": "mass"},
+    }
+    assert _idle_parts(("coulomb", "mass"), sig) == ("mass",)
+    sig["coulomb"] = {"why": "f_c sits at its lower bound", "idle": False, "part": "coulomb"}
+    assert _idle_parts(("coulomb", "mass"), sig) == ()  # dropping M would not make it eligible
+
+    case = BY_NAME["coulomb by direction"].on("independent")
+    made = make_recordings(case, tmp_path, "independent")
+    d = diagnose([read_experiment(p) for p, _ in made], progress=False)
+    row = judge(case, d, [truth for _, truth in made])
+    assert row["correct"] and not row["false_alarm"], row
+    values = {k: v["value"] for k, v in d.parameters.items()}
+    assert values["f_c"] == pytest.approx(0.3, abs=0.015)
+    assert values["f_c_asym"] == pytest.approx(0.1, abs=0.01)

@@ -98,6 +98,9 @@ class Candidate:
     #: every part is significant), at ``assessed`` values.
     z: dict = field(default_factory=dict)
     why: dict = field(default_factory=dict)
+    #: The parts whose every item is idle at ``assessed`` values (a correction within its
+    #: margin, an effect under its least size: :func:`~.significance.significance`).
+    idle: tuple = ()
     assessed: object = None
     #: The values (:func:`values_key`) an exact polish converged at: one from them would
     #: repeat itself, so it is not run again.

@@ -90,8 +90,10 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
     never acts), M and gamma_scale beyond :data:`CORRECTION_MARGIN` of the start plant's.
     z = strength / standard error; an item is significant when z > :data:`SIGNIFICANCE` and
     none of its part's parameters sits at a bound (:func:`at_bound`: the fit wanted a value
-    beyond the range, its standard error means nothing). Returns {item: {"z", "why"}} ("why"
-    empty when significant)."""
+    beyond the range, its standard error means nothing). Returns {item: {"z", "why", "idle",
+    "part"}} ("why" empty when significant; "idle": the item is where it does nothing, or
+    under its least size worth naming: a value that changes the model by nothing one would
+    name, :meth:`~.search.Search.choose`)."""
     peaks = peaks or {}
     start = start or {"M": 0.94, "gamma_scale": 1.0}
     out = {}
@@ -107,13 +109,13 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
                 if run is not None:
                     weights = {_own(n, run, values): w for n, w in weights.items()}
                     what = f"{what} in run {run + 1}"
-                z, why = _judge(item, strength, weights, stderr, what, neutral, bound)
-                views.append((item, z, why))
+                z, why, idle = _judge(item, strength, weights, stderr, what, neutral, bound)
+                views.append((item, z, why, idle))
         for item in dict.fromkeys(v[0] for v in views):
             # Of a part free per run, the run where it is clearest.
             mine = [v for v in views if v[0] == item]
             best = max(mine, key=lambda v: (not v[2], v[1] if math.isfinite(v[1]) else -math.inf))
-            out[item] = {"z": float(best[1]), "why": best[2]}
+            out[item] = {"z": float(best[1]), "why": best[2], "idle": best[3], "part": part}
     return out
 
 
@@ -146,31 +148,38 @@ def _bound_text(params, vals, per_run: bool) -> str:
     return ""
 
 
-def _judge(item, strength, weights, stderr, what, neutral, bound, gate=False) -> tuple[float, str]:
-    """(z, why) of one item: its strength must act (be positive), be determined by the data
+def _judge(item, strength, weights, stderr, what, neutral, bound, gate=False) -> tuple:
+    """(z, why, idle) of one item: its strength must act (be positive), be determined by the data
     (a standard error), and exceed the least size worth naming that its parameter declares
     (``Param.min_size``). z is the Wald statistic of the strength; with ``gate`` it must also
     exceed :data:`SIGNIFICANCE` (the drive limits' difference between runs). Whether an effect
     or a correction is there at all is decided by what it predicts (the search's selection by
     held-out prediction): a Wald test with standard errors widened for model error rejected
-    Coulomb friction on a real P 50 step (z = 2.2) that predicts its end 2.6 times better."""
+    Coulomb friction on a real P 50 step (z = 2.2) that predicts its end 2.6 times better.
+    ``idle``: the strength does not act or is under the least size (the value is where the
+    item does nothing one would name)."""
     se = stderr(weights)
     z = strength / se if se > 0 and math.isfinite(se) else math.nan
     if not math.isfinite(strength):
         z = math.inf if strength > 0 else math.nan
     least = _min_size(weights)
     if bound:
-        return z, bound
+        return z, bound, False
     if not math.isfinite(z):
-        return z, f"{what}: its standard error is not defined"
+        return z, f"{what}: its standard error is not defined", False
     if strength <= 0:
         idle = "is within" if item in P.CORRECTABLE else "does not act: not past"
-        return z, f"{what} {idle} {neutral}"
+        return z, f"{what} {idle} {neutral}", True
     if gate and z <= SIGNIFICANCE:
-        return z, f"{what} is {z:.1f} standard errors from {neutral} ({SIGNIFICANCE:g} needed)"
+        why = f"{what} is {z:.1f} standard errors from {neutral} ({SIGNIFICANCE:g} needed)"
+        return z, why, False
     if least and strength < least:
-        return z, f"{what} is {strength:.3g} from {neutral}: under {least:g}, too small to matter"
-    return z, ""
+        return (
+            z,
+            f"{what} is {strength:.3g} from {neutral}: under {least:g}, too small to matter",
+            True,
+        )
+    return z, "", False
 
 
 def _min_size(weights) -> float | None:
@@ -185,7 +194,7 @@ def _min_size(weights) -> float | None:
 def _per_run_significance(values, stderr) -> dict:
     """Do the drive limits differ between runs? The largest difference between two runs' own
     values of a limit, as a Wald test (and beyond the limit's least size worth naming)."""
-    best = {"z": math.nan, "why": "no drive limit is free per run"}
+    best = {"z": math.nan, "why": "no drive limit is free per run", "idle": False, "part": PER_RUN}
     for n in per_run_params():
         own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
         if len(own) < 2:
@@ -196,7 +205,7 @@ def _per_run_significance(values, stderr) -> dict:
         what = (
             f"{n} from {own[lo]:.3g} {unit} (run {lo + 1}) to {own[hi]:.3g} {unit} (run {hi + 1})"
         )
-        z, why = _judge(
+        z, why, _ = _judge(
             PER_RUN,
             own[hi] - own[lo],
             {f"{n}@{hi}": 1.0, f"{n}@{lo}": -1.0},
@@ -207,7 +216,7 @@ def _per_run_significance(values, stderr) -> dict:
             gate=True,
         )
         if math.isnan(best["z"]) or (not why and best["why"]) or z > best["z"]:
-            best = {"z": z, "why": why}
+            best = {"z": z, "why": why, "idle": False, "part": PER_RUN}
     return best
 
 

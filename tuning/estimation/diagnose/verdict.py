@@ -1,0 +1,227 @@
+"""The diagnosis's verdict on a finished search (:class:`~.search.Search`): the structure
+named (:func:`named`: the lead of :meth:`~.search.Search.choose`, its parts kept by held-out
+prediction, its near-ties and the better-scoring parts not named), its values with standard
+errors, what may be missing where it does not explain the recordings, and the
+:class:`~.result.Diagnosis` that says it all (:func:`diagnosis`).
+"""
+
+from __future__ import annotations
+
+import math
+
+from jaxcart import plantspec
+from tuning.estimation.diagnose import core as C
+from tuning.estimation.diagnose import crossval, locate
+from tuning.estimation.diagnose import per_run as R
+from tuning.estimation.diagnose import significance as S
+from tuning.estimation.diagnose.core import PARAM_ERRORS
+from tuning.estimation.diagnose.policy import TIE
+from tuning.estimation.diagnose.result import Diagnosis, _times
+from tuning.estimation.engine.batch import Layout
+
+
+def named(search):
+    """(the structure named, near-ties, effects of better-scoring structures not named,
+    M/gamma_scale not told apart)."""
+    cands = search.cands
+    search.unearned = []
+    best = search.select(search.choose(cands))
+    C._window_evidence(cands, search.round1[0], search.masks)
+    for c in cands:
+        search.eligible(c)  # every candidate's significance at its final values
+    ranks = _ranks(cands)
+    rank = ranks[id(best)]
+    ties = [
+        c
+        for c in cands
+        if c is not best
+        and search.eligible(c)
+        and ranks[id(c)] <= rank + TIE
+        and best.parts
+        and c.parts
+        and len(c.parts) <= len(best.parts)
+        and set(c.parts) != set(best.parts)
+        and (set(c.effects) != set(best.effects) or not best.effects)
+        and not (set(best.parts) < set(c.parts))
+    ]
+    dropped = [
+        {"structure": c.name, "effect": k, "z": c.z.get(k, math.nan), "why": why}
+        for c in sorted(cands, key=lambda c: c.score)
+        if c.score < rank
+        for k, why in c.why.items()
+        if why
+    ]
+    for item in dropped:
+        search.say(f"  not named: {item['effect']} of {item['structure']} ({item['why']})")
+    # M or gamma_scale corrected: the other may fit as well (only ratios are identifiable).
+    unident, swapped = S.swap_tie(
+        best, cands, search.ref_plant, search.segments, search.base_plants, search.layout,
+        search.memo, search.noise,
+    )  # fmt: skip
+    if swapped is not None:
+        ties = [c for c in ties if set(c.parts) != set(swapped.parts)]
+        best = _plausible_of(search, best, swapped)
+    return best, ties, dropped, unident
+
+
+def _ranks(cands) -> dict:
+    """{id of a structure: the score it ranks by}: its own, or a structure's that is it with
+    idle parts (:meth:`~.search.Search.reduced`), where that is lower. A dead band and a drive
+    offset are one model on a step that moves one way: with M free (idle, at 0.2 % of the
+    start plant's) both fit to 0.0093 mm, and the one named must find the other a tie."""
+    out = {id(c): c.score for c in cands}
+    by_parts = {}
+    for c in cands:
+        by_parts.setdefault(frozenset(c.parts), []).append(c)
+    for d in cands:
+        if d.idle:
+            for c in by_parts.get(frozenset(d.parts) - set(d.idle), ()):
+                out[id(c)] = min(out[id(c)], d.score)
+    return out
+
+
+def _plausible_of(search, best, swapped):
+    """Of two structures that fit equally well, the one whose values a cart of this lab
+    has (a heavier cart with a plausible B_eq rather than a weaker motor with B_eq near 0)."""
+    if not S.implausible(best.values, best.free) or S.implausible(swapped.values, swapped.free):
+        return best
+    if swapped.jac is None:  # values mapped from best's: an exact re-fit gives its own
+        values, arrays, _ = search.polished(swapped, dict(swapped.values))
+        swapped.jac = arrays[-1]
+        if search.better(arrays[:-1], swapped):
+            swapped.values, swapped.residuals = values, arrays[:-1]
+            swapped.rms_exact = C._rms(swapped.residuals)
+            swapped.score = C.score(swapped, swapped.residuals, search.noise)
+    return swapped if swapped.jac.size and search.eligible(swapped) else best
+
+
+def _parameters(search, best, cov, unident) -> tuple[dict, dict]:
+    """(the named structure's shared values with standard errors, the baseline's B_eq)."""
+    params = {}
+    for n in best.free:
+        if "@" in n:
+            continue  # per recording: in the per-recording results
+        params[n] = {
+            "value": best.values[n],
+            "stderr": cov.stderr({n: 1.0}),
+            "unit": plantspec.unit(n),
+            "stderr_widened": cov.widened,
+        }
+    if unident:
+        params["B_eq"]["settled"] = False
+        params["B_eq"]["range"] = unident["B_eq"]
+    base = search.round1[0]
+    base_cov = search.cov_of(base)
+    baseline = {
+        "B_eq": {
+            "value": base.values["B_eq"],
+            "stderr": base_cov.stderr({"B_eq": 1.0}),
+            "unit": "kg/s",
+            "stderr_widened": base_cov.widened,
+        },
+        "rms": base.rms_exact,
+    }
+    return params, baseline
+
+
+def _misfit(search, best, cv) -> tuple[list, str]:
+    """(what may be missing, which recordings the best structure does not explain and by
+    how much) from its held-out summary ``cv``."""
+    if cv["explained"]:
+        return [], ""
+    left = locate.residual_tests(
+        search.segments, best.residuals, search.commands, search.noise.total
+    )
+    beyond = [f for f in cv["folds"] if not f["explained"]]
+    text = f"the best structure ({best.name}) leaves " + "; ".join(
+        (
+            f"{f['recording']} predicted to {f['predicted_rms'] * 1e3:.3g} mm held out "
+            f"(fitted {f['fitted_rms'] * 1e3:.3g} mm), "
+            if f["judged_by"] == "held out"
+            else f"{f['recording']} fitted to {f['fitted_rms'] * 1e3:.3g} mm (held out "
+            f"stretch by stretch {f['predicted_rms'] * 1e3:.3g} mm), "
+        )
+        + (
+            f"{f['judged_rms'] / f['repeat']:.2g} times what that run repeats "
+            f"({f['repeat'] * 1e3:.3g} mm)"
+            if f["repeat"]
+            else f"{_times(f['judged_rms'] / f['floor'])} times its encoder floor "
+            f"{f['floor'] * 1e3:.2g} mm, and no repeat of that run to compare with"
+        )
+        for f in beyond
+    )
+    text += "; the standard errors are widened for model error"
+    search.say(text)
+    return C._suggestions(left, best), text
+
+
+def diagnosis(search, names, checks, t_start) -> Diagnosis:
+    """The :class:`Diagnosis` of the finished search."""
+    best, ties, dropped, unident = named(search)
+    base, segments = search.round1[0], search.segments
+    cov = search.cov_of(best)
+    params, baseline = _parameters(search, best, cov, unident)
+    traces = [
+        {
+            "name": seg.name,
+            "time": seg.time,
+            "measured": seg.target,
+            "baseline": seg.target + rb,
+            "after": seg.target + ra,
+        }
+        for seg, rb, ra in zip(segments, base.residuals, best.residuals, strict=True)
+    ]
+    level = max(search.repeat.values()) if search.repeat else None
+    peaks = search.peaks(best)
+    per_recording = R.per_recording(best, names, segments, base, cov, peaks)
+    # Judged by prediction: each recording (each stretch of a single one) held out of the
+    # fit and predicted, against what that experiment repeats or its encoder floor.
+    cv = crossval.cross_validate(search, best, list(per_recording), search.repeat)
+    crossval.annotate(per_recording, cv)
+    explained = cv["explained"]
+    suggestions, misfit = _misfit(search, best, cv)
+    corrections = [PARAM_ERRORS[p][0] for p in best.corrections]
+    driven, taps = crossval.driven_alone(search, best), crossval.taps_alone(search, best)
+    for apart in (driven, taps):
+        if apart:
+            apart["recordings"] = [list(per_recording)[i] for i in apart["recordings"]]
+    return Diagnosis(
+        names,
+        "diagnosed",
+        [],
+        checks,
+        left_out=list(best.effects),
+        corrected_parameters=corrections,
+        equivalent=[list(c.effects) or [PARAM_ERRORS[p][0] for p in c.corrections] for c in ties],
+        rms_before=base.rms_exact,
+        rms_after=best.rms_exact,
+        floor=search.floor,
+        parameters=params,
+        baseline=baseline,
+        windows=search.wins,
+        tests=search.tests,
+        candidates=sorted(search.cands, key=lambda c: c.score),
+        chosen=best.name,
+        plant=R.cart_plant(best, search.base_plants, segments, peaks),
+        seconds=C._elapsed(t_start),
+        traces=traces,
+        explained=explained,
+        misfit=misfit,
+        suggestions=suggestions,
+        # a drive limit above what its run drove is not that run's value (at a bound or not)
+        implausible=S.implausible(
+            best.values,
+            [k for k in best.free if R.acts(Layout.kind(k), k, best.values[k], peaks)],
+        ),
+        not_significant=dropped,
+        significance=dict(best.z),
+        unidentifiable=unident,
+        start_values={n: search.neutral[n] for n in corrections},
+        per_recording=per_recording,
+        drive_spread=R.per_run_inconsistency(best.values, peaks) if best.runs else "",
+        cross_validation=cv,
+        driven_alone=driven,
+        taps_alone=taps,
+        repeat=level,
+        remainder=C._remainder(best, segments),
+    )
