@@ -77,7 +77,10 @@ def test_the_suite_judges_each_case_by_its_rule():
     """What counts as right: a spurious deadzone beside Coulomb friction under PI fails the
     "exact" rule; the drive freed per run is right only with each run's own limit near its
     truth (5 %) and none for the tap, and a false alarm where the runs share one limit; a
-    recording no candidate explains is right only said so, with the suggestion."""
+    recording no candidate explains is right only said so, with the suggestion; static
+    friction that falls over a 2 mm/s Stribeck speed (the independent generator's) is named
+    rightly as Coulomb + stiction or as Stribeck friction, and on exact data (no fall) only as
+    the first."""
     from tuning.estimation.diagnose.core import PER_RUN
 
     pi = BY_NAME["coulomb under PI on a lab cart (no deadzone)"]
@@ -104,6 +107,11 @@ def test_the_suite_judges_each_case_by_its_rule():
     assert _judged(track, explained=False, suggestions=along)["correct"]
     assert not _judged(track, explained=True, suggestions=along)["correct"]
     assert not _judged(track, explained=False, suggestions=["more effects at once"])["correct"]
+    hunting = BY_NAME["strong stiction hunting under PI"]
+    stribeck = ["coulomb", "stiction", "stribeck"]
+    assert _judged(hunting.on("independent"), left_out=stribeck)["correct"]
+    assert _judged(hunting.on("independent"), left_out=stribeck[:2])["correct"]
+    assert not _judged(hunting, left_out=stribeck)["correct"]
     clean = BY_NAME["clean PD step"]
     assert _judged(clean)["correct"]
     row = _judged(clean, left_out=["spring"])

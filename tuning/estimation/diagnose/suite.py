@@ -77,7 +77,7 @@ GENERATORS = ("exact", "independent")
 #: The kinds of recording a case makes (:class:`Case`).
 KINDS = ("step", "ramp", "square", "out_back", "open_ramp", "tap")
 #: What a case's ``independent`` may change for the independent generator.
-INDEPENDENT_KEYS = ("truth", "rule", "expect", "suggest", "artefacts", "why")
+INDEPENDENT_KEYS = ("truth", "rule", "expect", "also", "suggest", "artefacts", "why")
 
 
 @dataclass(frozen=True)
@@ -96,8 +96,9 @@ class Case:
     that differ from the case's (its "truth" entries update the case's truth).
     ``generators``: which make it; ``independent``: what differs on the independent
     generator's data, keys :data:`INDEPENDENT_KEYS`: "truth" (values added, in
-    :class:`tuning.verification.TrueCart`'s names), "rule", "expect", "suggest", "artefacts"
-    (changes to REALISTIC) and "why" (the reason, said in the docs).
+    :class:`tuning.verification.TrueCart`'s names), "rule", "expect", "also" (other sets of
+    effects that name that truth as rightly, rule "names"), "suggest", "artefacts" (changes to
+    REALISTIC) and "why" (the reason, said in the docs).
     """
 
     name: str
@@ -111,6 +112,7 @@ class Case:
     v_limit: float = 6.0
     drop_v: bool = False
     expect: tuple = ()  # effects that should be named
+    also: tuple = ()  # other sets of effects as right (rule "names")
     rule: str = "names"
     suggest: str = ""  # rule "not_explained": a phrase a suggestion must hold
     rate: float = 0.5  # open_ramp [V/s]
@@ -136,7 +138,7 @@ class Case:
         if generator == "exact" or not self.independent:
             return self
         ov = self.independent
-        changes = {k: ov[k] for k in ("rule", "expect", "suggest") if k in ov}
+        changes = {k: ov[k] for k in ("rule", "expect", "also", "suggest") if k in ov}
         return replace(self, truth={**self.truth, **ov.get("truth", {})}, **changes)
 
     def recordings(self) -> list[Case]:
@@ -161,6 +163,12 @@ DEADZONE_ASYM, OFFSET, TILT, STRIBECK = (
     Stribeck.name,
 )
 B = {"B_eq": 4.6}
+#: Static friction on the independent generator: it falls to the kinetic level over a 2 mm/s
+#: Stribeck speed (jaxcart's stiction drops at once). Coulomb + stiction names that truth
+#: where the fall is not resolved, and Stribeck friction (f_s, f_c and v_stribeck, above its
+#: least size of 1 mm/s) as rightly where it is: on the one cart hunting under PI it is fitted
+#: at f_c 0.39995 N, f_s 0.909 N, v_stribeck 2.09 mm/s (truth 0.4, 0.9, 2).
+STRIBECK_FALL = {"truth": {"v_stribeck": 0.002}, "also": ((COULOMB, STICTION, STRIBECK),)}
 #: A lab cart as the real recordings show it (issue 21): viscous friction of a tap, 0.4 N of
 #: Coulomb friction.
 CART = {"B_eq": 1.5, "f_c": 0.4}
@@ -189,7 +197,7 @@ ONE_CART = (
               (TAP, P50, PD), (COULOMB, CURRENT)),
     _one_cart("one cart (tap + P 10 + PI hunting): stiction 0.9 N", {**CART, "f_s": 0.9},
               (TAP, {"kp": 10.0, "kd": 0.0, "amplitude": 0.1}, PI_HUNT), (COULOMB, STICTION),
-              independent={"truth": {"v_stribeck": 0.002}}),
+              independent=STRIBECK_FALL),
     _one_cart("one cart (tap + P 50 + PD): cable spring 4 N/m", {**CART, "k_s": 4.0, "y_rest": 0.0},
               (TAP, P50, PD), (COULOMB, SPRING)),
     _one_cart("one cart (tap + P 50 + PI): deadzone 0.3 V", {**CART, "deadzone": 0.3},
@@ -467,8 +475,7 @@ CASES = (
     # holds the cart until 3.87 s (f_s / (gamma 0.3 V/s)), then it lurches; the PI loop hunts
     # about its target by stick-slip, five stops within 3 s, up to 13 mm either side. On the
     # independent generator friction falls from the breakaway level to the kinetic one over a
-    # 2 mm/s Stribeck speed (the library's stiction drops at once): the physics is still the
-    # library's two effects, so naming them is still the right answer.
+    # 2 mm/s Stribeck speed (:data:`STRIBECK_FALL`).
     Case(
         "strong stiction breakaway on a 0.3 V/s ramp (a late lurch)",
         "plain",
@@ -477,7 +484,7 @@ CASES = (
         rate=0.3,
         horizon=5.0,
         expect=(COULOMB, STICTION),
-        independent={"truth": {"v_stribeck": 0.002}},
+        independent=STRIBECK_FALL,
     ),
     Case(
         "strong stiction hunting under PI",
@@ -489,7 +496,7 @@ CASES = (
         kd=1.5,
         horizon=3.0,
         expect=(COULOMB, STICTION),
-        independent={"truth": {"v_stribeck": 0.002}},
+        independent=STRIBECK_FALL,
     ),
     *ONE_CART,
 )
@@ -635,7 +642,9 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
     chosen = next((c for c in d.candidates if c.name == d.chosen), None)
     per_run = chosen is not None and PER_RUN in chosen.parts
     right = {
-        "names": lambda: named == expect or expect in [set(e) for e in d.equivalent],
+        "names": lambda: (
+            named in [expect, *map(set, case.also)] or expect in [set(e) for e in d.equivalent]
+        ),
         "exact": lambda: named == expect,
         "nothing": lambda: not named and not d.corrected_parameters,
         "corrected": lambda: not named and bool(d.corrected_parameters),
@@ -669,7 +678,8 @@ def _expected_text(case: Case) -> list:
     if case.rule == "not_explained":
         return [f"not explained ({case.suggest})"]
     extra = {"per_run": ["per_run"], "exact": ["only"]}.get(case.rule, [])
-    return sorted(case.expect) + extra
+    also = [f"or {'+'.join(sorted(a))}" for a in case.also]
+    return sorted(case.expect) + extra + also
 
 
 def _limits_vary(truths) -> bool:
