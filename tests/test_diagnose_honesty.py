@@ -249,6 +249,8 @@ def test_the_verdict_says_effects_and_corrections_and_what_it_does_not_know():
     assert doc["suggestions"] and doc["implausible"] and doc["misfit"]
     title = figure_title(d)
     assert title.startswith("NOT EXPLAINED") and "implausible: B_eq = 0.38 kg/s" in title
+    narrow = figure_title(d, 30)  # at most three lines, a cut said by an ellipsis
+    assert len(narrow.splitlines()) == 3 and narrow.endswith(" ...")
     md = render_markdown(d)
     assert "## Not explained" in md and "## Implausible values" in md
 

@@ -289,11 +289,22 @@ def _significance() -> str:
     return f"{SIGNIFICANCE:g}"
 
 
+#: The title's most lines; a headline longer than they hold ends in an ellipsis.
+TITLE_LINES = 3
+
+
 def figure_title(d, width: int = 95) -> str:
-    """The figure's title: :attr:`~.result.Diagnosis.headline`, wrapped."""
+    """The figure's title: :attr:`~.result.Diagnosis.headline`, wrapped to ``width``
+    characters a line, at most :data:`TITLE_LINES` lines (the last then ends in "...")."""
     import textwrap
 
-    return "\n".join(textwrap.wrap(d.headline, width)[:3])
+    return textwrap.fill(d.headline, width, max_lines=TITLE_LINES, placeholder=" ...")
+
+
+def _title_width(fig, fontsize: float) -> int:
+    """About how many characters of ``fontsize`` [pt] a line across ``fig`` holds (an average
+    character of a sans-serif font is about 0.55 em wide; 0.6 leaves a margin)."""
+    return max(60, int(fig.get_figwidth() * 72 / (0.6 * fontsize)))
 
 
 def plot_diagnosis(d, path) -> Path:
@@ -360,7 +371,8 @@ def plot_diagnosis(d, path) -> Path:
         bottom.set_xlabel("time [s]")
     # Two columns a recording's width holds; four from two recordings on.
     figure_legend(fig, list(axes.flat), ncols=2 if n == 1 else 4)
-    fig.suptitle(figure_title(d), fontsize=9, color="black" if d.explained else "darkred")
+    title = figure_title(d, _title_width(fig, 9))
+    fig.suptitle(title, fontsize=9, color="black" if d.explained else "darkred")
     path = save(fig, path, dpi=110)
     plt.close(fig)
     return path
