@@ -76,3 +76,15 @@ def test_an_undetermined_direction_is_flagged():
     assert cov.singular.tolist() == [True, True, False]
     assert np.isinf(cov.robust[0, 0]) and np.isinf(cov.naive[1, 1])
     assert np.isfinite(cov.robust[2, 2])
+
+
+def test_a_jacobian_whose_squares_overflow_is_judged_without_an_error():
+    """A run that blew up at a trial value leaves a column of 1e200 [m per unit]: its squares
+    overflow, and eigh of the inf raised LinAlgError out of a whole lab (the independent
+    generator's dead-band cart). Each column's norm is taken over its largest entry."""
+    from tuning.estimation.engine.covariance import determined
+
+    jac = np.random.default_rng(0).standard_normal((500, 3))
+    assert determined(jac)
+    jac[:, 1] *= 1e200
+    assert determined(jac) is False  # the others are zero beside it: not determined

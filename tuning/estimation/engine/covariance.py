@@ -112,7 +112,11 @@ def _inverse(jac):
     """(column scales, scaled J, B^-1, B^-1/2, singular flags) of J: columns scaled to unit
     norm (the parameters' units differ by orders of magnitude), B = J^T J inverted on the
     directions the data determine."""
-    norms = np.linalg.norm(jac, axis=0)
+    # Each column's norm from the column over its largest entry: squares of a column of 1e200
+    # (a run that blew up at a trial value) overflow, and eigh of the inf fails.
+    peak = np.max(np.abs(jac), axis=0, initial=0.0)
+    peak = np.where(peak > 0, peak, 1.0)
+    norms = peak * np.linalg.norm(jac / peak, axis=0)
     zero = norms <= 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
     scale = np.where(zero, 1.0, norms)
     js = jac / scale
