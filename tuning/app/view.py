@@ -146,8 +146,11 @@ class DesignPage:
                 self.sliders[name].value = snap(name, value) * SCALE.get(name, 1.0)
 
     def update(self) -> Design:
-        """Recompute at the sliders' position and push every changed number to the page (in
-        one message when served: the page never shows half an update)."""
+        """Recompute at the sliders' position and push every changed number to the page.
+
+        Served, Bokeh sends one message per changed property, in order, and the page applies
+        each as it arrives; the response goes last, so that when the page sees it change (what
+        a person watches, and what :func:`browser.timed_moves` times) the rest has arrived."""
         if self.doc is not None:
             self.doc.hold("combine")
         try:
@@ -160,13 +163,6 @@ class DesignPage:
         settings = self.settings()
         design = self.problem.design(settings)
         region = self.problem.region_at(settings)
-        res = design.response
-        runs = dict(y=np.asarray(res.position), v=np.asarray(res.voltage))
-        if len(self.response.data["t"]) == len(res.time) and settings.setpoint == self._setpoint:
-            self.response.data.update(runs)  # time and reference as they were: send half
-        else:
-            self.response.data = dict(t=np.asarray(res.time), r=np.asarray(res.reference), **runs)
-        self._setpoint = settings.setpoint
         if design.nominal is not None:
             nom = design.nominal
             self.nominal.data = dict(
@@ -176,6 +172,13 @@ class DesignPage:
         self.poles.data = dict(re=design.poles.real, im=design.poles.imag)
         self.figures.show(design, region)
         self.metrics.text = metrics_html(design, self.problem)
+        res = design.response
+        runs = dict(y=np.asarray(res.position), v=np.asarray(res.voltage))
+        if len(self.response.data["t"]) == len(res.time) and settings.setpoint == self._setpoint:
+            self.response.data.update(runs)  # time and reference as they were: send half
+        else:
+            self.response.data = dict(t=np.asarray(res.time), r=np.asarray(res.reference), **runs)
+        self._setpoint = settings.setpoint
         return design
 
 
