@@ -11,7 +11,7 @@ import pytest
 from jaxcart.effects import Coulomb, Saturation
 from jaxcart.files import read_experiment
 from tuning.benchmark import estimation, startup
-from tuning.estimation.diagnose.core import PER_RUN
+from tuning.estimation.diagnose.structures import PER_RUN
 
 
 def test_timed_counts_the_childs_cpu_seconds_and_checks_its_exit_status():

@@ -63,8 +63,8 @@ def test_fast_suite_says_what_one_recording_cannot_tell(fast_results):
 
 def _judged(case, **fields):
     """judge() of a made-up diagnosis of ``case`` (no fit): its fields as given."""
-    from tuning.estimation.diagnose.core import Candidate
     from tuning.estimation.diagnose.result import Diagnosis
+    from tuning.estimation.diagnose.structures import Candidate
 
     parts = fields.pop("parts", ())
     d = Diagnosis(["a"], "diagnosed", [], [], rms_before=1e-3, rms_after=1e-5, **fields)
@@ -81,7 +81,7 @@ def test_the_suite_judges_each_case_by_its_rule():
     friction that falls over a 2 mm/s Stribeck speed (the independent generator's) is named
     rightly as Coulomb + stiction or as Stribeck friction, and on exact data (no fall) only as
     the first."""
-    from tuning.estimation.diagnose.core import PER_RUN
+    from tuning.estimation.diagnose.structures import PER_RUN
 
     pi = BY_NAME["coulomb under PI on a lab cart (no deadzone)"]
     assert pi.rule == "exact"
@@ -246,7 +246,7 @@ def test_cli_help_is_instant_and_refuses_overwrite(tmp_path):
 
 def test_every_registered_effect_is_a_candidate_or_says_why_not():
     from jaxcart.effects import REGISTRY
-    from tuning.estimation.diagnose.core import effect_params, not_candidates
+    from tuning.estimation.diagnose.structures import effect_params, not_candidates
 
     EFFECT_PARAMS, NOT_CANDIDATES = effect_params(), not_candidates()
 
@@ -262,11 +262,13 @@ def test_an_effect_along_the_track_is_a_candidate_only_where_the_recordings_cove
     """An effect that declares ``covers`` (a map along the track) is searched only where the
     recordings span that much of the track; without the span it is left out."""
     from jaxcart.effects import REGISTRY
-    from tuning.estimation.engine import parameters as P
+    from tuning.estimation.engine import parameters
 
     monkeypatch.setattr(REGISTRY["spring"], "covers", 0.4)
-    assert "spring" not in P.candidates() and "spring" not in P.candidates(span=0.3)
-    assert P.candidates(span=0.5)["spring"] == ("k_s", "y_rest")
+    assert "spring" not in parameters.candidates() and "spring" not in parameters.candidates(
+        span=0.3
+    )
+    assert parameters.candidates(span=0.5)["spring"] == ("k_s", "y_rest")
     covers = [n for n, cls in REGISTRY.items() if cls.covers and n != "spring"]
     assert covers == ["track_friction"] and "0.4 m" in REGISTRY["track_friction"].not_candidate
 
@@ -276,7 +278,7 @@ def test_exact_memo_reuses_runs_read_only_and_keeps_the_newest():
     (not a new one), read-only; another value or structure is a new run; the oldest goes."""
     from types import SimpleNamespace
 
-    from tuning.estimation.diagnose.core import ExactMemo
+    from tuning.estimation.diagnose.candidate_runs import ExactMemo
 
     memo, runs = ExactMemo(size=2), []
 
@@ -302,29 +304,32 @@ def test_exact_memo_reruns_only_the_recordings_a_value_moves(tmp_path):
     value moves every run, and the residuals made in this process without the memo equal
     those made several at a time, in a helper process (jaxcart.workers), bit for bit."""
     from jaxcart.workers import Helpers
-    from tuning.estimation.diagnose import core as C
+    from tuning.estimation.diagnose import candidate_runs, structures
     from tuning.estimation.diagnose.search import Search
+    from tuning.estimation.engine import parameters
 
     case = BY_NAME["tap + P and PD steps with the drive limit per run"]
     recs = [read_experiment(p) for p in make_case(case, tmp_path)]
     search = Search(recs, [None] * 3, [False] * 3, None, lambda line: None, None)
-    cand = next(c for c in search.round1 if C.PER_RUN in c.parts)
+    cand = next(c for c in search.round1 if structures.PER_RUN in c.parts)
     values = dict(search.starts_all)
-    values = {k: values.get(k, values.get(search.layout.kind(k))) for k in cand.free}
+    values = {k: values.get(k, values.get(parameters.base_name(k))) for k in cand.free}
     with Helpers(1) as helpers:
-        memo = C.ExactMemo(executor=helpers)
+        memo = candidate_runs.ExactMemo(executor=helpers)
         args = (cand, search.segments, search.base_plants)
-        first, _ = C.exact_residuals(*args, values, search.layout, memo)
+        first, _ = candidate_runs.exact_residuals(*args, values, search.layout, memo)
         assert memo.made == 3
         own = next(k for k in cand.free if k.endswith("@2"))
         moved = dict(values, **{own: values[own] * 1.01})
         before = set(memo.one)
-        r, _ = C.exact_residuals(*args, moved, search.layout, memo)
+        r, _ = candidate_runs.exact_residuals(*args, moved, search.layout, memo)
         assert memo.made == 4 and [key[0] for key in set(memo.one) - before] == [2]
         assert r[0] is first[0] and r[1] is first[1] and r[2] is not first[2]
-        fresh, _ = C.exact_residuals(*args, moved, search.layout)  # (no memo: here)
+        fresh, _ = candidate_runs.exact_residuals(*args, moved, search.layout)  # (no memo: here)
         assert all(np.array_equal(a, b) for a, b in zip(r, fresh, strict=True))
-        C.exact_residuals(*args, dict(values, B_eq=values["B_eq"] * 1.01), search.layout, memo)
+        candidate_runs.exact_residuals(
+            *args, dict(values, B_eq=values["B_eq"] * 1.01), search.layout, memo
+        )
         assert memo.made == 7
 
 
@@ -334,7 +339,7 @@ def test_an_effect_is_a_candidate_only_where_the_recordings_can_show_it():
     band by direction needs the drive pushing both ways; a tilt needs a tap (in a driven run
     it is a drive offset)."""
     from jaxcart.effects import REGISTRY
-    from tuning.estimation.diagnose.core import candidate_list
+    from tuning.estimation.diagnose.structures import candidate_list
     from tuning.estimation.engine.coverage import Coverage
 
     step = Coverage(span=0.4, right=0.40, left=0.008, push_right=6.0, push_left=1.7, driven=True)

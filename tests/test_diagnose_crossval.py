@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 
 from jaxcart.files import read_experiment
-from tuning.estimation.diagnose import core as C
-from tuning.estimation.diagnose import crossval
-from tuning.estimation.diagnose import per_run as R
+from tuning.estimation.diagnose import candidate_runs, crossval, per_run, scoring, structures
 from tuning.estimation.diagnose.report import render_markdown
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.search import Search
 from tuning.estimation.diagnose.suite import CASES, Case, make_case
+from tuning.estimation.engine import parameters
 
 BY_NAME = {c.name: c for c in CASES}
 PER_RUN = "tap + P and PD steps with the drive limit per run"  # v_sat 4.6 V and 5.5 V
@@ -38,11 +37,11 @@ def _search(name, tmp_path, first=None):
 def _at_truth(search, truths, parts):
     """The structure ``parts`` at the truth's values (a tap's start state as prepared), its
     exact residuals as the joint fit's."""
-    cand = C._structure(parts, search.runs)
+    cand = structures.structure(parts, search.runs)
     values = {}
     for n in cand.free:
-        run = C.P.recording_of(n)
-        values[n] = truths[-1 if run is None else run][C.P.base_name(n)]
+        run = parameters.recording_of(n)
+        values[n] = truths[-1 if run is None else run][parameters.base_name(n)]
     for i in search.layout.nuisance:
         exp = search.segments[i].experiment
         values.update({f"y0@{i}": float(exp.y0), f"yd0@{i}": float(exp.yd0)})
@@ -83,7 +82,7 @@ def test_a_run_held_out_is_predicted_given_its_own_drive_limit(tmp_path):
     state, like a tap's push, belongs to the run), so a correct model predicts it about as it
     fits it, its limit from a start 3 % off; the summary, the report and the verdict say so."""
     search, truths = _search(PER_RUN, tmp_path)
-    best = _at_truth(search, truths, ("coulomb", "saturation", C.PER_RUN))
+    best = _at_truth(search, truths, ("coulomb", "saturation", structures.PER_RUN))
     assert crossval.own_names(search, best, 1) == ["v_sat@1"]
     moved = {**best.values, "v_sat@1": 0.97 * best.values["v_sat@1"]}
     refit = crossval.own_refit(search, best, 1, moved)
@@ -113,10 +112,12 @@ def test_a_held_out_prediction_is_the_diagnosis_own_exact_run(tmp_path):
     prediction of the P run equals the joint exact residual at the fold's values, run without
     any memo, bit for bit."""
     search, truths = _search(PER_RUN, tmp_path)
-    best = _at_truth(search, truths, ("coulomb", "saturation", C.PER_RUN))
+    best = _at_truth(search, truths, ("coulomb", "saturation", structures.PER_RUN))
     values = crossval.one_step(search, best, crossval.Fold(1))
     predicted = crossval.predict(best, search, 1, values)
-    fresh = C.exact_residuals(best, search.segments, search.base_plants, values, search.layout)[0]
+    fresh = candidate_runs.exact_residuals(
+        best, search.segments, search.base_plants, values, search.layout
+    )[0]
     assert np.array_equal(predicted, fresh[1])
 
 
@@ -171,7 +172,7 @@ def test_the_verdict_is_judged_against_what_that_experiment_repeats(tmp_path):
     down = dataclasses.replace(
         p_run, experiment=dataclasses.replace(p_run.experiment, signal=-p_run.experiment.signal)
     )
-    levels = C._repeat_levels([p_run, longer, down])
+    levels = scoring.repeat_levels([p_run, longer, down])
     assert set(levels) == {0, 1} and levels[0] == pytest.approx(0.5e-3, rel=1e-3)
 
 
@@ -181,7 +182,7 @@ def test_the_driven_runs_alone_find_the_cart_with_their_own_drive_limits(tmp_pat
     recovers B_eq and f_c within 1 % of the generator's cart and within 3 of its standard
     errors, at the encoder floor; without a driven run there is nothing to fit."""
     search, truths = _search(PER_RUN, tmp_path)
-    best = _at_truth(search, truths, ("coulomb", "saturation", C.PER_RUN))
+    best = _at_truth(search, truths, ("coulomb", "saturation", structures.PER_RUN))
     off = {"B_eq": 1.05, "f_c": 0.95, "v_sat@1": 0.97, "v_sat@2": 1.03}
     best.values = {n: v * off.get(n, 1.0) for n, v in best.values.items()}
     alone = crossval.driven_alone(search, best)
@@ -215,19 +216,19 @@ def heavier(tmp_path_factory):
 def _fitted(search, parts, weights="noise"):
     """The structure ``parts`` fitted by the exact polish from the cart's handout values, each
     recording weighed by its own misfit (the engine's) or, with ``weights`` None, equally."""
-    c = C._structure(parts)
+    c = structures.structure(parts)
     start = {n: {"B_eq": 1.5, "f_c": 0.4, "M": 0.94}[n] for n in c.free}
     if weights == "noise":
         values, arrays, _ = search.polished(c, start)
         jac = arrays[-1]
     else:
-        values, jac, order, _ = C._polish(
+        values, jac, order, _ = candidate_runs.polish(
             c, search.segments, search.base_plants, start, search.layout, iterations=6
         )
-        jac = C._theta_jacobian(c, jac, order, values, search.nuis, search.segments)
+        jac = candidate_runs.theta_jacobian(c, jac, order, values, search.nuis, search.segments)
     c.values, c.residuals, c.jac = values, search.exact(c, values)[0], jac
-    c.rms_exact = C._rms(c.residuals)
-    c.score = C.score(c, c.residuals, search.noise)
+    c.rms_exact = scoring.rms(c.residuals)
+    c.score = scoring.score(c, c.residuals, search.noise)
     return c
 
 
@@ -241,8 +242,8 @@ def test_one_runs_misfit_cannot_buy_a_shared_value(heavier):
     assert weighted.values["M"] == pytest.approx(0.94, rel=0.01)
     assert plain.values["M"] > 1.0
     for r in weighted.residuals[:2]:
-        assert C._rms([r]) < 2 * search.floor
-    assert C._rms(plain.residuals[:2]) > 10 * search.floor
+        assert scoring.rms([r]) < 2 * search.floor
+    assert scoring.rms(plain.residuals[:2]) > 10 * search.floor
 
 
 def test_a_value_that_lowers_the_joint_residual_but_predicts_worse_is_not_named(heavier):
@@ -288,15 +289,15 @@ REAL_START = {
 
 
 def _real_fit(search, parts):
-    c = C._structure(parts, search.runs)
+    c = structures.structure(parts, search.runs)
     start = {n: REAL_START[n] for n in c.free}
     for i in search.layout.nuisance:
         exp = search.segments[i].experiment
         start.update({f"y0@{i}": float(exp.y0), f"yd0@{i}": float(exp.yd0)})
     start, arrays, _ = search.polished(c, start)
     c.values, c.residuals, c.jac = start, arrays[:-1], arrays[-1]
-    c.rms_exact = C._rms(c.residuals)
-    c.score = C.score(c, c.residuals, search.noise)
+    c.rms_exact = scoring.rms(c.residuals)
+    c.score = scoring.score(c, c.residuals, search.noise)
     return c
 
 
@@ -310,24 +311,28 @@ def test_the_real_cart_named_by_prediction(real_four):
     predicts better held out, so it may be named, with the caution that more than one drive
     varies from run to run."""
     search = real_four
-    named = _real_fit(search, ("coulomb", "saturation", "delay", C.PER_RUN))
-    limited = _real_fit(search, ("coulomb", "saturation", "delay", "current_limit", C.PER_RUN))
+    named = _real_fit(search, ("coulomb", "saturation", "delay", structures.PER_RUN))
+    limited = _real_fit(
+        search, ("coulomb", "saturation", "delay", "current_limit", structures.PER_RUN)
+    )
     search.round1, search.cands = [named], [named, limited]
     for c in (named, limited):
-        assert C._rms([c.residuals[0]]) < 2 * 0.21e-3
+        assert scoring.rms([c.residuals[0]]) < 2 * 0.21e-3
         assert c.values["B_eq"] == pytest.approx(1.505, rel=0.15)
         assert search.eligible(c), c.why_not
-    rms = [[C._rms([r]) for r in c.residuals] for c in (named, limited)]
+    rms = [[scoring.rms([r]) for r in c.residuals] for c in (named, limited)]
     assert rms[1][3] < 2.5e-3 < 5e-3 < rms[0][3]  # the PD run
     assert rms[1][1:3] == pytest.approx(rms[0][1:3], rel=0.05)  # the P 50 runs
     assert search.held_score(limited) < search.held_score(named)
     peaks = search.peaks(limited)
-    assert "more than one drive varies" in R.per_run_inconsistency(limited.values, peaks)
+    assert "more than one drive varies" in per_run.per_run_inconsistency(limited.values, peaks)
     # The P 50 runs' current limits sit above what they drew (not determined there): the
     # cart's limit is the PD run's, where it acts.
-    acts = [R.acts("i_max", f"i_max@{i}", limited.values[f"i_max@{i}"], peaks) for i in (1, 2, 3)]
+    acts = [
+        per_run.acts("i_max", f"i_max@{i}", limited.values[f"i_max@{i}"], peaks) for i in (1, 2, 3)
+    ]
     assert acts == [False, False, True]
-    plant = R.cart_plant(limited, search.base_plants, search.segments, peaks)
+    plant = per_run.cart_plant(limited, search.base_plants, search.segments, peaks)
     assert plant.effect("current_limit").i_max == pytest.approx(limited.values["i_max@3"])
     assert search.select(named) is named
 
@@ -337,7 +342,7 @@ def test_the_tap_alone_gives_the_cart_beside_the_driven_runs(tmp_path):
     tap alone from values 5 % off the truth recovers B_eq and f_c within 1 % (the cart's
     values alone: no drive acts in a tap), as the driven runs alone do."""
     search, truths = _search(PER_RUN, tmp_path)
-    best = _at_truth(search, truths, ("coulomb", "saturation", C.PER_RUN))
+    best = _at_truth(search, truths, ("coulomb", "saturation", structures.PER_RUN))
     off = {"B_eq": 1.05, "f_c": 0.95}
     best.values = {n: v * off.get(n, 1.0) for n, v in best.values.items()}
     alone = crossval.taps_alone(search, best)
@@ -351,13 +356,15 @@ def test_a_part_dropped_leaves_what_it_stands_on():
     (the independent generator's late lurch on a ramp: named Stribeck at 0.004 mm against the
     baseline, stiction predicts it as well held out); stiction without its breakaway level is
     Coulomb friction; a part nothing stands on just goes."""
-    assert C.without_part(("stribeck",), "stribeck") == ("stiction",)
-    assert C.without_part(("stiction", "delay"), "stiction") == ("delay", "coulomb")
-    assert C.without_part(("coulomb", "saturation", C.PER_RUN), C.PER_RUN) == (
+    assert structures.without_part(("stribeck",), "stribeck") == ("stiction",)
+    assert structures.without_part(("stiction", "delay"), "stiction") == ("delay", "coulomb")
+    assert structures.without_part(
+        ("coulomb", "saturation", structures.PER_RUN), structures.PER_RUN
+    ) == (
         "coulomb",
         "saturation",
     )
-    assert C.without_part(("coulomb", "mass"), "mass") == ("coulomb",)
+    assert structures.without_part(("coulomb", "mass"), "mass") == ("coulomb",)
 
 
 def test_the_real_p50_alone_is_saturation_and_coulomb(realdata):

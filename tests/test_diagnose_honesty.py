@@ -21,13 +21,7 @@ from jaxcart.files import read_experiment
 from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.estimation.diagnose import diagnose, render_markdown
-from tuning.estimation.diagnose.core import (
-    PER_RUN,
-    Candidate,
-    extend,
-    fitter_scale,
-    swapped_correction,
-)
+from tuning.estimation.diagnose.candidate_runs import fitter_scale
 from tuning.estimation.diagnose.policy import (
     CORRECTION_MARGIN,
     K_MAX,
@@ -38,6 +32,7 @@ from tuning.estimation.diagnose.policy import (
 from tuning.estimation.diagnose.report import figure_title
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.significance import implausible, significance
+from tuning.estimation.diagnose.structures import PER_RUN, Candidate, extend, swapped_correction
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
     MISFIT_RATIO,

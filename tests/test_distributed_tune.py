@@ -135,11 +135,11 @@ TUNE_FAILS = FAIL_ON_1.format(
 )
 #: Process 1's exact polishes fail (after the first batch fit and exact re-checks).
 DIAGNOSE_FAILS = FAIL_ON_1.format(
-    """    import tuning.estimation.diagnose.core as D
+    """    import tuning.estimation.diagnose.candidate_runs as D
     from jaxcart.errors import SimulationDiverged
-    def _polish(*args, **kwargs):
+    def polish(*args, **kwargs):
         raise SimulationDiverged("injected: the exact polish diverged")
-    D._polish = _polish"""
+    D.polish = polish"""
 )
 
 

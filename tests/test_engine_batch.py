@@ -23,15 +23,16 @@ def test_compressed_jacobian_is_the_plain_one(search):
     """A structure with each run's own drive limit and the tap's start state (6 slots in 3
     colours) and one of shared values alone: the Jacobian of one LM step, compressed and
     plain, agrees to 1e-12 of its largest entry; the fits then agree to 1e-9."""
-    from tuning.estimation.diagnose import core as C
+    from tuning.estimation.diagnose import structures
+    from tuning.estimation.engine import parameters
     from tuning.estimation.engine.batch import BatchFitter
 
-    per_run = next(c for c in search.round1 if C.PER_RUN in c.parts)
+    per_run = next(c for c in search.round1 if structures.PER_RUN in c.parts)
     single = next(c for c in search.round1 if c.name == "coulomb")
     problems = [
         (
             tuple(c.free) + tuple(search.nuis),
-            {k: search.starts_all[search.layout.kind(k)] for k in c.free},
+            {k: search.starts_all[parameters.base_name(k)] for k in c.free},
             {},
         )
         for c in (per_run, single)

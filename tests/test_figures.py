@@ -96,24 +96,24 @@ def test_runs_figure_simulate_plot(tmp_path):
 @pytest.fixture(scope="module")
 def two_recordings_fit():
     from jaxcart.files import read_experiment
-    from tuning.estimation import fit as F
+    from tuning.estimation import fit
     from tuning.lab.data import builtin_dir
 
     recs = [read_experiment(builtin_dir() / f"{n}.toml") for n in ("tap", "p50")]
-    quick = F.FitSettings(widths=(1e-3, 1e-4), adam_steps=0, lm_iterations=6)
-    return F.fit(recs, ("B_eq", "f_c"), settings=quick, progress=False)
+    quick = fit.FitSettings(widths=(1e-3, 1e-4), adam_steps=0, lm_iterations=6)
+    return fit.fit(recs, ("B_eq", "f_c"), settings=quick, progress=False)
 
 
 @pytest.mark.parametrize("segments", [1, 2])
 def test_fit_plot(tmp_path, two_recordings_fit, segments):
     import dataclasses
 
-    from tuning.estimation import fit as F
+    from tuning.estimation import fit
 
     result = dataclasses.replace(
         two_recordings_fit, segments=two_recordings_fit.segments[:segments]
     )
-    path = F.plot_fit(result, tmp_path / "fit.png")
+    path = fit.plot_fit(result, tmp_path / "fit.png")
     assert _pixels(path)[0] == 715  # 5.5 in at 130 dpi
 
 

@@ -13,7 +13,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.errors import UserError
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
-from tuning.estimation import fit as F
+from tuning.estimation import fit
 from tuning.estimation.engine.segments import coasting_segment
 
 Q = jc.ENCODER_RESOLUTION
@@ -30,7 +30,7 @@ def tap_rec():
 
 @pytest.fixture(scope="module")
 def tap_fit(tap_rec):
-    return F.fit([tap_rec], ("B_eq", "f_c"), progress=False)
+    return fit.fit([tap_rec], ("B_eq", "f_c"), progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def cl_rec():
 
 @pytest.fixture(scope="module")
 def cl_fit(cl_rec):
-    return F.fit([cl_rec], ("B_eq", "f_c"), progress=False)
+    return fit.fit([cl_rec], ("B_eq", "f_c"), progress=False)
 
 
 def _check_accuracy(result, truth):
@@ -87,7 +87,7 @@ def test_stuck_cart_step_fits_from_the_default_start():
     from tuning.lab.data import TRUE
 
     rec = read_experiment(Path(jc.__file__).parent / "data" / "p50.toml")
-    result = F.fit([rec], ("B_eq", "f_c"), progress=False)
+    result = fit.fit([rec], ("B_eq", "f_c"), progress=False)
     assert result.params["B_eq"].value == pytest.approx(TRUE["B_eq"], rel=0.005)
     assert result.params["f_c"].value == pytest.approx(TRUE["f_c"], rel=0.005)
     assert result.rms_after_exact < 1.2 * TRUE["quantization"] / math.sqrt(12)
@@ -99,13 +99,13 @@ def test_stuck_cart_step_fits_from_the_default_start():
 def test_joint_fit_of_tap_and_closed_loop(tap_rec):
     truth = jc.handout_plant(**TAP_TRUTH)
     cl = make_recording(truth, P50, jc.step(0.4, horizon=1.5), seed=2)
-    result = F.fit(
-        [tap_rec, cl], ("B_eq", "f_c"), progress=False, settings=F.FitSettings(adam_steps=0)
+    result = fit.fit(
+        [tap_rec, cl], ("B_eq", "f_c"), progress=False, settings=fit.FitSettings(adam_steps=0)
     )
     _check_accuracy(result, TAP_TRUTH)
     assert [s.kind for s in result.segments] == ["tap", "closed_loop"]
     # Each recording alone predicts the other (cross-prediction) to near the encoder error.
-    pred = F.cross_predict(result.values, [cl])
+    pred = fit.cross_predict(result.values, [cl])
     assert pred.rms_after_exact < 2 * Q
 
 
@@ -114,17 +114,17 @@ def test_fit_v_limit_and_gamma_scale():
     truth = {"B_eq": 2.5, "f_c": 0.3, "v_sat": 5.0, "gamma_scale": 0.9}
     rec = make_recording(jc.handout_plant(**truth), P50, jc.step(0.4, horizon=1.5), seed=5)
     params = ("B_eq", "f_c", "v_limit", "gamma_scale")
-    result = F.fit([rec], params, progress=False, settings=F.FitSettings(adam_steps=0))
+    result = fit.fit([rec], params, progress=False, settings=fit.FitSettings(adam_steps=0))
     for name in params:
         e = result.params[name]
-        assert e.value == pytest.approx(truth[F.canonical(name)], rel=0.01), name
-        assert abs(e.value - truth[F.canonical(name)]) < 3 * e.stderr, name
+        assert e.value == pytest.approx(truth[fit.canonical(name)], rel=0.01), name
+        assert abs(e.value - truth[fit.canonical(name)]) < 3 * e.stderr, name
 
 
 def _coverage(kind, seeds, noise=0.0):
     """z = (estimate - truth) / stderr over seeds, truths drawn at random per seed."""
     z = {"B_eq": [], "f_c": []}
-    settings = F.FitSettings(adam_steps=0, widths=(1e-3, 1e-4))
+    settings = fit.FitSettings(adam_steps=0, widths=(1e-3, 1e-4))
     for seed in seeds:
         rng = np.random.default_rng(1000 + seed)
         tv = {"B_eq": rng.uniform(2.0, 3.0), "f_c": rng.uniform(0.4, 0.6)}
@@ -134,7 +134,7 @@ def _coverage(kind, seeds, noise=0.0):
         else:
             truth = jc.handout_plant(**tv)
             rec = make_recording(truth, P50, jc.step(0.4, horizon=1.2), seed=seed, noise=noise)
-        result = F.fit([rec], ("B_eq", "f_c"), settings=settings, progress=False)
+        result = fit.fit([rec], ("B_eq", "f_c"), settings=settings, progress=False)
         for k, e in result.params.items():
             z[k].append((e.value - tv[k]) / e.stderr)
     return {k: np.abs(np.array(v)) for k, v in z.items()}
@@ -160,8 +160,8 @@ def test_stderr_coverage_many_seeds(kind, noise):
 def test_not_identifiable(tap_rec):
     # gamma_scale does nothing to a tap (motor unplugged); M only scales B_eq and f_c; f_c from
     # a short, fast coast (never slow) with a noisy sensor cannot be told from B_eq.
-    settings = F.FitSettings(adam_steps=0)
-    result = F.fit(
+    settings = fit.FitSettings(adam_steps=0)
+    result = fit.fit(
         [tap_rec], ("B_eq", "f_c", "gamma_scale", "M"), settings=settings, progress=False
     )
     assert result.params["B_eq"].identifiable and result.params["f_c"].identifiable
@@ -171,19 +171,19 @@ def test_not_identifiable(tap_rec):
     assert result.to_json()["params"]["M"]["identifiable"] is False
     truth = jc.tap_plant(B_eq=2.5, effects=(jc.Coulomb(f_c=0.5),))
     fast = make_recording(truth, None, jc.tap(1.0, horizon=0.12), seed=0, noise=5e-5)
-    result = F.fit([fast], ("B_eq", "f_c"), settings=settings, progress=False)
+    result = fit.fit([fast], ("B_eq", "f_c"), settings=settings, progress=False)
     assert not result.params["f_c"].identifiable and result.params["f_c"].value is None
     assert result.params["B_eq"].identifiable
 
 
 def test_parameter_names():
-    assert F.parse_params("B_eq, f_c,v_limit") == ("B_eq", "f_c", "v_limit")
-    assert F.canonical("v_limit") == "v_sat"
+    assert fit.parse_params("B_eq, f_c,v_limit") == ("B_eq", "f_c", "v_limit")
+    assert fit.canonical("v_limit") == "v_sat"
     with pytest.raises(UserError, match="unknown parameter 'B'"):
-        F.parse_params("B,f_c")
+        fit.parse_params("B,f_c")
     with pytest.raises(UserError, match="named twice"):
-        F.parse_params("v_sat,v_limit")
-    plant = F.with_values(jc.handout_plant(), {"f_c": 0.4, "v_limit": 5.0})
+        fit.parse_params("v_sat,v_limit")
+    plant = fit.with_values(jc.handout_plant(), {"f_c": 0.4, "v_limit": 5.0})
     assert plant.get("f_c") == 0.4 and plant.get("v_sat") == 5.0
 
 
@@ -195,23 +195,23 @@ def test_coasting_segment_needs_a_tap():
 def test_fitted_plant_file_round_trip(tmp_path, cl_fit):
     from jaxcart.plantspec import read_plant_file
 
-    path = F.write_fitted_plant(tmp_path / "fitted.toml", cl_fit, sources=["a.toml"])
+    path = fit.write_fitted_plant(tmp_path / "fitted.toml", cl_fit, sources=["a.toml"])
     plant, fit_table = read_plant_file(path)
-    assert plant == F.load_fitted_plant(path) == cl_fit.plant()  # the effects come back too
+    assert plant == fit.load_fitted_plant(path) == cl_fit.plant()  # the effects come back too
     assert plant.motor_connected and plant.structure == ("coulomb",)  # P50 limits in software
     assert plant.get("B_eq") == pytest.approx(cl_fit.params["B_eq"].value, rel=1e-12)
     assert plant.get("f_c") == pytest.approx(cl_fit.params["f_c"].value, rel=1e-12)
     assert fit_table["stderr"]["B_eq"] == pytest.approx(cl_fit.params["B_eq"].stderr)
     assert fit_table["recordings"] == ["a.toml"] and fit_table["held"] == []
     with pytest.raises(UserError, match="exists"):
-        F.write_fitted_plant(path, cl_fit)
-    F.write_fitted_plant(path, cl_fit, force=True)
+        fit.write_fitted_plant(path, cl_fit)
+    fit.write_fitted_plant(path, cl_fit, force=True)
     bad = tmp_path / "bad.toml"
     bad.write_text('format = "jaxcart-plant"\n[plant]\nB_eq = -1.0\n')
     with pytest.raises(UserError, match="B_eq"):
-        F.load_fitted_plant(bad)
+        fit.load_fitted_plant(bad)
     with pytest.raises(UserError, match="not found"):
-        F.load_fitted_plant(tmp_path / "missing.toml")
+        fit.load_fitted_plant(tmp_path / "missing.toml")
 
 
 def test_command_line(tmp_path, tap_rec, capsys):
@@ -240,7 +240,7 @@ def test_command_line(tmp_path, tap_rec, capsys):
     assert report["rms_after"] < report["rms_before"]
     assert report["classic"][0]["name"] == "B_eq"
     assert (tmp_path / "fit.png").stat().st_size > 10_000
-    assert F.load_fitted_plant(tmp_path / "fitted.toml").get("f_c") == pytest.approx(
+    assert fit.load_fitted_plant(tmp_path / "fitted.toml").get("f_c") == pytest.approx(
         report["params"]["f_c"]["value"]
     )
     # Existing outputs are kept unless --force; the error is one line, before any fitting.
@@ -254,7 +254,7 @@ def test_real_tap(realdata):
     from jaxcart.files import read_experiment
 
     rec = read_experiment(os.path.join(realdata, "tap.toml"))
-    result = F.fit([rec], ("B_eq", "f_c"), progress=False)
+    result = fit.fit([rec], ("B_eq", "f_c"), progress=False)
     seg = result.segments[0]
     assert 3.1 <= seg.time[0] <= 3.5  # the push ends at about 3.28 s
     assert 4.2 <= seg.time[-1] <= 4.5  # at rest again by about 4.4 s

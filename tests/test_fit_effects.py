@@ -26,7 +26,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.errors import UserError
 from jaxcart.synthetic import make_recording
-from tuning.estimation import fit as F
+from tuning.estimation import fit
 
 Q = 2.275e-5  # [m] the IP02 encoder count
 B_EQ = 2.5  # [kg/s] truth of every case
@@ -122,7 +122,7 @@ def _fit_case(truth_values, controller, experiment, seed, params, **kwargs):
     truth = jc.handout_plant(B_eq=B_EQ, **truth_values)
     rec = make_recording(truth, controller, experiment, quantization=Q, seed=seed)
     t0 = time.perf_counter()
-    result = F.fit([rec], params, progress=False, **kwargs)
+    result = fit.fit([rec], params, progress=False, **kwargs)
     return result, time.perf_counter() - t0
 
 
@@ -168,7 +168,7 @@ def stiction_recording():
 
 @pytest.mark.slow
 def test_fit_recovers_stiction(stiction_recording):
-    result = F.fit([stiction_recording], ("B_eq", "f_c", "f_s"), progress=False)
+    result = fit.fit([stiction_recording], ("B_eq", "f_c", "f_s"), progress=False)
     truth = {"B_eq": B_EQ, **STICTION}
     for name, e in result.params.items():
         assert e.identifiable, (name, e.note)
@@ -186,7 +186,7 @@ def test_f_s_of_a_tap_is_not_identifiable():
     truth = jc.tap_plant(B_eq=B_EQ, f_c=0.44)
     rec = make_recording(truth, None, jc.tap(1.0, horizon=0.6), quantization=Q, seed=1)
     t0 = time.perf_counter()
-    result = F.fit([rec], ("B_eq", "f_c", "f_s"), progress=False)
+    result = fit.fit([rec], ("B_eq", "f_c", "f_s"), progress=False)
     seconds = time.perf_counter() - t0
     f_s = result.params["f_s"]
     assert not f_s.identifiable and f_s.value is None and f_s.stderr is None
@@ -237,9 +237,9 @@ def test_fit_recovers_stiction_without_the_exact_polish(stiction_recording):
     """The workaround until the exact polish keeps f_s: the smooth model alone, its friction
     width narrowed to 1e-6 m/s (the smooth stiction converges at the rate sqrt(w); at the
     default narrowest 1e-4 m/s f_s comes out 4.8 % high, z = 8.5)."""
-    settings = F.FitSettings(widths=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6))
+    settings = fit.FitSettings(widths=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6))
     t0 = time.perf_counter()
-    result = F.fit(
+    result = fit.fit(
         [stiction_recording], ("B_eq", "f_c", "f_s"), progress=False, exact=False, settings=settings
     )
     seconds = time.perf_counter() - t0

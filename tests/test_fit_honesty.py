@@ -13,7 +13,7 @@ import pytest
 
 import jaxcart as jc
 from jaxcart.synthetic import make_recording, write_recording
-from tuning.estimation import fit as F
+from tuning.estimation import fit
 from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples, floor_of
 from tuning.estimation.fitting import model
 
@@ -21,7 +21,7 @@ Q = jc.ENCODER_RESOLUTION
 TRUTH = {"B_eq": 3.0, "f_c": 0.5}
 #: One width and few iterations: these tests check what a fit reports, not its accuracy
 #: (tests/test_fit.py does that with the default settings).
-QUICK = F.FitSettings(widths=(1e-3, 1e-4), adam_steps=0)
+QUICK = fit.FitSettings(widths=(1e-3, 1e-4), adam_steps=0)
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +32,7 @@ def tap():
 
 @pytest.fixture(scope="module")
 def good(tap):
-    return F.fit([tap], ("B_eq", "f_c"), settings=QUICK, progress=False)
+    return fit.fit([tap], ("B_eq", "f_c"), settings=QUICK, progress=False)
 
 
 def test_a_correct_model_is_not_flagged(good):
@@ -47,7 +47,7 @@ def test_a_correct_model_is_not_flagged(good):
 
 def test_a_missing_effect_is_flagged_and_its_errors_widened(tap, good):
     # Coulomb friction left out: B_eq alone cannot explain the coast.
-    bad = F.fit([tap], ("B_eq",), settings=QUICK, progress=False)
+    bad = fit.fit([tap], ("B_eq",), settings=QUICK, progress=False)
     b = bad.params["B_eq"]
     assert bad.rms_after_exact > 10 * bad.noise_floor
     assert "does not explain the data" in bad.misfit and bad.misfit in bad.warnings
@@ -58,16 +58,16 @@ def test_a_missing_effect_is_flagged_and_its_errors_widened(tap, good):
     # The interval covers the truth, or the fit is flagged (it is, above); print what it is.
     z = (b.value - TRUTH["B_eq"]) / b.stderr
     print(f"\nmisfit: B_eq = {b.value:.4g} +/- {b.stderr:.2g} kg/s (truth 3), z = {z:+.1f}")
-    table = F.fit_table(bad)
+    table = fit.fit_table(bad)
     assert table["model_explains_data"] is False and table["warnings"] == bad.warnings
 
 
 def test_an_optimizer_at_its_cap_says_so(tap, good):
     layout_traces = dict(model.TRACES)
-    capped = F.fit(
+    capped = fit.fit(
         [tap],
         ("B_eq", "f_c"),
-        settings=F.FitSettings(widths=(1e-2,), adam_steps=0, lm_iterations=1),
+        settings=fit.FitSettings(widths=(1e-2,), adam_steps=0, lm_iterations=1),
         exact=False,
         progress=False,
     )
@@ -75,13 +75,13 @@ def test_an_optimizer_at_its_cap_says_so(tap, good):
     stage = capped.stages[0]
     assert stage["iterations"] == stage["cap"] == 1 and not stage["converged"]
     assert any("stopped at its iteration cap (1)" in w for w in capped.warnings)
-    assert F.fit_table(capped)["converged"] is False
+    assert fit.fit_table(capped)["converged"] is False
     # Same recording and parameters, another width and cap: the compiled program is reused.
     assert model.TRACES == layout_traces
 
 
 def test_batched_trials_equal_single_runs(tap):
-    seg = F.prepare(tap, ("B_eq", "f_c"), {}, QUICK)
+    seg = fit.prepare(tap, ("B_eq", "f_c"), {}, QUICK)
     problem = model._Problem([seg], ("B_eq", "f_c"), QUICK)
     points = problem.theta0 + np.array([[0.0, 0.0, 0.0, 0.0], [0.1, -0.2, 0.5, 0.3]])
     r_k, j_k = problem.evaluate_batch(points, 1e-3)
@@ -96,7 +96,7 @@ def test_noise_floor_against_the_true_positions():
     truth = jc.handout_plant(B_eq=2.5, f_c=0.3)
     for noise in (0.0, 2e-5):
         rec = make_recording(truth, jc.PID(kp=20.0), jc.ramp(0.2, horizon=2.0), seed=4, noise=noise)
-        seg = F.prepare(rec, ("B_eq",), {}, F.FitSettings())
+        seg = fit.prepare(rec, ("B_eq",), {}, fit.FitSettings())
         # About its mean: a constant offset (the count's phase in noisy data) is y0's part.
         err = seg.target - rec.true_position
         assert floor_of([seg]) == pytest.approx(np.std(err), rel=0.1), noise
@@ -244,6 +244,6 @@ def test_an_edge_is_judged_relative_to_the_range_and_said_wherever_a_value_is_sh
     assert at_edge("y_rest", lo + 0.0005 * (hi - lo)) == ("lower", lo)
     assert at_edge("y_rest", 0.0) is None and at_edge("v_sat@1", 30.0) == ("upper", 30.0)
     assert _edge("B_eq", 30.0) == ("upper", 30.0) and _edge("no_such", 1.0) is None
-    est = F.Estimate("B_eq", 30.0, 29.9, edge=("upper", 30.0))
+    est = fit.Estimate("B_eq", 30.0, 29.9, edge=("upper", 30.0))
     assert pm(est, "kg/s") == "30 ± 30 kg/s (at the upper edge of its allowed range: no estimate)"
     assert "upper edge of its allowed range [0.5, 30] kg/s" in est.edge_note

@@ -149,11 +149,11 @@ def test_diagnose_of_a_hardware_recording_names_the_carts_friction(hw_recording)
 
 @pytest.mark.slow
 def test_fit_of_a_hardware_recording_gives_back_the_cart(hw_recording):
-    from tuning.estimation import fit as F
+    from tuning.estimation import fit
 
     truth = HW_TRUTH
     rec = hw_recording
-    fitted = F.fit([rec], ("B_eq", "f_c"), progress=False)
+    fitted = fit.fit([rec], ("B_eq", "f_c"), progress=False)
     b, f = fitted.params["B_eq"], fitted.params["f_c"]
     print(f"hw recording fit: B_eq = {b.value:.4g} +/- {b.stderr:.2g}, f_c = {f.value:.4g}")
     assert b.value == pytest.approx(truth["B_eq"], rel=0.03)

@@ -289,8 +289,8 @@ def test_the_suite_makes_its_cases_on_the_independent_generator(tmp_path):
 def test_the_drive_freed_per_run_is_no_false_alarm_where_the_runs_truths_differ():
     """A cart whose runs drew their own current limit: freeing it per run is right; had their
     truths shared one limit, it would be a false alarm."""
-    from tuning.estimation.diagnose.core import PER_RUN, Candidate
     from tuning.estimation.diagnose.result import Diagnosis
+    from tuning.estimation.diagnose.structures import PER_RUN, Candidate
     from tuning.estimation.diagnose.suite import CASES, judge
 
     name = "one cart (tap + P 50 + PD): current limit 1.2 A"

@@ -12,8 +12,8 @@ import pytest
 import jaxcart as jc
 from jaxcart.errors import UserError
 from jaxcart.synthetic import make_recording, make_tap_recording
-from tuning.estimation import fit as F
-from tuning.estimation.engine import parameters as P
+from tuning.estimation import fit
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.noise import repeatability
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
@@ -35,7 +35,7 @@ def cart():
 
 @pytest.fixture(scope="module")
 def joint(cart):
-    return F.fit(cart, ("B_eq", "f_c", "v_sat"), per_recording="v_sat", progress=False)
+    return fit.fit(cart, ("B_eq", "f_c", "v_sat"), per_recording="v_sat", progress=False)
 
 
 def test_joint_fit_recovers_shared_mechanics_and_each_runs_drive(joint):
@@ -65,13 +65,13 @@ def test_joint_fit_reports_each_recording(joint, cart):
 
 def test_shared_drive_cannot_fit_both_runs(cart, joint):
     """The same data with one v_sat for both runs: an order of magnitude worse."""
-    shared = F.fit(cart, ("B_eq", "f_c", "v_sat"), progress=False, exact=False)
+    shared = fit.fit(cart, ("B_eq", "f_c", "v_sat"), progress=False, exact=False)
     assert shared.rms_after > 10 * joint.rms_after
 
 
 def test_per_recording_needs_a_fitted_name(cart):
     with pytest.raises(UserError, match="--per-recording i_max: not among"):
-        F.fit(cart[1:], ("B_eq", "v_sat"), per_recording="i_max", progress=False)
+        fit.fit(cart[1:], ("B_eq", "v_sat"), per_recording="i_max", progress=False)
 
 
 def test_repeatability_is_the_spread_of_repeated_runs():
@@ -84,9 +84,13 @@ def test_repeatability_is_the_spread_of_repeated_runs():
 
 def test_the_fit_is_held_inside_a_lab_carts_range():
     """Bounds come from the registry's plausible ranges, the same for fit and diagnose."""
-    assert P.bounds("B_eq") == (0.5, 30.0)
-    assert P.bounds("v_sat@3") == P.bounds("v_sat")
-    assert P.is_drive("v_sat") and P.is_drive("i_max@1") and not P.is_drive("f_c")
+    assert parameters.bounds("B_eq") == (0.5, 30.0)
+    assert parameters.bounds("v_sat@3") == parameters.bounds("v_sat")
+    assert (
+        parameters.is_drive("v_sat")
+        and parameters.is_drive("i_max@1")
+        and not parameters.is_drive("f_c")
+    )
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="../shared/realdata is not beside the checkout")
@@ -102,7 +106,7 @@ def test_real_cart_jointly_with_its_drive_free_per_run():
         read_experiment(REAL / "p50.toml"),
         read_experiment(REAL / "repeat" / "p50_repeat.toml"),
     ]
-    result = F.fit(recs, ("B_eq", "f_c", "v_sat"), per_recording="v_sat", progress=False)
+    result = fit.fit(recs, ("B_eq", "f_c", "v_sat"), per_recording="v_sat", progress=False)
     assert result.params["B_eq"].value == pytest.approx(1.505, rel=0.25)
     limits = [result.params[f"v_sat@{k}"].value for k in (1, 2)]
     assert abs(limits[0] - limits[1]) > 0.3, limits

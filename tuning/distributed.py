@@ -200,3 +200,25 @@ def _exchange(step, *args, **kwargs):
         return step(*args, **kwargs)
     except Exception as exc:  # the runtime raises its own types (timeouts, lost peers)
         raise UserError(_lost(exc)) from None
+
+
+def spread(processes, items, compute):
+    """``[compute(item) for item in items]``, each a ({name: float}, [arrays]) pair; with
+    ``processes`` (a :class:`tuning.distributed.Exchange`) each item computed by one process and
+    every result gathered on every process."""
+    if processes is None:
+        return [compute(item) for item in items]
+    mine = {}
+    for i in processes.items(len(items)):
+        values, arrays = compute(items[i])
+        mine[f"n/{i}"] = np.array(len(arrays))
+        mine[f"k/{i}"] = np.array(list(values), dtype=str)
+        mine[f"v/{i}"] = np.array([values[k] for k in values], dtype=float)
+        mine.update({f"a/{i}/{j}": a for j, a in enumerate(arrays)})
+    every = {k: v for part in processes.allgather(mine) for k, v in part.items()}
+    out = []
+    for i in range(len(items)):
+        keys, vals = every[f"k/{i}"], every[f"v/{i}"]
+        values = {str(k): float(v) for k, v in zip(keys, vals, strict=True)}
+        out.append((values, [every[f"a/{i}/{j}"] for j in range(int(every[f"n/{i}"]))]))
+    return out

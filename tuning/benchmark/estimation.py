@@ -40,7 +40,7 @@ from jaxcart.effects import Coulomb, Saturation
 from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.benchmark import startup
-from tuning.estimation.diagnose.core import PER_RUN
+from tuning.estimation.diagnose.structures import PER_RUN
 
 CASES = ("single", "joint", "lab")
 #: Issue 21's targets for the median wall time [s] (on the project's 2-core machine).

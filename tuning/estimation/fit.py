@@ -59,7 +59,7 @@ import numpy as np
 from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.smoothing import continuation
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.covariance import Covariance, covariance
 from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.lm import (
@@ -156,7 +156,9 @@ def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
     for p in canon:  # a fitted effect the plant lacks starts where it acts on these data
         b = base_name(p)
         if b in starts and b not in plant.param_names() and not _drives_nothing(b, plant):
-            start = starts[b] if plantspec.param(b).size else P.start_for(b, peaks, raw.mean())
+            start = (
+                starts[b] if plantspec.param(b).size else parameters.start_for(b, peaks, raw.mean())
+            )
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
     if seg.kind == "tap":
@@ -384,7 +386,7 @@ def _acting(problem) -> tuple[np.ndarray, dict]:
     active = np.ones(problem.theta0.size, dtype=bool)
     notes: dict[str, str] = {}
     for i, name in enumerate(problem.params):
-        k = P.recording_of(name)
+        k = parameters.recording_of(name)
         segs = problem.segments if k is None else [problem.segments[k]]
         if not any(name in s.params or base_name(name) in s.params for s in segs):
             active[i] = False
@@ -460,8 +462,9 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         rel = np.sqrt(np.diag(hac)) * np.asarray(
             [
                 1.0
-                if i >= p or P.is_log(problem.params[i])
-                else P.LINEAR_SCALE / max(abs(float(P.to_value(problem.params[i], theta[i]))), 1e-3)
+                if i >= p or parameters.is_log(problem.params[i])
+                else parameters.LINEAR_SCALE
+                / max(abs(float(parameters.to_value(problem.params[i], theta[i]))), 1e-3)
                 for i in idx
             ]
         )
@@ -479,7 +482,7 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         i = int(idx[worst])
         name = problem.params[i]
         notes[name] = _why(name, worst, idx, hac, singular, zero, problem, theta)
-        held_at = float(P.to_value(name, problem.theta0[i]))
+        held_at = float(parameters.to_value(name, problem.theta0[i]))
         run.say(f"{name}: {notes[name]}; holding it at {held_at:.4g}, {problem.start_source(name)}")
         active[i] = False
         theta[i] = problem.theta0[i]
@@ -519,17 +522,17 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
     for asked, name in zip(params, problem.params, strict=True):
         i = problem.params.index(name)
         if active[i]:
-            value = float(P.to_value(name, theta[i]))
-            slope = P.value_slope(name, value)
+            value = float(parameters.to_value(name, theta[i]))
+            slope = parameters.value_slope(name, value)
             out[asked] = Estimate(
                 asked,
                 value,
                 slope * float(se_internal[i]),
                 stderr_naive=slope * float(se_naive[i]),
-                edge=P.at_edge(name, value),
+                edge=parameters.at_edge(name, value),
             )
         else:
-            held = float(P.to_value(name, problem.theta0[i]))
+            held = float(parameters.to_value(name, problem.theta0[i]))
             note = f"{notes[name]}; held at {held:.4g}, {problem.start_source(name)}"
             out[asked] = Estimate(asked, None, None, identifiable=False, note=note, held_at=held)
     return out
@@ -595,9 +598,11 @@ def _result(problem, params, values0, theta, r, judged, active, notes, run, exac
     per_run: dict = {}
     for i, name in enumerate(problem.params):
         if "@" in name:
-            per_run.setdefault(base_name(name), []).append(float(P.to_value(name, theta[i])))
+            per_run.setdefault(base_name(name), []).append(
+                float(parameters.to_value(name, theta[i]))
+            )
         else:
-            values[name] = float(P.to_value(name, theta[i]))
+            values[name] = float(parameters.to_value(name, theta[i]))
     # The cart's plant holds a parameter free per recording at the median of its runs.
     values.update({n: float(np.median(v)) for n, v in per_run.items()})
     narrow = problem.settings.widths[-1]
@@ -622,7 +627,7 @@ def _why(name, j, idx, cov, singular, zero, problem, theta) -> str:
     """Why parameter ``name`` (entry j of idx) is not identifiable, in one line."""
     i = int(idx[j])
     p = len(problem.params)
-    if P.is_log(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
+    if parameters.is_log(name) and theta[i] < problem.theta0[i] - 8:  # shrunk 3000-fold: to zero
         return (
             f"not identifiable: the fit drives it towards 0 ({math.exp(theta[i]):.2g}); the "
             "data favour a model without it, or the model misses what they show"

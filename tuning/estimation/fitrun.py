@@ -27,19 +27,19 @@ import numpy as np
 def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> list:
     """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
     state refitted). One row per recording, in their order (see :func:`cross_table`)."""
-    from tuning.estimation import fit as F
+    from tuning.estimation import fit
     from tuning.estimation.engine.segments import recording_name
     from tuning.estimation.fitting.result import _finite
 
-    alone = F.fit([rec], params, progress=progress, executor=executor)
-    values = {n: float(alone.values[F.canonical(n)]) for n in params}
+    alone = fit.fit([rec], params, progress=progress, executor=executor)
+    values = {n: float(alone.values[fit.canonical(n)]) for n in params}
     held = [n for n, e in alone.params.items() if not e.identifiable]
     rows = []
     for other in recordings:
         if other is rec:
             pred = alone
         else:
-            pred = F.cross_predict(values, [other], progress=progress, executor=executor)
+            pred = fit.cross_predict(values, [other], progress=progress, executor=executor)
         rows.append(
             {
                 "fitted_on": recording_name(rec),

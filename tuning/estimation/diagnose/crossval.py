@@ -19,12 +19,12 @@ the fit (:func:`folds`):
 :meth:`~tuning.estimation.diagnose.search.Search.select` drops every part whose structure does
 not predict better than the one without it (the same criterion as the in-sample score), and
 :func:`cross_validate` judges each recording by its held-out prediction: explained when within
-what that experiment repeats (runs of the same experiment, :func:`~.core._repeat_levels`) or,
+what that experiment repeats (runs of the same experiment, :func:`~.scoring.repeat_levels`) or,
 with no repeat, within :data:`~tuning.estimation.engine.noise.MISFIT_RATIO` times its encoder
 floor.
 
-The runs are those the diagnosis made already (the search's :class:`~.core.ExactMemo`, seen
-through each subset of recordings).
+The runs are those the diagnosis made already (the search's
+:class:`~.candidate_runs.ExactMemo`, seen through each subset of recordings).
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ import time as _time
 
 import numpy as np
 
-from tuning.estimation.diagnose import core as C
+from tuning.estimation.diagnose import candidate_runs, scoring
 from tuning.estimation.diagnose.policy import FLOOR_FACTOR
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.batch import Layout
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.exact_polish import polish, values_jacobian
@@ -116,19 +116,19 @@ class Subset:
 
     def residuals(self, values: dict) -> list:
         """Exact residuals [m] of the subset's recordings at ``values`` (subset names)."""
-        return C.exact_residuals(
+        return candidate_runs.exact_residuals(
             self.cand, self.segments, self.plants, values, self.layout, self.memo
         )[0]
 
 
 def _kept(name: str, order) -> bool:
-    return "@" not in name or P.recording_of(name) in order
+    return "@" not in name or parameters.recording_of(name) in order
 
 
 def _renamed(name: str, order) -> str:
     if "@" not in name:
         return name
-    return f"{Layout.kind(name)}@{order.index(P.recording_of(name))}"
+    return f"{parameters.base_name(name)}@{order.index(parameters.recording_of(name))}"
 
 
 def _shared(best) -> list:
@@ -142,12 +142,12 @@ def impossible(best, segments, k: int) -> str:
     or a value free per run of ``k`` that no other run has."""
     rest = [i for i in range(len(segments)) if i != k]
     if not any(segments[i].motor for i in rest):
-        drive = [n for n in _shared(best) if P.is_drive(n)]
+        drive = [n for n in _shared(best) if parameters.is_drive(n)]
         if drive:
             return f"no other recording drives the cart, so none determines {', '.join(drive)}"
     for n in best.free:
-        if "@" in n and P.recording_of(n) == k:
-            kind = Layout.kind(n)
+        if "@" in n and parameters.recording_of(n) == k:
+            kind = parameters.base_name(n)
             if not any(f"{kind}@{i}" in best.values for i in rest):
                 return f"no other recording has its own {kind}"
     return ""
@@ -196,7 +196,7 @@ def exact_jacobian(search, c) -> np.ndarray:
     """The exact simulator's forward-difference Jacobian of ``c``'s residual (every recording's
     rows, in order) at its values, per unit of each of :func:`_names_of`'s values (memoized on
     ``c`` by its values)."""
-    key = C.values_key(c.values)
+    key = candidate_runs.values_key(c.values)
     if c.jac_exact[0] == key:
         return c.jac_exact[1]
     names = _names_of(search, c)
@@ -211,7 +211,7 @@ def exact_jacobian(search, c) -> np.ndarray:
         residual,
         names,
         [c.values[n] for n in names],
-        reference=C.smooth_reference(c, names, c.values, search.segments),
+        reference=candidate_runs.smooth_reference(c, names, c.values, search.segments),
         prefetch=lambda xs: search.prefetch([(c, at(x)) for x in xs]),
     )
     c.jac_exact = (key, jac)
@@ -244,8 +244,8 @@ def one_step(search, c, fold: Fold) -> dict:
     r = fitted(c.values)
     jw = jac[keep] * root[keep, None]
     step = marquardt_step(jw.T @ jw, jw.T @ r, DAMPING)
-    low = np.array([P.bounds(n)[0] for n in names])
-    high = np.array([P.bounds(n)[1] for n in names])
+    low = np.array([parameters.bounds(n)[0] for n in names])
+    high = np.array([parameters.bounds(n)[1] for n in names])
     x0 = np.array([c.values[n] for n in names])
     cost, t = float(r @ r), 1.0
     while t >= SHORTEST:
@@ -261,7 +261,7 @@ def one_step(search, c, fold: Fold) -> dict:
 def own_names(search, c, k: int) -> list:
     """The values of ``c`` that recording ``k`` alone determines: its own copies of the values
     free per run (a drive limit) and a tap's start state."""
-    return [n for n in _names_of(search, c) if "@" in n and P.recording_of(n) == k]
+    return [n for n in _names_of(search, c) if "@" in n and parameters.recording_of(n) == k]
 
 
 def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> dict:
@@ -280,7 +280,7 @@ def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> 
         return sub.residuals({**held, **dict(zip(renamed, (float(v) for v in x), strict=True))})[0]
 
     def prefetch(xs):
-        C.exact_prefetch(
+        candidate_runs.exact_prefetch(
             sub.cand, sub.segments, sub.plants,
             [{**held, **dict(zip(renamed, (float(v) for v in x), strict=True))} for x in xs],
             sub.layout, sub.memo,
@@ -288,7 +288,8 @@ def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> 
 
     done = polish(
         residual, renamed, [held[n] for n in renamed], iterations,
-        reference=C.smooth_reference(sub.cand, renamed, held, sub.segments), prefetch=prefetch,
+        reference=candidate_runs.smooth_reference(sub.cand, renamed, held, sub.segments),
+        prefetch=prefetch,
     )  # fmt: skip
     return {**values, **dict(zip(own, (float(v) for v in done.x), strict=True))}
 
@@ -316,7 +317,7 @@ def cross_validate(search, best, names, levels) -> dict:
     beside its fit, and judged.
 
     names: the recordings' names; levels: {recording index: what that experiment repeats [m]}
-    (:func:`~.core._repeat_levels`). Returns the summary: "method", "refitted" (the cart's
+    (:func:`~.scoring.repeat_levels`). Returns the summary: "method", "refitted" (the cart's
     values re-fitted), "own" (values fitted to each recording held out), "fitted_rms" and
     "predicted_rms" over the recordings [m], "ratio", "predicted_range" [m], "not_held_out"
     (names), "text" (one sentence), "explained" (every recording within its level) and
@@ -341,16 +342,16 @@ def cross_validate(search, best, names, levels) -> dict:
         folds.append(
             {
                 "recording": names[k],
-                "fitted_rms": C._rms([best.residuals[k]]),
-                "predicted_rms": C._rms([predicted[k]]),
+                "fitted_rms": scoring.rms([best.residuals[k]]),
+                "predicted_rms": scoring.rms([predicted[k]]),
                 "held_out": not why,
                 "why": why,
                 "floor": floor,
                 "repeat": repeat,
                 "level": level,
-                "judged_rms": C._rms([judged]),
+                "judged_rms": scoring.rms([judged]),
                 "judged_by": "fit" if len(segments) == 1 else "held out",
-                "explained": C._rms([judged]) <= level,
+                "explained": scoring.rms([judged]) <= level,
             }
         )
     out = summary(best, folds, single=len(segments) == 1)
@@ -380,7 +381,7 @@ def summary(best, folds, single: bool = False) -> dict:
             else "leave one recording out; its own drive values and start state fitted to it"
         ),
         "refitted": _shared(best),
-        "own": sorted({Layout.kind(n) for n in best.free if "@" in n}),
+        "own": sorted({parameters.base_name(n) for n in best.free if "@" in n}),
         "fitted_rms": fit,
         "predicted_rms": pred,
         "ratio": pred / fit if fit > 0 else math.inf,
@@ -454,25 +455,25 @@ def fitted_apart(search, best, motor: bool, iterations: int = DRIVEN_ITERATIONS)
     sub = Subset.of(best, search, order)
     start = sub.values(best.values)
     noise = RecordingNoise(sub.segments, FLOOR_FACTOR)
-    values, jac, names, _ = C._polish(
+    values, jac, names, _ = candidate_runs.polish(
         sub.cand, sub.segments, sub.plants, start, sub.layout, iterations, memo=sub.memo,
         weights=noise.weights(sub.residuals(start)),
     )  # fmt: skip
     residuals = sub.residuals(values)
-    out = {"recordings": order, "parameters": {}, "rms": C._rms(residuals)}
+    out = {"recordings": order, "parameters": {}, "rms": scoring.rms(residuals)}
     if jac is None:
         return out
     # The covariance takes the Jacobian per unit of each fitted coordinate (a log for some).
-    slopes = np.array([P.value_slope(n, values[n]) for n in names])
+    slopes = np.array([parameters.value_slope(n, values[n]) for n in names])
     cov = covariance(
         sub.segments, names, values, jac * slopes, residuals, search.widen_above,
         noise.weights(residuals),
     )  # fmt: skip
     for n in _shared(best):
-        if motor or not P.is_drive(n):
+        if motor or not parameters.is_drive(n):
             out["parameters"][n] = {
                 "value": values[n],
                 "stderr": cov.stderr({n: 1.0}),
-                "unit": P.spec(n).unit,
+                "unit": parameters.spec(n).unit,
             }
     return out

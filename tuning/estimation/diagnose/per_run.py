@@ -11,17 +11,11 @@ import math
 import numpy as np
 
 from jaxcart.effects import REGISTRY
-from tuning.estimation.diagnose.core import (
-    PER_RUN,
-    _rms,
-    _structure,
-    effect_params,
-    exact_plants,
-    per_run_params,
-)
+from tuning.estimation.diagnose.candidate_runs import exact_plants
 from tuning.estimation.diagnose.policy import RUN_SPREAD
-from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.batch import Layout
+from tuning.estimation.diagnose.scoring import rms
+from tuning.estimation.diagnose.structures import PER_RUN, effect_params, per_run_params, structure
+from tuning.estimation.engine import parameters
 
 
 def per_run_inconsistency(values, peaks) -> str:
@@ -32,7 +26,11 @@ def per_run_inconsistency(values, peaks) -> str:
     held-out prediction the verdict says so."""
     for n in per_run_params():
         signal = next(REGISTRY[e].limits for e in effect_params() if n in effect_params()[e])
-        own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
+        own = {
+            parameters.recording_of(k): v
+            for k, v in values.items()
+            if "@" in k and parameters.base_name(k) == n
+        }
         peak = {i: peaks.get(f"{signal}@{i}", math.inf) for i in own}
         acting = {i: v for i, v in own.items() if v < peak[i]}
         if len(own) < 2 or not acting:
@@ -41,7 +39,7 @@ def per_run_inconsistency(values, peaks) -> str:
         shown = {i: min(v, peak[i]) for i, v in own.items()}
         high = max(shown, key=shown.get)
         if shown[high] > RUN_SPREAD * acting[low]:
-            unit, ratio = P.spec(n).unit, shown[high] / acting[low]
+            unit, ratio = parameters.spec(n).unit, shown[high] / acting[low]
             return (
                 f"run {low + 1}'s {n} is {ratio:.2g} times below what run {high + 1} drove "
                 f"({signal} {shown[high]:.3g} {unit}): "
@@ -55,7 +53,7 @@ def acts(name, key, value, peaks) -> bool:
     """Whether drive limit ``name``'s value in run ``key`` (``i_max@2``) is below what that run
     drove (``peaks``' ``{command,current}@i``), so that it acts (any other value: True)."""
     signal = next((REGISTRY[e].limits for e in effect_params() if name in effect_params()[e]), "")
-    return not signal or value < peaks.get(f"{signal}@{P.recording_of(key)}", math.inf)
+    return not signal or value < peaks.get(f"{signal}@{parameters.recording_of(key)}", math.inf)
 
 
 def cart_plant(best, base_plants, segments, peaks):
@@ -66,14 +64,14 @@ def cart_plant(best, base_plants, segments, peaks):
     values = {
         k: v
         for k, v in best.values.items()
-        if "@" not in k or Layout.kind(k) not in per_run_params()
+        if "@" not in k or parameters.base_name(k) not in per_run_params()
     }
     for n in per_run_params():
-        own = {k: v for k, v in best.values.items() if "@" in k and Layout.kind(k) == n}
+        own = {k: v for k, v in best.values.items() if "@" in k and parameters.base_name(k) == n}
         acting = [v for k, v in own.items() if acts(n, k, v, peaks)]
         if own:
             values[n] = float(np.median(acting or list(own.values())))
-    cand = _structure(tuple(p for p in best.parts if p != PER_RUN))
+    cand = structure(tuple(p for p in best.parts if p != PER_RUN))
     plants = exact_plants(cand, base_plants, values)
     motor = [p for p, s in zip(plants, segments, strict=True) if s.motor]
     return motor[0] if motor else plants[0]
@@ -86,12 +84,12 @@ def per_recording(best, names, segments, base, cov, peaks) -> dict:
     for i, (name, seg) in enumerate(zip(names, segments, strict=True)):
         own = {}
         for k in best.free:
-            if k.endswith(f"@{i}") and Layout.kind(k) not in P.NUISANCE:
-                n = Layout.kind(k)
+            if k.endswith(f"@{i}") and parameters.base_name(k) not in parameters.NUISANCE:
+                n = parameters.base_name(k)
                 own[n] = {
                     "value": best.values[k],
                     "stderr": cov.stderr({k: 1.0}),
-                    "unit": P.spec(n).unit,
+                    "unit": parameters.spec(n).unit,
                     "acts": acts(n, k, best.values[k], peaks),
                 }
         if names.count(name) > 1:  # recordings of one name told apart by their place
@@ -99,7 +97,7 @@ def per_recording(best, names, segments, base, cov, peaks) -> dict:
         out[name] = {
             "kind": seg.kind,
             "parameters": own,
-            "rms_before": _rms([base.residuals[i]]),
-            "rms_after": _rms([best.residuals[i]]),
+            "rms_before": rms([base.residuals[i]]),
+            "rms_after": rms([best.residuals[i]]),
         }
     return out

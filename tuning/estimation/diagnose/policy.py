@@ -4,7 +4,7 @@ plausibility and drive limits per run. Each constant says why it has its value."
 
 from __future__ import annotations
 
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 
 #: Information criterion: penalty per free parameter (times log n_eff) and per added effect.
 PENALTY_PER_PARAM = 1.0
@@ -72,7 +72,7 @@ CORRECTION_MARGIN = 0.01
 AT_BOUND = 1e-2
 #: Ranges of the plant's own parameters a real cart of this lab has (declared with them,
 #: jaxcart.plantspec): the fits are held inside them; a value at their edge is flagged.
-PLAUSIBLE = {n: P.spec(n).plausible for n in P.CORRECTABLE}
+PLAUSIBLE = {n: parameters.spec(n).plausible for n in parameters.CORRECTABLE}
 #: Forward selection (round 3 on): the best structures of the last round extended, and at
 #: most this many new structures per round (the batch keeps round 1's shape: no new compile).
 SEEDS = 3

@@ -6,28 +6,37 @@
 
 Each round fits its candidate structures in one batch (:class:`~tuning.estimation.engine.
 batch.BatchFitter`), re-checks them on the exact simulator and scores them
-(:func:`~.core.score`); the structure that leads is the best-scoring one whose every part is
+(:func:`~.scoring.score`); the structure that leads is the best-scoring one whose every part is
 physically there (:func:`~.significance.significance`), or a better-scoring one without its
 idle parts (:meth:`Search.reduced`), and each of its parts is kept by held-out prediction
-(:meth:`Search.select`). The helpers it calls (the exact re-check and polish, the covariances,
-the scores) live in :mod:`.core`; which parts are named (significance, implausible values) in
-:mod:`.significance`; each run's own drive limits in :mod:`.per_run`; the verdict on the
-finished search in :mod:`.verdict`.
+(:meth:`Search.select`). The structures live in :mod:`.structures`, their exact runs and polish
+in :mod:`.candidate_runs`, their scores in :mod:`.scoring`; which parts are named
+(significance, implausible values) in :mod:`.significance`; each run's own drive limits in
+:mod:`.per_run`; the verdict on the finished search in :mod:`.verdict`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time as _time
 
 import numpy as np
 
-from tuning.estimation.diagnose import core as C
-from tuning.estimation.diagnose import crossval, locate, verdict
-from tuning.estimation.diagnose import per_run as R
-from tuning.estimation.diagnose import significance as S
-from tuning.estimation.diagnose.core import PARAM_ERRORS, PER_RUN
+from jaxcart.effects import REGISTRY
+from jaxcart.params import ENCODER_RESOLUTION
+from tuning.distributed import spread
+from tuning.estimation.diagnose import (
+    candidate_runs,
+    crossval,
+    locate,
+    per_run,
+    scoring,
+    significance,
+    structures,
+    verdict,
+)
 from tuning.estimation.diagnose.policy import (
     DIRECT_WIDTHS,
     FLOOR_FACTOR,
@@ -35,6 +44,8 @@ from tuning.estimation.diagnose.policy import (
     K_MAX,
     LATER_WIDTHS,
     MIN_COASTING,
+    MIN_COUNTS,
+    MIN_SAMPLES,
     NESTED,
     POLISH,
     REWEIGHT,
@@ -46,11 +57,12 @@ from tuning.estimation.diagnose.policy import (
     WIDTHS,
 )
 from tuning.estimation.diagnose.result import Diagnosis
-from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.batch import BatchFitter, Layout
+from tuning.estimation.diagnose.structures import PARAM_ERRORS, PER_RUN
+from tuning.estimation.engine import parameters
+from tuning.estimation.engine.batch import BatchFitter
 from tuning.estimation.engine.covariance import Covariance, covariance, determined
 from tuning.estimation.engine.coverage import Coverage
-from tuning.estimation.engine.noise import RecordingNoise
+from tuning.estimation.engine.noise import RecordingNoise, misfits
 from tuning.estimation.engine.segments import prepare, recording_name
 from tuning.estimation.engine.starts import start_values
 
@@ -84,7 +96,7 @@ def diagnose(
 
 
 def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagnosis:
-    say = C._progress_printer(progress)
+    say = _progress_printer(progress)
     t_start = _time.perf_counter()
     if not isinstance(recordings, list | tuple):
         recordings = [recordings]
@@ -93,7 +105,7 @@ def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagno
     if messages:
         for m in messages:
             say(m)
-        return Diagnosis(names, "not diagnosed", messages, checks, seconds=C._elapsed(t_start))
+        return Diagnosis(names, "not diagnosed", messages, checks, seconds=verdict.elapsed(t_start))
     search = Search(recordings, controllers, read_counts, start, say, processes, executor)
     search.run(pairs)
     d = verdict.diagnosis(search, names, checks, t_start)
@@ -112,7 +124,7 @@ def _checks(recordings, say):
 
     messages = []
     for rec in recordings:
-        problem = C._excitation(rec, encoder_count(np.asarray(rec.position, dtype=float)))
+        problem = _excitation(rec, encoder_count(np.asarray(rec.position, dtype=float)))
         if problem:
             messages.append(problem)
     checks, controllers, read_counts = [], [], []
@@ -150,7 +162,9 @@ class Search:
             if rec.kind == "tap" and not rec.meta.get("tap", {}).get("motor_connected", False):
                 p = dataclasses.replace(p, motor_connected=False)
             base_plants.append(rec.plant(p) if rec.plant_overrides else p)
-        self.base_plants, self.segments = C._counts_in_loop(base_plants, segments, read_counts)
+        self.base_plants, self.segments = candidate_runs.counts_in_loop(
+            base_plants, segments, read_counts
+        )
         segments = self.segments
         # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data
         # that are not whole counts (jaxcart fit's floor).
@@ -158,7 +172,7 @@ class Search:
         self.widen_above = FLOOR_FACTOR * self.floor  # above it the residual is model error
         # Each recording against its own floor: the criterion and the joint fits' weights.
         self.noise = RecordingNoise(segments, FLOOR_FACTOR)
-        self.repeat = C._repeat_levels(segments)
+        self.repeat = scoring.repeat_levels(segments)
         say(
             f"diagnose {', '.join(s.name for s in segments)}: "
             f"{sum(s.target.size for s in segments)} samples fitted"
@@ -167,19 +181,23 @@ class Search:
         runs = tuple(i for i, s in enumerate(segments) if s.motor)
         self.runs = runs if len(runs) >= 2 else ()
         self.extra = max(0, 2 * len(self.runs) - 2)  # a PER_RUN structure's extra slots
-        per = C.per_run_params() if self.runs else ()
+        per = structures.per_run_params() if self.runs else ()
         self.fitter = BatchFitter(
             segments, self.base_plants, per_recording=per, max_shared=K_MAX, noise=self.noise
         )
         self.layout = self.fitter.layout
-        self.memo = C.ExactMemo(executor=executor)
-        self.nuis = [n for n in self.layout.names if Layout.kind(n) in P.NUISANCE]
+        self.memo = candidate_runs.ExactMemo(executor=executor)
+        self.nuis = [n for n in self.layout.names if parameters.base_name(n) in parameters.NUISANCE]
         commands = [
             r.command if s.motor else None for r, s in zip(recordings, segments, strict=True)
         ]
         self.coverage = Coverage.of(segments, commands)
-        self.round1 = C.candidate_list(any(s.motor for s in segments), self.runs, self.coverage)
-        self.starts_all = start_values(segments, recordings, self.base_plants, P.superset())
+        self.round1 = structures.candidate_list(
+            any(s.motor for s in segments), self.runs, self.coverage
+        )
+        self.starts_all = start_values(
+            segments, recordings, self.base_plants, parameters.superset()
+        )
         motor = [p for p, s in zip(self.base_plants, segments, strict=True) if s.motor]
         self.ref_plant = motor[0] if motor else self.base_plants[0]
         # A parameter correction is measured from the start plant's value.
@@ -191,14 +209,18 @@ class Search:
 
     def exact(self, c, values):
         """(exact residuals per segment, commands) of ``c`` at ``values`` (memoized)."""
-        return C.exact_residuals(c, self.segments, self.base_plants, values, self.layout, self.memo)
+        return candidate_runs.exact_residuals(
+            c, self.segments, self.base_plants, values, self.layout, self.memo
+        )
 
     def prefetch(self, pairs):
         """Make the exact runs of the (candidate, values) ``pairs`` at once (several at a
         time), into the memo; a distributed run's processes make their own shares instead."""
         if self.processes is None:
             seg, plants, lay = self.segments, self.base_plants, self.layout
-            self.memo.fill([j for c, v in pairs for j in C.exact_jobs(c, seg, plants, v, lay)])
+            self.memo.fill(
+                [j for c, v in pairs for j in candidate_runs.exact_jobs(c, seg, plants, v, lay)]
+            )
 
     def run_round(self, cands, starts, number):
         """Fit ``cands`` in one batch, re-check each on the exact simulator and score it."""
@@ -223,18 +245,18 @@ class Search:
             widths,
             ITERATIONS[-len(widths) :],
             kmax=K_MAX + self.extra + len(self.nuis),
-            progress=lambda w, c: say(f"  width x{w:g}: smooth RMS {C._fmt_list(c, self.fitter)}"),
+            progress=lambda w, c: say(f"  width x{w:g}: smooth RMS {scoring.costs_text(c)}"),
             share=self.processes,
         )
         say(f"  batch fit: {_time.perf_counter() - t_fit:.1f} s")
         for c, (vals, cost, jac, _r) in zip(cands, results, strict=False):
             c.values, c.rms_smooth, c.jac, c.round = vals, math.sqrt(cost), jac, number
         self.prefetch([(c, c.values) for c in cands])
-        rechecked = C._spread(self.processes, cands, lambda c: ({}, self.exact(c, c.values)[0]))
+        rechecked = spread(self.processes, cands, lambda c: ({}, self.exact(c, c.values)[0]))
         for c, (_, res) in zip(cands, rechecked, strict=True):
             c.residuals = res
-            c.rms_exact = C._rms(res)
-            c.score = C.score(c, c.residuals, self.noise)
+            c.rms_exact = scoring.rms(res)
+            c.score = scoring.score(c, c.residuals, self.noise)
             say(
                 f"  candidate {c.name:<24} smooth {c.rms_smooth * 1e3:8.4f} mm   exact "
                 f"{c.rms_exact * 1e3:8.4f} mm   score {c.score:10.1f}"
@@ -256,7 +278,7 @@ class Search:
         )
         values = [vals for vals, _cost, _jac, _r in results]
         self.prefetch(list(zip(cands, values, strict=True)))
-        rechecked = C._spread(
+        rechecked = spread(
             self.processes,
             list(zip(cands, values, strict=True)),
             lambda cv: ({}, self.exact(*cv)[0]),
@@ -272,7 +294,10 @@ class Search:
         all of them, and of each (``command@i``) for a limit free per run."""
         by_run = {}
         limits = {
-            C.REGISTRY[e].limits for p in c.parts if p in C.effect_params() for e in P.named_by(p)
+            REGISTRY[e].limits
+            for p in c.parts
+            if p in structures.effect_params()
+            for e in parameters.named_by(p)
         }
         if "command" in limits:
             _, cmds = self.exact(c, c.values)
@@ -280,7 +305,7 @@ class Search:
                 i: float(np.nanmax(np.abs(u))) for i, u in enumerate(cmds) if u is not None
             }
         if "current" in limits:
-            by_run["current"] = C._current_peaks(
+            by_run["current"] = candidate_runs.current_peaks(
                 c, self.segments, self.base_plants, c.values, self.layout
             )
         out = {}
@@ -291,7 +316,7 @@ class Search:
 
     def cov_of(self, c) -> Covariance:
         """``c``'s parameter covariances at its values (free slots and nuisances)."""
-        jac = c.jac / C.fitter_scale(self.segments)
+        jac = c.jac / candidate_runs.fitter_scale(self.segments)
         names = list(c.free) + self.nuis
         weights = self.noise.weights(c.residuals)
         return covariance(
@@ -307,7 +332,7 @@ class Search:
         key = (tuple(sorted(c.values.items())), base.rms_exact)
         if c.assessed != key:
             c.z, c.why, c.idle = {}, {}, ()
-            if c.parts and not C._misfits(base.rms_exact, self.floor):
+            if c.parts and not misfits(base.rms_exact, self.floor):
                 c.why = {
                     p: f"not needed: the baseline explains the recording (RMS "
                     f"{base.rms_exact / self.floor:.1f} times the encoder floor)"
@@ -315,7 +340,9 @@ class Search:
                 }
             elif c.parts:
                 stderr = self.cov_of(c).stderr
-                sig = S.significance(c.parts, c.values, stderr, self.peaks(c), self.neutral)
+                sig = significance.significance(
+                    c.parts, c.values, stderr, self.peaks(c), self.neutral
+                )
                 c.z = {k: v["z"] for k, v in sig.items()}
                 c.why = {k: v["why"] for k, v in sig.items()}
                 c.idle = _idle_parts(c.parts, sig)
@@ -377,10 +404,10 @@ class Search:
         seg, plants, lay = self.segments, self.base_plants, self.layout
         target = None
         if reach is not None:
-            target = SCREEN * C.cost_to_reach(c, reach, self.noise)
+            target = SCREEN * scoring.cost_to_reach(c, reach, self.noise)
         weights = self.noise.weights(self.exact(c, start)[0])
         for _ in range(REWEIGHTS):
-            values, jac, order, converged = C._polish(
+            values, jac, order, converged = candidate_runs.polish(
                 c, seg, plants, start, lay, memo=self.memo, target=target, weights=weights
             )
             res = self.exact(c, values)[0]
@@ -389,7 +416,7 @@ class Search:
             if jac is None or moved <= math.log(1 + REWEIGHT):
                 break
             start, weights, target = values, now, None
-        jac = C._theta_jacobian(c, jac, order, values, self.nuis, seg)
+        jac = candidate_runs.theta_jacobian(c, jac, order, values, self.nuis, seg)
         return values, [*res, jac], converged
 
     def polish_all(self, todo, reach=None):
@@ -397,22 +424,24 @@ class Search:
         residual; independent, so split over the processes of a distributed run. ``reach``:
         see :meth:`polished`."""
         # A polish that converged at a candidate's values would only repeat itself.
-        todo = [(c, start) for c, start in todo if c.settled != C.values_key(start)]
+        todo = [(c, start) for c, start in todo if c.settled != candidate_runs.values_key(start)]
 
-        def polish(item):  # (values, arrays) as C._spread gathers them: the flag an array too
+        def polish(item):  # (values, arrays) as spread gathers them: the flag an array too
             values, arrays, converged = self.polished(*item, reach)
             return values, [*arrays, np.array(float(converged))]
 
-        done = C._spread(self.processes, todo, polish)
+        done = spread(self.processes, todo, polish)
         for (c, _start), (values, arrays) in zip(todo, done, strict=True):
             self.keep(c, values, arrays[:-2], arrays[-2])
-            if bool(arrays[-1]) and C.values_key(c.values) == C.values_key(values):
-                c.settled = C.values_key(values)
+            if bool(arrays[-1]) and candidate_runs.values_key(
+                c.values
+            ) == candidate_runs.values_key(values):
+                c.settled = candidate_runs.values_key(values)
 
     def keep(self, c, values, res, jac):
         if self.better(res, c):
-            c.values, c.residuals, c.rms_exact = values, res, C._rms(res)
-            c.score = C.score(c, c.residuals, self.noise)
+            c.values, c.residuals, c.rms_exact = values, res, scoring.rms(res)
+            c.score = scoring.score(c, c.residuals, self.noise)
             # The significance test's standard errors at these values: the exact re-fit's
             # Jacobian, not the smooth fit's at the values it started from; unless it leaves
             # a parameter undetermined that the smooth one determined (Coulomb under PI at
@@ -433,7 +462,7 @@ class Search:
     def fit_round(self, grown, number, what):
         """Fit the (candidate, seed, addition) triples of one round and keep them."""
         t1 = _time.perf_counter()
-        starts = C._pair_starts(grown, self.starts_all, self.round1[0])
+        starts = structures.pair_starts(grown, self.starts_all, self.round1[0])
         self.run_round([c for c, _, _ in grown], starts, number)
         self.say(f"round {number} ({what}): {_time.perf_counter() - t1:.1f} s")
         self.cands += [c for c, _, _ in grown]
@@ -445,7 +474,9 @@ class Search:
         """Round 1, then (where nothing explains the recordings yet) pairs, forward selection
         and a backward step, then the exact polish of the most promising structures."""
         t0 = _time.perf_counter()
-        starts1 = [{k: self.starts_all[Layout.kind(k)] for k in c.free} for c in self.round1]
+        starts1 = [
+            {k: self.starts_all[parameters.base_name(k)] for k in c.free} for c in self.round1
+        ]
         self.run_round(self.round1, starts1, 1)
         # A structure that ends worse than the baseline it nests has not fitted: its second
         # try starts from the baseline's fitted values, its own parameters at their starts.
@@ -474,7 +505,7 @@ class Search:
         explained = min(c.rms_exact for c in self.round1) <= FLOOR_FACTOR * self.floor
         if explained:
             self.say("round 2 skipped: a single structure reaches the encoder floor")
-        elif not C._misfits(base.rms_exact, self.floor):
+        elif not misfits(base.rms_exact, self.floor):
             explained = True
             self.say("round 2 skipped: the baseline explains the recording")
         if pairs and not explained:
@@ -503,9 +534,9 @@ class Search:
         (several runs of one cart) each drive limit free per run with it. Returns (structures
         seen, the additions of the forward selection, round 2's candidates)."""
         round1, base = self.round1, self.round1[0]
-        friction = P.concealing_friction()
+        friction = parameters.concealing_friction()
         good = self.promising(
-            [c for c in round1[1:] if c.parts[0] in C.effect_params()], base.score
+            [c for c in round1[1:] if c.parts[0] in structures.effect_params()], base.score
         )
         by_name = {c.name: c for c in round1}
         mass = by_name.get("mass")
@@ -514,7 +545,7 @@ class Search:
         top = good[:3]
         for i, a in enumerate(top):
             new += [(a, b) for b in top[i + 1 :]]
-            if friction in by_name and not P.friction_family(a.name):
+            if friction in by_name and not parameters.friction_family(a.name):
                 new.append((a, by_name[friction]))
             if mass_helped:
                 new.append((a, mass))
@@ -529,13 +560,15 @@ class Search:
         if coulomb is not None and self.promising([coulomb], base.score):
             helped = {id(c) for c in good}
             rest = good[3:] + [
-                c for c in round1[1:] if c.parts[0] in C.effect_params() and id(c) not in helped
+                c
+                for c in round1[1:]
+                if c.parts[0] in structures.effect_params() and id(c) not in helped
             ]
-            new += [(a, coulomb) for a in rest if not P.friction_family(a.name)]
+            new += [(a, coulomb) for a in rest if not parameters.friction_family(a.name)]
         seen, round2 = set(), []
         for a, b in new:
-            c = C.pair(a, b)
-            if set(c.parts) in seen or P.redundant(c.parts):
+            c = structures.pair(a, b)
+            if set(c.parts) in seen or parameters.redundant(c.parts):
                 continue
             seen.add(frozenset(c.parts))
             round2.append((c, a, b))
@@ -560,7 +593,7 @@ class Search:
             if not seeds:
                 self.say(f"forward selection ends: round {number - 1} did not improve the score")
                 break
-            if not C.extend(seeds, additions, set(seen), kmax=kmax):
+            if not structures.extend(seeds, additions, set(seen), kmax=kmax):
                 self.say(f"forward selection ends: no structure left within {kmax} slots")
                 break
             # The lead polished on the exact simulator and the structures nested in it
@@ -575,7 +608,7 @@ class Search:
                     if c.parts and set(c.parts) < set(lead.parts)
                 ]
             )
-            if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
+            if not misfits(min(c.rms_exact for c in self.cands), self.floor):
                 self.say("forward selection ends: a structure explains the recording")
                 break
             # Judged by the round's best structure, one whose drive limits are more than a
@@ -583,7 +616,7 @@ class Search:
             if number > 3 and not self.predicts_better(min(level, key=lambda c: c.score), level):
                 break
             seeds = self.seeds(level)  # the polish may have improved earlier structures too
-            grown = C.extend(seeds, additions, seen, kmax=kmax) if seeds else []
+            grown = structures.extend(seeds, additions, seen, kmax=kmax) if seeds else []
             if not grown:
                 break
             level = self.fit_round(grown, number, "forward selection")
@@ -618,7 +651,7 @@ class Search:
         sound = [
             c
             for c in level
-            if not (PER_RUN in c.parts and R.per_run_inconsistency(c.values, self.peaks(c)))
+            if not (PER_RUN in c.parts and per_run.per_run_inconsistency(c.values, self.peaks(c)))
         ]
         return self.promising(sound, before)[:SEEDS]
 
@@ -630,8 +663,8 @@ class Search:
             return
         pruned = []
         for part in lead.parts:
-            if any(lead.why.get(item) for item in S.items(part)):
-                c = C._structure(tuple(x for x in lead.parts if x != part), lead.runs)
+            if any(lead.why.get(item) for item in significance.items(part)):
+                c = structures.structure(tuple(x for x in lead.parts if x != part), lead.runs)
                 if frozenset(c.parts) not in seen:
                     seen.add(frozenset(c.parts))
                     pruned.append((c, lead, lead))
@@ -648,8 +681,8 @@ class Search:
         parts and more) only those nested in the best; of the others the NESTED best-scoring
         (each re-fit is a few dozen exact runs)."""
         base = self.round1[0]
-        self.masks = C._window_masks(self.segments, self.wins)
-        C._window_evidence(self.cands, base, self.masks)
+        self.masks = scoring.window_masks(self.segments, self.wins)
+        scoring.window_evidence(self.cands, base, self.masks)
         t2 = _time.perf_counter()
         ranked = [x for x in sorted(self.cands, key=lambda c: c.score) if x is not base]
         self.polish_all([(c, dict(c.values)) for c in ranked[:POLISH] + [base]])
@@ -685,7 +718,7 @@ class Search:
                 and set(lead.effects) < set(c.effects)
                 and len(c.free) == len(lead.free) + 1
                 and all(
-                    set(C.REGISTRY[e].requires) & set(lead.effects)
+                    set(REGISTRY[e].requires) & set(lead.effects)
                     for e in set(c.effects) - set(lead.effects)
                 )
             ]
@@ -712,11 +745,11 @@ class Search:
         early in its travel, draws a current limit of its own beside the voltage limit every
         driven run shows: 7.0 -> 2.0 mm, the others as they were, each recording predicted
         better held out)."""
-        if not C._misfits(min(c.rms_exact for c in self.cands), self.floor):
+        if not misfits(min(c.rms_exact for c in self.cands), self.floor):
             return []  # a structure explains the recordings already
         out, near = [], sorted(self.cands, key=lambda c: c.score)[:POLISH]
-        for e in C.effect_params():
-            if not C.REGISTRY[e].limits:
+        for e in structures.effect_params():
+            if not REGISTRY[e].limits:
                 continue
             bases = [c for c in near if PER_RUN in c.parts and e not in c.parts]
             if not bases:
@@ -724,7 +757,7 @@ class Search:
             base = min(bases, key=lambda c: c.score)
             parts = (*[p for p in base.parts if p != PER_RUN], e, PER_RUN)
             c = next((x for x in self.cands if set(x.parts) == set(parts)), None)
-            c = c or C._structure(parts, base.runs)
+            c = c or structures.structure(parts, base.runs)
             own = [k for k in c.free if k not in base.values]
             donors = [x for x in self.cands if all(k in x.values for k in own)]
             if id(c) in done or not donors:
@@ -744,9 +777,11 @@ class Search:
         extra = [n for n in c.free if n not in lead.values]
         starts = [self._from(lead, c)]
         for n in extra:
-            lo, hi = P.bounds(n)
+            lo, hi = parameters.bounds(n)
             grid = (
-                np.geomspace(lo, hi, SPREAD + 2) if P.is_log(n) else np.linspace(lo, hi, SPREAD + 2)
+                np.geomspace(lo, hi, SPREAD + 2)
+                if parameters.is_log(n)
+                else np.linspace(lo, hi, SPREAD + 2)
             )
             starts += [{**self._from(lead, c), n: float(v)} for v in grid[1:-1]]
         return starts
@@ -762,19 +797,19 @@ class Search:
         """``c``'s criterion on its held-out predictions (:func:`~.crossval.held_out`: each
         recording predicted by the cart fitted to the others, or each stretch of a single
         recording by the fit to the rest), the same criterion as the in-sample score
-        (:func:`~.core.score`); computed once per set of values."""
-        key = C.values_key(c.values)
+        (:func:`~.scoring.score`); computed once per set of values."""
+        key = candidate_runs.values_key(c.values)
         if c.held_out_key != key:
             residuals = crossval.held_out(self, c)
-            c.held = {"residuals": residuals, "score": C.score(c, residuals, self.noise)}
+            c.held = {"residuals": residuals, "score": scoring.score(c, residuals, self.noise)}
             c.held_out_key = key
         return c.held["score"]
 
     def without(self, c, part):
         """The structure of ``c`` without ``part``, fitted on the exact simulator from ``c``'s
         values (a structure the search has not made yet is made here)."""
-        parts = C.without_part(c.parts, part)
-        made = C._structure(parts, c.runs if PER_RUN in parts else ())
+        parts = structures.without_part(c.parts, part)
+        made = structures.structure(parts, c.runs if PER_RUN in parts else ())
         sub = next((x for x in self.cands if set(x.parts) == set(parts)), None)
         start = self._start_from(c, sub or made)
         if sub is None:
@@ -783,10 +818,10 @@ class Search:
             sub.round = "selection"
             values, arrays, converged = self.polished(sub, start)
             sub.values, sub.residuals, sub.jac = values, arrays[:-1], arrays[-1]
-            sub.rms_exact = C._rms(sub.residuals)
-            sub.score = C.score(sub, sub.residuals, self.noise)
+            sub.rms_exact = scoring.rms(sub.residuals)
+            sub.score = scoring.score(sub, sub.residuals, self.noise)
             if converged:
-                sub.settled = C.values_key(values)
+                sub.settled = candidate_runs.values_key(values)
             self.cands.append(sub)
         else:
             self.polish_all([(sub, start)])
@@ -797,8 +832,8 @@ class Search:
         median of ``c``'s values per run, one per run at ``c``'s shared one; else its own."""
         out = {}
         for n in list(sub.free) + self.nuis:
-            kind = Layout.kind(n)
-            own = [v for k, v in c.values.items() if "@" in k and Layout.kind(k) == kind]
+            kind = parameters.base_name(n)
+            own = [v for k, v in c.values.items() if "@" in k and parameters.base_name(k) == kind]
             if n in c.values:
                 out[n] = c.values[n]
             elif "@" not in n and own:
@@ -853,3 +888,30 @@ def _idle_parts(parts, sig) -> tuple:
         and all(v["idle"] for v in sig.values() if v["part"] == p)
     )  # fmt: skip
     return idle if all(v["part"] in idle for v in sig.values() if v["why"]) else ()
+
+
+def _excitation(rec, q) -> str | None:
+    y = np.asarray(rec.position, dtype=float)
+    name = recording_name(rec)
+    if y.size < MIN_SAMPLES:
+        return (
+            f"{name}: too short to say anything ({y.size} samples, "
+            f"{y.size * rec.sample_time:.3f} s); record at least {MIN_SAMPLES} samples of motion"
+        )
+    if not np.all(np.isfinite(y)):
+        return f"{name}: column y has non-finite values; remove those rows"
+    counts = np.ptp(y) / (q or ENCODER_RESOLUTION)
+    if counts < MIN_COUNTS:
+        return (
+            f"{name}: no excitation: the cart moves {np.ptp(y) * 1e3:.3f} mm "
+            f"({counts:.0f} encoder counts) in the whole recording; nothing to diagnose"
+        )
+    return None
+
+
+def _progress_printer(progress):
+    if progress is True:
+        return lambda text: print(text, file=sys.stderr, flush=True)
+    if callable(progress):
+        return progress
+    return lambda text: None

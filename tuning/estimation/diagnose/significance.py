@@ -2,7 +2,8 @@
 Wald test, :func:`significance`; the drive limits free per run: do they differ between runs),
 values at a bound or outside what a cart of this lab has (:func:`implausible`), and the tie of
 M with gamma_scale (:func:`swap_tie`). Each run's own limits are in :mod:`.per_run`; the
-structures themselves, their exact runs and scores in :mod:`.core`.
+structures themselves in :mod:`.structures`, their exact runs in :mod:`.candidate_runs`, their
+scores in :mod:`.scoring`.
 """
 
 from __future__ import annotations
@@ -11,36 +12,36 @@ import math
 
 from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
-from tuning.estimation.diagnose.core import (
-    PARAM_ERRORS,
-    PER_RUN,
-    _rms,
-    _structure,
-    effect_params,
-    exact_residuals,
-    per_run_params,
-    plant_of,
-    score,
-    swapped_correction,
-)
+from tuning.estimation.diagnose.candidate_runs import exact_residuals, plant_of
 from tuning.estimation.diagnose.policy import (
     AT_BOUND,
     CORRECTION_MARGIN,
     SIGNIFICANCE,
     TIE,
 )
-from tuning.estimation.engine import parameters as P
-from tuning.estimation.engine.batch import Layout
+from tuning.estimation.diagnose.scoring import rms, score
+from tuning.estimation.diagnose.structures import (
+    PARAM_ERRORS,
+    PER_RUN,
+    effect_params,
+    per_run_params,
+    structure,
+    swapped_correction,
+)
+from tuning.estimation.engine import parameters
 
 
 def at_bound(name: str, value: float) -> str:
     """Which bound ("lower", "upper") ``value`` sits at, of :data:`~batch.BOUNDS` (within
     :data:`AT_BOUND`: relative for a parameter fitted as a logarithm, else a tenth of it as a
     share of the range); "" for none."""
-    if Layout.kind(name) not in P.superset() and Layout.kind(name) not in P.NUISANCE:
+    if (
+        parameters.base_name(name) not in parameters.superset()
+        and parameters.base_name(name) not in parameters.NUISANCE
+    ):
         return ""
-    lo, hi = P.bounds(name)
-    if P.is_log(name):
+    lo, hi = parameters.bounds(name)
+    if parameters.is_log(name):
         if value <= lo * math.exp(AT_BOUND):
             return "lower"
         if value >= hi * math.exp(-AT_BOUND):
@@ -61,7 +62,7 @@ def _strengths(part, values, peaks, start):
     declares its own (``Effect.strengths``); a correction is its distance from the start
     plant's value beyond :data:`CORRECTION_MARGIN`."""
     if part in effect_params():
-        for effect in P.named_by(part):
+        for effect in parameters.named_by(part):
             yield from REGISTRY[effect].strengths(values, peaks)
     for name in PARAM_ERRORS.get(part, ()):
         was = start[name]
@@ -77,7 +78,7 @@ def _strengths(part, values, peaks, start):
 def significance(parts, values, stderr, peaks=None, start=None) -> dict:
     """Is each effect (and parameter correction) of a structure there? A Wald test.
 
-    parts: the structure's parts (:attr:`~.core.Candidate.parts`); values: its fitted values;
+    parts: the structure's parts (:attr:`~.structures.Candidate.parts`); values: its fitted values;
     stderr: ``f(weights) -> standard error`` of a linear combination of parameters
     (:meth:`~.engine.covariance.Covariance.stderr`); peaks: {"command": largest |command|
     sent [V], "current": largest |armature current| [A]} of the structure's own run
@@ -127,8 +128,16 @@ def _own(name: str, run: int, values: dict) -> str:
 def _views(params, values, peaks):
     """(values, peaks, run) to judge a part at: once, or once per run for a part whose
     parameters are free per run (each run's own values and its own largest command)."""
-    runs = sorted({P.recording_of(k) for k in values if "@" in k and Layout.kind(k) in params})
-    own = [i for i in runs if any(f"{n}@{i}" in values for n in params if n not in P.NUISANCE)]
+    runs = sorted(
+        {
+            parameters.recording_of(k)
+            for k in values
+            if "@" in k and parameters.base_name(k) in params
+        }
+    )
+    own = [
+        i for i in runs if any(f"{n}@{i}" in values for n in params if n not in parameters.NUISANCE)
+    ]
     if not own:
         yield values, peaks, None
         return
@@ -168,7 +177,7 @@ def _judge(item, strength, weights, stderr, what, neutral, bound, gate=False) ->
     if not math.isfinite(z):
         return z, f"{what}: its standard error is not defined", False
     if strength <= 0:
-        idle = "is within" if item in P.CORRECTABLE else "does not act: not past"
+        idle = "is within" if item in parameters.CORRECTABLE else "does not act: not past"
         return z, f"{what} {idle} {neutral}", True
     if gate and z <= SIGNIFICANCE:
         why = f"{what} is {z:.1f} standard errors from {neutral} ({SIGNIFICANCE:g} needed)"
@@ -184,9 +193,9 @@ def _judge(item, strength, weights, stderr, what, neutral, bound, gate=False) ->
 
 def _min_size(weights) -> float | None:
     """The least size worth naming of the strength's leading parameter, if it declares one."""
-    name = Layout.kind(next(iter(weights)))
+    name = parameters.base_name(next(iter(weights)))
     try:
-        return P.spec(name).min_size
+        return parameters.spec(name).min_size
     except KeyError:
         return None
 
@@ -196,12 +205,16 @@ def _per_run_significance(values, stderr) -> dict:
     values of a limit, as a Wald test (and beyond the limit's least size worth naming)."""
     best = {"z": math.nan, "why": "no drive limit is free per run", "idle": False, "part": PER_RUN}
     for n in per_run_params():
-        own = {P.recording_of(k): v for k, v in values.items() if "@" in k and Layout.kind(k) == n}
+        own = {
+            parameters.recording_of(k): v
+            for k, v in values.items()
+            if "@" in k and parameters.base_name(k) == n
+        }
         if len(own) < 2:
             continue
         hi = max(own, key=own.get)
         lo = min(own, key=own.get)
-        unit = P.spec(n).unit
+        unit = parameters.spec(n).unit
         what = (
             f"{n} from {own[lo]:.3g} {unit} (run {lo + 1}) to {own[hi]:.3g} {unit} (run {hi + 1})"
         )
@@ -231,13 +244,13 @@ def implausible(values: dict, free, track: float | None = None) -> list:
         track = TRACK_LENGTH
     out = []
     for n in free:
-        if n not in values or Layout.kind(n) in P.NUISANCE:
+        if n not in values or parameters.base_name(n) in parameters.NUISANCE:
             continue
         v = values[n]
-        unit = plantspec.unit(Layout.kind(n))
+        unit = plantspec.unit(parameters.base_name(n))
         unit = f" {unit}" if unit and unit != "1" else ""
         side = at_bound(n, v)
-        rng = P.spec(n).plausible
+        rng = parameters.spec(n).plausible
         if side and rng is not None:
             out.append(
                 f"{n} = {v:.4g}{unit} is outside what a cart of this lab has "
@@ -248,7 +261,11 @@ def implausible(values: dict, free, track: float | None = None) -> list:
                 f"{n} = {v:.4g}{unit} sits at its {side} bound (the fit wanted a value "
                 "beyond its range)"
             )
-        elif P.spec(n).unit == "m" and P.spec(n).neutral is None and abs(v) > track / 2:
+        elif (
+            parameters.spec(n).unit == "m"
+            and parameters.spec(n).neutral is None
+            and abs(v) > track / 2
+        ):
             out.append(f"{n} = {v:.4g} m is off the {track:g} m track")
     return out
 
@@ -257,22 +274,22 @@ def items(part) -> tuple:
     """The items a part names (:func:`significance`'s keys)."""
     if part == PER_RUN:
         return (PER_RUN,)
-    return PARAM_ERRORS.get(part) or P.named_by(part)
+    return PARAM_ERRORS.get(part) or parameters.named_by(part)
 
 
 def swap_tie(best, cands, plant, segments, base_plants, layout, memo, noise):
     """({}, None), or when ``best`` corrects M or gamma_scale and the structure with the other
-    (values from :func:`~.core.swapped_correction`, or its own fit where that scores better) is
-    within :data:`TIE`: the facts for the verdict and that structure."""
+    (values from :func:`~.structures.swapped_correction`, or its own fit where that scores
+    better) is within :data:`TIE`: the facts for the verdict and that structure."""
     swap = swapped_correction(best.parts, best.values, plant)
     if swap is None:
         return {}, None
     parts, values = swap
-    other = _structure(parts, best.runs)
+    other = structure(parts, best.runs)
     keys = list(other.free) + [k for k in best.values if "@" in k]
     other.values = {k: values[k] for k in keys}
     other.residuals = exact_residuals(other, segments, base_plants, other.values, layout, memo)[0]
-    other.rms_exact = _rms(other.residuals)
+    other.rms_exact = rms(other.residuals)
     other.score = score(other, other.residuals, noise)
     fitted = next((c for c in cands if set(c.parts) == set(parts)), None)
     if fitted is not None and fitted.score < other.score:

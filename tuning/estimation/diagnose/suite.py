@@ -635,7 +635,7 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
     clean case, the drive freed per run where the runs share it: where their truths give them
     one limit). ``truths``: each recording's own truth (:func:`make_recordings`; default: the
     case's)."""
-    from tuning.estimation.diagnose.core import PER_RUN
+    from tuning.estimation.diagnose.structures import PER_RUN
 
     named = set(d.left_out)
     expect = set(case.expect)

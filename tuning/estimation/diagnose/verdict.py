@@ -8,16 +8,16 @@ errors, what may be missing where it does not explain the recordings, and the
 from __future__ import annotations
 
 import math
+import time as _time
+
+import numpy as np
 
 from jaxcart import plantspec
-from tuning.estimation.diagnose import core as C
-from tuning.estimation.diagnose import crossval, locate
-from tuning.estimation.diagnose import per_run as R
-from tuning.estimation.diagnose import significance as S
-from tuning.estimation.diagnose.core import PARAM_ERRORS
-from tuning.estimation.diagnose.policy import TIE
+from tuning.estimation.diagnose import crossval, locate, per_run, scoring, significance
+from tuning.estimation.diagnose.policy import K_MAX, TIE
 from tuning.estimation.diagnose.result import Diagnosis, _times
-from tuning.estimation.engine.batch import Layout
+from tuning.estimation.diagnose.structures import PARAM_ERRORS
+from tuning.estimation.engine import parameters
 
 
 def named(search):
@@ -26,7 +26,7 @@ def named(search):
     cands = search.cands
     search.unearned = []
     best = search.select(search.choose(cands))
-    C._window_evidence(cands, search.round1[0], search.masks)
+    scoring.window_evidence(cands, search.round1[0], search.masks)
     for c in cands:
         search.eligible(c)  # every candidate's significance at its final values
     ranks = _ranks(cands)
@@ -54,7 +54,7 @@ def named(search):
     for item in dropped:
         search.say(f"  not named: {item['effect']} of {item['structure']} ({item['why']})")
     # M or gamma_scale corrected: the other may fit as well (only ratios are identifiable).
-    unident, swapped = S.swap_tie(
+    unident, swapped = significance.swap_tie(
         best, cands, search.ref_plant, search.segments, search.base_plants, search.layout,
         search.memo, search.noise,
     )  # fmt: skip
@@ -83,15 +83,17 @@ def _ranks(cands) -> dict:
 def _plausible_of(search, best, swapped):
     """Of two structures that fit equally well, the one whose values a cart of this lab
     has (a heavier cart with a plausible B_eq rather than a weaker motor with B_eq near 0)."""
-    if not S.implausible(best.values, best.free) or S.implausible(swapped.values, swapped.free):
+    if not significance.implausible(best.values, best.free) or significance.implausible(
+        swapped.values, swapped.free
+    ):
         return best
     if swapped.jac is None:  # values mapped from best's: an exact re-fit gives its own
         values, arrays, _ = search.polished(swapped, dict(swapped.values))
         swapped.jac = arrays[-1]
         if search.better(arrays[:-1], swapped):
             swapped.values, swapped.residuals = values, arrays[:-1]
-            swapped.rms_exact = C._rms(swapped.residuals)
-            swapped.score = C.score(swapped, swapped.residuals, search.noise)
+            swapped.rms_exact = scoring.rms(swapped.residuals)
+            swapped.score = scoring.score(swapped, swapped.residuals, search.noise)
     return swapped if swapped.jac.size and search.eligible(swapped) else best
 
 
@@ -152,7 +154,7 @@ def _misfit(search, best, cv) -> tuple[list, str]:
     )
     text += "; the standard errors are widened for model error"
     search.say(text)
-    return C._suggestions(left, best), text
+    return suggestions(left, best), text
 
 
 def diagnosis(search, names, checks, t_start) -> Diagnosis:
@@ -173,7 +175,7 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
     ]
     level = max(search.repeat.values()) if search.repeat else None
     peaks = search.peaks(best)
-    per_recording = R.per_recording(best, names, segments, base, cov, peaks)
+    per_recording = per_run.per_recording(best, names, segments, base, cov, peaks)
     # Judged by prediction: each recording (each stretch of a single one) held out of the
     # fit and predicted, against what that experiment repeats or its encoder floor.
     cv = crossval.cross_validate(search, best, list(per_recording), search.repeat)
@@ -202,26 +204,72 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
         tests=search.tests,
         candidates=sorted(search.cands, key=lambda c: c.score),
         chosen=best.name,
-        plant=R.cart_plant(best, search.base_plants, segments, peaks),
-        seconds=C._elapsed(t_start),
+        plant=per_run.cart_plant(best, search.base_plants, segments, peaks),
+        seconds=elapsed(t_start),
         traces=traces,
         explained=explained,
         misfit=misfit,
         suggestions=suggestions,
         # a drive limit above what its run drove is not that run's value (at a bound or not)
-        implausible=S.implausible(
+        implausible=significance.implausible(
             best.values,
-            [k for k in best.free if R.acts(Layout.kind(k), k, best.values[k], peaks)],
+            [
+                k
+                for k in best.free
+                if per_run.acts(parameters.base_name(k), k, best.values[k], peaks)
+            ],
         ),
         not_significant=dropped,
         significance=dict(best.z),
         unidentifiable=unident,
         start_values={n: search.neutral[n] for n in corrections},
         per_recording=per_recording,
-        drive_spread=R.per_run_inconsistency(best.values, peaks) if best.runs else "",
+        drive_spread=per_run.per_run_inconsistency(best.values, peaks) if best.runs else "",
         cross_validation=cv,
         driven_alone=driven,
         taps_alone=taps,
         repeat=level,
-        remainder=C._remainder(best, segments),
+        remainder=remainder(best, segments),
     )
+
+
+#: What a residual that still correlates with each signal after the best structure may point
+#: to beyond the candidates (the suggestions of a diagnosis that explains nothing).
+BEYOND = {
+    "position": "a force that varies along the track (track_friction, not a candidate: "
+    "jaxcart fit --params B_eq,f_track)",
+    "sign_velocity": "friction beyond Coulomb and stiction (speed-dependent, Stribeck) or "
+    "backlash (jaxcart fit --params B_eq,backlash)",
+    "command": "a drive nonlinearity beyond saturation, deadzone and current limit",
+    "acceleration": "inertia or lag beyond M and delay (the motor's electrical lag)",
+}
+
+
+def suggestions(tests, best) -> list:
+    """What may be missing when nothing explains the recording: the signals the best
+    structure's residual still correlates with (:data:`BEYOND`), more effects at once,
+    physics outside the library."""
+    out = [
+        BEYOND[k] + f" (its residual correlates with {k.replace('_', ' ')}, z = {t['z']:+.0f})"
+        for k, t in tests.items()
+        if k in BEYOND and t.get("significant")
+    ]
+    n = len(best.free) - 1
+    out.append(
+        f"more effects at once than the search combines ({n} parameters here, at most {K_MAX - 1})"
+        if n >= K_MAX - 2
+        else "more effects at once"
+    )
+    out.append("physics outside the effects library")
+    return out
+
+
+def remainder(best, segments) -> str:
+    """The best structure's residual in words, on the segment where most of it is left."""
+    k = max(range(len(segments)), key=lambda i: float(np.sum(best.residuals[i] ** 2)))
+    text = locate.describe_residual(best.residuals[k], float(segments[k].experiment.sample_time))
+    return text + (f" (in {segments[k].name})" if len(segments) > 1 else "")
+
+
+def elapsed(t0) -> float:
+    return round(_time.perf_counter() - t0, 2)

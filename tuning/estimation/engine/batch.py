@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.lm import marquardt_step
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
@@ -36,12 +36,12 @@ class Layout:
     def __init__(self, segments, per_recording=()):
         # The superset's parameters, from the registry as it is now (an effect registered
         # later is in the next fitter's).
-        self.shared = P.superset()
+        self.shared = parameters.superset()
         self.names = list(self.shared)
         self.per_recording = tuple(per_recording)
         self.copies = {}  # recording -> {name: slot}
         for i, seg in enumerate(segments):
-            own = {n: None for n in self.per_recording if seg.motor or not P.is_drive(n)}
+            own = {n: None for n in self.per_recording if seg.motor or not parameters.is_drive(n)}
             for n in own:
                 own[n] = len(self.names)
                 self.names.append(f"{n}@{i}")
@@ -63,10 +63,6 @@ class Layout:
         own = self.copies.get(i, {})
         return [own.get(n, j) for j, n in enumerate(self.shared)]
 
-    @staticmethod
-    def kind(name: str) -> str:
-        return P.base_name(name)
-
 
 def _superset(plant, shared):
     """``plant`` with every ``shared`` parameter it lacks at its neutral stand-in (a drive
@@ -74,15 +70,15 @@ def _superset(plant, shared):
     from jaxcart.plantspec import build_plant
 
     have = plant.param_names()
-    missing = {k: P.stand_in(k) for k in shared if k not in have}
+    missing = {k: parameters.stand_in(k) for k in shared if k not in have}
     if not plant.motor_connected:
-        missing = {k: v for k, v in missing.items() if not P.is_drive(k)}
+        missing = {k: v for k, v in missing.items() if not parameters.is_drive(k)}
     return build_plant(missing, base=plant, check=False)
 
 
 def _owner(name: str) -> int:
     """The recording a slot acts in alone (``v_sat@2``, ``y0@0``: 2, 0), else -1."""
-    return P.recording_of(name) if "@" in name else -1
+    return parameters.recording_of(name) if "@" in name else -1
 
 
 def _colours(owners) -> list[int]:
@@ -208,13 +204,13 @@ def _stacked(trees):
 def _theta_arrays(layout):
     """(log mask, linear scale, lower and upper bounds in internal units) of every slot."""
     names = layout.names
-    log_mask = np.array([n != "_dummy" and P.is_log(n) for n in names])
-    ranges = [P.bounds(n) if n != "_dummy" else (-1e9, 1e9) for n in names]
-    lo = np.array([P.to_theta(n, r[0]) for n, r in zip(names, ranges, strict=True)])
-    hi = np.array([P.to_theta(n, r[1]) for n, r in zip(names, ranges, strict=True)])
+    log_mask = np.array([n != "_dummy" and parameters.is_log(n) for n in names])
+    ranges = [parameters.bounds(n) if n != "_dummy" else (-1e9, 1e9) for n in names]
+    lo = np.array([parameters.to_theta(n, r[0]) for n, r in zip(names, ranges, strict=True)])
+    hi = np.array([parameters.to_theta(n, r[1]) for n, r in zip(names, ranges, strict=True)])
     scale = np.array(
         [
-            1.0 if m or n == "_dummy" else P.value_slope(n, 1.0)
+            1.0 if m or n == "_dummy" else parameters.value_slope(n, 1.0)
             for n, m in zip(names, log_mask, strict=True)
         ]
     )
@@ -367,7 +363,7 @@ class BatchFitter:
         shared value where it is not given; neutral elsewhere."""
         base = np.zeros(self.layout.size)
         for j, n in enumerate(self.layout.names):
-            k = Layout.kind(n)
+            k = parameters.base_name(n)
             if n in values:
                 base[j] = values[n]
             elif k in values and k in self.layout.shared:
@@ -376,7 +372,7 @@ class BatchFitter:
                 # A drive parameter on recordings without their motor (taps only) acts
                 # nowhere: its stand-in value.
                 sup = next((p for p in self.supers if k in p.param_names()), None)
-                base[j] = P.stand_in(k) if sup is None else float(np.asarray(sup.get(k)))
+                base[j] = parameters.stand_in(k) if sup is None else float(np.asarray(sup.get(k)))
         for i, (a, b) in self.layout.nuisance.items():
             exp = self.segments[i].experiment
             base[a], base[b] = values.get(f"y0@{i}", exp.y0), values.get(f"yd0@{i}", exp.yd0)
@@ -407,7 +403,7 @@ class BatchFitter:
                 j = lay.index(n)
                 idx[c, s] = j
                 free[c, s] = 1.0
-                theta[c, s] = P.to_theta(n, base[c, j])
+                theta[c, s] = parameters.to_theta(n, base[c, j])
         n = len(problems)
         rows = np.arange(n) if share is None else np.asarray(share.items(n), dtype=int)
         if rows.size == 0:  # more processes than problems: this one only gathers
@@ -508,7 +504,7 @@ class BatchFitter:
         for c, (names, _start, _b) in enumerate(problems):
             vals = {}
             for s, n in enumerate(names):
-                vals[n] = float(P.to_value(n, float(theta[c, s])))
+                vals[n] = float(parameters.to_value(n, float(theta[c, s])))
             res = np.asarray(r[c])
             out.append((vals, float(res @ res), np.asarray(jac[c]), res))
         return out

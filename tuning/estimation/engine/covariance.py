@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.noise import effective_samples, widened_for_model_error
 
 
@@ -253,7 +253,11 @@ def covariance(
     models = [np.asarray(x) + seg.target for x, seg in zip(residuals, segments, strict=True)]
     cov = covariances(jac, residuals, models, [seg.quantization for seg in segments], weights)
     # d value / d theta (log parameters); None: the internal units themselves.
-    dv = np.ones(p) if values is None else np.array([P.value_slope(n, values[n]) for n in names])
+    dv = (
+        np.ones(p)
+        if values is None
+        else np.array([parameters.value_slope(n, values[n]) for n in names])
+    )
     d = np.outer(dv, dv)
     rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
     widened = widen_above is not None and rms > widen_above

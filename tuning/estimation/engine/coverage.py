@@ -6,7 +6,7 @@ the two directions needs motion both ways (``Effect.needs``: "both_ways"), or th
 both ways ("drive_both_ways"); a tilted track is a drive offset in every driven run and shows
 itself only where a tap (motor unplugged) is among the recordings ("tap"). The
 conditions are measured once per diagnosis (:meth:`Coverage.of`) and each effect's are checked
-by :func:`tuning.estimation.diagnose.core.candidate_list`; an effect left out is one fewer
+by :func:`tuning.estimation.diagnose.structures.candidate_list`; an effect left out is one fewer
 structure in every batch (the search's rounds are padded to round 1's size).
 """
 

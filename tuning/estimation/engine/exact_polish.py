@@ -19,7 +19,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.lm import gauss_newton_step
 
 #: Secant half-width in a fit's internal units (3 % of a log-fitted parameter) where the exact
@@ -150,7 +150,10 @@ def difference_floors(names) -> np.ndarray:
     [s, m] 1e-7, any other (a force, a gain) 1e-6."""
     return np.array(
         [
-            1e-7 if P.base_name(n) in P.NUISANCE or P.spec(n).unit in ("s", "m") else 1e-6
+            1e-7
+            if parameters.base_name(n) in parameters.NUISANCE
+            or parameters.spec(n).unit in ("s", "m")
+            else 1e-6
             for n in names
         ]
     )
@@ -169,7 +172,7 @@ def _staircase(names, x, reference, slopes) -> dict:
     :func:`~.parameters.value_slope`), where the smooth fit's Jacobian sees the value act
     (``reference``: its column norms per unit of each value; :func:`jacobian`)."""
     if slopes is None:
-        slopes = [P.value_slope(n, v) for n, v in zip(names, x, strict=True)]
+        slopes = [parameters.value_slope(n, v) for n, v in zip(names, x, strict=True)]
     return {"reference": reference, "staircase": STAIRCASE * np.abs(np.asarray(slopes))}
 
 
@@ -192,7 +195,9 @@ def polish(
     merge M and B_eq into one correlated pair where they are one combination, and leave a
     track-friction element 4 standard errors off)."""
     if bounds is None:
-        bounds = tuple(np.array([P.bounds(n)[k] for n in names], dtype=float) for k in (0, 1))
+        bounds = tuple(
+            np.array([parameters.bounds(n)[k] for n in names], dtype=float) for k in (0, 1)
+        )
     x = np.asarray(x, dtype=float)
     if steps is None:
         steps = partial(difference_steps, names)

@@ -28,7 +28,7 @@ class Segment:
     quantization: the encoder count found in the data [m] (0: not quantized); motor: the
     motor drives the cart (not a tap); counts_in_loop: the controller reads the recorded
     counts, so the plant's quantization sensor is in the loop and the simulated position is
-    compared, not the reading (the diagnosis's ``core._counts_in_loop``).
+    compared, not the reading (the diagnosis's ``candidate_runs.counts_in_loop``).
 
     A fit of fixed structure (:func:`tuning.estimation.fit.fit`) adds its own: ``plant``, the
     plant the recording ran on with the start values; ``nuisance``, the per-recording values

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 
 #: A cart is at rest where its recorded position stays put this long [s].
 AT_REST = 0.02
@@ -57,11 +57,11 @@ def start_values(segments, recs, base_plants, free) -> dict:
     start = {"B_eq": 5.4 if motor else 2.0, "M": 0.94, "gamma_scale": 1.0}
     found = motion_regression(segments, recs, base_plants)
     for n, v in found.items():
-        if P.plausible(n, v) and v > 0:
+        if parameters.plausible(n, v) and v > 0:
             start[n] = v
     for n in free:
         if n not in start:
-            start[n] = P.start_for(n, peaks, ymean)
+            start[n] = parameters.start_for(n, peaks, ymean)
     return {k: start[k] for k in free}
 
 

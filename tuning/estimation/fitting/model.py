@@ -20,7 +20,7 @@ from jaxcart.parallel import put, sharded_map
 from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing
 from jaxcart.workers import SERIAL
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.lm import LM_DAMPING
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
@@ -83,7 +83,7 @@ def _positions(theta, data, smoothing, layout: _Layout):
         data, layout.segments, strict=True
     ):
         plant = plant.replace(
-            **assemble(plant, {p: P.to_value(p, theta[i], jnp) for p, i in params}, jnp)
+            **assemble(plant, {p: parameters.to_value(p, theta[i], jnp) for p, i in params}, jnp)
         )
         # The base values are data (a traced array), so that recordings differing only in them
         # share one compilation.
@@ -142,7 +142,7 @@ class _Problem:
         self.settings = settings
         index = len(self.params)
         layout = []
-        theta = [P.to_theta(p, self._start_value(p)) for p in self.params]
+        theta = [parameters.to_theta(p, self._start_value(p)) for p in self.params]
         for k, seg in enumerate(segments):
             # A parameter free per recording maps to this recording's own copy (``v_sat@k``).
             own = [f"{p}@{k}" if f"{p}@{k}" in self.params else p for p in seg.params]
@@ -203,7 +203,7 @@ class _Problem:
         )
 
     def _start_value(self, p) -> float:
-        k, base = P.recording_of(p), base_name(p)
+        k, base = parameters.recording_of(p), base_name(p)
         segs = self.segments if k is None else [self.segments[k]]
         i = _element(p.split("@")[0])
         values = [
@@ -212,7 +212,7 @@ class _Problem:
             if base in s.params or p in s.params
         ]
         value = values[0] if values else _default_start(p.split("@")[0])
-        if P.is_log(p) and not value > 0:
+        if parameters.is_log(p) and not value > 0:
             value = _default_start(p.split("@")[0])
         return value
 
@@ -264,7 +264,7 @@ class _Problem:
         """(plant values {name: value}, nuisance {name: value}) of segment k at theta."""
         params, _ = self.layout.segments[k]
         return (
-            {p: float(P.to_value(p, theta[i])) for p, i in params},
+            {p: float(parameters.to_value(p, theta[i])) for p, i in params},
             {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
         )
 
@@ -275,7 +275,7 @@ class _Problem:
         low = np.full(self.theta0.size, -np.inf)
         high = np.full(self.theta0.size, np.inf)
         for i, name in enumerate(self.params):
-            low[i], high[i] = (P.to_theta(name, b) for b in P.bounds(name))
+            low[i], high[i] = (parameters.to_theta(name, b) for b in parameters.bounds(name))
         for k in range(len(self.segments)):
             for v, i in self.nuisance_index(k):
                 if v.bounded:

@@ -9,7 +9,7 @@ import numpy as np
 from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.params import Plant
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.parameters import base_name
 
 #: Other names for parameters: the issue's "v_limit" is the amplifier's saturation v_sat.
@@ -33,7 +33,7 @@ def fittable() -> tuple:
     f_track[1], ...), from the registry as it is now."""
     skip = not_fitted()
     effects = [p.name for c in plantspec.REGISTRY.values() for p in c.params if p.name not in skip]
-    return P.CORRECTABLE + tuple(effects)
+    return parameters.CORRECTABLE + tuple(effects)
 
 
 def default_start() -> dict:
@@ -126,7 +126,7 @@ def _drives_nothing(name: str, plant: Plant) -> bool:
     return (
         not plant.motor_connected
         and plantspec.effect_of_param(base_name(name)) is not None
-        and P.is_drive(name)
+        and parameters.is_drive(name)
     )
 
 

@@ -11,7 +11,7 @@ import numpy as np
 from jaxcart.params import Plant
 from jaxcart.plantspec import handout_plant
 from jaxcart.smoothing import Smoothing
-from tuning.estimation.engine import parameters as P
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import assemble, canonical, unit_of, with_values
 
@@ -38,7 +38,7 @@ class Estimate:
         if self.edge is None:
             return ""
         side, _ = self.edge
-        lo, hi = P.bounds(canonical(base_name(self.name)))
+        lo, hi = parameters.bounds(canonical(base_name(self.name)))
         unit = unit_of(self.name)
         return (
             f"{self.name} = {self.value:.4g} {unit} is at the {side} edge of its allowed range "

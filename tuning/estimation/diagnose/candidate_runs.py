@@ -1,0 +1,269 @@
+"""A candidate structure's runs on the exact simulator: each recording's plant at its values, the
+runs (made several at a time and kept in a memo), their residuals, and the exact polish of the
+values with its forward-difference Jacobian."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from jaxcart.workers import SERIAL
+from tuning.estimation.diagnose.structures import PER_RUN, Candidate, params_of, per_run_params
+from tuning.estimation.engine import exact_polish, parameters
+from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
+
+
+def exact_plants(cand: Candidate, base_plants, values):
+    """Each recording's plant at ``values``: the shared values, and a run's own copy of a
+    parameter free per run (``v_sat@2``) where it has one."""
+    from jaxcart.plantspec import build_plant
+
+    named = {n: values[n] for n in cand.free if "@" not in n}
+    named["B_eq"] = values["B_eq"]
+    plants = []
+    for i, p in enumerate(base_plants):
+        own = {parameters.base_name(k): v for k, v in values.items() if k.endswith(f"@{i}")}
+        own = {k: v for k, v in own.items() if k in per_run_params()}
+        if PER_RUN in cand.parts and not own:
+            # A run without its own copy (a tap): the drive limits do not act there.
+            own = {n: parameters.stand_in(n) for n in per_run_params() if n in params_of(cand)}
+        plants.append(build_plant(parameters.consistent({**named, **own}), base=p, check=False))
+    return plants
+
+
+class ExactMemo:
+    """The last ``size`` exact runs of one diagnosis, by candidate structure and values: the
+    polish re-runs points it has run (a trial it accepted is the next iteration's start, the
+    polished point is re-checked), about a quarter of a diagnosis's exact runs (measured on
+    the built-in P 50 step: 247 runs, 189 distinct). Results are shared: read-only arrays."""
+
+    def __init__(self, size: int = 64, executor=None):
+        self.size = size
+        self.executor = executor or SERIAL  # makes the runs of fill several at a time
+        self.runs: dict = {}
+        self.hits = 0
+        self.made = 0  # single runs simulated (here or by a helper process)
+        # One recording's run by its own plant and start: a parameter that does not act on a
+        # recording (a per-run copy of another run, a drive limit on the unplugged tap) leaves
+        # its run as it was, so a forward difference re-simulates only the runs it moves.
+        self.one: dict = {}
+
+    def segment(self, key, compute):
+        """One recording's exact run, by (index, plant, y0, yd0)."""
+        if key in self.one:
+            self.hits += 1
+            self.one[key] = self.one.pop(key)
+            return self.one[key]
+        return self._store(key, compute())
+
+    def fill(self, jobs) -> None:
+        """Make the runs of ``jobs`` ((key, :class:`ExactJob`) pairs) not stored yet, all at
+        once (the executor's ``map``: several at a time, in helper processes)."""
+        todo = {}
+        for key, job in jobs:
+            if key not in self.one and key not in todo:
+                todo[key] = job
+        sizes = [job.target.size for job in todo.values()]
+        for key, out in zip(todo, self.executor.map(exact_run, todo.values(), sizes), strict=True):
+            self._store(key, out)
+
+    def _store(self, key, out):
+        self.made += 1
+        self.one[key] = out = read_only(out)
+        if len(self.one) > 4 * self.size:
+            del self.one[next(iter(self.one))]
+        return out
+
+    def get(self, cand, values, compute):
+        key = (
+            tuple(cand.parts),
+            tuple(cand.corrections),
+            values_key(values),
+        )
+        if key in self.runs:
+            self.hits += 1
+            self.runs[key] = self.runs.pop(key)  # most recent last
+            return self.runs[key]
+        out = compute()
+        for group in out:
+            for a in group:
+                if a is not None:
+                    a.flags.writeable = False
+        self.runs[key] = out
+        if len(self.runs) > self.size:
+            del self.runs[next(iter(self.runs))]
+        return out
+
+
+def exact_jobs(cand, segments, base_plants, values, layout) -> list:
+    """(memo key, :class:`ExactJob`) of each recording of ``cand`` at ``values``."""
+    plants = exact_plants(cand, base_plants, values)
+    out = []
+    for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
+        exp = seg.experiment
+        if i in layout.nuisance:
+            exp = dataclasses.replace(
+                exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
+            )
+        job = ExactJob(seg.controller, plant, exp, seg.target, seg.counts_in_loop, seg.motor)
+        out.append(((i, plant, exp.y0, exp.yd0), job))
+    return out
+
+
+def exact_residuals(cand, segments, base_plants, values, layout, memo: ExactMemo | None = None):
+    """Exact-simulator residuals [m] (and commands [V] of motor segments) of ``cand`` at
+    ``values``, one array per segment; ``memo`` reuses a run made before (of all recordings,
+    or of one recording whose plant and start are unchanged). The recordings' runs are made
+    several at a time (the memo's executor)."""
+    jobs = exact_jobs(cand, segments, base_plants, values, layout)
+    if memo is None:
+        runs = [read_only(exact_run(j)) for _, j in jobs]
+        return [r for r, _ in runs], [u for _, u in runs]
+
+    def compute():
+        memo.fill(jobs)
+        runs = [memo.segment(key, lambda job=job: exact_run(job)) for key, job in jobs]
+        return [r for r, _ in runs], [u for _, u in runs]
+
+    return memo.get(cand, values, compute)
+
+
+def exact_prefetch(cand, segments, base_plants, many, layout, memo: ExactMemo) -> None:
+    """Make the runs of ``cand`` at each of ``many`` (a list of values) at once, into ``memo``
+    (a forward-difference Jacobian's columns: several run at a time)."""
+    memo.fill([j for v in many for j in exact_jobs(cand, segments, base_plants, v, layout)])
+
+
+def plant_of(cand, base_plants, segments):
+    """The plant of ``cand`` at its values (the first motor segment's)."""
+    plants = exact_plants(cand, base_plants, cand.values)
+    motor = [p for p, s in zip(plants, segments, strict=True) if s.motor]
+    return motor[0] if motor else plants[0]
+
+
+def current_peaks(cand, segments, base_plants, values, layout) -> dict:
+    """Largest |armature current| [A] of each motor segment's exact run under ``cand``,
+    i = (v - (B_emf/gamma) y')/Rm at the samples: {segment index: peak}."""
+    from jaxcart.exact import simulate_exact
+
+    peaks = {}
+    plants = exact_plants(cand, base_plants, values)
+    for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
+        if not seg.motor:
+            continue
+        exp = seg.experiment
+        if i in layout.nuisance:
+            exp = dataclasses.replace(
+                exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
+            )
+        res = simulate_exact(plant, seg.controller, exp)
+        k_b = float(plant.B_emf) / float(plant.gamma)
+        i_arm = (np.asarray(res.voltage) - k_b * np.asarray(res.velocity)) / float(plant.Rm)
+        peaks[i] = float(np.nanmax(np.abs(i_arm))) if np.any(np.isfinite(i_arm)) else 0.0
+    return peaks
+
+
+def counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
+    """(base plants, segments), with the encoder's quantization in the loop where the recorded
+    command shows that the controller read the recorded counts (``read_counts``, one per
+    recording: controller.reads_counts), unless the plant models its sensor already.
+
+    Feeding the controller the exact position instead biases its input by half a count (the
+    mean of the floor) and loses the hunting between counts that integral action and friction
+    make, which the search otherwise explains with effects that are not there. Such a
+    simulation records what its controller read, whole counts; the diagnosis compares the
+    cart's position instead (:func:`exact_residuals`), whose forward differences the exact
+    polish needs (docs/diagnose.md, "The encoder in the loop")."""
+    from jaxcart.plantspec import build_plant
+
+    plants, segs = [], []
+    for plant, seg, counts in zip(base_plants, segments, read_counts, strict=True):
+        q = seg.quantization
+        sensor, count = parameters.encoder()
+        modelled = sensor in plant.structure  # a plant file's own sensor
+        if counts and q > 0 and not modelled:
+            plant = build_plant({count: q}, base=plant, check=False)
+        if q > 0 and (modelled or counts):
+            seg = dataclasses.replace(seg, counts_in_loop=True)
+        plants.append(plant)
+        segs.append(seg)
+    return plants, segs
+
+
+def polish(
+    cand, segments, base_plants, values, layout, iterations=3, memo=None, target=None, weights=None
+):
+    """The engine's exact polish (:func:`~tuning.estimation.engine.exact_polish.polish`:
+    Gauss-Newton on the exact simulator, forward differences, within the bounds) in the values
+    themselves, a few parameters; ``weights``: each recording's weight in the joint least
+    squares (:meth:`~tuning.estimation.engine.noise.RecordingNoise.weights`; equal when None).
+    Returns (values, the forward-difference Jacobian of the exact residual [m per unit of each
+    value] at them or None, the values' names in its column order, whether it converged);
+    ``target``: the (weighted) cost worth fitting for (see there)."""
+    names = list(values)
+    roots = np.sqrt(np.ones(len(segments)) if weights is None else np.asarray(weights))
+    rows = np.concatenate([np.full(s.target.size, w) for s, w in zip(segments, roots, strict=True)])
+
+    def at(x):
+        return dict(zip(names, (float(v) for v in x), strict=True))
+
+    def residual(x):
+        # Through the memo: a difference in a per-run value re-simulates its own run alone.
+        parts = exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0]
+        return np.concatenate(parts) * rows
+
+    def prefetch(xs):
+        exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
+
+    done = exact_polish.polish(
+        residual, names, [values[n] for n in names], iterations,
+        reference=smooth_reference(cand, names, values, segments),
+        prefetch=prefetch if memo else None, target=target,
+    )  # fmt: skip
+    out = at(done.x) if done.improved else values
+    jac = None if done.jac is None else done.jac / rows[:, None]  # the plain residual's
+    return out, jac, names, done.converged
+
+
+def values_key(values: dict) -> tuple:
+    """``values`` as a key (names and floats, sorted)."""
+    return tuple(sorted((k, float(v)) for k, v in values.items()))
+
+
+def smooth_reference(cand, names, values, segments):
+    """Column norms of ``cand``'s batch-fit Jacobian (its free slots, then the nuisances) per
+    unit of each value of ``names`` (0 where it has none): where the smooth model sees a value
+    act, a flat exact difference quotient is the staircase (the exact polish's ``reference``,
+    :func:`~tuning.estimation.engine.exact_polish.polish`)."""
+    slopes = np.array([parameters.value_slope(n, values[n]) for n in names])
+    jac = getattr(cand, "jac", None)
+    order = list(cand.free) + [n for n in names if n not in cand.free]
+    if jac is None or jac.ndim != 2 or jac.shape[1] < len(order):
+        return np.zeros(len(names))
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.linalg.norm(jac, axis=0) / fitter_scale(segments)
+    norms = np.where(np.isfinite(norms), norms, 0.0)  # a smooth fit that ran away says nothing
+    return np.array(
+        [
+            norms[order.index(n)] / abs(slope) if slope else 0.0
+            for n, slope in zip(names, slopes, strict=True)
+        ]
+    )
+
+
+def theta_jacobian(cand, jac, order, values, nuis, segments) -> np.ndarray:
+    """The exact re-fit's forward-difference Jacobian (columns in ``order``, per unit of each
+    value) in the form of the batch fit's: columns the candidate's free slots and the
+    nuisances, per unit of the fitted parameter (its logarithm for a log-fitted one), times
+    :func:`fitter_scale`. An empty array where the re-fit made none or lacks a column."""
+    names = list(cand.free) + list(nuis)
+    if jac is None or any(n not in order for n in names):
+        return np.zeros((0, 0))
+    cols = [jac[:, order.index(n)] * parameters.value_slope(n, values[n]) for n in names]
+    return fitter_scale(segments) * np.column_stack(cols)
+
+
+def fitter_scale(segments) -> float:
+    return 1.0 / math.sqrt(sum(s.target.size for s in segments))
