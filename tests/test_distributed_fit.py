@@ -1,5 +1,5 @@
 """jaxcart fit --cross across processes (jax.distributed): two processes on localhost on the
-CPU give the single-process report (tuning/estimation/fitrun.py).
+CPU give the single-process report (tuning/estimation/cross_fit.py).
 
 Each process fits one of the two built-in recordings alone and predicts the other with it; the
 test process computes the single-process table meanwhile. Each process holds two CPU devices, as
@@ -19,7 +19,7 @@ from cluster import in_threads, spawn
 
 import jaxcart as jc
 from jaxcart.errors import UserError
-from tuning.estimation import fitrun
+from tuning.estimation import cross_fit
 
 DATA = Path(jc.__file__).parent / "data"
 RECORDINGS = [str(DATA / "tap.toml"), str(DATA / "p50.toml")]
@@ -35,7 +35,7 @@ def test_fit_cross_two_processes_equal_one(tmp_path):
     # alone): those of process 0 are the same function on the same data, and the test's
     # budget has no room for them (the compilation dominates, repeated in every process).
     recordings = [read_experiment(p) for p in RECORDINGS]
-    want = fitrun.cross_rows(recordings[1], recordings, ("B_eq",))
+    want = cross_fit.cross_rows(recordings[1], recordings, ("B_eq",))
     outs = [p.communicate(timeout=240) for p in procs]
     for p, (_out, err) in zip(procs, outs, strict=True):
         assert p.returncode == 0, err[-2000:]
@@ -75,11 +75,11 @@ def test_a_failure_anywhere_is_raised_on_every_process(monkeypatch):
     def rows(rec, recordings, params, **kwargs):
         return [{"fitted_on": rec}] if rec == "a" else [{"fitted_on": rec, "rms": 1 / 0}]
 
-    monkeypatch.setattr(fitrun, "cross_rows", rows)
+    monkeypatch.setattr(cross_fit, "cross_rows", rows)
 
     def table(failure=None):
         def work(ex):
-            return fitrun.cross_table(
+            return cross_fit.cross_table(
                 ["a", "b"], ("B_eq",), processes=ex, failure=failure if ex.index == 0 else None
             )
 
@@ -93,7 +93,7 @@ def test_a_failure_anywhere_is_raised_on_every_process(monkeypatch):
     # Process 0's joint fit failed: it computes no rows, and its error, from before the
     # table, wins over a row's.
     assert {str(e) for e in table(UserError("joint fit failed"))} == {"joint fit failed"}
-    monkeypatch.setattr(fitrun, "cross_rows", lambda rec, *a, **k: [{"fitted_on": rec}])
+    monkeypatch.setattr(cross_fit, "cross_rows", lambda rec, *a, **k: [{"fitted_on": rec}])
     assert table() == [[{"fitted_on": "a"}, {"fitted_on": "b"}]] * 2
 
 

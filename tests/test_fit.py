@@ -273,7 +273,7 @@ def test_real_tap(realdata):
 @pytest.mark.slow
 def test_real_cross_prediction(realdata):
     from jaxcart.files import read_experiment
-    from tuning.estimation.fitrun import cross_table
+    from tuning.estimation.cross_fit import cross_table
 
     recs = [read_experiment(os.path.join(realdata, f)) for f in ("tap.toml", "p50.toml")]
     rows = cross_table(recs, ("B_eq", "f_c"))

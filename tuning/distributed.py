@@ -5,7 +5,7 @@ takes the single-process decisions.
 Used by ``jaxcart tune`` (the batch of starts: :class:`tuning.design.start_share.StartShare`),
 ``jaxcart diagnose`` (:func:`tuning.estimation.diagnose.diagnose` splits its batch fits, exact
 re-checks and exact polishes of the candidates over the processes) and ``jaxcart fit --cross``
-(one recording each, :mod:`tuning.estimation.fitrun`). Process ``i`` of ``n`` computes the
+(one recording each, :mod:`tuning.estimation.cross_fit`). Process ``i`` of ``n`` computes the
 items :func:`jaxcart.parallel.partition` gives it (every ``n``-th from ``i``); the payloads are
 small numpy arrays through the runtime's key-value store (:func:`gather_rows` puts the rows of
 every process back in order).

@@ -10,7 +10,7 @@ Prints each parameter with its standard error (or "not identifiable"), the RMS p
 before and after (smooth and exact simulators), optionally the lab's classic estimates and the
 cross-prediction of each recording from the others' fit; writes the fitted plant (``--out``,
 readable by ``--plant`` of simulate, tune, grid and lab), a JSON report and an overlay plot.
-Across processes (jax.distributed, :mod:`tuning.estimation.fitrun`) each fits its share of the
+Across processes (jax.distributed, :mod:`tuning.estimation.cross_fit`) each fits its share of the
 recordings for ``--cross``; process 0 runs the joint fit, prints and writes.
 """
 
@@ -24,7 +24,7 @@ from jaxcart.errors import UserError
 from jaxcart.outputs import check_writable
 from jaxcart.plots import add_format_option, figure_name
 from tuning.commands.options import add_cluster_options, add_helpers_option, helpers
-from tuning.estimation import fitrun
+from tuning.estimation import cross_fit
 
 # What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
 # run the command: building the parser must start no jax (importing jax takes 2.4 s against
@@ -165,11 +165,11 @@ def _run(args, params, share, checked, pool) -> int:
         failure = exc
     cross = None
     if args.cross:
-        cross = fitrun.cross_table(
+        cross = cross_fit.cross_table(
             recordings, params, progress=progress, processes=share, failure=failure, executor=pool
         )
     elif share is not None:
-        fitrun.share(share, {}, failure)
+        cross_fit.share(share, {}, failure)
     if share is not None and not share.finish():
         what = "results sent to process 0" if args.cross else "process 0 fits and reports"
         print(f"process {me} of {share.count}: done, {what}")

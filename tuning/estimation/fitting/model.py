@@ -159,7 +159,6 @@ class _Problem:
         self.entries = list(self.params) + [
             f"{v.name}@{k}" for k, seg in enumerate(segments) for v in seg.nuisance
         ]
-        self.evaluations = 0  # smooth-model points evaluated (r and J)
         self.theta0 = np.asarray(theta, dtype=float)
         # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
         # nearly the same length then share one compiled residual function.
@@ -251,7 +250,6 @@ class _Problem:
         k = thetas.shape[0]
         size = -(-k // LM_BATCH) * LM_BATCH
         padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - k, axis=0)])
-        self.evaluations += k
         r, jac = _batched_residuals(self.layout)(
             put(padded, float), self.data, self.measured, self.weight, self.smoothing(width)
         )
