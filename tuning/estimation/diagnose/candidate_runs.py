@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+from jaxcart.exact import simulate_exact
+from jaxcart.plantspec import build_plant
 from jaxcart.workers import SERIAL
 from tuning.estimation.diagnose.structures import PER_RUN, Candidate, params_of, per_run_params
 from tuning.estimation.engine import exact_polish, parameters
@@ -18,7 +20,6 @@ from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
 def exact_plants(cand: Candidate, base_plants, values):
     """Each recording's plant at ``values``: the shared values, and a run's own copy of a
     parameter free per run (``v_sat@2``) where it has one."""
-    from jaxcart.plantspec import build_plant
 
     named = {n: values[n] for n in cand.free if "@" not in n}
     named["B_eq"] = values["B_eq"]
@@ -146,7 +147,6 @@ def plant_of(cand, base_plants, segments):
 def current_peaks(cand, segments, base_plants, values, layout) -> dict:
     """Largest |armature current| [A] of each motor segment's exact run under ``cand``,
     i = (v - (B_emf/gamma) y')/Rm at the samples: {segment index: peak}."""
-    from jaxcart.exact import simulate_exact
 
     peaks = {}
     plants = exact_plants(cand, base_plants, values)
@@ -176,7 +176,6 @@ def counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
     simulation records what its controller read, whole counts; the diagnosis compares the
     cart's position instead (:func:`exact_residuals`), whose forward differences the exact
     polish needs (docs/diagnose.md, "The encoder in the loop")."""
-    from jaxcart.plantspec import build_plant
 
     plants, segs = [], []
     for plant, seg, counts in zip(base_plants, segments, read_counts, strict=True):

@@ -5,10 +5,20 @@ corrected plant file (nothing is written over an existing file without ``force``
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
+import numpy as np
+
+from hw.atomicio import all_or_none, write_text
+from hw.jsonio import write_json
 from jaxcart.effects import REGISTRY
 from jaxcart.errors import UserError
+from jaxcart.plantspec import write_plant_file
+from jaxcart.plots import EXPERIMENT_STYLE, figure_legend, save
+from tuning.estimation.diagnose.crossval import WORSE
+from tuning.estimation.diagnose.policy import SIGNIFICANCE
+from tuning.estimation.engine.parameters import at_edge
 
 
 def _mm(x) -> str:
@@ -165,7 +175,6 @@ def _cross_validation_lines(cv) -> list:
     """What the held-out column means, and what it says."""
     if not cv:
         return []
-    from tuning.estimation.diagnose.crossval import WORSE
 
     text = (
         f"Held out ({cv['method']}): the cart's values ({', '.join(cv['refitted'])}) re-fitted "
@@ -265,7 +274,6 @@ def _candidates_section(d, figure) -> list:
 
 def _edge(name: str, value) -> tuple[str, float] | None:
     """(side, bound) where a fitted value sits on an edge of its range (engine.parameters)."""
-    from tuning.estimation.engine.parameters import at_edge
 
     try:
         return at_edge(name, value) if value is not None and math.isfinite(value) else None
@@ -284,7 +292,6 @@ def _item_of(name: str) -> str:
 
 
 def _significance() -> str:
-    from tuning.estimation.diagnose.policy import SIGNIFICANCE
 
     return f"{SIGNIFICANCE:g}"
 
@@ -296,7 +303,6 @@ TITLE_LINES = 3
 def figure_title(d, width: int = 95) -> str:
     """The figure's title: :attr:`~.result.Diagnosis.headline`, wrapped to ``width``
     characters a line, at most :data:`TITLE_LINES` lines (the last then ends in "...")."""
-    import textwrap
 
     return textwrap.fill(d.headline, width, max_lines=TITLE_LINES, placeholder=" ...")
 
@@ -312,13 +318,11 @@ def plot_diagnosis(d, path) -> Path:
     suffix sets the format: .png, .svg, .pdf). The mismatch of the baseline is shaded between
     it and the recording, the encoder floor is a grey band around zero residual, and the
     located windows are a strip along the time axis, each in the legend below the axes."""
+    # matplotlib only where a figure is drawn (its import takes about 0.5 s).
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
-
-    from jaxcart.plots import EXPERIMENT_STYLE, figure_legend, save
 
     n = max(len(d.traces), 1)
     fig, axes = plt.subplots(
@@ -398,7 +402,6 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
     for p in paths.values():
         if p.exists() and not force:
             raise UserError(f"{p} exists; choose another --out/--json or pass --force")
-    from hw.atomicio import all_or_none
 
     with all_or_none(*paths.values()):  # a full disk at the last file leaves none of them
         _write_outputs(d, out, paths, json_path, force)
@@ -406,8 +409,6 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
 
 
 def _write_outputs(d, out, paths, json_path, force) -> None:
-    from hw.atomicio import write_text
-    from jaxcart.plantspec import write_plant_file
 
     out.mkdir(parents=True, exist_ok=True)
     if d.status == "diagnosed":
@@ -428,6 +429,4 @@ def _write_outputs(d, out, paths, json_path, force) -> None:
     text = render_markdown(d, figure=paths["figure"].name if d.status == "diagnosed" else None)
     write_text(paths["report"], text, force=True)
     if json_path:
-        from hw.jsonio import write_json
-
         write_json(paths["json"], d.to_json(), force=True)  # checked above

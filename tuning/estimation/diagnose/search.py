@@ -22,10 +22,12 @@ import math
 import sys
 import time as _time
 
+import jax
 import numpy as np
 
 from jaxcart.effects import REGISTRY
 from jaxcart.params import ENCODER_RESOLUTION
+from jaxcart.plantspec import handout_plant
 from tuning.distributed import spread
 from tuning.estimation.diagnose import (
     candidate_runs,
@@ -37,6 +39,7 @@ from tuning.estimation.diagnose import (
     structures,
     verdict,
 )
+from tuning.estimation.diagnose import controller as ctl
 from tuning.estimation.diagnose.policy import (
     DIRECT_WIDTHS,
     FLOOR_FACTOR,
@@ -62,7 +65,7 @@ from tuning.estimation.engine import parameters
 from tuning.estimation.engine.batch import BatchFitter
 from tuning.estimation.engine.covariance import Covariance, covariance, determined
 from tuning.estimation.engine.coverage import Coverage
-from tuning.estimation.engine.noise import RecordingNoise, misfits
+from tuning.estimation.engine.noise import RecordingNoise, encoder_count, floor_of, misfits
 from tuning.estimation.engine.segments import prepare, recording_name
 from tuning.estimation.engine.starts import start_values
 
@@ -89,7 +92,6 @@ def diagnose(
     the caller owns; default: one after the other in this process). Runs in float64 whatever
     jax_enable_x64 says, and leaves it as it was.
     """
-    import jax
 
     with jax.enable_x64(True):
         return _diagnose(recordings, start, progress, pairs, processes, executor)
@@ -119,8 +121,6 @@ def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagno
 def _checks(recordings, say):
     """(messages refusing the recordings, controller checks, controllers inferred, whether
     each controller read whole encoder counts)."""
-    from tuning.estimation.diagnose import controller as ctl
-    from tuning.estimation.engine.noise import encoder_count
 
     messages = []
     for rec in recordings:
@@ -147,8 +147,6 @@ class Search:
     """One diagnosis's search: the segments, the batch fitter, the candidates tried."""
 
     def __init__(self, recordings, controllers, read_counts, start, say, processes, executor=None):
-        from jaxcart.plantspec import handout_plant
-        from tuning.estimation.engine.noise import floor_of
 
         self.recordings, self.say, self.processes = recordings, say, processes
         segments = [

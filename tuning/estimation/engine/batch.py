@@ -18,8 +18,16 @@ import dataclasses
 import math
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from jaxcart.parallel import devices, sharded_map
+from jaxcart.plantspec import build_plant
+from jaxcart.smooth_sim import simulate_smooth
+from jaxcart.smoothing import Smoothing
+from jaxcart.substeps import substeps_per_sample
+from tuning.distributed import gather_rows
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.lm import marquardt_step
 
@@ -67,7 +75,6 @@ class Layout:
 def _superset(plant, shared):
     """``plant`` with every ``shared`` parameter it lacks at its neutral stand-in (a drive
     effect is not added to a plant without its motor: a tap)."""
-    from jaxcart.plantspec import build_plant
 
     have = plant.param_names()
     missing = {k: parameters.stand_in(k) for k in shared if k not in have}
@@ -104,7 +111,6 @@ def _groups(segments, supers, n_subs) -> list[tuple]:
     (experiment kind and sample time, the plant's and the controller's structure, sub-steps,
     an encoder in the loop). One loop per group instead of one per recording: a joint
     diagnosis's step compiles once per kind of run, not once per file."""
-    import jax
 
     groups: dict = {}
     for i, (seg, sup) in enumerate(zip(segments, supers, strict=True)):
@@ -151,10 +157,6 @@ class _Runs(NamedTuple):
 def _group_positions(runs: _Runs, group, full, own, smoothing):
     """The smooth positions [m] of ``group``'s recordings (one row each, to the longest one's
     length) at the full parameter vector ``full``: one loop, the runs side by side."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxcart.smooth_sim import simulate_smooth
 
     plants, exps = [], []
     for i in group:
@@ -195,8 +197,6 @@ def _group_positions(runs: _Runs, group, full, own, smoothing):
 
 def _stacked(trees):
     """The pytrees ``trees`` (one structure) stacked leaf by leaf along a new first axis."""
-    import jax
-    import jax.numpy as jnp
 
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
 
@@ -233,8 +233,6 @@ def _lm_trial(residuals, lo, hi, row_segment, noise=None):
     recording against its own level, :class:`~tuning.estimation.engine.noise.RecordingNoise`)
     and each step weighs a recording's rows by nu_k / (SSE_k + floor_k) at theta (iteratively
     reweighted least squares); None: the plain sum of squares."""
-    import jax
-    import jax.numpy as jnp
 
     def objective(r):
         if noise is None:
@@ -294,11 +292,6 @@ class BatchFitter:
         :class:`~tuning.estimation.engine.noise.RecordingNoise` of the segments: several
         recordings are then fitted each against its own level (see :func:`_lm_trial`);
         None: plain least squares."""
-        import jax.numpy as jnp
-
-        from jaxcart.parallel import sharded_map
-        from jaxcart.smoothing import Smoothing
-        from jaxcart.substeps import substeps_per_sample
 
         self.segments = segments
         self.layout = layout = Layout(segments, per_recording)
@@ -415,7 +408,6 @@ class BatchFitter:
         # (seen in 2 of 6 runs of tests/test_new_effect.py two at a time), and in a
         # distributed run a resharded output opens a cross-process (gloo) channel for what is
         # a local computation.
-        from jaxcart.parallel import devices
 
         rows = np.concatenate([rows, np.repeat(rows[:1], -n_mine % len(devices()))])
         seeds, support = self._colouring(idx, free)
@@ -487,7 +479,6 @@ class BatchFitter:
 
     def _gathered(self, share, problems, arrays, progress, widths):
         """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
-        from tuning.distributed import gather_rows
 
         n = len(problems)
         parts = share.allgather({k: np.asarray(v) for k, v in arrays.items()})
