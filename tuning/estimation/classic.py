@@ -30,7 +30,8 @@ import numpy as np
 
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
-from tuning.estimation.engine.segments import recording_name
+from tuning.estimation.engine.noise import encoder_count
+from tuning.estimation.engine.segments import coasting_segment, recording_name
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,6 @@ def _count(position, quantization) -> float:
     """The encoder count [m]: as given, else found in the data, else the IP02's."""
     if quantization is not None:
         return float(quantization)
-    from tuning.estimation.engine.noise import encoder_count
 
     return encoder_count(position) or ENCODER_RESOLUTION
 
@@ -117,8 +117,6 @@ def loglinear_beq(
     ts = float(recording.sample_time)
     t = np.asarray(recording.time, dtype=float)
     if segment is None:
-        from tuning.estimation.engine.segments import coasting_segment
-
         try:
             segment = coasting_segment(y, ts)
         except ValueError as exc:

@@ -58,6 +58,7 @@ import numpy as np
 
 from jaxcart import plantspec
 from jaxcart.errors import UserError
+from jaxcart.plausibility import check_fit_recordings
 from jaxcart.smoothing import continuation
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.covariance import Covariance, covariance
@@ -272,7 +273,6 @@ def fit(
     Refused before any fitting (:func:`jaxcart.plausibility.check_fit_recordings`): a
     recording without motion, the same data twice, an open-loop input in other units.
     """
-    from jaxcart.plausibility import check_fit_recordings
 
     recordings = check_fit_recordings(recordings)
     with jax.enable_x64(True):

@@ -20,6 +20,7 @@ import numpy as np
 
 from jaxcart.effects import REGISTRY
 from jaxcart.params import ENCODER_RESOLUTION
+from tuning.estimation.engine.noise import effective_samples
 
 #: The parameter corrections a residual correlated with a signal can point to.
 _CORRECTIONS = {"command": ("gain (gamma_scale)",), "acceleration": ("mass (M)",)}
@@ -202,7 +203,6 @@ def describe_residual(residual, sample_time: float) -> str:
     White: its effective independent samples are most of its samples (the autocorrelation
     dies within a few samples). Otherwise the periodogram's largest peak above the lowest
     bins: below 1 Hz a drift, else a ripple at that frequency."""
-    from tuning.estimation.engine.noise import effective_samples
 
     r = np.asarray(residual, dtype=float)
     r = r[np.isfinite(r)]

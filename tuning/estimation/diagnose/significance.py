@@ -12,6 +12,7 @@ import math
 
 from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
+from jaxcart.params import TRACK_LENGTH
 from tuning.estimation.diagnose.candidate_runs import exact_residuals, plant_of
 from tuning.estimation.diagnose.policy import (
     AT_BOUND,
@@ -239,8 +240,6 @@ def implausible(values: dict, free, track: float | None = None) -> list:
     for a value beyond it), a spring's rest point off the track. Such values are never
     written into a plant file (:func:`tuning.estimation.diagnose.report.write_outputs`)."""
     if track is None:
-        from jaxcart.params import TRACK_LENGTH
-
         track = TRACK_LENGTH
     out = []
     for n in free:

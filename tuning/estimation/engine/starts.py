@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxcart.exact import simulate_exact
 from tuning.estimation.engine import parameters
 
 #: A cart is at rest where its recorded position stays put this long [s].
@@ -42,8 +43,6 @@ def start_values(segments, recs, base_plants, free) -> dict:
         if rec.command is not None:
             u_max = max(u_max, float(np.max(np.abs(rec.command))))
         elif seg.motor:
-            from jaxcart.exact import simulate_exact
-
             res = simulate_exact(base_plants[0], seg.controller, seg.experiment)
             u_max = max(u_max, float(np.nanmax(np.abs(res.command))))
     u_max = max(u_max, 0.5)

@@ -21,6 +21,7 @@ from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters
+from tuning.estimation.engine.exact_runs import exact_position
 from tuning.estimation.engine.lm import LM_DAMPING
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
@@ -303,7 +304,6 @@ class _Problem:
     def simulate_exact_many(self, thetas):
         """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
         (the executor's ``map``: several at a time)."""
-        from tuning.estimation.engine.exact_runs import exact_position
 
         jobs = []
         for theta in thetas:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hw.atomicio import save_figure
 from tuning.estimation.fitting.names import fittable, unit_of
 from tuning.estimation.fitting.result import FitResult
 
@@ -62,6 +63,5 @@ def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:
         held = ", ".join(f"{n} = {v:.4g}" for n, v in result.values.items() if n in fittable())
         fitted = f"prediction with {held or 'the nominal plant'}"
     fig.suptitle(f"jaxcart fit: {fitted}", fontsize=11)
-    from hw.atomicio import save_figure
 
     return save_figure(fig, path, dpi=dpi)
