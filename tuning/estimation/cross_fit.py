@@ -31,7 +31,6 @@ from tuning.estimation.fitting.result import _finite
 def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> list:
     """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
     state refitted). One row per recording, in their order (see :func:`cross_table`)."""
-
     alone = fit.fit([rec], params, progress=progress, executor=executor)
     values = {n: float(alone.values[fit.canonical(n)]) for n in params}
     held = [n for n, e in alone.params.items() if not e.identifiable]

@@ -273,7 +273,6 @@ def fit(
     Refused before any fitting (:func:`jaxcart.plausibility.check_fit_recordings`): a
     recording without motion, the same data twice, an open-loop input in other units.
     """
-
     recordings = check_fit_recordings(recordings)
     with jax.enable_x64(True):
         return _fit(recordings, params, per_recording, initial, settings, exact, progress, executor)

@@ -20,7 +20,6 @@ from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
 def exact_plants(cand: Candidate, base_plants, values):
     """Each recording's plant at ``values``: the shared values, and a run's own copy of a
     parameter free per run (``v_sat@2``) where it has one."""
-
     named = {n: values[n] for n in cand.free if "@" not in n}
     named["B_eq"] = values["B_eq"]
     plants = []

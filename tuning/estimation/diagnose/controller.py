@@ -29,7 +29,6 @@ TAUS = (0.0, 0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03
 
 def replay(pid, r, y):
     """Commands (after the limit) that ``pid`` computes from recorded r, y."""
-
     pid = dataclasses.replace(
         pid, **{k: float(getattr(pid, k)) for k in ("kp", "ki", "kd", "tau", "v_limit", "kb")}
     )
@@ -66,7 +65,6 @@ def check(recording):
     """{consistent, mismatch_rms, message, inferred (PID or None), reads_counts} for a closed
     loop with a recorded command; None when there is nothing to check. reads_counts: the
     controller read the recorded encoder counts (:func:`reads_counts`)."""
-
     pid = recording.controller
     v = recording.command
     if recording.kind != "closed_loop" or v is None or pid is None:

@@ -203,7 +203,6 @@ def describe_residual(residual, sample_time: float) -> str:
     White: its effective independent samples are most of its samples (the autocorrelation
     dies within a few samples). Otherwise the periodogram's largest peak above the lowest
     bins: below 1 Hz a drift, else a ripple at that frequency."""
-
     r = np.asarray(residual, dtype=float)
     r = r[np.isfinite(r)]
     if r.size < 16 or not np.any(r):

@@ -274,7 +274,6 @@ def _candidates_section(d, figure) -> list:
 
 def _edge(name: str, value) -> tuple[str, float] | None:
     """(side, bound) where a fitted value sits on an edge of its range (engine.parameters)."""
-
     try:
         return at_edge(name, value) if value is not None and math.isfinite(value) else None
     except KeyError:  # a name the engine has no range for
@@ -292,7 +291,6 @@ def _item_of(name: str) -> str:
 
 
 def _significance() -> str:
-
     return f"{SIGNIFICANCE:g}"
 
 
@@ -303,7 +301,6 @@ TITLE_LINES = 3
 def figure_title(d, width: int = 95) -> str:
     """The figure's title: :attr:`~.result.Diagnosis.headline`, wrapped to ``width``
     characters a line, at most :data:`TITLE_LINES` lines (the last then ends in "...")."""
-
     return textwrap.fill(d.headline, width, max_lines=TITLE_LINES, placeholder=" ...")
 
 
@@ -409,7 +406,6 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
 
 
 def _write_outputs(d, out, paths, json_path, force) -> None:
-
     out.mkdir(parents=True, exist_ok=True)
     if d.status == "diagnosed":
         fit = {

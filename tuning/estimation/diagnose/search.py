@@ -92,7 +92,6 @@ def diagnose(
     the caller owns; default: one after the other in this process). Runs in float64 whatever
     jax_enable_x64 says, and leaves it as it was.
     """
-
     with jax.enable_x64(True):
         return _diagnose(recordings, start, progress, pairs, processes, executor)
 
@@ -121,7 +120,6 @@ def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagno
 def _checks(recordings, say):
     """(messages refusing the recordings, controller checks, controllers inferred, whether
     each controller read whole encoder counts)."""
-
     messages = []
     for rec in recordings:
         problem = _excitation(rec, encoder_count(np.asarray(rec.position, dtype=float)))
@@ -147,7 +145,6 @@ class Search:
     """One diagnosis's search: the segments, the batch fitter, the candidates tried."""
 
     def __init__(self, recordings, controllers, read_counts, start, say, processes, executor=None):
-
         self.recordings, self.say, self.processes = recordings, say, processes
         segments = [
             prepare(r, c, min_coasting=MIN_COASTING)

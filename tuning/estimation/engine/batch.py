@@ -75,7 +75,6 @@ class Layout:
 def _superset(plant, shared):
     """``plant`` with every ``shared`` parameter it lacks at its neutral stand-in (a drive
     effect is not added to a plant without its motor: a tap)."""
-
     have = plant.param_names()
     missing = {k: parameters.stand_in(k) for k in shared if k not in have}
     if not plant.motor_connected:
@@ -111,7 +110,6 @@ def _groups(segments, supers, n_subs) -> list[tuple]:
     (experiment kind and sample time, the plant's and the controller's structure, sub-steps,
     an encoder in the loop). One loop per group instead of one per recording: a joint
     diagnosis's step compiles once per kind of run, not once per file."""
-
     groups: dict = {}
     for i, (seg, sup) in enumerate(zip(segments, supers, strict=True)):
         exp = seg.experiment
@@ -157,7 +155,6 @@ class _Runs(NamedTuple):
 def _group_positions(runs: _Runs, group, full, own, smoothing):
     """The smooth positions [m] of ``group``'s recordings (one row each, to the longest one's
     length) at the full parameter vector ``full``: one loop, the runs side by side."""
-
     plants, exps = [], []
     for i in group:
         have = runs.supers[i].param_names()
@@ -197,7 +194,6 @@ def _group_positions(runs: _Runs, group, full, own, smoothing):
 
 def _stacked(trees):
     """The pytrees ``trees`` (one structure) stacked leaf by leaf along a new first axis."""
-
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
 
 
@@ -292,7 +288,6 @@ class BatchFitter:
         :class:`~tuning.estimation.engine.noise.RecordingNoise` of the segments: several
         recordings are then fitted each against its own level (see :func:`_lm_trial`);
         None: plain least squares."""
-
         self.segments = segments
         self.layout = layout = Layout(segments, per_recording)
         # The recording each slot acts in alone (-1: every recording, a shared value).
@@ -479,7 +474,6 @@ class BatchFitter:
 
     def _gathered(self, share, problems, arrays, progress, widths):
         """Every process's rows of a distributed fit, assembled (see :meth:`fit`)."""
-
         n = len(problems)
         parts = share.allgather({k: np.asarray(v) for k, v in arrays.items()})
         # A process without problems sent nothing.

@@ -33,7 +33,6 @@ class ExactJob(NamedTuple):
 
 def exact_run(job: ExactJob):
     """(exact residual [m], command [V] or None) of one recording, read-only arrays."""
-
     exp = job.experiment
     res = simulate_exact(job.plant, job.controller, exp)
     pos = np.asarray(res.position, dtype=float)
@@ -59,7 +58,6 @@ def _cart_position(plant, experiment, command) -> np.ndarray:
     open loop on the plant without its sensor (the sensor only shapes what the controller
     reads, so the trajectory is the same, float for float). A run whose controller reads
     counts records the counts; their forward differences in a parameter are a staircase."""
-
     bare = dataclasses.replace(
         plant, effects=tuple(e for e in plant.effects if e.stage != "sensor")
     )
@@ -75,6 +73,5 @@ def _cart_position(plant, experiment, command) -> np.ndarray:
 def exact_position(job) -> np.ndarray:
     """The exact simulator's position [m] of one recording: ``job`` is (plant, controller or
     None, experiment)."""
-
     plant, controller, experiment = job
     return np.asarray(simulate_exact(plant, controller, experiment).position)

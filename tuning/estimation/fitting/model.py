@@ -304,7 +304,6 @@ class _Problem:
     def simulate_exact_many(self, thetas):
         """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
         (the executor's ``map``: several at a time)."""
-
         jobs = []
         for theta in thetas:
             for k, seg in enumerate(self.segments):
