@@ -23,14 +23,15 @@ import json
 
 import numpy as np
 
-from tuning.estimation import fit
-from tuning.estimation.engine.segments import recording_name
-from tuning.estimation.fitting.result import _finite
-
 
 def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> list:
     """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
     state refitted). One row per recording, in their order (see :func:`cross_table`)."""
+    # Imported here: `jaxcart fit`'s parser imports this module, and its --help starts no jax.
+    from tuning.estimation import fit
+    from tuning.estimation.engine.segments import recording_name
+    from tuning.estimation.fitting.result import _finite
+
     alone = fit.fit([rec], params, progress=progress, executor=executor)
     values = {n: float(alone.values[fit.canonical(n)]) for n in params}
     held = [n for n, e in alone.params.items() if not e.identifiable]

@@ -12,10 +12,11 @@ import numpy as np
 
 from hw.atomicio import all_or_none, write_text
 from hw.jsonio import write_json
+from jaxcart import plots
 from jaxcart.effects import REGISTRY
 from jaxcart.errors import UserError
 from jaxcart.plantspec import write_plant_file
-from jaxcart.plots import EXPERIMENT_STYLE, figure_legend, save
+from jaxcart.plots import EXPERIMENT_STYLE, figure_legend
 from tuning.estimation.diagnose.crossval import WORSE
 from tuning.estimation.diagnose.policy import SIGNIFICANCE
 from tuning.estimation.engine.parameters import at_edge
@@ -374,7 +375,7 @@ def plot_diagnosis(d, path) -> Path:
     figure_legend(fig, list(axes.flat), ncols=2 if n == 1 else 4)
     title = figure_title(d, _title_width(fig, 9))
     fig.suptitle(title, fontsize=9, color="black" if d.explained else "darkred")
-    path = save(fig, path, dpi=110)
+    path = plots.save(fig, path, dpi=110)
     plt.close(fig)
     return path
 
