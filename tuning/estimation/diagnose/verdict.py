@@ -272,4 +272,5 @@ def remainder(best, segments) -> str:
 
 
 def elapsed(t0) -> float:
+    """Seconds since ``t0`` (a ``time.perf_counter()`` reading), to 10 ms."""
     return round(_time.perf_counter() - t0, 2)
