@@ -120,6 +120,25 @@ def test_an_effect_at_its_bound_or_idle_is_not_named_and_its_z_is_reported():
     assert real["M"]["z"] == pytest.approx((0.31 - CORRECTION_MARGIN * 0.94) / 1e-3)
 
 
+def test_a_part_at_its_neutral_bound_is_idle_and_a_limit_that_never_acts_has_no_spread():
+    """A part's own parameter at the bound on its neutral side makes the part idle (the search
+    judges the structure without it); what it stands on is not idle on that account. A drive
+    limit free per run is compared between the runs where it acts only: a run that never
+    reached it leaves its value at the bound, which says nothing of the drive."""
+    se = lambda w: 0.01  # noqa: E731
+    fall = significance(("stribeck",), {"f_c": 0.4, "f_s": 0.6, "v_stribeck": 1e-4}, se)
+    assert all(v["idle"] for v in fall.values()) and "lower bound" in fall["stribeck"]["why"]
+    spring = significance(("spring",), {"k_s": 5e-4, "y_rest": 0.3}, se)
+    assert spring["spring"]["idle"]
+    # f_c at its lower bound inside Stribeck friction is Coulomb's, not the fall's own.
+    low = significance(("stribeck",), {"f_c": 3e-5, "f_s": 0.6, "v_stribeck": 0.01}, se)
+    assert not any(v["idle"] for v in low.values())
+    values = {"i_max@0": 1.5, "i_max@1": 19.9, "i_max@2": 1.2}
+    peaks = {"current": 2.0, "current@0": 1.6, "current@1": 0.8, "current@2": 1.4}
+    runs = significance((PER_RUN, "current_limit"), values, lambda w: 0.003, peaks=peaks)
+    assert runs[PER_RUN]["z"] == pytest.approx(0.3 / 0.003) and not runs[PER_RUN]["why"]
+
+
 def test_implausible_values_are_flagged():
     """Values at the edge of a lab cart's range (the fits are held inside it) or at a fit's
     bound are flagged, and only those."""

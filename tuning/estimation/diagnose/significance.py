@@ -14,6 +14,7 @@ from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
 from jaxcart.params import TRACK_LENGTH
 from tuning.estimation.diagnose.candidate_runs import exact_residuals, plant_of
+from tuning.estimation.diagnose.per_run import acts
 from tuning.estimation.diagnose.policy import (
     AT_BOUND,
     CORRECTION_MARGIN,
@@ -101,18 +102,19 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
     out = {}
     for part in parts:
         if part == PER_RUN:
-            out[PER_RUN] = _per_run_significance(values, stderr)
+            out[PER_RUN] = _per_run_significance(values, stderr, peaks)
             continue
         params = effect_params().get(part) or PARAM_ERRORS.get(part, ())
         views = []
         for vals, pk, run in _views(params, values, peaks):
             bound = _bound_text(params, vals, per_run=run is not None)
+            idle_part = bool(bound) and _own_at_neutral(part, vals)
             for item, strength, weights, what, neutral in _strengths(part, vals, pk, start):
                 if run is not None:
                     weights = {_own(n, run, values): w for n, w in weights.items()}
                     what = f"{what} in run {run + 1}"
                 z, why, idle = _judge(item, strength, weights, stderr, what, neutral, bound)
-                views.append((item, z, why, idle))
+                views.append((item, z, why, idle or idle_part))
         for item in dict.fromkeys(v[0] for v in views):
             # Of a part free per run, the run where it is clearest.
             mine = [v for v in views if v[0] == item]
@@ -146,6 +148,28 @@ def _views(params, values, peaks):
         vals = {**values, **{n: values[f"{n}@{i}"] for n in params if f"{n}@{i}" in values}}
         pk = {k: peaks.get(f"{k}@{i}", v) for k, v in peaks.items() if "@" not in k}
         yield vals, pk, i
+
+
+def _own_at_neutral(part, vals) -> bool:
+    """Whether a parameter the part adds to what it stands on (``Effect.requires``) sits at
+    the bound on its neutral side (``Param.neutral`` at or beyond it): the fit pushed the part
+    to where it does nothing one would name, so the part is idle, not untestable, and the
+    structure is judged without it (:meth:`~.search.Search.reduced`). A Stribeck fall at the
+    least speed of its range is stiction's jump: on an independent cart with an extra 0.5 kg
+    every better structure held Stribeck friction with v_stribeck at 0.1 mm/s, and a dead band
+    was named instead."""
+    below = {
+        n for r in getattr(REGISTRY.get(part), "requires", ()) for n in effect_params().get(r, ())
+    }
+    for n in effect_params().get(part, ()):
+        side = at_bound(n, vals[n]) if n not in below else ""
+        neutral = parameters.spec(n).neutral if side else None
+        if neutral is None:
+            continue
+        lo, hi = parameters.bounds(n)
+        if (side == "lower" and neutral <= lo) or (side == "upper" and neutral >= hi):
+            return True
+    return False
 
 
 def _bound_text(params, vals, per_run: bool) -> str:
@@ -201,15 +225,17 @@ def _min_size(weights) -> float | None:
         return None
 
 
-def _per_run_significance(values, stderr) -> dict:
+def _per_run_significance(values, stderr, peaks) -> dict:
     """Do the drive limits differ between runs? The largest difference between two runs' own
-    values of a limit, as a Wald test (and beyond the limit's least size worth naming)."""
+    values of a limit, among the runs where it acts (:func:`~.per_run.acts`: a limit above
+    what its run drove is not determined there), as a Wald test (and beyond the limit's least
+    size worth naming)."""
     best = {"z": math.nan, "why": "no drive limit is free per run", "idle": False, "part": PER_RUN}
     for n in per_run_params():
         own = {
             parameters.recording_of(k): v
             for k, v in values.items()
-            if "@" in k and parameters.base_name(k) == n
+            if "@" in k and parameters.base_name(k) == n and acts(n, k, v, peaks)
         }
         if len(own) < 2:
             continue
