@@ -12,7 +12,6 @@ diagnosis's simulation then reads them too (docs/diagnose.md, "The encoder in th
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,7 +22,6 @@ from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.estimation.diagnose import diagnose, render_markdown
 from tuning.estimation.diagnose.candidate_runs import fitter_scale
-from tuning.estimation.diagnose.per_run import unnamed_spread
 from tuning.estimation.diagnose.policy import (
     CORRECTION_MARGIN,
     K_MAX,
@@ -34,13 +32,7 @@ from tuning.estimation.diagnose.policy import (
 from tuning.estimation.diagnose.report import figure_title
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.significance import implausible, significance
-from tuning.estimation.diagnose.structures import (
-    PER_RUN,
-    Candidate,
-    extend,
-    structure,
-    swapped_correction,
-)
+from tuning.estimation.diagnose.structures import PER_RUN, Candidate, extend, swapped_correction
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
     MISFIT_RATIO,
@@ -128,11 +120,9 @@ def test_an_effect_at_its_bound_or_idle_is_not_named_and_its_z_is_reported():
     assert real["M"]["z"] == pytest.approx((0.31 - CORRECTION_MARGIN * 0.94) / 1e-3)
 
 
-def test_a_part_at_its_neutral_bound_is_idle_and_a_limit_that_never_acts_has_no_spread():
+def test_a_part_at_its_neutral_bound_is_idle():
     """A part's own parameter at the bound on its neutral side makes the part idle (the search
-    judges the structure without it); what it stands on is not idle on that account. A drive
-    limit free per run is compared between the runs where it acts only: a run that never
-    reached it leaves its value at the bound, which says nothing of the drive."""
+    judges the structure without it); what it stands on is not idle on that account."""
     se = lambda w: 0.01  # noqa: E731
     fall = significance(("stribeck",), {"f_c": 0.4, "f_s": 0.6, "v_stribeck": 1e-4}, se)
     assert all(v["idle"] for v in fall.values()) and "lower bound" in fall["stribeck"]["why"]
@@ -141,25 +131,6 @@ def test_a_part_at_its_neutral_bound_is_idle_and_a_limit_that_never_acts_has_no_
     # f_c at its lower bound inside Stribeck friction is Coulomb's, not the fall's own.
     low = significance(("stribeck",), {"f_c": 3e-5, "f_s": 0.6, "v_stribeck": 0.01}, se)
     assert not any(v["idle"] for v in low.values())
-    values = {"i_max@0": 1.5, "i_max@1": 19.9, "i_max@2": 1.2}
-    peaks = {"current": 2.0, "current@0": 1.6, "current@1": 0.8, "current@2": 1.4}
-    runs = significance((PER_RUN, "current_limit"), values, lambda w: 0.003, peaks=peaks)
-    assert runs[PER_RUN]["z"] == pytest.approx(0.3 / 0.003) and not runs[PER_RUN]["why"]
-
-
-def test_a_shared_limit_keeps_the_spread_of_the_runs_where_it_acts():
-    """The drive limit the chosen structure shares between runs, as each run had it where it
-    acts (the same structure with it free per run, as the search fitted it): a design's band
-    draws a next run's limit from these; a run that never reached its limit gives none."""
-    shared = structure(("current_limit", "coulomb"), runs=(1, 2, 3))
-    free = structure(("current_limit", "coulomb", PER_RUN), runs=(1, 2, 3))
-    free.values = {"B_eq": 2.5, "f_c": 0.4, "i_max@1": 1.234, "i_max@2": 19.9, "i_max@3": 1.197}
-    free.residuals = [np.zeros(3)]
-    peaks = {"current": 1.5, "current@1": 1.4, "current@2": 0.9, "current@3": 1.5}
-    cov = SimpleNamespace(stderr=lambda w: 0.004 if "i_max@1" in w else 0.003)
-    search = SimpleNamespace(cands=[shared, free], peaks=lambda c: peaks, cov_of=lambda c: cov)
-    assert unnamed_spread(search, shared) == {"i_max": [(1.234, 0.004), (1.197, 0.003)]}
-    assert unnamed_spread(search, free) == {}  # its limits are per run already
 
 
 def test_implausible_values_are_flagged():

@@ -110,15 +110,6 @@ def test_uncertainty_from_a_fit_and_through_a_plant_file(tmp_path):
     assert back.names == u.names and back.drive == u.drive
     assert [back.stderr(n) for n in back.varied] == pytest.approx([u.stderr(n) for n in u.varied])
     assert from_fit_table(plant, {"source": "no errors"}) is None
-    # A limit the fit shares between its runs, as each run where it acts had it (a diagnosis's
-    # drive_runs): a new run draws it from their spread, not from the shared value's error.
-    shared = SimpleNamespace(params={**est, "i_max": SimpleNamespace(value=1.23, stderr=0.003)})
-    runs = {"i_max": [(1.234, 0.004), (1.197, 0.003)]}
-    u = from_fit(shared, plant=plant, runs=runs)
-    assert "i_max" not in u.names and u.drive["i_max"] == (1.234, 1.197)
-    mean, sd = u.drive_spread("i_max")
-    assert mean == pytest.approx(1.2155)
-    assert sd == pytest.approx(math.hypot(np.std([1.234, 1.197], ddof=1) * math.sqrt(1.5), 0.0025))
 
 
 def test_a_run_outside_its_band_is_explained_by_the_value_that_moved():

@@ -134,16 +134,11 @@ def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
     return v * np.sqrt(np.clip(w, 0.0, None))[None, :]
 
 
-def from_fit(
-    fit, *, plant: Plant | None = None, source: str = "the joint fit", runs: dict | None = None
-) -> CartUncertainty:
+def from_fit(fit, *, plant: Plant | None = None, source: str = "the joint fit") -> CartUncertainty:
     """The uncertainty of a :class:`tuning.estimation.fit.FitResult` ``fit``: its shared values
     with standard errors (and correlations where the fit has them), and the values free per
-    run as the drive's run-to-run spread; ``plant``: the fitted cart (default ``fit.plant()``);
-    ``runs``: {name: [(value, standard error) [SI], ...]} of a value the fit shares between its
-    runs as each run had it (a diagnosis's ``drive_runs``): a new run draws it from their
-    spread instead of the shared value's standard error. A value without a standard error
-    (held, or not determined) stays at the fitted cart's."""
+    run as the drive's run-to-run spread; ``plant``: the fitted cart (default ``fit.plant()``).
+    A value without a standard error (held, or not determined) stays at the fitted cart's."""
     plant = fit.plant() if plant is None else plant
     shared, drive, drive_se = {}, {}, {}
     for name, est in fit.params.items():
@@ -156,11 +151,6 @@ def from_fit(
             drive_se.setdefault(base, []).append(float(se))
         elif est.stderr is not None and math.isfinite(est.stderr) and est.stderr > 0:
             shared[name] = (float(est.value), float(est.stderr))
-    for name, each in (runs or {}).items():
-        if name not in drive and len(each) >= 2:
-            drive[name] = [float(v) for v, _ in each]
-            drive_se[name] = [float(se) if math.isfinite(se) else 0.0 for _, se in each]
-            shared.pop(name, None)
     names = tuple(shared)
     mean = np.array([shared[n][0] for n in names])
     se = np.array([shared[n][1] for n in names])

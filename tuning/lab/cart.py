@@ -104,15 +104,14 @@ def compute(
     runs = inputs.runs()
     if not any(r.kind != "tap" for r in runs):
         return None
-    drive_runs = {}
     if diagnosis is not None and diagnosis.status == "diagnosed":
         joint, alone = _diagnosed(diagnosis, tap_b_eq, say)
-        source, drive_runs = "the joint diagnosis", diagnosis.drive_runs
+        source = "the joint diagnosis"
     else:
         joint, alone = _fitted(inputs, runs, tap_b_eq, start or {}, fit, say)
         source = "a joint fit of its own (no diagnosis)"
     names = tuple(s.name for s in joint.segments)
-    uncertain = cart_uncertainty.from_fit(joint, source=source, runs=drive_runs)
+    uncertain = cart_uncertainty.from_fit(joint, source=source)
     return JointCart(joint, alone, tap_b_eq, names, source, uncertain)
 
 

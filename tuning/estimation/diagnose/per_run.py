@@ -77,30 +77,6 @@ def cart_plant(best, base_plants, segments, peaks):
     return motor[0] if motor else plants[0]
 
 
-def unnamed_spread(search, best) -> dict:
-    """{limit: [(value, standard error) [SI] of each run where it acts]} of the drive limits
-    ``best`` shares between its runs, as the same structure with them free per run measured
-    them (where the search fitted it, and the limit acts in two runs or more): the spread a
-    next run's drive may have. Too small to name, it still moves a design that sits on the
-    limit: on an independent cart with a current limit of 1.2 A drawn anew for each run (3 %),
-    the shared fit's 1.232 A put the re-tuned design's settling at 0.667 s, the true cart's
-    0.684 s outside its band, while the P 50 and PID runs' own limits were 1.234 and 1.197 A.
-    {} where ``best`` has its limits per run already."""
-    if PER_RUN in best.parts:
-        return {}
-    want = frozenset(best.parts) | {PER_RUN}
-    variant = next((c for c in search.cands if frozenset(c.parts) == want and c.residuals), None)
-    if variant is None:
-        return {}
-    peaks, cov = search.peaks(variant), search.cov_of(variant)
-    out = {}
-    for k, v in sorted(variant.values.items()):
-        n = parameters.base_name(k)
-        if "@" in k and n in per_run_params() and acts(n, k, v, peaks):
-            out.setdefault(n, []).append((float(v), float(cov.stderr({k: 1.0}))))
-    return {n: runs for n, runs in out.items() if len(runs) >= 2}
-
-
 def per_recording(best, names, segments, base, cov, peaks) -> dict:
     """{recording name: {"parameters": its own values ("acts": False for a limit above what
     that run drove: {command,current}@i of ``peaks``), "rms_before", "rms_after" [m]}}."""

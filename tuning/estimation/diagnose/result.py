@@ -67,10 +67,6 @@ class Diagnosis:
     #: Where a run's own drive limit is far below what another run drew: more than one drive
     #: varies (said beside the limits; "" otherwise).
     drive_spread: str = ""
-    #: The drive limits the chosen structure shares between runs, as each run where they act
-    #: had them: {limit: [(value, standard error) [SI], ...]} (:func:`~.per_run.unnamed_spread`;
-    #: a design's band draws a next run's limit from them).
-    drive_runs: dict = field(default_factory=dict)
     #: What the cart repeats [m]: the RMS spread of repeated runs of one experiment (None
     #: without repeats); below it a model of the cart cannot be judged.
     repeat: float | None = None
@@ -225,7 +221,6 @@ class Diagnosis:
             "seconds": self.seconds,
             "per_recording": self.per_recording,
             "drive_spread": self.drive_spread,
-            "drive_runs": {n: [list(r) for r in runs] for n, runs in self.drive_runs.items()},
             "repeat": self.repeat,
             "remainder": self.remainder,
             "cross_validation": self.cross_validation,

@@ -225,7 +225,6 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
         start_values={n: search.neutral[n] for n in corrections},
         per_recording=per_recording,
         drive_spread=per_run.per_run_inconsistency(best.values, peaks) if best.runs else "",
-        drive_runs=per_run.unnamed_spread(search, best),
         cross_validation=cv,
         driven_alone=driven,
         taps_alone=taps,
