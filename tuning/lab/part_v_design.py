@@ -61,7 +61,7 @@ class Design:
 class Designs:
     """Part (v)'s designs (:class:`Design`, in :data:`LABELS`' order), the recording's name
     (or None), where the cart's fit comes from, and how far the fitted cart misses each
-    recorded step (:class:`tuning.design.calibration.StepMiss`; their largest miss widens
+    recorded step (:class:`tuning.design.calibration.StepMiss`; the bound on a new run's miss widens
     every band: ``model_error``)."""
 
     designs: tuple

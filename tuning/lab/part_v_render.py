@@ -84,8 +84,9 @@ def _misses(lab, d) -> None:
         "The fit's standard errors say how well the recordings pin the model's values, not "
         "how right the model is; the recorded steps say that. Each is simulated on the fitted "
         "cart with its own controller, step and drive limit, and compared with the recording; "
-        f"the largest miss, {e['settling_time'] * 1e3:.3g} ms in time and "
-        f"{e['overshoot']:.3g} % in overshoot, widens every band above on both sides."
+        f"what a new run may miss by at the bands' level (Student's t over the runs' misses), "
+        f"{e['settling_time'] * 1e3:.3g} ms in time and {e['overshoot']:.3g} % in overshoot, "
+        "widens every band above on both sides."
     )
     lab.doc.table(
         ["recording", "enters the 2 % band [s]: measured, simulated",
