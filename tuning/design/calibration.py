@@ -18,16 +18,16 @@ metrics are compared with the recording's:
   where its entering misses by 3 ms);
 - its overshoot [%].
 
-The model error of a metric is a bound on a new run's miss at the band's level, from the n
-runs' misses: taken as zero-mean normal with an unknown spread, a new miss over their RMS s
-is Student's t with n degrees of freedom, so the bound is t_{(1+level)/2, n} s (2.35 s for
-three runs at 90 %). The largest miss was the bound until 2026-12-05: of n exchangeable
-misses a new one exceeds their largest with probability 1 / (n + 1), a quarter with the
-lab's usual three, so a "90 %" band held about 75 %; on the independent cart with an extra
-0.5 kg (misses 14, 6 and 1 ms) the true settling time lay 1 ms past it. A prediction's band
-(:meth:`tuning.design.prediction.Prediction.interval`) is widened by the bound on both
-sides. A fit that reproduces its steps exactly adds nothing. (The recordings were fitted:
-this is what the model misses by where it was fitted, not a held-out bound.)
+The model error of a metric is a bound on a new run's miss at the band's level, from the n runs'
+misses: taken as zero-mean normal with an unknown spread, a new miss over their RMS is Student's
+t with n degrees of freedom, so the bound is t_{(1+level)/2, n} times that RMS (2.35 times it
+for three runs at 90 %). The largest miss was the bound until 2026-12-05: of n exchangeable
+misses a new one exceeds their largest with probability 1 / (n + 1), a quarter with the lab's
+usual three, so a "90 %" band held about 75 %; on the independent cart with an extra 0.5 kg
+(misses 14, 6 and 1 ms) the true settling time lay 1 ms past it. A prediction's band
+(:meth:`tuning.design.prediction.Prediction.interval`) is widened by the bound on both sides. A
+fit that reproduces its steps exactly adds nothing. (The recordings were fitted: this is what
+the model misses by where it was fitted, not a held-out bound.)
 """
 
 from __future__ import annotations
