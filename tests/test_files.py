@@ -423,7 +423,7 @@ def test_signal_read_without_x64_stays_float64():
     pass through float32 on the way (0.4 m would become 0.40000001 m)."""
     from pathlib import Path
 
-    from tuning.estimation.fit import FitSettings, prepare
+    from tuning.estimation.fit import FitSettings, fit_segment
 
     path = Path(jc.__file__).parent / "data" / "p50.toml"
     with jax.enable_x64(False):
@@ -431,7 +431,7 @@ def test_signal_read_without_x64_stays_float64():
     assert rec.experiment.signal.dtype == np.float32  # the JAX mode it was read in
     with jax.enable_x64(True):
         full = read_experiment(path)
-        seg = prepare(rec, ["B_eq"], {}, FitSettings())
+        seg = fit_segment(rec, ["B_eq"], {}, FitSettings())
     np.testing.assert_array_equal(rec.signal64(), np.asarray(full.experiment.signal))
     assert rec.signal64().dtype == np.float64
     np.testing.assert_array_equal(np.asarray(seg.experiment.signal), rec.signal64())

@@ -81,7 +81,7 @@ def test_an_optimizer_at_its_cap_says_so(tap, good):
 
 
 def test_batched_trials_equal_single_runs(tap):
-    seg = fit.prepare(tap, ("B_eq", "f_c"), {}, QUICK)
+    seg = fit.fit_segment(tap, ("B_eq", "f_c"), {}, QUICK)
     problem = model._Problem([seg], ("B_eq", "f_c"), QUICK)
     points = problem.theta0 + np.array([[0.0, 0.0, 0.0, 0.0], [0.1, -0.2, 0.5, 0.3]])
     r_k, j_k = problem.evaluate_batch(points, 1e-3)
@@ -96,7 +96,7 @@ def test_noise_floor_against_the_true_positions():
     truth = jc.handout_plant(B_eq=2.5, f_c=0.3)
     for noise in (0.0, 2e-5):
         rec = make_recording(truth, jc.PID(kp=20.0), jc.ramp(0.2, horizon=2.0), seed=4, noise=noise)
-        seg = fit.prepare(rec, ("B_eq",), {}, fit.FitSettings())
+        seg = fit.fit_segment(rec, ("B_eq",), {}, fit.FitSettings())
         # About its mean: a constant offset (the count's phase in noisy data) is y0's part.
         err = seg.target - rec.true_position
         assert floor_of([seg]) == pytest.approx(np.std(err), rel=0.1), noise

@@ -2,7 +2,7 @@
 Levenberg-Marquardt polish, a last Gauss-Newton polish on the exact simulator, standard errors
 that survive autocorrelated residuals, and identifiability.
 
-    recordings --prepare--> segments (a tap: its coasting part, found automatically;
+    recordings --fit_segment--> segments (a tap: its coasting part, found automatically;
                                |      encoder counts: the middle of each count)
     theta = [log B_eq, log f_c, ... (shared) | y0, yd0 of each recording (nuisance)]
                                v
@@ -102,7 +102,7 @@ from tuning.estimation.fitting.result import Estimate, FitResult, SegmentFit, _r
 __all__ = [
     "Estimate", "FitResult", "FitSettings", "Nuisance", "SegmentFit", "assemble", "canonical",
     "cross_predict", "default_start", "fit", "fit_table", "fittable", "load_fitted_plant",
-    "not_fitted", "parse_params", "plant_values", "plot_fit", "prepare",
+    "not_fitted", "parse_params", "plant_values", "plot_fit", "fit_segment",
     "unit_of", "with_values", "write_fitted_plant"
 ]  # fmt: skip
 
@@ -138,7 +138,7 @@ class FitSettings:
     quantization: float | None = None
 
 
-def prepare(recording, params, values: dict, settings: FitSettings) -> Segment:
+def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segment:
     """A recording as the engine's :class:`Segment` (:func:`~.engine.segments.prepare`: the
     coasting part of a tap, or the whole run of a closed or open loop) with what this fit adds:
     the plant with the start ``values`` (and each fitted effect it lacks at a start where it acts
@@ -320,7 +320,7 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
     if not recordings:
         raise UserError("no recordings to fit; give at least one experiment file")
     values0 = {canonical(k): _initial_value(k, v) for k, v in (initial or {}).items()}
-    segments = [prepare(rec, params, values0, settings) for rec in recordings]
+    segments = [fit_segment(rec, params, values0, settings) for rec in recordings]
     params = _expand(params, per_recording, segments)
     problem = _Problem(segments, params, settings, executor)
     run = _Run(progress)

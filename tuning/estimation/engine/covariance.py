@@ -19,9 +19,9 @@ internal parameters); a caller converts to natural units with the value slopes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
@@ -29,14 +29,54 @@ from tuning.estimation.engine import parameters
 from tuning.estimation.engine.noise import effective_samples, widened_for_model_error
 
 
-class Covariances(NamedTuple):
-    """``robust`` and ``naive`` (p x p, the units of J's columns; rows and columns of a
-    ``singular`` parameter are inf), ``singular`` (p,): True where a parameter has no effect
-    on the residual or lies along a direction the data do not determine."""
+@dataclass
+class Covariance:
+    """Parameter covariances of one fit (``jaxcart fit``'s and ``jaxcart diagnose``'s), natural
+    units (or a fit's internal ones, :func:`covariance`): ``robust`` (the engine's run-clustered
+    sandwich with the encoder floor, :func:`tuning.estimation.engine.covariance.covariances`),
+    ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); a parameter the data do not
+    determine has inf in its row and column; ``n`` residuals worth ``n_eff`` independent ones
+    (:func:`tuning.estimation.engine.noise.effective_samples`); ``widened``: the residual is
+    model error, and every standard error is widened as ``jaxcart fit`` widens its own
+    (:func:`tuning.estimation.engine.noise.widened_for_model_error`)."""
 
+    names: list
     robust: np.ndarray
     naive: np.ndarray
-    singular: np.ndarray
+    n: int
+    n_eff: float
+    widened: bool
+
+    def stderr(self, weights: dict) -> float:
+        """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
+        difference ({"f_s": 1, "f_c": -1}); nan where one of them is not determined."""
+        if any(n not in self.names for n in weights):
+            return math.nan
+        # Only the named entries: 0 * inf of an undetermined other one would be nan.
+        i = [self.names.index(n) for n in weights]
+        a = np.array(list(weights.values()), dtype=float)
+        robust = self.robust[np.ix_(i, i)]
+        if not np.all(np.isfinite(robust)):
+            return math.nan
+        var = float(a @ robust @ a)
+        se = math.sqrt(max(var, 0.0))
+        if self.widened:
+            naive = max(float(a @ self.naive[np.ix_(i, i)] @ a), 0.0)
+            se = float(widened_for_model_error(se, naive, self.n, self.n_eff))
+        return se
+
+    def stderrs(self) -> np.ndarray:
+        """The standard error of every entry (inf where the data do not determine it), widened
+        as :meth:`stderr` widens one."""
+        se = np.sqrt(np.diag(self.robust))
+        if self.widened:
+            se = widened_for_model_error(se, np.diag(self.naive), self.n, self.n_eff)
+        return se
+
+    @property
+    def singular(self) -> np.ndarray:
+        """True for each entry the data do not determine (its variance not finite)."""
+        return ~np.isfinite(np.diag(self.robust))
 
 
 def bartlett_bandwidth(scores) -> int:
@@ -134,14 +174,16 @@ def determined(jac) -> bool:
     return bool(np.all(np.isfinite(jac))) and not np.any(_inverse(jac)[-1])
 
 
-def covariances(jac, residuals, models, quantizations, weights=None) -> Covariances:
-    """Robust and naive covariances (module docstring) of the parameters of J.
+def covariances(jac, residuals, models, quantizations, weights=None, names=None) -> Covariance:
+    """Robust and naive covariances (module docstring) of the parameters of J, in the units
+    of J's columns (rows and columns of a parameter the data do not determine are inf).
 
     jac: (N, p) d residual / d parameter [m per unit], rows in the order of ``residuals``;
     residuals: one array [m] per recording; models: the model's positions [m] per recording
     (they decide the runs); quantizations: each recording's encoder count [m] (0: none);
     weights: each recording's weight in a weighted fit (its rows of J and its residuals scaled
-    by the square root, and its encoder share with it), None for equal weights."""
+    by the square root, and its encoder share with it), None for equal weights; names: of J's
+    columns (default their indices)."""
     jac = np.asarray(jac, dtype=float)
     parts = [np.asarray(x, dtype=float) for x in residuals]
     weights = np.ones(len(parts)) if weights is None else np.asarray(weights, dtype=float)
@@ -153,8 +195,9 @@ def covariances(jac, residuals, models, quantizations, weights=None) -> Covarian
     parts = [x * w for x, w in zip(parts, roots, strict=True)]
     r = np.concatenate(parts) if parts else np.zeros(0)
     p = jac.shape[1]
+    names = list(range(p)) if names is None else list(names)
     if p == 0:
-        return Covariances(np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0, dtype=bool))
+        return Covariance(names, np.zeros((0, 0)), np.zeros((0, 0)), r.size, float(r.size), False)
     scale, js, b_inv, b_inv_sqrt, singular = _inverse(jac)
     s_data = np.zeros((p, p))
     s_enc = np.zeros((p, p))
@@ -174,57 +217,7 @@ def covariances(jac, residuals, models, quantizations, weights=None) -> Covarian
     for cov in (robust, naive):
         cov[singular, :] = np.inf
         cov[:, singular] = np.inf
-    return Covariances(robust, naive, singular)
-
-
-@dataclass
-class Covariance:
-    """Parameter covariances of one fit (``jaxcart fit``'s and ``jaxcart diagnose``'s), natural
-    units (or a fit's internal ones, :func:`covariance`): ``robust`` (the engine's run-clustered
-    sandwich with the encoder floor, :func:`tuning.estimation.engine.covariance.covariances`),
-    ``naive`` (sigma^2 (J^T J)^-1, sigma^2 = RSS / (N - p)); a parameter the data do not
-    determine has inf in its row and column; ``n`` residuals worth ``n_eff`` independent ones
-    (:func:`tuning.estimation.engine.noise.effective_samples`); ``widened``: the residual is
-    model error, and every standard error is widened as ``jaxcart fit`` widens its own
-    (:func:`tuning.estimation.engine.noise.widened_for_model_error`)."""
-
-    names: list
-    robust: np.ndarray
-    naive: np.ndarray
-    n: int
-    n_eff: float
-    widened: bool
-
-    def stderr(self, weights: dict) -> float:
-        """Standard error of sum(weights[name] * name): one parameter ({name: 1}) or a
-        difference ({"f_s": 1, "f_c": -1}); nan where one of them is not determined."""
-        if any(n not in self.names for n in weights):
-            return math.nan
-        # Only the named entries: 0 * inf of an undetermined other one would be nan.
-        i = [self.names.index(n) for n in weights]
-        a = np.array(list(weights.values()), dtype=float)
-        robust = self.robust[np.ix_(i, i)]
-        if not np.all(np.isfinite(robust)):
-            return math.nan
-        var = float(a @ robust @ a)
-        se = math.sqrt(max(var, 0.0))
-        if self.widened:
-            naive = max(float(a @ self.naive[np.ix_(i, i)] @ a), 0.0)
-            se = float(widened_for_model_error(se, naive, self.n, self.n_eff))
-        return se
-
-    def stderrs(self) -> np.ndarray:
-        """The standard error of every entry (inf where the data do not determine it), widened
-        as :meth:`stderr` widens one."""
-        se = np.sqrt(np.diag(self.robust))
-        if self.widened:
-            se = widened_for_model_error(se, np.diag(self.naive), self.n, self.n_eff)
-        return se
-
-    @property
-    def singular(self) -> np.ndarray:
-        """True for each entry the data do not determine (its variance not finite)."""
-        return ~np.isfinite(np.diag(self.robust))
+    return Covariance(names, robust, naive, r.size, float(r.size), False)
 
 
 def covariance(
@@ -251,7 +244,8 @@ def covariance(
     if not finite:  # a smooth fit that ran away: no standard errors
         return Covariance(list(names), nan, nan, r.size, 1.0, False)
     models = [np.asarray(x) + seg.target for x, seg in zip(residuals, segments, strict=True)]
-    cov = covariances(jac, residuals, models, [seg.quantization for seg in segments], weights)
+    quantizations = [seg.quantization for seg in segments]
+    cov = covariances(jac, residuals, models, quantizations, weights, names)
     # d value / d theta (log parameters); None: the internal units themselves.
     dv = (
         np.ones(p)
@@ -262,4 +256,6 @@ def covariance(
     rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
     widened = widen_above is not None and rms > widen_above
     n_eff = effective_samples(residuals) if widened else float(r.size)
-    return Covariance(list(names), cov.robust * d, cov.naive * d, int(r.size), n_eff, widened)
+    return dataclasses.replace(
+        cov, robust=cov.robust * d, naive=cov.naive * d, n_eff=n_eff, widened=widened
+    )
