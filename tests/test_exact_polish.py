@@ -27,16 +27,21 @@ def residual():
 WIDE = (np.full(2, -10.0), np.full(2, 10.0))
 
 
+def _each(residual):
+    """The engine's contract from a residual of one point: points -> their residuals."""
+    return lambda xs: [residual(x) for x in xs]
+
+
 def test_gauss_newton_finds_a_known_optimum_on_the_exact_simulator(residual):
     """From B_eq and f_c 20 % off, the polish returns the values the data were made with (to
     1e-6 relative), says it improved and converged, and its Jacobian is the one at the values
     returned."""
     start = np.log([1.8, 0.35])
-    done = gauss_newton(residual, start, np.full(2, 1e-6), WIDE, 20)
+    done = gauss_newton(_each(residual), start, np.full(2, 1e-6), WIDE, 20)
     assert done.improved and done.converged and done.iterations < 20
     assert np.exp(done.x) == pytest.approx(np.exp(TRUTH), rel=1e-6)
     assert np.sqrt(np.mean(done.r**2)) < 1e-9  # [m]
-    fresh = jacobian(residual, done.x, residual(done.x), np.full(2, 1e-6))
+    fresh = jacobian(_each(residual), done.x, residual(done.x), np.full(2, 1e-6))
     np.testing.assert_array_equal(done.jac, fresh)
 
 
@@ -44,7 +49,7 @@ def test_gauss_newton_stays_inside_its_bounds(residual):
     """An upper bound on f_c below the truth: the polish ends on it (within a step's clip),
     never beyond, and B_eq takes up what it can."""
     high = np.array([10.0, np.log(0.4)])
-    done = gauss_newton(residual, np.log([1.8, 0.35]), np.full(2, 1e-6), (WIDE[0], high), 20)
+    done = gauss_newton(_each(residual), np.log([1.8, 0.35]), np.full(2, 1e-6), (WIDE[0], high), 20)
     assert done.improved
     assert done.x[1] <= high[1] and np.exp(done.x[1]) == pytest.approx(0.4, rel=1e-9)
 
@@ -54,7 +59,7 @@ def test_forward_differences_agree_with_central_ones(residual):
     central one within 1e-5 of each column's norm: the central's second exact run per
     parameter buys nothing measurable (the fit's values moved by 3e-5 standard errors)."""
     h = 1e-6
-    fwd = jacobian(residual, TRUTH, residual(TRUTH), np.full(2, h))
+    fwd = jacobian(_each(residual), TRUTH, residual(TRUTH), np.full(2, h))
     central = np.column_stack(
         [(residual(TRUTH + h * e) - residual(TRUTH - h * e)) / (2 * h) for e in np.eye(2)]
     )
@@ -70,7 +75,7 @@ def test_no_descent_keeps_the_start():
         return np.array([x[0] - 1.0, x[1] + 2.0, 0.5])
 
     start = np.array([1.0, -2.0])
-    done = gauss_newton(residual, start, np.full(2, 1e-6), WIDE, 5)
+    done = gauss_newton(_each(residual), start, np.full(2, 1e-6), WIDE, 5)
     assert not done.improved and done.converged and done.iterations == 1
     np.testing.assert_array_equal(done.x, start)
     np.testing.assert_allclose(done.jac, [[1, 0], [0, 1], [0, 0]], atol=1e-6)
@@ -85,9 +90,9 @@ def test_a_fit_that_cannot_reach_its_target_stops_after_the_first_jacobian():
         return np.array([x[0] - 1.0, x[1] + 2.0, 0.5])
 
     start = np.array([3.0, 1.0])
-    hopeless = gauss_newton(residual, start, np.full(2, 1e-6), WIDE, 5, target=0.2)
+    hopeless = gauss_newton(_each(residual), start, np.full(2, 1e-6), WIDE, 5, target=0.2)
     assert not hopeless.improved and not hopeless.converged and hopeless.iterations == 0
     np.testing.assert_array_equal(hopeless.x, start)
     assert hopeless.jac is not None
-    reached = gauss_newton(residual, start, np.full(2, 1e-6), WIDE, 5, target=0.3)
+    reached = gauss_newton(_each(residual), start, np.full(2, 1e-6), WIDE, 5, target=0.3)
     np.testing.assert_allclose(reached.x, [1.0, -2.0], atol=1e-6)

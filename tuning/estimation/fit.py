@@ -208,22 +208,13 @@ def _exact_polish(problem, theta, active, jac, iterations):
         out[idx] = x
         return out
 
-    made = {}  # the Jacobian's columns, made at once (several at a time) by prefetch
-
-    def residual(x):
-        key = np.asarray(x, dtype=float).tobytes()
-        if key in made:
-            return made.pop(key)
-        return problem.exact_residuals(full(x))
-
-    def prefetch(xs):
-        made.clear()
-        for x, pos in zip(xs, problem.simulate_exact_many([full(x) for x in xs]), strict=True):
-            made[np.asarray(x, dtype=float).tobytes()] = np.concatenate(pos) - problem.observed
+    def residuals(xs):  # the points' runs made at once, several at a time
+        runs = problem.simulate_exact_many([full(x) for x in xs])
+        return [np.concatenate(pos) - problem.observed for pos in runs]
 
     low, high = problem.theta_bounds()
     done = polish(
-        residual,
+        residuals,
         [problem.entries[i] for i in idx],
         theta[idx],
         iterations,
@@ -233,7 +224,6 @@ def _exact_polish(problem, theta, active, jac, iterations):
         steps=1e-6,  # a relative step of 1e-6 for the logs
         max_step=MAX_STEP,
         shortest=1 / 64,
-        prefetch=prefetch,
     )
     theta = theta.copy()
     theta[idx] = done.x

@@ -207,18 +207,16 @@ def polish(
     def at(x):
         return dict(zip(names, (float(v) for v in x), strict=True))
 
-    def residual(x):
+    def residuals(xs):
+        if memo is not None and len(xs) > 1:  # the runs of every point made at once
+            exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
         # Through the memo: a difference in a per-run value re-simulates its own run alone.
-        parts = exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0]
-        return np.concatenate(parts) * rows
-
-    def prefetch(xs):
-        exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
+        parts = [exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0] for x in xs]
+        return [np.concatenate(p) * rows for p in parts]
 
     done = exact_polish.polish(
-        residual, names, [values[n] for n in names], iterations,
-        reference=smooth_reference(cand, names, values, segments),
-        prefetch=prefetch if memo else None, target=target,
+        residuals, names, [values[n] for n in names], iterations,
+        reference=smooth_reference(cand, names, values, segments), target=target,
     )  # fmt: skip
     out = at(done.x) if done.improved else values
     jac = None if done.jac is None else done.jac / rows[:, None]  # the plain residual's

@@ -204,15 +204,15 @@ def exact_jacobian(search, c) -> np.ndarray:
     def at(x):
         return {**c.values, **dict(zip(names, (float(v) for v in x), strict=True))}
 
-    def residual(x):
-        return np.concatenate(search.exact(c, at(x))[0])
+    def residuals(xs):
+        search.prefetch([(c, at(x)) for x in xs])  # the runs of every point made at once
+        return [np.concatenate(search.exact(c, at(x))[0]) for x in xs]
 
     jac = values_jacobian(
-        residual,
+        residuals,
         names,
         [c.values[n] for n in names],
         reference=candidate_runs.smooth_reference(c, names, c.values, search.segments),
-        prefetch=lambda xs: search.prefetch([(c, at(x)) for x in xs]),
     )
     c.jac_exact = (key, jac)
     return jac
@@ -276,20 +276,18 @@ def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> 
     renamed = [_renamed(n, [k]) for n in own]
     held = sub.values(values)
 
-    def residual(x):
-        return sub.residuals({**held, **dict(zip(renamed, (float(v) for v in x), strict=True))})[0]
+    def at(x):
+        return {**held, **dict(zip(renamed, (float(v) for v in x), strict=True))}
 
-    def prefetch(xs):
-        candidate_runs.exact_prefetch(
-            sub.cand, sub.segments, sub.plants,
-            [{**held, **dict(zip(renamed, (float(v) for v in x), strict=True))} for x in xs],
-            sub.layout, sub.memo,
-        )  # fmt: skip
+    def residuals(xs):
+        candidate_runs.exact_prefetch(  # the runs of every point made at once
+            sub.cand, sub.segments, sub.plants, [at(x) for x in xs], sub.layout, sub.memo
+        )
+        return [sub.residuals(at(x))[0] for x in xs]
 
     done = polish(
-        residual, renamed, [held[n] for n in renamed], iterations,
+        residuals, renamed, [held[n] for n in renamed], iterations,
         reference=candidate_runs.smooth_reference(sub.cand, renamed, held, sub.segments),
-        prefetch=prefetch,
     )  # fmt: skip
     return {**values, **dict(zip(own, (float(v) for v in done.x), strict=True))}
 

@@ -41,28 +41,27 @@ class Polished(NamedTuple):
     converged: bool
 
 
-def jacobian(residual, x, r, steps, reference=None, staircase=None, prefetch=None) -> np.ndarray:
-    """Forward differences of ``residual`` at ``x`` (residual ``r`` there) with ``steps``;
-    ``prefetch``, where given, is called first with every point the columns evaluate (so
-    that their runs are made at once, several at a time).
+def jacobian(residuals, x, r, steps, reference=None, staircase=None) -> np.ndarray:
+    """Forward differences of ``residuals`` (points -> their residuals, :func:`gauss_newton`)
+    at ``x`` (residual ``r`` there) with ``steps``: every column's point in one call, so that
+    their runs are made at once, several at a time.
 
     Where an event snaps to a sample (a breakaway at f_s, say) the exact output moves in steps,
     and a small difference quotient is 0 although the data depend on the parameter: a column
     under 1e-3 of its ``reference`` norm (the smooth model's; 0 for a parameter that does not
     act) is replaced by a central secant over +-``staircase`` (a number or one per entry),
     which spans the steps."""
-    prefetch = prefetch or (lambda points: None)
     ups = [_moved(x, i, h) for i, h in enumerate(steps)]
-    prefetch(ups)
-    jac = np.stack([(residual(up) - r) / h for up, h in zip(ups, steps, strict=True)], axis=1)
+    jac = np.stack([(r_up - r) / h for r_up, h in zip(residuals(ups), steps, strict=True)], axis=1)
     if reference is None or staircase is None:
         return jac
     half = np.broadcast_to(np.asarray(staircase, dtype=float), x.shape)
     flat = np.flatnonzero(np.linalg.norm(jac, axis=0) < 1e-3 * np.asarray(reference))
-    pairs = [(_moved(x, j, half[j]), _moved(x, j, -half[j])) for j in flat]
-    prefetch([p for pair in pairs for p in pair])
-    for j, (up, down) in zip(flat, pairs, strict=True):
-        jac[:, j] = (residual(up) - residual(down)) / (2 * half[j])
+    if flat.size == 0:
+        return jac
+    runs = residuals([_moved(x, j, sign * half[j]) for j in flat for sign in (1, -1)])
+    for k, j in enumerate(flat):
+        jac[:, j] = (runs[2 * k] - runs[2 * k + 1]) / (2 * half[j])
     return jac
 
 
@@ -81,7 +80,7 @@ def _standard_errors(jac, r) -> np.ndarray:
 
 
 def gauss_newton(
-    residual,
+    residuals,
     x0,
     steps,
     bounds,
@@ -92,28 +91,30 @@ def gauss_newton(
     tolerance: float = 1e-2,
     reference=None,
     staircase: float | None = None,
-    prefetch=None,
     target: float | None = None,
 ) -> Polished:
-    """Gauss-Newton on ``residual`` (a function of the parameter vector, one array [m]).
+    """Gauss-Newton on ``residuals``: a list of parameter vectors -> the list of their residuals
+    (one array [m] each), the one contract of the engine's least-squares steps (a smooth fit's
+    ``evaluate_batch`` too): the points of a Jacobian come in one call, so that their runs are
+    made at once; a line search's trials one at a time (most are taken at once).
 
     x0: the start (p,), inside the bounds; steps: the forward-difference steps (p,), or a
     function of x giving them; bounds: (low, high) arrays (p,) every trial is clipped to;
     iterations: at most this many steps. Each iteration takes the Gauss-Newton step (each entry
     clipped to +-``max_step``), halved until the cost falls (down to ``shortest`` of it: no
     descent is a minimum); a step under ``tolerance`` of every naive standard error
-    converges. ``reference``, ``staircase``, ``prefetch``: see :func:`jacobian`. ``target``: a
+    converges. ``reference``, ``staircase``: see :func:`jacobian`. ``target``: a
     cost worth fitting for; where even the Gauss-Newton model's least cost at the start,
     |r + J step|^2, is above it, the fit stops after the first Jacobian (nothing improved:
     what cannot come near a better model is not fitted to the end). The Jacobian returned is
     the one at the values returned (the standard errors are computed from it)."""
     x = np.asarray(x0, dtype=float).copy()
-    r = residual(x)
+    r = residuals([x])[0]
     cost = float(r @ r)
     if x.size == 0 or iterations <= 0 or not math.isfinite(cost):
         return Polished(x, r, None, False, 0, True)
     step_of = steps if callable(steps) else (lambda _x: np.asarray(steps, dtype=float))
-    jac = jacobian(residual, x, r, step_of(x), reference, staircase, prefetch)
+    jac = jacobian(residuals, x, r, step_of(x), reference, staircase)
     improved = converged = False
     done = 0
     if target is not None:
@@ -128,7 +129,7 @@ def gauss_newton(
         t = 1.0
         while t >= shortest:
             trial = np.clip(x + t * step, *bounds)
-            r2 = residual(trial)
+            r2 = residuals([trial])[0]
             cost2 = float(r2 @ r2)
             if math.isfinite(cost2) and cost2 < cost:
                 break
@@ -138,7 +139,7 @@ def gauss_newton(
             break
         small = np.all(np.abs(trial - x) <= tolerance * _standard_errors(jac, r))
         x, r, cost, improved = trial, r2, cost2, True
-        jac = jacobian(residual, x, r, step_of(x), reference, staircase, prefetch)
+        jac = jacobian(residuals, x, r, step_of(x), reference, staircase)
         if small:
             converged = True
             break
@@ -177,15 +178,14 @@ def _staircase(names, x, reference, slopes) -> dict:
 
 
 def polish(
-    residual, names, x, iterations, *, reference, bounds=None, slopes=None, steps=None,
-    max_step=None, shortest=0.25, prefetch=None, target=None,
+    residuals, names, x, iterations, *, reference, bounds=None, slopes=None, steps=None,
+    max_step=None, shortest=0.25, target=None,
 ) -> Polished:  # fmt: skip
     """The exact polish of every fit of the engine (``jaxcart fit``'s last step, a diagnosis's
-    polish and held-out re-fits): :func:`gauss_newton` on ``residual`` (a function of the
-    vector ``x`` of ``names``' coordinates) from ``x``, within ``bounds`` ((low, high); default
+    polish and held-out re-fits): :func:`gauss_newton` on ``residuals`` (vectors of ``names``'
+    coordinates -> their residuals) from ``x``, within ``bounds`` ((low, high); default
     :func:`~.parameters.bounds`), the staircase's secants of :func:`_staircase` (``reference``,
-    ``slopes``); ``prefetch``: makes the runs of several vectors at once (the Jacobian's
-    columns); ``target``: a cost [m^2] worth fitting for (see :func:`gauss_newton`).
+    ``slopes``); ``target``: a cost [m^2] worth fitting for (see :func:`gauss_newton`).
 
     The coordinates are the values themselves unless the caller says otherwise: forward
     differences of :func:`difference_steps` (``steps``: others, a number or one per entry),
@@ -202,25 +202,23 @@ def polish(
     if steps is None:
         steps = partial(difference_steps, names)
     return gauss_newton(
-        residual,
+        residuals,
         np.clip(x, *bounds),
         steps if callable(steps) else np.broadcast_to(np.asarray(steps, dtype=float), x.shape),
         bounds,
         iterations,
         max_step=max_step,
         shortest=shortest,
-        prefetch=prefetch,
         target=target,
         **_staircase(names, x, reference, slopes),
     )
 
 
-def values_jacobian(residual, names, x, *, reference, slopes=None, prefetch=None) -> np.ndarray:
-    """The forward-difference Jacobian of ``residual`` (a function of the vector of ``names``'
-    values) at their values ``x``, as :func:`polish` takes it [m per unit of each value]."""
+def values_jacobian(residuals, names, x, *, reference, slopes=None) -> np.ndarray:
+    """The forward-difference Jacobian of ``residuals`` (vectors of ``names``' values -> their
+    residuals) at their values ``x``, as :func:`polish` takes it [m per unit of each value]."""
     x = np.asarray(x, dtype=float)
     steps = difference_steps(names, x)
     return jacobian(
-        residual, x, residual(x), steps, prefetch=prefetch,
-        **_staircase(names, x, reference, slopes),
-    )  # fmt: skip
+        residuals, x, residuals([x])[0], steps, **_staircase(names, x, reference, slopes)
+    )
