@@ -138,7 +138,13 @@ def _numbers(fields) -> bool:
 
 def _check_header(header, lineno, name) -> None:
     """A first line of numbers is data: the file has no header (MATLAB's ``save -ascii``
-    writes numbers separated by spaces, csvwrite and writematrix commas)."""
+    writes numbers separated by spaces, csvwrite and writematrix commas); Excel's ``sep=,``
+    is a separator hint, not column names."""
+    if header and header[0].lower().startswith("sep="):
+        raise CSVError(
+            f"{name} line {lineno}: {','.join(header)!r} is Excel's separator hint, not column "
+            f"names; delete that line (the next one should name the columns, e.g. t,y,v)"
+        )
     if len(header) == 1 and len(header[0].split()) > 1 and _numbers(header[0].split()):
         raise CSVError(
             f"{name} line {lineno}: numbers separated by spaces and no header line (MATLAB's "
@@ -207,19 +213,34 @@ def _parse_slowly(data: bytes, ncols, lineno, header, name):
             row = row[:-1]  # a comma at the end of the line: an empty last column
         if len(row) != ncols:
             raise CSVError(
-                f"{name} line {i}: {len(row)} fields, the header has {ncols}; fix that line"
+                f"{name} line {i}: {len(row)} fields, the header has {ncols}; "
+                + (DECIMAL_COMMA if _split_decimals(row, ncols) else "fix that line")
             )
         try:
             rows.append([float(x) for x in row])
         except ValueError:
             bad = next(x for x in row if not _is_float(x))
+            fix = DECIMAL_COMMA if _is_float(bad.replace(",", ".", 1)) else "fix that value"
             raise CSVError(
                 f"{name} line {i}, column {header[row.index(bad)]}: {bad.strip()!r} is not a "
-                f"number; fix that value"
+                f"number; {fix}"
             ) from None
         numbers.append(i)
     values = np.asarray(rows, dtype=float).reshape(len(rows), ncols)
     return values, np.asarray(numbers, dtype=np.int64)
+
+
+#: What to do about numbers written with a decimal comma (a spreadsheet's regional setting).
+DECIMAL_COMMA = (
+    "the numbers look written with decimal commas (0,5): save the file with a point as the "
+    "decimal separator (0.5) and commas between the columns"
+)
+
+
+def _split_decimals(row, ncols) -> bool:
+    """Whether ``row``'s extra fields are what decimal commas make of ``ncols`` numbers: whole
+    numbers, up to twice as many as the header has columns."""
+    return ncols < len(row) <= 2 * ncols and all(x.strip().lstrip("+-").isdigit() for x in row)
 
 
 def _is_float(text) -> bool:

@@ -341,6 +341,12 @@ class Reader:
                         f"{required} or map it in a [data] table ({required} = "
                         f'"{data}:{guess}")'
                     )
+            if "" in unknown:  # pandas' to_csv writes its index as a first unnamed column
+                self.fail(
+                    f"{data} has a column without a name (a pandas index? write it with "
+                    f"to_csv(..., index=False)); delete that column, or map the columns you "
+                    f'need in a [data] table (e.g. t = "{data}:t", y = "{data}:y")'
+                )
             if unknown:
                 self.fail(
                     f"column {unknown[0]!r} of {data} is not one of {', '.join(COLUMNS)}; "

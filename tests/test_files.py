@@ -322,6 +322,11 @@ BAD = {
     "controller in open loop": (HEAD + "[controller]\nkp = 1\n", GOOD_CSV, ["[controller]"]),
     "toml syntax": ("kind = closed_loop\n", GOOD_CSV, ["not valid TOML", "line 1"]),
     "mat file as data": ('kind = "tap"\ndata = "a.mat"\n', None, ["a.mat", "[data]"]),
+    # Files as spreadsheets and pandas save them: the message names the cause.
+    "decimal commas": (HEAD, "t,y,v\n0,0,1,5\n0,001,0,1,5\n", ["line 2", "decimal commas"]),
+    "quoted decimal commas": (HEAD, 't,y,v\n"0,0","0,0","1,5"\n', ["column t", "decimal commas"]),
+    "excel separator line": (HEAD, "sep=,\nt,y,v\n0,0,1\n", ["line 1", "sep=", "delete"]),
+    "pandas index column": (HEAD, ",t,y,v\n0,0,0,1\n1,0.001,0,1\n", ["index=False"]),
 }
 
 

@@ -15,6 +15,7 @@ from jaxcart.errors import UserError
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from tuning.estimation import fit
 from tuning.estimation.engine.segments import coasting_segment
+from tuning.estimation.fitting.model import _Problem
 
 Q = jc.ENCODER_RESOLUTION
 P50 = jc.PID(kp=50.0, v_limit=6.0)
@@ -190,6 +191,23 @@ def test_parameter_names():
 def test_coasting_segment_needs_a_tap():
     with pytest.raises(ValueError, match="no tap"):
         coasting_segment(np.zeros(500), 1e-3)
+
+
+def test_a_tap_timed_in_milliseconds_is_named_so():
+    """A tap whose time column is in ms (the sample time read as 1 s) moves 0.5 m at under 1 mm
+    per "second": the refusal names the time's unit, not a cart that does not move."""
+    t = np.arange(3000) * 1e-3
+    y = 0.5 * (1 - np.exp(-t / 0.6))  # 0.83 m/s at first: the real tap's speed
+    with pytest.raises(ValueError, match=r"moves 0\.49\d m .*time recorded in ms"):
+        coasting_segment(y, 1.0)
+
+
+def test_a_value_held_says_where_to_give_another(tap_rec):
+    """The advice for a value the data do not determine names what ``jaxcart fit`` takes: a
+    plant file (--plant) or the recording's [plant] table (there is no --initial)."""
+    seg = fit.fit_segment(tap_rec, ("B_eq", "f_c"), {}, fit.FitSettings())
+    text = _Problem([seg], ("B_eq", "f_c"), fit.FitSettings()).start_source("f_c")
+    assert "--plant FILE" in text and "[plant]" in text and "--initial" not in text
 
 
 def test_fitted_plant_file_round_trip(tmp_path, cl_fit):

@@ -70,7 +70,9 @@ def levenberg_marquardt(problem, theta, active, width, iterations, tolerance=LM_
     if not math.isfinite(cost):
         raise UserError(
             "the model does not simulate at the starting values (not finite); "
-            "give starting values closer to the cart's (--plant-file)"
+            "give starting values closer to the cart's (a plant file, --plant FILE, or the "
+            "recording's [plant] table); where a warning above says a column is in other "
+            "units, fix that first"
         )
     lam = 1e-3
     done = 0

@@ -133,6 +133,12 @@ def coasting_segment(
     peak = int(np.argmax(np.abs(v_smooth)))
     count = quantization if quantization > 0 else 1e-6
     if abs(v_smooth[peak]) * 0.05 < 3 * count:  # under 3 counts in 50 ms: no tap
+        if np.ptp(y) > 100 * count:  # it moves, but slower than any push: the time's unit
+            raise ValueError(
+                f"no tap found: the cart moves {np.ptp(y):.3g} m but never faster than "
+                f"{abs(v_smooth[peak]):.3g} m/s (the sample time is {sample_time:g} s: time "
+                "recorded in ms? give t in s)"
+            )
         raise ValueError("no tap found: the cart never moves more than a few encoder counts")
     direction = np.sign(v_smooth[peak])
     start = min(peak + int(round(margin / sample_time)), n - 2)

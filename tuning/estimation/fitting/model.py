@@ -227,8 +227,11 @@ class _Problem:
         ):
             where = "the effect's declared typical value"
         else:
-            where = "the recordings' plant (a plant file, [plant] or --initial)"
-        return f"its start value from {where}; give another with --initial {base}=VALUE"
+            where = "the recordings' plant (a plant file or [plant])"
+        return (
+            f"its start value from {where}; give another in a plant file (--plant FILE) or "
+            f"the recording's [plant] table ({base} = VALUE)"
+        )
 
     def smoothing(self, width) -> Smoothing:
         return Smoothing(voltage=self.settings.voltage_width, velocity=width, position=1e-6)
