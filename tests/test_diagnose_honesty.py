@@ -68,6 +68,16 @@ def _tap(folder, truth):
 # ---------------------------------------------------------------- the rules, without a fit
 
 
+def test_the_same_recording_twice_is_refused_not_taken_for_a_repeat():
+    """Given twice, one run would look like a cart that repeats itself to 0 mm (and count its
+    samples twice): refused before any fit, as ``jaxcart fit`` refuses it."""
+    from jaxcart.errors import UserError
+
+    rec = make_recording(jc.handout_plant(), jc.PID(kp=20.0), jc.step(0.1, horizon=0.5), seed=0)
+    with pytest.raises(UserError, match="identical samples"):
+        diagnose([rec, rec], progress=False)
+
+
 def test_the_misfit_rule_and_widening_are_the_fits_own():
     assert MISFIT_RATIO == 3.0
     assert misfits(3.01 * FLOOR, FLOOR) and not misfits(3.0 * FLOOR, FLOOR)

@@ -186,6 +186,28 @@ def test_index_wins_over_the_guess(tmp_path):
     assert ("p50.toml", "p_step is named in lab.toml") in found.unused
 
 
+def test_a_subfolder_run_beside_raw_scope_files_is_used(tmp_path, realdata):
+    """The scopes' raw .mat files at the top and the PD run and the repeat in sub-folders: the
+    sub-folders' runs count as they do beside TOML files (they were dropped without a word)."""
+    folder = tmp_path / "d"
+    folder.mkdir()
+    for name in ("part1.1.mat", "2.1pos.mat", "2.1volt.mat"):
+        shutil.copy(Path(realdata) / name, folder / name)
+    for sub in ("pd", "repeat"):
+        shutil.copytree(Path(realdata) / sub, folder / sub)
+    found = inputs.find_inputs(folder)
+    assert found.recordings["pid"].path.name == "pd.toml"
+    assert [r.path.name for r in found.repeats["p_step"]] == ["p50_repeat.toml"]
+
+
+def test_a_folder_of_sub_folders_only_says_where_the_runs_are(tmp_path, realdata):
+    folder = tmp_path / "d"
+    folder.mkdir()
+    shutil.copytree(Path(realdata) / "pd", folder / "pd")
+    with pytest.raises(UserError, match=r"sub-folders hold pd/pd\.toml.*jaxcart class"):
+        inputs.find_inputs(folder)
+
+
 @pytest.mark.parametrize(
     "index, message",
     [
@@ -535,3 +557,18 @@ def _real_part_v_designs(results, md, gains):
     assert gains["prediction"] == designs["retuned"]["prediction"]
     assert gains["controller"]["kp"] == designs["retuned"]["controller"]["kp"]
     assert set(gains["margins"]) >= {"gain_margin", "phase_margin", "peak_sensitivity", "ripple"}
+
+
+def test_the_b_eq_comparison_says_why_the_driven_runs_give_none():
+    """With a tap and driven runs whose B_eq the fit holds (the real P 50 runs: 0.979
+    correlated with a run's drive limit), the report says that, not that a run is missing."""
+    from types import SimpleNamespace
+
+    from tuning.estimation.fit import Estimate
+    from tuning.lab.cart import _agreement_text
+
+    held = Estimate("B_eq", None, None, identifiable=False, note="not identifiable: 92 %; held")
+    cart = SimpleNamespace(agreement=lambda: None, tap=(1.505, 0.024), driven=held)
+    text = _agreement_text(cart)
+    assert "do not determine it" in text and "not identifiable: 92 %)" in text
+    assert "Without a tap" not in text

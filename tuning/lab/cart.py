@@ -279,6 +279,13 @@ def _structure_text(c: JointCart) -> str:
 
 def _agreement_text(c: JointCart) -> str:
     agree = c.agreement()
+    if agree is None and c.tap is not None and c.driven is not None:
+        return (
+            f"B_eq from the tap (Part (i)) is {fmt(c.tap[0])} ± {fmt(c.tap[1], 2)} kg/s. The "
+            f"driven runs alone do not determine it under this model "
+            f"({(c.driven.note or 'not identifiable').split(';')[0]}), so "
+            "B_eq is the tap's to give, and the joint fit above takes it from there."
+        )
     if agree is None:
         return "Without a tap and a driven run there is no second B_eq to compare."
     diff, sigmas = agree

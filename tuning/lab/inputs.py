@@ -307,21 +307,27 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             inputs.how[slot] += f"; the first of {len(found)} runs of it (name one in {INDEX_NAME})"
         for rec, _ in found[1:]:
             _add_repeat(inputs, slot, rec)
-    if inputs.recordings:
-        _repeats_in_subfolders(inputs, folder)
-
     raw = sorted(p for p in folder.glob("*.mat") if p.is_file() and p.resolve() not in mats)
     _recognise_raw(inputs, raw)
+    if inputs.recordings:  # (the raw files' parts too: a subfolder's run repeats them)
+        _repeats_in_subfolders(inputs, folder)
     if not inputs.recordings and inputs.broken:
         raise UserError(
             f"--data {folder}: no recording can be used: "
             + "; ".join(f"{name}: {why}" for name, _, why in inputs.broken)
         )
     if not inputs.recordings:
+        below = sorted(str(p.relative_to(folder)) for p in folder.glob("*/*.toml"))[:3]
+        where = (
+            f"; its sub-folders hold {', '.join(below)}: give --data the folder of one cart's "
+            f"runs, or run `jaxcart class {folder}` for a folder of students' folders"
+            if below
+            else ""
+        )
         raise UserError(
             f'--data {folder}: no experiment files found (TOML files with kind = "tap", '
             f'"open_loop" or "closed_loop", or .mat files saved by the lab\'s scopes); see '
-            f"docs/experiment-files.md for the format"
+            f"docs/experiment-files.md for the format{where}"
         )
     return inputs
 

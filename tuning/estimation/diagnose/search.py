@@ -28,6 +28,7 @@ import numpy as np
 from jaxcart.effects import REGISTRY
 from jaxcart.params import ENCODER_RESOLUTION
 from jaxcart.plantspec import handout_plant
+from jaxcart.plausibility import check_distinct
 from tuning.distributed import spread
 from tuning.estimation.diagnose import (
     candidate_runs,
@@ -101,6 +102,7 @@ def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagno
     t_start = _time.perf_counter()
     if not isinstance(recordings, list | tuple):
         recordings = [recordings]
+    check_distinct(recordings)  # the same data twice is no repeat of the experiment
     names = [recording_name(r) for r in recordings]
     messages, checks, controllers, read_counts = _checks(recordings, say)
     if messages:
