@@ -355,8 +355,14 @@ def _check_command(where, label, rec) -> list[str]:
     if best <= tol or not math.isfinite(best):  # not finite: gains beyond range, said above
         return []
     gains = f"kp={float(pid.kp):g} ki={float(pid.ki):g} kd={float(pid.kd):g}"
-    scale = float(np.dot(u_rec, u_calc) / np.dot(u_calc, u_calc)) if np.any(u_calc) else 0.0
-    hint = f"; the recorded u is about {scale:.3g} times it" if abs(scale - 1) > 0.1 else ""
+    # The ratio off the flat top: a clipped command is no multiple of the one computed.
+    free = (np.abs(u_rec) < 0.98 * peak) & (np.abs(u_calc) < 0.98 * peak)
+    a, b = u_rec[free], u_calc[free]
+    scale = float(np.dot(a, b) / np.dot(b, b)) if np.any(b) else 0.0
+    hint = ""
+    if abs(scale - 1) > 0.1 and scale > 0:
+        times = " ".join(f"{k}={scale * float(getattr(pid, k)):.3g}" for k in ("kp", "ki", "kd"))
+        hint = f"; the recorded u is about {scale:.3g} times it ({times}?)"
     return [
         f"{where}: {label}: the recorded u is not what {gains} (v_limit {float(pid.v_limit):g} V)"
         f" produce from the recorded y and r (median difference {best:.3g} V{hint}): wrong "

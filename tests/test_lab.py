@@ -572,3 +572,20 @@ def test_the_b_eq_comparison_says_why_the_driven_runs_give_none():
     text = _agreement_text(cart)
     assert "do not determine it" in text and "not identifiable: 92 %)" in text
     assert "Without a tap" not in text
+
+
+def test_a_run_filed_with_the_wrong_gain_runs_with_the_one_it_shows(tmp_path, realdata, capsys):
+    """The real P 50 step filed with kp = 5: the recorded command shows kp = 50 (replayed to
+    well under 2 % of its range), and the lab simulates that controller and says so."""
+    folder = tmp_path / "d"
+    folder.mkdir()
+    for name in ("2.1pos.mat", "2.1volt.mat"):
+        shutil.copy(Path(realdata) / name, folder / name)
+    text = (Path(realdata) / "p50.toml").read_text().replace("kp = 50.0", "kp = 5.0")
+    (folder / "p50.toml").write_text(text)
+    found = inputs.find_inputs(folder)
+    assert found.recordings["p_step"].controller.kp == pytest.approx(50.0, rel=0.01)
+    err = capsys.readouterr().err
+    assert "uses the controller the recorded command shows (kp = 50" in err
+    # The file check's ratio is taken off the 6 V flat top: 10, not the clipped run's 4.
+    assert "about 10 times it (kp=50 ki=0 kd=0?)" in err

@@ -41,6 +41,7 @@ part has no recording (simulation only) and every other part is computed.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,8 +53,9 @@ from jaxcart.errors import UserError
 from jaxcart.files import read_experiment, read_imported
 from jaxcart.matimport import data_prefix, scan
 from jaxcart.params import TRACK_LENGTH
-from jaxcart.plausibility import time_unit_doubt
+from jaxcart.plausibility import time_unit_doubt, warn
 from jaxcart.recognition import EXPERIMENTS
+from tuning.estimation.diagnose.controller import check as controller_check
 
 INDEX_NAME = "lab.toml"
 #: The sub-folder of a report where :func:`write_used` puts the experiment files of repeats.
@@ -186,7 +188,28 @@ def check_recording(recording):
     doubt = time_unit_doubt(recording)
     if doubt is not None:
         raise UserError(f"{name}: {doubt}")
-    return recording
+    return _controller_that_ran(recording)
+
+
+def _controller_that_ran(recording):
+    """``recording`` with the controller its recorded command shows where the file's
+    [controller] does not reproduce that command and the one inferred from it does (as the
+    diagnosis does, :func:`tuning.estimation.diagnose.controller.check`): a P 50 run filed
+    with kp = 5 is simulated with kp = 50, and the lab says so."""
+    checked = controller_check(recording)
+    if not checked or checked["consistent"] or checked.get("inferred") is None:
+        return recording
+    span = max(float(np.ptp(np.asarray(recording.command, dtype=float))), 1e-9)
+    if checked["inferred_rms"] > 0.02 * span + 1e-3:  # the inferred one does no better
+        return recording
+    ran, filed = checked["inferred"], recording.controller
+    warn(
+        f"{recording.path}: the lab uses the controller the recorded command shows (kp = "
+        f"{ran.kp:.4g}, ki = {ran.ki:.4g}, kd = {ran.kd:.4g}), not the file's (kp = "
+        f"{float(filed.kp):g}, ki = {float(filed.ki):g}, kd = {float(filed.kd):g}); correct "
+        "[controller] if the file's is the one that ran"
+    )
+    return dataclasses.replace(recording, controller=ran)
 
 
 def _load_toml(path: Path) -> dict:
