@@ -589,3 +589,29 @@ def test_a_run_filed_with_the_wrong_gain_runs_with_the_one_it_shows(tmp_path, re
     assert "uses the controller the recorded command shows (kp = 50" in err
     # The file check's ratio is taken off the 6 V flat top: 10, not the clipped run's 4.
     assert "about 10 times it (kp=50 ki=0 kd=0?)" in err
+
+
+def test_values_no_recording_gave_are_named_and_the_model_says_what_it_simulates():
+    """Without a tap and a ramp the joint fit holds B_eq at the handout's 5.4 kg/s and f_c at
+    the typical 0.3 N: the report names them (a value held at a lab part's estimate, the real
+    tap's 1.505 kg/s, is not), and Part (v)'s model is the one simulated (f_c 0.3 N, where it
+    said 0 N beside a plant that had 0.3 N)."""
+    from types import SimpleNamespace
+
+    from tuning.estimation.fit import Estimate
+    from tuning.lab.cart import _assumed, model_of
+    from tuning.lab.model import CartModel
+
+    def held(name, at):
+        return Estimate(name, None, None, identifiable=False, note="held", held_at=at)
+
+    fit = SimpleNamespace(params={"B_eq": held("B_eq", 5.4), "f_c": held("f_c", 0.3)})
+    assert _assumed(SimpleNamespace(fit=fit)) == {
+        "B_eq": (5.4, "handout's estimate"),
+        "f_c": (0.3, "typical value"),
+    }
+    fit_tap = SimpleNamespace(params={"B_eq": held("B_eq", 1.505)})
+    assert _assumed(SimpleNamespace(fit=fit_tap)) == {}
+    cart = SimpleNamespace(fit=fit, plant=None)
+    model = model_of(cart, CartModel())
+    assert model.f_c == 0.3 and "held it at 0.3 N" in model.f_c_source

@@ -28,7 +28,7 @@ from tuning.design import uncertainty as cart_uncertainty
 from tuning.design.for_cart import design_for_cart
 from tuning.estimation.diagnose.as_fit import fit_result
 from tuning.estimation.engine.parameters import bounds
-from tuning.estimation.fit import Estimate
+from tuning.estimation.fit import Estimate, default_start
 from tuning.lab import fits
 from tuning.lab.context import Lab, fmt, value
 
@@ -173,6 +173,9 @@ def model_of(c: JointCart | None, before):
     )
     if f is not None and f.value is not None:
         model = dataclasses.replace(model, f_c=f.value, f_c_source=where)
+    elif f is not None and f.held_at is not None:  # the cart's plant holds it there
+        held = f"{where}, which held it at {fmt(f.held_at)} N"
+        model = dataclasses.replace(model, f_c=f.held_at, f_c_source=held)
     return model
 
 
@@ -242,6 +245,15 @@ def render(lab: Lab, c: JointCart | None) -> None:
         [[s.name, _mm(s.rms_after_exact)] for s in c.fit.segments],
         numeric=[False, True],
     )
+    assumed = _assumed(c)
+    if assumed:  # the design below rests on values no recording gave
+        doc.paragraph(
+            f"**No recording determines {', '.join(assumed)}**: the cart holds "
+            + ", ".join(f"{n} at {fmt(v)} (the {w})" for n, (v, w) in assumed.items())
+            + f", its largest RMS error is {_mm(max(s.rms_after_exact for s in c.fit.segments))}"
+            " mm, and the design and its band below rest on those values, not on this cart. "
+            "A tap (Part (i)) determines B_eq, a ramp (Part (iii)) f_c."
+        )
     doc.paragraph(_agreement_text(c))
     g, t, p = c.tuned.gains, c.tuned, c.design.prediction
     lo, hi = p.interval("settling_time")
@@ -275,6 +287,19 @@ def _structure_text(c: JointCart) -> str:
         "`grid`, `lab --plant`)"
     )
     return text + (", with each value of a run's own at the median of the runs." if own else ".")
+
+
+def _assumed(c: JointCart) -> dict:
+    """{name: (value, whose)} of the cart's shared values that the joint fit held at the
+    handout's or the effect's typical value (no part of the lab gave one)."""
+    typical = {"B_eq": (plantspec.handout_plant().B_eq, "handout's estimate")}
+    typical.update({n: (v, "typical value") for n, v in default_start().items() if n in ("f_c",)})
+    out = {}
+    for name, (v, whose) in typical.items():
+        e = c.fit.params.get(name)
+        if e is not None and e.value is None and math.isclose(e.held_at, float(v), rel_tol=1e-6):
+            out[name] = (e.held_at, whose)
+    return out
 
 
 def _agreement_text(c: JointCart) -> str:

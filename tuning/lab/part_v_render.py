@@ -180,10 +180,12 @@ def _step(lab, r) -> None:
             f"gains (kp = {tuned.kp:.4g} V/m, kd = {tuned.kd:.4g} V s/m, ki = "
             f"{tuned.ki:.4g} V/(m s)), which the last row simulates on the same model."
         )
+    plant = m.plant()
+    v_sat = float(plant.get("v_sat")) if "v_sat" in plant.param_names() else math.inf
     doc.paragraph(
         f"{whose} The simulation uses the fitted model (B_eq = {m.B_eq:.3f} kg/s, "
-        f"f_c = {m.f_c:.3f} N, ±6 V saturation) and the exact simulator. Design problem: "
-        f"settling < 1 s, overshoot < 5 %."
+        f"f_c = {m.f_c:.3f} N, ±{v_sat:.3g} V saturation) and the exact simulator. Design "
+        f"problem: settling < 1 s, overshoot < 5 %."
     )
     doc.table(
         [
