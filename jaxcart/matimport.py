@@ -246,12 +246,15 @@ def run_key(path: Path) -> str:
     return re.sub(r"[\s_\-]+", "", stem).strip(".")
 
 
-def scan(paths, *, named: dict | None = None, chosen: dict | None = None) -> list[Imported]:
+def scan(
+    paths, *, named: dict | None = None, chosen: dict | None = None, one_run: bool = False
+) -> list[Imported]:
     """The runs in the .mat files ``paths``, each recognised (``named``: {file name:
     experiment} the user named, taken as the answer; ``chosen``: {file name: variable} the
     position the user chose, e.g. "scope[1]"). Files that hold only a voltage or a reference
     join the run of a file with a position (or error) whose name differs only by the signal
-    and that holds as many samples."""
+    (whatever their names where ``one_run``: the user named the files as one run) and that
+    holds as many samples."""
     named = dict(named or {})
     per_file = {Path(p): read_signals(p) for p in paths}
     for path, variable in (chosen or {}).items():
@@ -269,7 +272,9 @@ def scan(paths, *, named: dict | None = None, chosen: dict | None = None) -> lis
     for path in partners:
         n = per_file[path][0].values.size
         fits = [
-            a for a in anchors if run_key(a) == run_key(path) and per_file[a][0].values.size == n
+            a
+            for a in anchors
+            if (one_run or run_key(a) == run_key(path)) and per_file[a][0].values.size == n
         ]
         if len(fits) == 1:
             groups[fits[0]].append(path)

@@ -688,3 +688,19 @@ def test_v73_scope_with_several_inputs(tmp_path):
     ]
     np.testing.assert_array_equal(found[0].values, y)
     np.testing.assert_array_equal(found[1].time, t)
+
+
+def test_files_named_as_one_run_in_lab_toml_are_one_run_whatever_their_names(tmp_path, realdata):
+    """The P 50 step's position and voltage files renamed so that their names do not pair
+    (run2.mat, run3.mat): listed together in lab.toml they are that run (they were refused,
+    "its files are not one run")."""
+    from tuning.lab.inputs import find_inputs
+
+    folder = tmp_path / "data"
+    folder.mkdir()
+    shutil.copyfile(Path(realdata) / "2.1pos.mat", folder / "run2.mat")
+    shutil.copyfile(Path(realdata) / "2.1volt.mat", folder / "run3.mat")
+    (folder / "lab.toml").write_text('[recordings]\np_step = ["run2.mat", "run3.mat"]\n')
+    found = find_inputs(folder)
+    rec = found.recordings["p_step"]
+    assert rec.command is not None and float(np.max(np.abs(rec.command))) == pytest.approx(6.0)

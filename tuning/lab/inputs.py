@@ -475,7 +475,8 @@ def _mat_files(meta: dict, folder: Path) -> set:
 
 def _use_raw(inputs: Inputs, slot: str, paths: list, index_path: Path) -> None:
     """The raw .mat run ``paths`` named as ``slot`` in lab.toml, read as that experiment."""
-    runs = [r for r in scan(paths, named={p.name: slot for p in paths}) if paths[0] in r.files]
+    named = {p.name: slot for p in paths}
+    runs = [r for r in scan(paths, named=named, one_run=True) if paths[0] in r.files]
     run = runs[0]
     if run.problem or len(run.files) != len(paths):
         why = run.problem or f"its files are not one run ({', '.join(p.name for p in paths)})"
