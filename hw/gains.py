@@ -39,6 +39,7 @@ from hw.atomicio import OutputError, write_text
 from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, setting_problem
 from hw.control_law import UNITS as CONTROLLER_UNITS
 from hw.jsonio import to_jsonable
+from hw.predicted import problem_of
 
 FORMAT = "jaxcart-gains"
 VERSION = 1
@@ -165,6 +166,9 @@ def read_gains_file(path) -> tuple[PID, dict]:
     except ValueError as exc:
         raise GainsFileError(str(exc), path=path, field="controller") from None
     metadata = {k: v for k, v in document.items() if k not in _RESERVED}
+    wrong = problem_of(metadata["prediction"]) if "prediction" in metadata else None
+    if wrong is not None:  # read before the run: after it, the recording would be judged by it
+        raise GainsFileError(f"{wrong[1]} (or delete the prediction)", path=path, field=wrong[0])
     return pid, metadata
 
 

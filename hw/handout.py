@@ -23,6 +23,21 @@ APPENDIX = {
     "eta_m": 1.0,
     "gamma_scale": 1.0,
 }
+#: The range each of them may take (inclusive, SI units): beyond it a value is in other units
+#: or not this lab's cart (B_eq 4600 is g/s, M 940 is grams).
+VALID = {
+    "M": (1e-3, 100.0),
+    "B_eq": (0.0, 200.0),
+    "Rm": (1e-3, 1e3),
+    "Kt": (0.0, 10.0),
+    "Km": (0.0, 10.0),
+    "Jm": (0.0, 1.0),
+    "Kg": (1e-3, 1e3),
+    "r_mp": (1e-5, 1.0),
+    "eta_g": (1e-3, 1.0),
+    "eta_m": (1e-3, 1.0),
+    "gamma_scale": (0.01, 100.0),
+}
 #: Encoder resolution of the IP02 [m/count].
 ENCODER_RESOLUTION = 2.275e-5
 #: Length of the track [m] and usable travel of the cart [m].

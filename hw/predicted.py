@@ -37,6 +37,26 @@ def _number(x) -> float:
     return float(x) if x is not None else math.nan
 
 
+def problem_of(prediction) -> tuple[str, str] | None:
+    """(field, what is wrong) of a gains file's prediction that :func:`check_run` cannot
+    read (a band edited by hand: reversed, or written as text), or None."""
+    if not isinstance(prediction, dict) or not isinstance(prediction.get("metrics", {}), dict):
+        return "prediction", "expected an object with a metrics object"
+    for name, pred in prediction.get("metrics", {}).items():
+        if name not in CHECKED or pred is None:
+            continue
+        where = f"prediction.metrics.{name}"
+        band = pred.get("band") if isinstance(pred, dict) else None
+        try:
+            lo, hi = (_number(x) for x in band)
+            nominal = _number(pred["nominal"])
+        except (TypeError, ValueError, KeyError):
+            return where, f"band {band!r}: give [low, high] as two numbers, and a nominal"
+        if math.isnan(lo) or math.isnan(hi) or math.isnan(nominal) or not lo <= hi:
+            return where, f"band [{lo:g}, {hi:g}]: give [low, high] with low <= high"
+    return None
+
+
 def check_run(measured: dict, prediction: dict) -> dict:
     """The run's ``measured`` metrics ({name: value}: settling_time [s], overshoot [%])
     against ``prediction`` (the gains file's): {"inside": every checked metric within its band,

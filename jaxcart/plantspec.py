@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from hw.atomicio import write_text
-from hw.handout import APPENDIX
+from hw.devices.sim import PLANT_FILE_KEYS
+from hw.handout import APPENDIX, VALID
 from jaxcart.effects import REGISTRY, STAGE_ORDER, Effect, Param, effect_of_param
 from jaxcart.errors import UserError
 from jaxcart.params import Plant
@@ -50,46 +51,21 @@ PLANT_PARAMS = (
     # Plausible: the cart is 0.57 kg, 0.94 kg with its weight; the handout's B_eq is 5.4 kg/s
     # and real IP02 taps fit 1.4-1.5 kg/s; a motor gain off by more than a factor 2 is a wrong
     # motor, not a correction.
-    Param(
-        "M",
-        "kg",
-        1e-3,
-        100.0,
-        APPENDIX["M"],
-        None,
-        "cart plus added mass Mc + Mw",
-        plausible=(0.4, 3.0),
-    ),
-    Param(
-        "B_eq",
-        "kg/s",
-        0.0,
-        200.0,
-        APPENDIX["B_eq"],
-        None,
-        "equivalent viscous friction",
-        plausible=(0.5, 30.0),
-    ),
-    Param(
-        "gamma_scale",
-        "",
-        0.01,
-        100.0,
-        APPENDIX["gamma_scale"],
-        None,
-        "multiplier on the input gain gamma",
-        role="drive",
-        plausible=(0.5, 2.0),
-    ),
-    Param("Rm", "ohm", 1e-3, 1e3, APPENDIX["Rm"], None, "armature resistance"),
-    Param("Kt", "N m/A", 0.0, 10.0, APPENDIX["Kt"], None, "motor torque constant"),
-    Param("Km", "V s/rad", 0.0, 10.0, APPENDIX["Km"], None, "back-EMF constant"),
-    Param("Jm", "kg m^2", 0.0, 1.0, APPENDIX["Jm"], None, "rotor moment of inertia"),
-    Param("Kg", "", 1e-3, 1e3, APPENDIX["Kg"], None, "gearbox ratio"),
-    Param("r_mp", "m", 1e-5, 1.0, APPENDIX["r_mp"], None, "motor pinion radius"),
-    Param("eta_g", "", 1e-3, 1.0, APPENDIX["eta_g"], None, "gearbox efficiency"),
-    Param("eta_m", "", 1e-3, 1.0, APPENDIX["eta_m"], None, "motor efficiency"),
-)
+    Param("M", "kg", *VALID["M"], APPENDIX["M"], None, "cart plus added mass Mc + Mw",
+          plausible=(0.4, 3.0)),
+    Param("B_eq", "kg/s", *VALID["B_eq"], APPENDIX["B_eq"], None, "equivalent viscous friction",
+          plausible=(0.5, 30.0)),
+    Param("gamma_scale", "", *VALID["gamma_scale"], APPENDIX["gamma_scale"], None,
+          "multiplier on the input gain gamma", role="drive", plausible=(0.5, 2.0)),
+    Param("Rm", "ohm", *VALID["Rm"], APPENDIX["Rm"], None, "armature resistance"),
+    Param("Kt", "N m/A", *VALID["Kt"], APPENDIX["Kt"], None, "motor torque constant"),
+    Param("Km", "V s/rad", *VALID["Km"], APPENDIX["Km"], None, "back-EMF constant"),
+    Param("Jm", "kg m^2", *VALID["Jm"], APPENDIX["Jm"], None, "rotor moment of inertia"),
+    Param("Kg", "", *VALID["Kg"], APPENDIX["Kg"], None, "gearbox ratio"),
+    Param("r_mp", "m", *VALID["r_mp"], APPENDIX["r_mp"], None, "motor pinion radius"),
+    Param("eta_g", "", *VALID["eta_g"], APPENDIX["eta_g"], None, "gearbox efficiency"),
+    Param("eta_m", "", *VALID["eta_m"], APPENDIX["eta_m"], None, "motor efficiency"),
+)  # fmt: skip
 _OWN = {p.name: p for p in PLANT_PARAMS}
 _NOMINAL = Plant()
 
@@ -347,10 +323,10 @@ def read_plant_file(path) -> tuple[Plant, dict]:
             f"{path}: format = {meta.get('format')!r}; a plant file starts with "
             f'format = "{FORMAT}" (written by jaxcart fit / diagnose)'
         )
-    allowed = {"format", "version", "motor_connected", "structure", "effects", "plant", "fit"}
     for key in meta:
-        if key not in allowed:
-            raise UserError(f"{path}: unknown key {key!r}; allowed: {', '.join(sorted(allowed))}")
+        if key not in PLANT_FILE_KEYS:
+            allowed = ", ".join(sorted(PLANT_FILE_KEYS))
+            raise UserError(f"{path}: unknown key {key!r}; allowed: {allowed}")
     motor = meta.get("motor_connected", True)
     if not isinstance(motor, bool):
         raise UserError(f"{path}: motor_connected = {motor!r}: give true or false")

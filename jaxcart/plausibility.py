@@ -577,12 +577,18 @@ def check_controller(pid, plant, *, where: str = "controller") -> list[str]:
     if not np.all(np.isfinite(z)):
         return [f"{where}: {gains}: gains beyond any cart (the loop overflows float64)"]
     out = []
+    negative = [k for k in ("kp", "ki", "kd") if float(getattr(pid, k)) < 0]
+    if negative:  # stable or not, a negative gain is a sign error (u = kp e on e = r - y)
+        out.append(
+            f"{where}: {', '.join(f'{k}={float(getattr(pid, k)):g}' for k in negative)} "
+            f"negative: the lab's PID acts on e = r - y with gains >= 0; check the sign"
+        )
     worst = z[np.argmax(np.abs(z))]
     if abs(worst) > 1 + UNIT_CIRCLE_TOL:
         behind = f" with its {delay * 1e3:.4g} ms delay" if delay else ""
         out.append(
             f"{where}: {gains} make the loop unstable on the nominal plant{behind} (discrete "
-            f"eigenvalue {_complex(worst)}, |z| = {abs(worst):.4g} > 1): the cart runs away, or "
+            f"eigenvalue {_complex(worst)}, |z| = {abs(worst):.6g} > 1): the cart runs away, or "
             f"oscillates where a voltage limit holds it; check the gains' signs and sizes"
             + (" and the delay" if delay else "")
         )

@@ -163,3 +163,21 @@ def test_hw_never_imports_jax():
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
     )
     assert done.returncode == 0, done.stderr
+
+
+@pytest.mark.parametrize(
+    "band, words",
+    [([1.2, 0.5], "low <= high"), ("0.5-1.1", "two numbers"), ([0.5], "two numbers")],
+)
+def test_a_prediction_edited_out_of_shape_is_refused_before_the_run(tmp_path, band, words):
+    """A band reversed or written as text by hand: refused when the gains file is read (it
+    was used as written, or failed after the run with a bare error); a band open above
+    ("inf") is a band."""
+    metrics = {"settling_time": {"nominal": 0.8, "band": band}}
+    path = _write(tmp_path, _good(), prediction={"level": 0.9, "metrics": metrics})
+    with pytest.raises(GainsFileError) as info:
+        read_gains_file(path)
+    assert info.value.field == "prediction.metrics.settling_time" and words in str(info.value)
+    metrics["settling_time"]["band"] = [0.6, "inf"]
+    path = _write(tmp_path, _good(), prediction={"level": 0.9, "metrics": metrics})
+    assert read_gains_file(path)[1]["prediction"]["metrics"] == metrics

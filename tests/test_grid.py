@@ -251,6 +251,14 @@ def test_command_with_a_gains_file(tmp_path, monkeypatch, capsys):
     assert "best gains: kp = " in capsys.readouterr().out
 
 
+def test_a_step_beyond_the_track_is_refused_as_tune_refuses_it():
+    from argparse import Namespace
+
+    args = Namespace(step=5.0, horizon=3.0, settling=1.0, overshoot=5.0)
+    with pytest.raises(UserError, match="--step 5: the cart travels at most 0.814 m"):
+        grid_cmd._check_args(args)
+
+
 @pytest.mark.parametrize(
     "option, text",
     [

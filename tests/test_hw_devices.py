@@ -273,6 +273,16 @@ def test_sim_delay_saturation_and_parameters_file(tmp_path):
     path.write_text("Beq = 4.6\n")
     with pytest.raises(DeviceError, match="unknown parameter 'Beq'"):
         load_cart_params(path)
+    # In other units (g/s, grams): refused as jaxcart's plant refuses them, one range table.
+    wrong = (("B_eq = 4600\n", "B_eq = 4600: out of its range"), ("M = 940\n", "M = 940"))
+    for text, words in wrong:
+        path.write_text(text)
+        with pytest.raises(DeviceError, match=words):
+            load_cart_params(path)
+    # A plant file's values outside its [plant] table were dropped without a word.
+    path.write_text('format = "jaxcart-plant"\nversion = 1\nB_eq = 4.6\n')
+    with pytest.raises(DeviceError, match="unknown key 'B_eq'.*\\[plant\\] table"):
+        load_cart_params(path)
     # The handout's constants (appendix): m = 1.0731 kg, B_emf = 7.7236 kg/s, gamma = 1.7235.
     p = CartParams()
     assert (round(p.m, 4), round(p.B_emf, 4), round(p.gamma, 4)) == (1.0731, 7.7236, 1.7235)

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from hw.devices.base import DeviceError
-from hw.handout import APPENDIX
+from hw.handout import APPENDIX, VALID
 from hw.handout import ENCODER_RESOLUTION as ENCODER_RESOLUTION
 
 _SERIES_BELOW = 0.5
@@ -84,6 +84,12 @@ class CartParams:
                 raise ValueError(f"{f.name} = {value!r}: it must be positive")
             if not value >= 0:
                 raise ValueError(f"{f.name} = {value!r}: it must be >= 0")
+            low, high = VALID.get(f.name, (-math.inf, math.inf))
+            if not low <= value <= high:
+                raise ValueError(
+                    f"{f.name} = {value!r}: out of its range [{low:g}, {high:g}] (SI units: "
+                    "kg, kg/s, N, V, s)"
+                )
 
     @property
     def m(self) -> float:
@@ -163,11 +169,21 @@ def load_cart_params(path) -> CartParams:
 ABSENT_EFFECT = dict(v_sat=math.inf, f_c=0.0, f_s=None, delay=0.0, quantization=0.0)
 
 
+#: The top-level keys of a plant file (jaxcart.plantspec writes and reads the same).
+PLANT_FILE_KEYS = {"format", "version", "motor_connected", "structure", "effects", "plant", "fit"}
+
+
 def _from_plant_file(doc: dict, path) -> CartParams:
     """Cart parameters from a plant file (``jaxcart fit --out``, ``diagnose``): its [plant]
     table and its [effects.NAME] tables; an effect it names is in the cart, one it does not
     name is absent (no amplifier limit, no friction, exact encoder). The cart models an
     effect whose table holds only parameters of :data:`ABSENT_EFFECT`."""
+    stray = sorted(set(doc) - PLANT_FILE_KEYS)
+    if stray:
+        raise DeviceError(
+            f"{path}: unknown key {stray[0]!r}; allowed: {', '.join(sorted(PLANT_FILE_KEYS))} "
+            "(the cart's values go in a [plant] table)"
+        )
     values = dict(doc.get("plant", {}))
     effects = doc.get("effects", {})
     other = sorted(

@@ -32,6 +32,7 @@ from tuning.commands.options import (
     NOT_SETTLED,
     add_cluster_options,
     add_robust_options,
+    check_step,
     robust_ranges,
 )
 
@@ -241,6 +242,7 @@ def output_paths(out, plot, force, fmt=None) -> tuple[Path, Path]:
 
 
 def _check_args(args) -> None:
+    check_step(args.step)
     checks = (
         ("--step", args.step, math.isfinite(args.step) and args.step != 0, "a nonzero distance"),
         (

@@ -17,6 +17,7 @@ import re
 
 from hw.control_law import setting_problem
 from jaxcart.errors import UserError
+from jaxcart.params import TRAVEL
 from jaxcart.workers import MOST, Helpers
 
 #: The PID gains in the handout's order.
@@ -142,6 +143,12 @@ def parse_gains(text: str, option: str) -> dict:
         if problem:
             raise UserError(f"{option} {text}: {name} = {problem}")
     return dict(zip(GAINS, values, strict=True))
+
+
+def check_step(step: float) -> None:
+    """A step the cart can make on its track (--step of tune and grid) [m]."""
+    if abs(step) > TRAVEL:
+        raise UserError(f"--step {step:g}: the cart travels at most {TRAVEL:g} m on the track")
 
 
 def seconds_text(value, unit: str = " s", digits: int = 3, never: str = NOT_SETTLED) -> str:

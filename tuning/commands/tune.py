@@ -29,6 +29,7 @@ from tuning.commands.options import (
     GAINS,
     add_cluster_options,
     add_robust_options,
+    check_step,
     in_words,
     parse_gains,
     robust_ranges,
@@ -510,8 +511,7 @@ def _spec(args):
                 f"--horizon {args.horizon}: it must exceed --settling "
                 f"{args.settling} s (about 3x shows a slow creep)"
             )
-    if abs(args.step) > 0.814:
-        raise UserError(f"--step {args.step}: the cart travels at most 0.814 m on the track")
+    check_step(args.step)
     return Spec(
         step=args.step, settling_time=args.settling, overshoot=args.overshoot, horizon=args.horizon
     )
