@@ -40,6 +40,7 @@ from hw.control_law import ANTI_WINDUP_MODES, DERIVATIVE_MODES, PID, setting_pro
 from hw.control_law import UNITS as CONTROLLER_UNITS
 from hw.jsonio import to_jsonable
 from hw.predicted import problem_of
+from hw.stepinfo import spec_problem
 
 FORMAT = "jaxcart-gains"
 VERSION = 1
@@ -166,9 +167,13 @@ def read_gains_file(path) -> tuple[PID, dict]:
     except ValueError as exc:
         raise GainsFileError(str(exc), path=path, field="controller") from None
     metadata = {k: v for k, v in document.items() if k not in _RESERVED}
+    # Read before the run: after it, the recording would be judged by what is wrong here.
     wrong = problem_of(metadata["prediction"]) if "prediction" in metadata else None
-    if wrong is not None:  # read before the run: after it, the recording would be judged by it
+    if wrong is not None:
         raise GainsFileError(f"{wrong[1]} (or delete the prediction)", path=path, field=wrong[0])
+    wrong = spec_problem(metadata["spec"]) if "spec" in metadata else None
+    if wrong is not None:
+        raise GainsFileError(f"{wrong[1]} (or delete the spec)", path=path, field=wrong[0])
     return pid, metadata
 
 

@@ -91,6 +91,10 @@ def simulate(pid: PID, reference, params: CartParams | None = None, *, padded: b
     return sim
 
 
+#: The lab's controller sample time [s] (1 kHz): the PID's default.
+LAB_SAMPLE_TIME = PID().sample_time
+
+
 def check_gains(pid: PID, reference, limits: Limits | None = None) -> GainsCheck:
     """Both checks of the module docstring on the nominal cart; see :class:`GainsCheck`."""
     limits = limits or Limits()
@@ -99,9 +103,15 @@ def check_gains(pid: PID, reference, limits: Limits | None = None) -> GainsCheck
     worst = float(np.max(np.abs(poles)))
     gains = f"kp={pid.kp:g} ki={pid.ki:g} kd={pid.kd:g}"
     if worst > 1.0 + UNIT_CIRCLE_TOL:
+        ts = float(pid.sample_time)
+        slow = (
+            f" at a sample time of {ts:g} s (the lab's loop runs at 0.001 s: sample_time in ms?)"
+            if ts > LAB_SAMPLE_TIME * 20
+            else ""
+        )
         refusals.append(
             f"unstable: {gains} put a closed-loop pole at |z| = {worst:.6f} > 1 on the nominal "
-            "cart (the handout's); retune (jaxcart tune) or lower kp / ki"
+            f"cart (the handout's){slow}; retune (jaxcart tune) or lower kp / ki"
         )
     sim = simulate(pid, reference, padded=True)
     u = sim.command

@@ -82,6 +82,20 @@ def run_metrics(result) -> list[dict]:
     return out
 
 
+def spec_problem(spec) -> tuple[str, str] | None:
+    """(field, what is wrong) of a gains file's spec that :func:`spec_of` would pass over
+    (settling 0, overshoot -1, a string), or None."""
+    if not isinstance(spec, dict):
+        return "spec", "expected an object with settling_time [s] and overshoot [%]"
+    for key in LAB_SPEC:
+        value = spec.get(key)
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+            return f"spec.{key}", f"{value!r}: give a positive number ({UNITS[key]})"
+    return None
+
+
 def spec_of(meta: dict) -> dict:
     """The spec of a gains file's metadata (settling_time [s], overshoot [%]), else the lab's."""
     spec = meta.get("spec") if isinstance(meta, dict) else None

@@ -181,3 +181,16 @@ def test_a_prediction_edited_out_of_shape_is_refused_before_the_run(tmp_path, ba
     metrics["settling_time"]["band"] = [0.6, "inf"]
     path = _write(tmp_path, _good(), prediction={"level": 0.9, "metrics": metrics})
     assert read_gains_file(path)[1]["prediction"]["metrics"] == metrics
+
+
+@pytest.mark.parametrize("spec, field", [({"settling_time": 0}, "settling_time"),
+                                         ({"overshoot": -1}, "overshoot"),
+                                         ({"overshoot": "5"}, "overshoot")])  # fmt: skip
+def test_a_spec_edited_out_of_range_is_refused_not_replaced_by_the_lab_s(tmp_path, spec, field):
+    """A spec the run would silently replace by the lab's (settling < 1 s, overshoot < 5 %)."""
+    path = _write(tmp_path, _good(), spec=spec)
+    with pytest.raises(GainsFileError, match="give a positive number") as info:
+        read_gains_file(path)
+    assert info.value.field == f"spec.{field}"
+    path = _write(tmp_path, _good(), spec={"step": 0.5, "settling_time": 0.8, "horizon": None})
+    assert read_gains_file(path)[1]["spec"]["settling_time"] == 0.8

@@ -159,3 +159,10 @@ def test_ctrl_c_during_the_check_drives_nothing(tmp_path, monkeypatch, capsys):
     assert main(["run", gains, "--duration", "0.5", "--out", str(out)]) == 130
     assert "interrupted" in capsys.readouterr().err
     assert started == [] and not out.exists() and not out.with_suffix(".csv").exists()
+
+
+def test_gains_run_at_a_sample_time_in_ms_say_so():
+    """A gains file with sample_time 1 (meant as 1 ms): the refusal names the sample time, not
+    only the gains."""
+    check = check_gains(PID(kp=406.9, ki=0.84, kd=8.5, v_limit=6.0, sample_time=1.0), STEP)
+    assert any("sample time of 1 s" in r and "in ms?" in r for r in check.refusals)
