@@ -615,3 +615,25 @@ def test_values_no_recording_gave_are_named_and_the_model_says_what_it_simulates
     cart = SimpleNamespace(fit=fit, plant=None)
     model = model_of(cart, CartModel())
     assert model.f_c == 0.3 and "held it at 0.3 N" in model.f_c_source
+
+
+def test_part_v_simulates_the_recorded_run_on_the_plant_it_is_given():
+    """The recorded run is simulated on the cart with its own drive values (the designs'
+    section's), and the text names that plant's limit; a run's own value in a note is named by
+    its file."""
+    import jaxcart as jc
+    from jaxcart.exact import simulate_exact
+    from tuning.lab import part_v
+    from tuning.lab.cart import _named_runs
+    from tuning.lab.model import CartModel
+
+    rec = inputs.find_inputs(data.builtin_dir()).recordings["pid"]
+    own = jc.handout_plant(B_eq=2.0, f_c=0.3, v_sat=4.0)
+    r = part_v.compute(rec, CartModel(), plant=own)
+    assert r.plant is own
+    expected = jc.step_info(simulate_exact(own, r.controller, r.experiment), v_limit=6.0)
+    assert r.info_sim.settling_time == expected.settling_time
+    assert (
+        _named_runs("with v_sat@1 (0.9)", ["tap.toml", "p50.toml"])
+        == "with v_sat of p50.toml (0.9)"
+    )

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass
 
 from jaxcart import plantspec
@@ -236,7 +237,7 @@ def render(lab: Lab, c: JointCart | None) -> None:
         base, _, k = name.partition("@")
         who = c.names[int(k)] if k else "every recording"
         if est.value is None:
-            rows.append([base, who, "held", "-", est.note])
+            rows.append([base, who, "held", "-", _named_runs(est.note, c.names)])
         else:
             rows.append([base, who, fmt(est.value), fmt(est.stderr, 2), ""])
     doc.table(["parameter", "recording", "value", "standard error", "note"], rows)
@@ -254,6 +255,10 @@ def render(lab: Lab, c: JointCart | None) -> None:
             " mm, and the design and its band below rest on those values, not on this cart. "
             "A tap (Part (i)) determines B_eq, a ramp (Part (iii)) f_c."
         )
+    held = {n for n, e in c.fit.params.items() if e.value is None}  # in the table above
+    said = [w for w in c.fit.warnings if not any(w.startswith(f"{n}: ") for n in held)]
+    if said:  # what the numbers do not show: a misfit, an optimizer stopped at its cap
+        doc.paragraph("What the fit says of itself: " + "; ".join(said) + ".")
     doc.paragraph(_agreement_text(c))
     g, t, p = c.tuned.gains, c.tuned, c.design.prediction
     lo, hi = p.interval("settling_time")
@@ -263,7 +268,8 @@ def render(lab: Lab, c: JointCart | None) -> None:
         f"{fmt(g.kp)} V/m, ki = {fmt(g.ki)} V/(m s), kd = {fmt(g.kd)} V s/m; on the fitted "
         f"cart (exact simulator) it settles in {fmt(p.nominal['settling_time'])} s with "
         f"{fmt(p.nominal['overshoot'])} % overshoot, in {fmt(lo)}-{fmt(hi)} s on "
-        f"{p.level:.0%} of carts drawn from the fit, meeting the handout's spec on "
+        f"{p.level:.0%} of carts drawn from the fit (the fit's band: Part (v) widens it by how "
+        f"far the model misses the recorded steps), meeting the handout's spec on "
         f"{p.p_meet:.0%} of them. What limits it: {c.design.binding}. Part (v) shows it beside "
         "the pre-lab's design, with its margins."
     )
@@ -287,6 +293,12 @@ def _structure_text(c: JointCart) -> str:
         "`grid`, `lab --plant`)"
     )
     return text + (", with each value of a run's own at the median of the runs." if own else ".")
+
+
+def _named_runs(text: str, names) -> str:
+    """``text`` with each run's own value named by its file (``v_sat@3``: v_sat of the fourth
+    recording's file)."""
+    return re.sub(r"\b(\w+)@(\d+)\b", lambda m: f"{m[1]} of {names[int(m[2])]}", text or "")
 
 
 def _assumed(c: JointCart) -> dict:

@@ -54,9 +54,10 @@ def ramp(lab, r, model) -> None:
             f"The ramp below is simulated with f_c = {fmt(model.f_c)} N from {model.f_c_source}."
         )
         sim = r.sim
-        label = f"simulation, f_c = {fmt(model.f_c, 4)} N"
+        label = f"simulation, f_c = {fmt(model.f_c, 4)} N (position; below, its voltage v)"
         top = [figures.Trace(sim.time, np.asarray(sim.position) * 1e3, label)]
-        bottom = [figures.Trace(sim.time, np.asarray(sim.command), "voltage command v")]
+        # One legend for both panels: the voltage is the same simulation's, not a second line.
+        bottom = [figures.Trace(sim.time, np.asarray(sim.command), "_voltage command v")]
     marks.append(
         (
             model.f_c / gamma,

@@ -47,6 +47,9 @@ class PIDResult:
     info_tuned: object = None
     slider: object = None
     moves: tuple = ()
+    #: The plant the step ran on (the recorded run's own drive values where the joint fit has
+    #: them), None: ``model``'s.
+    plant: object = None
 
     @property
     def source(self) -> str:
@@ -67,13 +70,14 @@ class PIDResult:
         ]
 
 
-def compute(rec, model: CartModel, tuned=None, *, say=lambda text: None) -> PIDResult:
+def compute(rec, model: CartModel, tuned=None, *, plant=None, say=lambda text: None) -> PIDResult:
     """Part (v) with the recording ``rec`` (None: simulation only) on ``model``; ``tuned``:
-    the pre-lab's PID (None: the handout's kp = 40, kd = 5, ki = 5)."""
+    the pre-lab's PID (None: the handout's kp = 40, kd = 5, ki = 5); ``plant``: the cart the
+    recorded run is simulated on (its own drive values; None: ``model``'s)."""
     tuned = tuned if tuned is not None else jc.PID(kp=40.0, kd=5.0, ki=5.0, v_limit=V_SAT)
     controller = controller_of(rec, tuned)
     exp = experiment_of(rec, "pid")
-    plant = model.for_recording(rec)
+    plant = model.for_recording(rec) if plant is None else plant
     say("Part (v): PID step, simulated and measured")
     sim = exact(plant, controller, exp)
     extra = {}
@@ -95,6 +99,7 @@ def compute(rec, model: CartModel, tuned=None, *, say=lambda text: None) -> PIDR
         jc.step_info(sim, v_limit=V_SAT),
         slider=slider,
         moves=tuple(slider_moves(slider, times)),
+        plant=plant,
         **extra,
     )
 

@@ -86,7 +86,7 @@ def compute(
         return None
     u, cart_design = joint.uncertainty, joint.design
     say("Part (v): the designs on the cart as measured, with their bands and margins")
-    misses = tuple(step_miss(_own_cart(joint, r), r) for r in recordings if is_step(r))
+    misses = tuple(step_miss(own_cart(joint, r), r) for r in recordings if is_step(r))
     error = model_error(misses)
     ran = None if rec is None or rec.controller is None else rec.controller
     chosen = [
@@ -110,7 +110,7 @@ def compute(
     return Designs(tuple(designs), name, joint.source, misses, error)
 
 
-def _own_cart(joint, recording):
+def own_cart(joint, recording):
     """The fitted cart with the recording's own drive values (``v_sat@k`` of its run k in the
     joint fit), the others at the runs' mean."""
     u = joint.uncertainty

@@ -180,11 +180,13 @@ def _step(lab, r) -> None:
             f"gains (kp = {tuned.kp:.4g} V/m, kd = {tuned.kd:.4g} V s/m, ki = "
             f"{tuned.ki:.4g} V/(m s)), which the last row simulates on the same model."
         )
-    plant = m.plant()
+    plant = r.plant if r.plant is not None else m.plant()
     v_sat = float(plant.get("v_sat")) if "v_sat" in plant.param_names() else math.inf
+    f_c = float(plant.get("f_c")) if "f_c" in plant.param_names() else 0.0
+    own = " (the run's own drive limit)" if r.plant is not None else ""
     doc.paragraph(
-        f"{whose} The simulation uses the fitted model (B_eq = {m.B_eq:.3f} kg/s, "
-        f"f_c = {m.f_c:.3f} N, ±{v_sat:.3g} V saturation) and the exact simulator. Design "
+        f"{whose} The simulation uses the fitted model (B_eq = {float(plant.B_eq):.3f} kg/s, "
+        f"f_c = {f_c:.3f} N, ±{v_sat:.3g} V saturation{own}) and the exact simulator. Design "
         f"problem: settling < 1 s, overshoot < 5 %."
     )
     doc.table(
@@ -200,7 +202,11 @@ def _step(lab, r) -> None:
         numeric=[False, True, True, True, True, False],
     )
     what = "experiment and simulations" if r.recording is not None else "simulation"
-    doc.figure(rel, f"Part (v): PID step, {what}, position and voltage.")
+    doc.figure(
+        rel,
+        f"Part (v): PID step, {what}, position and the commanded voltage (what the software "
+        "sent, clipped at its 6 V; the amplifier's own limit acts after it).",
+    )
 
 
 def _step_figure(lab, r) -> str:

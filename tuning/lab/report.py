@@ -288,7 +288,10 @@ def compute(
         say("the cart: the PID tuned for the cart as measured (robust over its uncertainty)")
         retune = Background(cart.retune, joint, executor=executor)
     model = cart.model_of(joint, friction.model)
-    pid = part_v.compute(recordings.get("pid"), model, pre.gains, say=say)
+    run = recordings.get("pid")
+    # The recorded run on the cart with its own drive values, as the designs' section has it.
+    own = part_v_design.own_cart(joint, run) if joint is not None and run is not None else None
+    pid = part_v.compute(run, model, pre.gains, plant=own, say=say)
     joint = cart.with_retune(joint, retune.result() if retune is not None else None)
     designs = part_v_design.compute(
         recordings.get("pid"), joint, pre.gains, inputs.runs(), executor=executor, say=say
@@ -460,8 +463,9 @@ def _summary(lab: Lab, numbers: list) -> None:
     doc.table(header, rows, numeric=[False, False, True, False] + [True, True][: len(header) - 4])
     doc.paragraph(
         "Every number is also in `results.json` (SI units; `results.mat` holds the same as a "
-        "MATLAB struct `results`); the tuned gains are in "
-        "`gains.json` (jaxcart gains-file format, every PID setting)."
+        "MATLAB struct `results`); the gains to run are in `gains.json` (the "
+        f"{lab.gains_source.removeprefix('jaxcart lab: ')}; jaxcart gains-file format, every "
+        "PID setting)."
     )
     lab.results["values"] = {v.key: v.to_json(synthetic) for v in numbers}
 
