@@ -16,8 +16,8 @@ import math
 import re
 
 from hw.control_law import setting_problem
+from hw.handout import TRAVEL
 from jaxcart.errors import UserError
-from jaxcart.params import TRAVEL
 from jaxcart.workers import MOST, Helpers
 
 #: The PID gains in the handout's order.

@@ -361,14 +361,8 @@ def render(lab: Lab, r: LabResults) -> None:
     lab.results["cart"] = cart.to_json(r.cart)
     lab.gains = r.prelab.gains
     lab.gains_metrics = lab.results["prelab"]["pid"]["metrics"]
-    if r.cart is not None:  # the gains to run on this cart: tuned for it as measured
-        lab.gains, lab.gains_metrics = r.cart.tuned.gains, r.cart.tuned.exact.as_dict()
-        lab.gains_source = "jaxcart lab: PID tuned for the cart as measured (the recordings)"
-        lab.gains_extra = {
-            "prediction": r.designs.get("retuned").prediction.to_json(),
-            "margins": r.cart.design.margins.to_json(),
-            "binding": r.cart.design.binding,
-        }
+    if r.cart is not None:  # the gains to run on this cart: the likelier to meet the spec
+        _gains_to_run(lab, r)
 
 
 # ---------------------------------------------------------------- sections
@@ -489,6 +483,32 @@ def _summary_row(v, synthetic) -> list:
         fmt(true * (1e3 if unit == "m" else 1.0)),
         "n/a" if err is None else f"{100 * err:.2g} %",
     ]
+
+
+def _gains_to_run(lab: Lab, r) -> None:
+    """gains.json's design where the lab has a cart as measured: the one tuned for it, unless
+    the pre-lab's meets the spec on more of the carts drawn from the fit (both predicted on the
+    same carts: :mod:`tuning.lab.part_v_design`); its prediction and margins go with it."""
+    retuned, prelab = r.designs.get("retuned"), r.designs.get("prelab")
+    p_new, p_old = retuned.prediction.p_meet, prelab.prediction.p_meet
+    if p_old > p_new:
+        lab.gains = prelab.controller  # (gains_metrics: the pre-lab's, set above)
+        lab.gains_source = (
+            f"jaxcart lab: pre-lab design (handout model), which meets the spec on {p_old:.0%} "
+            f"of the carts drawn from the fit against {p_new:.0%} for the one tuned for it"
+        )
+        lab.gains_extra = {
+            "prediction": prelab.prediction.to_json(),
+            "margins": prelab.margins.to_json(),
+        }
+        return
+    lab.gains, lab.gains_metrics = r.cart.tuned.gains, r.cart.tuned.exact.as_dict()
+    lab.gains_source = "jaxcart lab: PID tuned for the cart as measured (the recordings)"
+    lab.gains_extra = {
+        "prediction": retuned.prediction.to_json(),
+        "margins": r.cart.design.margins.to_json(),
+        "binding": r.cart.design.binding,
+    }
 
 
 # ---------------------------------------------------------------- writing
