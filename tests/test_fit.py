@@ -334,3 +334,12 @@ def test_the_fits_adam_is_optax_adam():
         x = optax.apply_updates(x, updates)
     np.testing.assert_allclose(best[:2], ref_best, rtol=1e-12, atol=1e-14)
     assert best[2] == 7.0 and best_cost == pytest.approx(ref_cost, rel=1e-12)
+
+
+def test_a_value_held_at_a_given_start_says_it_was_given(tap_rec):
+    """Held at a start value the caller gave (jaxcart lab: Part (i)'s B_eq), the note says so,
+    not that it is the handout's."""
+    seg = fit.fit_segment(tap_rec, ("B_eq", "f_c"), {"B_eq": 1.5}, fit.FitSettings())
+    problem = _Problem([seg], ("B_eq", "f_c"), fit.FitSettings(), given={"B_eq": 1.5})
+    assert "what the fit was given" in problem.start_source("B_eq")
+    assert "typical value" in problem.start_source("f_c")

@@ -312,7 +312,7 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
     values0 = {canonical(k): _initial_value(k, v) for k, v in (initial or {}).items()}
     segments = [fit_segment(rec, params, values0, settings) for rec in recordings]
     params = _expand(params, per_recording, segments)
-    problem = _Problem(segments, params, settings, executor)
+    problem = _Problem(segments, params, settings, executor, given=values0)
     run = _Run(progress)
     active, notes = _acting(problem)
     r0, _ = problem.evaluate(problem.theta0, settings.widths[-1])

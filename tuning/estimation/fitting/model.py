@@ -135,8 +135,9 @@ _positions_jit = jax.jit(_positions, static_argnames="layout")
 class _Problem:
     """Segments, theta's layout and the compiled residual function."""
 
-    def __init__(self, segments, params, settings, executor=None):
+    def __init__(self, segments, params, settings, executor=None, given=()):
         self.segments = segments
+        self.given = frozenset(given)  # the names whose start values the caller gave
         self.executor = executor or SERIAL
         self.params = tuple(canonical(p) for p in params)
         self.n_params = len(self.params)
@@ -220,7 +221,9 @@ class _Problem:
         """Where parameter ``p``'s start value comes from, in words (for a value held)."""
         base = base_name(p)
         declared = default_start().get(base)
-        if base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
+        if base in self.given:
+            where = "what the fit was given (the --plant file, or in jaxcart lab an earlier part)"
+        elif base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
             where = "the recordings' plant (the handout's appendix, a plant file or [plant])"
         elif declared is not None and math.isclose(
             self._start_value(p), declared if not isinstance(declared, tuple) else declared[0]
