@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hw.control_law import float_pid, pid_init, pid_update
+from hw.control_law import float_pid, pid_init, pid_update, setting_problem
 from jaxcart.effects import Delay
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL, voltage_limit
@@ -577,12 +577,10 @@ def check_controller(pid, plant, *, where: str = "controller") -> list[str]:
     if not np.all(np.isfinite(z)):
         return [f"{where}: {gains}: gains beyond any cart (the loop overflows float64)"]
     out = []
-    negative = [k for k in ("kp", "ki", "kd") if float(getattr(pid, k)) < 0]
-    if negative:  # stable or not, a negative gain is a sign error (u = kp e on e = r - y)
-        out.append(
-            f"{where}: {', '.join(f'{k}={float(getattr(pid, k)):g}' for k in negative)} "
-            f"negative: the lab's PID acts on e = r - y with gains >= 0; check the sign"
-        )
+    for k in ("kp", "ki", "kd"):  # stable or not, a negative gain is a sign error
+        problem = setting_problem(k, float(getattr(pid, k)))
+        if problem is not None:
+            out.append(f"{where}: {k} = {problem}")
     worst = z[np.argmax(np.abs(z))]
     if abs(worst) > 1 + UNIT_CIRCLE_TOL:
         behind = f" with its {delay * 1e3:.4g} ms delay" if delay else ""

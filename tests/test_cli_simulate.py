@@ -155,7 +155,7 @@ def test_options_that_do_not_apply_and_diverged_runs(tmp_path, monkeypatch, real
     err = capsys.readouterr().err
     assert "diverged" in err and "div.toml" in err and "kp=-10000" in err
     lines = err.splitlines()
-    assert [line for line in lines if "error:" in line] == lines[-1:]
+    assert [line for line in lines if ": error:" in line] == lines[-1:]
     # Said before the run: the loop's eigenvalue outside the unit circle.
     assert "warning: controller: kp=-10000" in err and "unstable" in err
     assert not (tmp_path / "x.csv").exists()

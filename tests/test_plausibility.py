@@ -80,7 +80,7 @@ def test_unstable_and_implausible_controllers_are_flagged_lab_gains_are_not():
     for gains in (dict(kp=40.0, kd=5.0, ki=5.0), dict(kp=100.0, kd=6.0), dict(kp=250.0, kd=15.0)):
         assert plausibility.check_controller(jc.PID(v_limit=6.0, **gains), plant) == []
     negative, unstable = plausibility.check_controller(jc.PID(kp=-100.0, v_limit=6.0), plant)
-    assert "kp=-100 negative" in negative and "check the sign" in negative
+    assert "kp = -100.0 V/m" in negative and "sign error" in negative
     assert "unstable" in unstable and "kp=-100" in unstable and "|z| = 1.0" in unstable
     # The eigenvalue says what a simulation of the linear loop (no limit) shows: growth.
     res = simulate(plant, jc.PID(kp=-100.0), jc.step(0.01, horizon=3.0))  # shares a compile

@@ -281,7 +281,7 @@ def _run(argv, capsys):
     except Exception as exc:  # noqa: BLE001 - the property: nothing escapes as a traceback
         pytest.fail(f"{argv}: {type(exc).__name__}: {exc}")
     err = capsys.readouterr().err
-    errors = [line for line in err.splitlines() if "error:" in line]
+    errors = [line for line in err.splitlines() if ": error:" in line]
 
     assert "Traceback" not in err
     if status == 0:
