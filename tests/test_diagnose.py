@@ -381,3 +381,23 @@ def test_a_part_fitted_to_where_it_does_nothing_leaves_the_structure_it_led_to(t
     values = {k: v["value"] for k, v in d.parameters.items()}
     assert values["f_c"] == pytest.approx(0.3, abs=0.015)
     assert values["f_c_asym"] == pytest.approx(0.1, abs=0.01)
+
+
+def test_structures_that_run_along_one_path_tie(tmp_path):
+    """The independent generator's 0.4 V dead band under a P step whose command never falls
+    below the band: a dead band and a drive offset of -0.4 V are one model on it (their exact
+    runs lie within the criterion's floor of each other, 0.0026 mm against 0.0099 mm, though
+    the offset scores lower), so whichever is named, the other is said to fit equally well,
+    and the offset's value is the band's."""
+    from tuning.estimation.diagnose.suite import make_recordings
+
+    case = BY_NAME["deadzone plain"].on("independent")
+    made = make_recordings(case, tmp_path, "independent")
+    d = diagnose([read_experiment(p) for p, _ in made], progress=False)
+    row = judge(case, d, [truth for _, truth in made])
+    assert row["correct"], row
+    named = set(d.left_out)
+    tied = [set(e) for e in d.equivalent]
+    assert {"deadzone"} in [named, *tied] and {"voltage_offset"} in [named, *tied], row
+    if "v_offset" in d.parameters:
+        assert d.parameters["v_offset"]["value"] == pytest.approx(-0.4, abs=0.01)
