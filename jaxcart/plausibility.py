@@ -112,6 +112,8 @@ def _check_recording(rec) -> list[str]:
     plant = rec.plant()
     volts = _voltage_range(rec, plant)
     warnings += _check_motion(where, _label(rec, "y"), rec, plant, volts)
+    warnings += _check_start_at_rest(where, _label(rec, "y"), rec, plant, volts)
+    warnings += _check_tap_ends_at_rest(where, _label(rec, "y"), rec)
     if rec.kind == "open_loop":
         warnings += check_input_units(rec, plant)
     if rec.kind == "closed_loop" and rec.controller is not None:
@@ -224,6 +226,50 @@ def _check_motion(where, label, rec, plant, volts) -> list[str]:
                 f"time not in s, or a wrong [plant]?"
             )
     return out
+
+
+def _check_tap_ends_at_rest(where, label, rec) -> list[str]:
+    """A tap recorded until the cart rests: one cut while it still coasts (over 3 counts in
+    its last DIFF_WINDOW) loses the stop, where Coulomb friction shows apart from B_eq."""
+    if rec.kind != "tap":
+        return []
+    y = np.asarray(rec.position, dtype=float)
+    ts = float(rec.sample_time)
+    w = max(1, int(round(DIFF_WINDOW / ts)))
+    if y.size <= w:
+        return []
+    moved = abs(float(y[-1] - y[-1 - w]))
+    if moved <= 3 * ENCODER_RESOLUTION:
+        return []
+    return [
+        f"{where}: {label}: the cart still moves at {moved / (w * ts):.3g} m/s at the last "
+        "sample: the tap was cut before the cart came to rest, and B_eq and f_c are hard to "
+        "tell apart without its stop; record until the cart rests"
+    ]
+
+
+def _check_start_at_rest(where, label, rec, plant, volts) -> list[str]:
+    """A driven run is simulated from rest (``initial_velocity`` 0, unless the file gives
+    one): a cart that covers, in its first DIFF_WINDOW, more than full voltage could drive it
+    from rest (and two counts) was already moving: the recording started late."""
+    if rec.kind == "tap" or "initial_velocity" in rec.meta:
+        return []
+    y = np.asarray(rec.position, dtype=float)
+    ts = float(rec.sample_time)
+    w = max(1, int(round(DIFF_WINDOW / ts)))
+    if y.size <= w:
+        return []
+    h = w * ts
+    from_rest = 0.5 * float(plant.gamma) * volts / float(plant.m) * h**2
+    moved = abs(float(y[w] - y[0]))
+    if moved <= MARGIN * from_rest + 2 * ENCODER_RESOLUTION:
+        return []
+    t0 = float(np.asarray(rec.time)[0])
+    return [
+        f"{where}: {label}: the cart moves at {moved / h:.3g} m/s at the first sample "
+        f"(t = {t0:g} s), where the simulations start it at rest: the recording started after "
+        "the run did? record from the step, or give initial_velocity [m/s]"
+    ]
 
 
 def check_input_units(rec, plant=None) -> list[str]:

@@ -245,6 +245,8 @@ def _error_inset(ax, drawn) -> None:
     t_ref, r = np.asarray(ref.time, dtype=float), np.asarray(ref.position, dtype=float)
     changed = np.flatnonzero(np.abs(np.diff(r)) > 0)
     t_change = t_ref[changed[-1] + 1] if changed.size else t_ref[0]
+    if t_ref[-1] - t_change < 0.25 * (t_ref[-1] - t_ref[0]):
+        return  # a reference that keeps moving (a sine, a ramp) has no steady state to zoom on
     t0 = t_change + 0.5 * (t_ref[-1] - t_change)
     target, start = float(r[-1]), float(r[0])
     # Below the final value for a step up (where the curves are not), above for a step down.

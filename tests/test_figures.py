@@ -93,6 +93,22 @@ def test_runs_figure_simulate_plot(tmp_path):
     assert _pixels(path) == (780, 1040)
 
 
+def test_no_steady_state_inset_for_a_reference_that_keeps_moving():
+    """A PD loop following a ramp to its end has no final value held: no zoom on the steady
+    state (matplotlib warned of identical x limits and the inset covered the run); a step
+    keeps its zoom."""
+    from jaxcart.plots import reference_run, run_from_response, runs_figure
+
+    pid = jc.PID(kp=40.0, kd=3.0)
+    insets = []
+    for exp in (jc.ramp(0.2, horizon=1.5), jc.step(0.2, horizon=1.5)):
+        res = jc.simulate(jc.handout_plant(), pid, exp)
+        runs = [reference_run(res.time, res.reference), run_from_response(res, "simulated")]
+        fig = runs_figure(runs, title="run", zoom=True)
+        insets.append(len(fig.axes[0].child_axes))
+    assert insets == [0, 1]
+
+
 @pytest.fixture(scope="module")
 def two_recordings_fit():
     from jaxcart.files import read_experiment

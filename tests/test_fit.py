@@ -177,6 +177,25 @@ def test_not_identifiable(tap_rec):
     assert result.params["B_eq"].identifiable
 
 
+def test_a_limit_the_run_never_reaches_is_held_where_it_does_not_act():
+    """A PD loop following a ramp, its command never above 1.35 V, v_sat asked for beside
+    B_eq and f_c: the data do not depend on a limit above the command, so v_sat is not
+    identifiable, and it is held where the fit left it (30 V, the top of its range), not at
+    its start, 0.7 times the largest command, where it clips the drive: held there, the fit
+    lost B_eq and f_c too (not identifiable, 0.067 mm after, ten times the floor); on the
+    independent generator's sine under PD it came out worse than the model before it."""
+    truth = jc.handout_plant(B_eq=2.0, f_c=0.35)
+    rec = make_recording(truth, jc.PID(kp=40.0, kd=3.0), jc.ramp(0.2, horizon=1.5), seed=3)
+    peak = float(np.max(np.abs(rec.command)))
+    assert peak < 1.5
+    result = fit.fit([rec], ("B_eq", "f_c", "v_sat"), progress=False)
+    v = result.params["v_sat"]
+    assert not v.identifiable and v.held_at > peak and "a limit not reached" in v.note
+    assert result.params["B_eq"].value == pytest.approx(2.0, rel=0.01)
+    assert result.params["f_c"].value == pytest.approx(0.35, rel=0.03)
+    assert result.rms_after < 2 * result.noise_floor
+
+
 def test_parameter_names():
     assert fit.parse_params("B_eq, f_c,v_limit") == ("B_eq", "f_c", "v_limit")
     assert fit.canonical("v_limit") == "v_sat"

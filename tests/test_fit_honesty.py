@@ -247,3 +247,24 @@ def test_an_edge_is_judged_relative_to_the_range_and_said_wherever_a_value_is_sh
     est = fit.Estimate("B_eq", 30.0, 29.9, edge=("upper", 30.0))
     assert pm(est, "kg/s") == "30 ± 30 kg/s (at the upper edge of its allowed range: no estimate)"
     assert "upper edge of its allowed range [0.5, 30] kg/s" in est.edge_note
+
+
+def test_an_encoder_count_is_found_whatever_the_origin_and_the_digits(realdata):
+    """The real P 50 step's positions are whole counts; shifted by 0.2 m (an encoder not
+    zeroed where the run starts), or written to 10 significant digits, they still are, and
+    the count is the same (the floor, a run's start within its count and the counts in the
+    loop follow from it: shifted, the real P 50 fitted to 9070 times a floor of 0.001 mm
+    where the file as recorded gives 1383 times 0.0066 mm); positions with noise are not
+    counts."""
+    from jaxcart.files import read_experiment
+    from tuning.estimation.engine.noise import encoder_count
+
+    y = np.asarray(read_experiment(f"{realdata}/p50.toml").position, dtype=float)
+    q = encoder_count(y)
+    assert q == pytest.approx(2.2735e-5, rel=1e-3)
+    assert encoder_count(y - 0.2) == pytest.approx(q, rel=1e-9)
+    assert encoder_count(y + 0.3 * q) == pytest.approx(q, rel=1e-9)
+    ten_digits = np.array([float(f"{v:.10g}") for v in y - 0.2])
+    assert encoder_count(ten_digits) == pytest.approx(q, rel=1e-6)
+    noisy = y + np.random.default_rng(0).normal(0.0, 1e-6, y.size)
+    assert encoder_count(noisy) == 0.0

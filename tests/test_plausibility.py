@@ -394,3 +394,38 @@ def test_fit_refuses_a_still_cart_and_the_same_data_twice_before_fitting():
         fit([rec, _open_loop(1.0), rec], ("B_eq",), progress=False)
     # Another seed is other data: both pass (the check alone, no fitting here).
     assert len(plausibility.check_fit_recordings([rec, _open_loop(2.0, seed=1)])) == 2
+
+
+def _rows_written(folder: Path, rec, rows, kind: str, extra: str = "") -> Path:
+    """Rows ``rows`` of ``rec`` (t, y, and v where it has one) as a CSV experiment file of
+    ``kind``, its TOML ending with ``extra`` (a controller and a reference)."""
+    folder.mkdir()
+    cols = {"t": rec.time, "y": rec.position}
+    if rec.command is not None:
+        cols["v"] = rec.command
+    data = np.column_stack([np.asarray(c, dtype=float)[rows] for c in cols.values()])
+    header = ",".join(cols)
+    np.savetxt(folder / "run.csv", data, delimiter=",", header=header, comments="", fmt="%.17g")
+    toml = f'kind = "{kind}"\nsample_time = 0.001\ndata = "run.csv"\n{extra}'
+    (folder / "run.toml").write_text(toml)
+    return folder / "run.toml"
+
+
+def test_a_run_recorded_late_and_a_tap_cut_while_coasting_are_warned(tmp_path, realdata):
+    """The real P 50 step with its first 100 ms dropped starts with the cart at 0.575 m/s,
+    where every simulation starts it at rest (fitted so, B_eq came out 1.44 for the whole
+    run's 4.2, and a diagnosis named a spring and an extra 0.76 kg); the real tap cut at 60 %
+    of its samples ends with the cart still coasting at 0.55 m/s, without the stop that tells
+    f_c from B_eq (f_c 0.135 +/- 0.052 N for the whole tap's 0.437). Each is warned; the
+    whole recordings are not (above)."""
+    p50 = read_experiment(Path(realdata) / "p50.toml")
+    p50_head = (
+        '[controller]\nkp = 50.0\nv_limit = 6.0\n[reference]\nkind = "step"\namplitude = 0.4\n'
+    )
+    late = _rows_written(tmp_path / "late", p50, slice(100, None), "closed_loop", p50_head)
+    (warning,) = [w for w in read_experiment(late).warnings if "first sample" in w]
+    assert "moves at 0.57" in warning and "started after the run did" in warning
+    tap = read_experiment(Path(realdata) / "tap.toml")
+    cut = _rows_written(tmp_path / "cut", tap, slice(0, int(0.6 * tap.position.size)), "tap")
+    (warning,) = [w for w in read_experiment(cut).warnings if "last sample" in w]
+    assert "still moves at 0.5" in warning and "cut before the cart came to rest" in warning

@@ -471,15 +471,26 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
         i = int(idx[worst])
         name = problem.params[i]
         notes[name] = _why(name, worst, idx, hac, singular, zero, problem, theta)
-        held_at = float(parameters.to_value(name, problem.theta0[i]))
-        run.say(f"{name}: {notes[name]}; holding it at {held_at:.4g}, {problem.start_source(name)}")
+        if not zero[worst]:
+            # Where the data do not depend on it, it stays where the fit left it: its start
+            # may act (a limit starts below the largest command) where the fitted one does not.
+            theta[i] = problem.theta0[i]
+        held_at = float(parameters.to_value(name, theta[i]))
+        source = _held_source(problem, name, zero[worst])
+        run.say(f"{name}: {notes[name]}; holding it at {held_at:.4g}, {source}")
         active[i] = False
-        theta[i] = problem.theta0[i]
         label = f"Levenberg-Marquardt without {name}"
         narrow = settings.widths[-1]
         theta, r, jac = run.lm(label, problem, theta, active, narrow, settings.lm_iterations)
         theta, r, jac = polish(theta, r, jac)
     return theta, r, jac, _widened(problem, r, cov)
+
+
+def _held_source(problem, name, where_fitted) -> str:
+    """Where a held parameter's value comes from, in words."""
+    if where_fitted:
+        return "where the fit left it: the data do not depend on it there (a limit not reached)"
+    return problem.start_source(name)
 
 
 def _widened(problem, r, cov: Covariance) -> tuple:
@@ -521,8 +532,9 @@ def _estimates(problem, params, theta, cov, active, notes) -> dict:
                 edge=parameters.at_edge(name, value),
             )
         else:
-            held = float(parameters.to_value(name, problem.theta0[i]))
-            note = f"{notes[name]}; held at {held:.4g}, {problem.start_source(name)}"
+            held = float(parameters.to_value(name, theta[i]))
+            moved = not np.isclose(theta[i], problem.theta0[i])
+            note = f"{notes[name]}; held at {held:.4g}, {_held_source(problem, name, moved)}"
             out[asked] = Estimate(asked, None, None, identifiable=False, note=note, held_at=held)
     return out
 

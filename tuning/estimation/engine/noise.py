@@ -20,16 +20,24 @@ def encoder_count(position) -> float:
     """The count size q [m] of encoder data (every value a whole number of counts), or 0.
 
     q is the smallest step between samples, accepted when it is between 0.1 um and 1 mm and
-    every position is a whole multiple of it (to 1e-6 of a count)."""
+    every position is the first one plus a whole multiple of it (to 1e-6 of a count, or the
+    text's rounding: positions shifted by an offset, or written to 9 digits, are still
+    counts)."""
     y = np.asarray(position, dtype=float)
     steps = np.abs(np.diff(y))
     steps = steps[steps > 1e-12]
     if steps.size == 0:
         return 0.0
     q = float(steps.min())
-    counts = y / q
-    if 1e-7 <= q <= 1e-3 and np.max(np.abs(counts - np.round(counts))) < 1e-6:
-        return q
+    d = y - y[0]
+    # A value written with n significant digits is off by up to |y| 10^-n: allow 9 digits.
+    slack = 1e-9 * float(np.max(np.abs(y)))
+    counts = np.round(d / q)
+    # The smallest step, else q from all the counts (a step between rounded values is off).
+    for size in (q, float(np.dot(counts, d) / max(np.dot(counts, counts), 1.0))):
+        off = np.abs(d / size - np.round(d / size)) if size > 0 else np.inf
+        if 1e-7 <= size <= 1e-3 and np.max(off) < max(1e-6, slack / size):
+            return size
     return 0.0
 
 
