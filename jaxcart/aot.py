@@ -187,6 +187,7 @@ class Program:
         if folder is None:
             return False
         try:
+            # lazy: jax.export may be absent (an older JAX: plain jit then, below)
             from jax import export
         except ImportError:  # an older JAX
             return False

@@ -61,7 +61,9 @@ def enable_persistent_cache(folder: Path | None = None) -> Path | None:
     if folder.resolve() == cache_dir().resolve():  # only jaxcart's own folder is pruned
         prune(folder, max_bytes())
     if "jax" in sys.modules:
-        import jax  # (already loaded: this module imports no jax, for main before jax starts)
+        # lazy: jax costs 0.3 s at start-up (python -X importtime): already loaded here, and this
+        # module imports no jax, for main before jax starts
+        import jax
 
         jax.config.update("jax_compilation_cache_dir", str(folder))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)

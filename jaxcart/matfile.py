@@ -32,9 +32,9 @@ from hw.atomicio import OutputError, atomic_open, atomic_paths, open_output
 from jaxcart.errors import UserError
 from jaxcart.plantspec import check_plant_overrides
 
-# scipy.io (0.26 s) and h5py (0.08 s to import beside jax, measured on 2 cores) are imported
-# where a .mat file is read or written: every experiment file read imports this module, and
-# most are CSV.
+# scipy.io (0.07-0.26 s) and h5py (0.07 s more) beside jax, python -X importtime on 2 cores, are
+# imported where a .mat file is read or written: every experiment file read imports this module,
+# and most are CSV. h5py reads v7.3 files only, and a clear error says when it is absent.
 
 LAYOUTS = ("structure-with-time", "structure", "array", "vector")
 DEFAULT_LAYOUT = "structure-with-time"
@@ -68,6 +68,7 @@ def mat_paths(path) -> tuple[Path, Path]:
 def classify(obj) -> str | None:
     """The layout of one variable as ``scipy.io.loadmat(..., squeeze_me=True,
     struct_as_record=False)`` returns it, or None when it is none of ``LAYOUTS``."""
+    # lazy: scipy.io costs 0.1 s at start-up (python -X importtime; the note at the top)
     from scipy.io.matlab import mat_struct
 
     if isinstance(obj, mat_struct):
@@ -278,6 +279,7 @@ def _write(
     motor_connected=False,
 ):
     """Check everything, then write the .mat and the TOML (never over a file unless force)."""
+    # lazy: scipy.io costs 0.1 s at start-up (python -X importtime; the note at the top)
     import scipy.io
 
     toml_path, mat_path = mat_paths(path)
@@ -405,6 +407,7 @@ def write_mat_report(path, report: dict, *, name: str = "report", force: bool = 
     in a .mat file: keys become field names (invalid characters to "_"), None becomes NaN,
     lists of numbers row vectors, other lists cell arrays. Refuses an existing file unless
     ``force``."""
+    # lazy: scipy.io costs 0.1 s at start-up (python -X importtime; the note at the top)
     import scipy.io
 
     path = Path(path)
@@ -458,6 +461,7 @@ def load_mat(path) -> dict:
     struct_as_record=False)`` returns them, MATLAB v7.3 (HDF5) files included: those are read
     with h5py into the same objects (structs as ``mat_struct``, arrays squeezed and in
     MATLAB's row-column order, text as str). Raises OSError/ValueError for a broken file."""
+    # lazy: scipy.io costs 0.1 s at start-up (python -X importtime; the note at the top)
     import scipy.io
 
     try:
@@ -468,6 +472,7 @@ def load_mat(path) -> dict:
 
 def _load_mat73(path) -> dict:
     try:
+        # lazy: h5py may be absent (v7.3 files only; the error below names it)
         import h5py
     except ImportError:  # pragma: no cover - a declared dependency
         raise ValueError("a MATLAB v7.3 file needs h5py (pip install h5py)") from None
@@ -482,6 +487,7 @@ def _h5_class(obj) -> str:
 
 def _h5_value(f, obj):
     """One HDF5 object of a v7.3 file as scipy's squeezed reader gives it."""
+    # lazy: h5py may be absent (v7.3 files only: reached through _load_mat73); scipy.io, 0.1 s
     import h5py
     from scipy.io.matlab import mat_struct
 
@@ -518,6 +524,7 @@ def _h5_value(f, obj):
 
 
 def _is_refs(obj) -> bool:
+    # lazy: h5py may be absent (v7.3 files only: reached through _load_mat73)
     import h5py
 
     return isinstance(obj, h5py.Dataset) and obj.dtype == h5py.ref_dtype
@@ -537,6 +544,7 @@ def scope_signals(obj, where: str) -> list[ScopeSignal]:
     signal, a muxed scope, or a struct array, a scope with several inputs), an array
     ``[t, value, ...]`` (N x 2, or N x k with time first: Simulink's "Array") or a vector.
     Raises :class:`LayoutError` for anything else."""
+    # lazy: scipy.io costs 0.1 s at start-up (python -X importtime; the note at the top)
     from scipy.io.matlab import mat_struct
 
     if isinstance(obj, mat_struct):
@@ -564,6 +572,7 @@ def scope_signals(obj, where: str) -> list[ScopeSignal]:
 
 
 def _structure_signals(obj, where: str) -> list[ScopeSignal]:
+    # lazy: scipy.io costs 0.1 s at start-up (python -X importtime; the note at the top)
     from scipy.io.matlab import mat_struct
 
     names = list(getattr(obj, "_fieldnames", []))

@@ -27,8 +27,9 @@ import numpy as np
 from hw.atomicio import save_figure
 from jaxcart.errors import UserError
 
-# matplotlib is imported where a figure is made (about 1 s, measured on 2 cores): this module
-# is imported while the command line's parser is built (add_format_option).
+# matplotlib is imported where a figure is made (about 1 s, measured on 2 cores; matplotlib.figure
+# 0.3-0.6 s by python -X importtime after this module): this module is imported while the command
+# line's parser is built (add_format_option).
 
 ROLES = ("experiment", "simulation", "reference")
 DPI = 130
@@ -93,6 +94,7 @@ def preload() -> threading.Thread:
 
     def work():
         try:
+            # lazy: this thread's point (matplotlib.figure: 0.3-0.6 s, python -X importtime)
             import matplotlib.backends.backend_agg  # noqa: F401
             import matplotlib.figure  # noqa: F401
         except Exception:  # the plotting call reports any real problem itself
@@ -133,6 +135,7 @@ def plot_runs(
 
 def runs_figure(runs, *, title: str, voltage=True, v_limit=None, band=None, zoom=False):
     """The :class:`matplotlib.figure.Figure` that :func:`plot_runs` saves (same arguments)."""
+    # lazy: matplotlib.figure costs 0.3-0.6 s at start-up (python -X importtime; note at the top)
     from matplotlib.figure import Figure
 
     runs = list(runs)

@@ -412,7 +412,8 @@ def _least_squares(columns: dict, target, mask):
 def _filtered_rate(x, ts: float, tau: float):
     """dx/dt through the first-order filter s / (tau s + 1), backward Euler [unit/s] (the
     control law's, hw/control_law.py; tau = 0: the backward difference)."""
-    # scipy.signal takes 0.3-2.5 s to import (measured, 2 cores, idle to load 15), and only
+    # lazy: scipy.signal costs 0.3-2.5 s at start-up (measured, 2 cores, idle to load 15; 0.6-0.8 s
+    # by python -X importtime after jaxcart.plots): the parser imports this module, and only
     # this filter of the recognition needs it.
     from scipy.signal import lfilter
 

@@ -241,6 +241,8 @@ def serve() -> None:
     sys.stdout = sys.stderr  # a print in a task must not corrupt the pipe
     # Imported before saying ready, so that the first task starts at once: the helper's own
     # start-up (a caller that never makes an exact run never imports the simulator for it).
+    # lazy: jaxcart.exact imports jax, 0.3-0.5 s at start-up (python -X importtime), and the
+    # command line's parser imports this module
     import jaxcart.exact  # noqa: F401
 
     _write(stdout, pickle.dumps(("ready", None)))

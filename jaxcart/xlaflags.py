@@ -49,6 +49,7 @@ def _backend_started() -> bool:
     if "jax" not in sys.modules:
         return False
     try:
+        # lazy: jax costs 0.3 s at start-up (python -X importtime); the parser imports this module
         from jax._src import xla_bridge
 
         return bool(xla_bridge.backends_are_initialized())

@@ -39,6 +39,7 @@ _FOREVER = int(np.iinfo(np.int32).max)
 
 def _load_api():
     try:
+        # lazy: the vendor's API may be absent (hw/ imports numpy and the stdlib only)
         import quanser.hardware as api
     except ImportError:
         raise DeviceError(

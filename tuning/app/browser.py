@@ -62,6 +62,7 @@ def chromium() -> str | None:
 def playwright_missing() -> str | None:
     """Why the browser cannot be driven here (one line), or None when it can."""
     try:
+        # lazy: playwright may be absent (an optional dependency: .[test])
         import playwright.sync_api  # noqa: F401
     except ImportError:
         return "Playwright is not installed (pip install -e '.[test]')"
@@ -133,7 +134,8 @@ def page_at(
     window of ``width`` x ``height`` [px] (a laptop's 1280 x 720 by default: the page is made to
     fit it), once the design page is built; ``requests``: a list that gets the URL of every
     request the page makes."""
-    from playwright.sync_api import sync_playwright  # (an optional dependency: .[test])
+    # lazy: playwright may be absent (an optional dependency: .[test])
+    from playwright.sync_api import sync_playwright
 
     profile = tempfile.mkdtemp(prefix="jaxcart-chromium-")
     try:

@@ -8,6 +8,7 @@ machine until Ctrl-C.
 from __future__ import annotations
 
 from jaxcart.errors import UserError
+from tuning.app.port import check_port
 
 # What imports jax (jaxcart's simulator, tuning's engines) is imported inside the functions that
 # run the command: building the parser must start no jax (importing jax takes 2.4 s against
@@ -51,11 +52,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from tuning.app.port import check_port
-
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port {args.port}: give a port from 1 to 65535 (0: any free port)")
     check_port(args.address, args.port)  # before seconds of reading and compiling
+    # lazy: imports jax, bokeh, scipy and matplotlib, 3.4 s at start-up (python -X importtime)
     from tuning.app.design import problem_from_files
     from tuning.app.server import serve
 

@@ -61,7 +61,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    # Imported here, not at the top: building the parser must not start jax.
+    # lazy: imports jax, scipy and matplotlib, 1.4 s at start-up (python -X importtime)
     from tuning.benchmark import workload as bench
 
     if args.batch is not None and args.batch < 1:

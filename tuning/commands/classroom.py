@@ -64,6 +64,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    # lazy: imports jax, scipy and matplotlib, 1.9 s at start-up (python -X importtime)
     from tuning.lab.classroom import run_class
 
     if args.workers is not None and args.workers < 1:

@@ -95,6 +95,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    # lazy: imports jax and the fit, 0.5 s at start-up (python -X importtime)
     from jaxcart import parallel
     from tuning.estimation.fit import parse_params
 
@@ -114,6 +115,7 @@ def run(args) -> int:
         check_outputs(args)
     share = None
     if parallel.init_distributed(settings):
+        # lazy: imports jax, 0.3 s at start-up (python -X importtime)
         from tuning.distributed import Exchange
 
         share = Exchange()
@@ -126,6 +128,7 @@ def _run(args, params, share, checked, pool) -> int:
     """Fit (and cross-predict), print and write; share: the distributed run's exchange (else
     None); checked: process 0's outputs were checked before it joined; pool: the command's
     helper processes, which make the fits' exact runs several at a time."""
+    # lazy: imports jax and the fit, 0.5 s at start-up (python -X importtime)
     from jaxcart import parallel
     from jaxcart.files import read_experiment
     from tuning.estimation.fit import fit
@@ -200,9 +203,11 @@ def edge_status(result) -> int:
 
 
 def _write_outputs(args, report, result) -> None:
+    # lazy: imports jax and the fit, 0.5 s at start-up (python -X importtime)
     from tuning.estimation.fit import plot_fit, write_fitted_plant
 
     if args.json_out and str(args.json_out).lower().endswith(".mat"):
+        # lazy: imports jax, 0.3 s at start-up (python -X importtime)
         from jaxcart.matfile import write_mat_report
 
         write_mat_report(args.json_out, report, name="fit", force=args.force)
@@ -222,6 +227,7 @@ def _initial(plant_file) -> dict:
     """Start (and fixed) values of --plant, {name: value} [SI]; {} without it."""
     if not plant_file:
         return {}
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.plantsource import load_plant
     from jaxcart.plantspec import plant_values
 
@@ -268,6 +274,7 @@ def _mm(x) -> str:
 
 def format_result(result) -> str:
     """The parameter table and the RMS errors, as printed by the command."""
+    # lazy: imports jax and the fit, 0.5 s at start-up (python -X importtime)
     from jaxcart.plantspec import describe_plant
     from tuning.estimation.fit import unit_of
 
@@ -318,6 +325,7 @@ def format_result(result) -> str:
 
 def classic_estimates(recordings, result=None) -> list:
     """[(recording name, ClassicEstimate)] of the methods that apply to each recording."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from tuning.estimation import classic
     from tuning.estimation.engine.segments import recording_name
 
@@ -337,6 +345,7 @@ def classic_estimates(recordings, result=None) -> list:
 
 
 def format_classic(classic) -> str:
+    # lazy: imports jax and the fit, 0.5 s at start-up (python -X importtime)
     from tuning.estimation.fit import unit_of
 
     lines = ["classic estimates:"]

@@ -126,6 +126,7 @@ def register(subparsers) -> None:
 
 def parse_range(option: str, text: str):
     """'lo:hi:n' -> n evenly spaced gains from lo to hi; a single number is one gain."""
+    # lazy: imports jax and matplotlib, 0.6 s at start-up (python -X importtime)
     from tuning.design.grid import gain_axis
 
     parts = text.split(":")
@@ -289,6 +290,7 @@ def _check_memory(n_points: int) -> None:
 
 def _plants(args, plant):
     """The plant, or the robust plant set of --robust / --range (as tune builds it)."""
+    # lazy: imports jax, scipy and matplotlib, 1.9 s at start-up (python -X importtime)
     from tuning.design.problem import robust_plants
 
     robust = robust_ranges(args)
@@ -299,6 +301,7 @@ def _plants(args, plant):
 
 
 def run(args) -> int:
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart import parallel
 
     _check_args(args)
@@ -332,6 +335,7 @@ def run(args) -> int:
     if result is None:  # another process of a distributed run: process 0 writes the outputs
         print(f"process {me}: its blocks are computed and sent to process 0")
         return 0
+    # lazy: imports jax and matplotlib, 0.6 s at start-up (python -X importtime)
     from tuning.design import grid
 
     exact, label = grid.recheck_set(
@@ -350,6 +354,7 @@ def run(args) -> int:
 def _points(args) -> dict:
     """The gains to evaluate: {"gains": rows (kp, kd, ki) of --gains-file, or "axes": the
     kp, kd, ki axes of the grid (the design library's order); "n": points; "shape": text}."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from tuning.design import grid_blocks
 
     if args.gains_file is not None:
@@ -374,6 +379,7 @@ def _points(args) -> dict:
 
 def _problem(args) -> dict:
     """The plant (or robust set), its smoothing, the controller template and the step."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     import jax
 
     from jaxcart.plantsource import load_plant
@@ -402,6 +408,7 @@ def _problem(args) -> dict:
 def _evaluate(args, points, problem, checkpoint, distributed):
     """Every point's metrics (a :class:`tuning.design.grid.GridResult`; None on a process
     other than 0 of a distributed run)."""
+    # lazy: imports jax and matplotlib, 0.6 s at start-up (python -X importtime)
     import jax.numpy as jnp
 
     from jaxcart import parallel
@@ -429,6 +436,7 @@ def _evaluate(args, points, problem, checkpoint, distributed):
 
 
 def _write(args, result, exact, paths) -> None:
+    # lazy: imports jax and matplotlib, 0.6 s at start-up (python -X importtime)
     from tuning.design import grid
 
     out_path, plot_path, json_path = paths
@@ -444,6 +452,7 @@ def _write(args, result, exact, paths) -> None:
 
 def _report(args, result, checked, shape: str, n_plants: int) -> None:
     """The printed summary: feasible points, the best gains, grid against exact, speed."""
+    # lazy: imports jax and matplotlib, 0.6 s at start-up (python -X importtime)
     from tuning.design import grid
 
     exact, label = checked

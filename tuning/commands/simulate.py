@@ -120,6 +120,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart import plausibility
     from jaxcart.files import read_experiment
 
@@ -147,6 +148,7 @@ def run(args) -> int:
         experiment = jc.step(DEFAULT_STEP, horizon=horizon)
         overrides = {}
     if args.plant:
+        # lazy: imports jax, 0.3 s at start-up (python -X importtime)
         from jaxcart.plantsource import load_plant
         from jaxcart.plantspec import plant_values
 
@@ -182,6 +184,7 @@ def run(args) -> int:
 
     with all_or_none(csv_path, toml_path, png_path):  # a failed figure leaves no data either
         if csv_path.suffix.lower() == ".mat":
+            # lazy: imports jax, 0.3 s at start-up (python -X importtime)
             from jaxcart.matfile import source_layout, write_mat_experiment
 
             layout = source_layout(recording) if recording is not None else None
@@ -189,6 +192,7 @@ def run(args) -> int:
                 csv_path, response, layout=args.mat_layout, source=layout, **written
             )
         else:
+            # lazy: imports jax, 0.3 s at start-up (python -X importtime)
             from jaxcart.files import write_experiment
 
             write_experiment(toml_path, response, **written)
@@ -239,6 +243,7 @@ def _with_options(args, controller, experiment, source):
 def _outputs(args, recording):
     """(data: .csv or .mat, toml, png or None), refusing existing files unless --force, before
     simulating."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.files import experiment_paths
     from jaxcart.matfile import mat_paths
 
@@ -279,6 +284,7 @@ def _outputs(args, recording):
 
 def _check_horizon(horizon, sample_time, n_recorded):
     """Refuse, before any array is built, a run that would not fit in memory."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart import chunked_sim
 
     if horizon is not None and not (math.isfinite(horizon) and horizon > 0):
@@ -299,6 +305,7 @@ def _mat_data(recording) -> bool:
 def _solver(smooth: bool, experiment):
     """The simulator the options choose, as a value (jaxcart.simulate's solver): the exact one,
     or with --smooth the smooth one, in chunks with progress for a long run."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart import chunked_sim
 
     if not smooth:
@@ -310,6 +317,7 @@ def _solver(smooth: bool, experiment):
 
 
 def _simulate(solver, plant, controller, experiment):
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     import jax
 
     from jaxcart import chunked_sim
@@ -326,6 +334,7 @@ def _simulate(solver, plant, controller, experiment):
 
 def _widths() -> str:
     """The smooth simulator's widths, as the summary states them."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.smoothing import Smoothing
 
     w = Smoothing()
@@ -341,6 +350,7 @@ def _gains(pid) -> str:
 
 
 def _voltage_limit(plant, controller) -> float:
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.params import voltage_limit
 
     return float(voltage_limit(plant, controller))
@@ -369,6 +379,7 @@ def _plot(path, response, recording, controller, plant, source, method):
 
 def _thinned(run):
     """The run with at most about chunked_sim.PLOT_POINTS samples, each block's extremes kept."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.chunked_sim import thin_indices
 
     keep = thin_indices(len(run.time), run.position, run.voltage)
@@ -401,6 +412,7 @@ def _metrics_line(info) -> str:
 
 
 def _summary(source, experiment, method, controller, plant, response, recording, paths):
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.plantspec import describe_plant
 
     n = experiment.n_samples
@@ -439,6 +451,7 @@ def _summary(source, experiment, method, controller, plant, response, recording,
                 "corners shift a dead band or a stick-slip; the exact simulator (without "
                 "--smooth) is the model to compare with a recording"
             )
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.plausibility import check_track
 
     for message in check_track(response, "warning"):  # in the summary, beside the metrics

@@ -14,6 +14,7 @@ on the exact one, and write a gains file, a figure and (optionally) a JSON summa
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -264,6 +265,7 @@ def _run_options(run_) -> None:
 
 
 def run(args) -> int:
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart import parallel
 
     # jax.distributed joins before any computation starts a backend.
@@ -277,6 +279,7 @@ def run(args) -> int:
         outputs = (*_outputs(args), _json_path(args))
     if not parallel.init_distributed(settings):
         return _run(args, None, outputs)
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from tuning.design.start_share import StartShare
 
     share = StartShare(args.starts)
@@ -290,6 +293,7 @@ def _run(args, share, outputs) -> int:
     """Tune and write the outputs. share: this process's
     :class:`tuning.design.start_share.StartShare` in a distributed run (else None); outputs:
     process 0's paths checked before it joined."""
+    # lazy: imports jax, optax, scipy and matplotlib, 1.3 s at start-up (python -X importtime)
     from jaxcart import parallel
     from tuning.design.tune import tune
 
@@ -321,6 +325,7 @@ def _run(args, share, outputs) -> int:
 def _for_cart(args, problem, share, outputs) -> int:
     """--robust with a plant file that knows its standard errors: the design for the cart as
     measured (robust over the file's uncertainty, with its band)."""
+    # lazy: imports jax, optax, scipy and matplotlib, 1.6 s at start-up (python -X importtime)
     from tuning.design.for_cart import design_for_cart
 
     if share is not None:
@@ -385,8 +390,7 @@ def _uncertainty(args, *, robust=True):
     it; else None."""
     if not ((args.robust or not robust) and not args.ranges and args.plant_file):
         return None
-    import dataclasses
-
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.plantspec import read_plant_file
     from tuning.design.uncertainty import from_fit_table
 
@@ -403,6 +407,7 @@ def _uncertainty(args, *, robust=True):
 def _compare(args, problem) -> int:
     """--compare: this tuner against Nelder-Mead (and a grid) on each problem; prints tables
     (with --repeats N, each problem N times, seeds seed ... seed + N - 1, and the medians)."""
+    # lazy: imports jax, optax, scipy and matplotlib, 1.8 s at start-up (python -X importtime)
     from tuning.benchmark.tuners import compare_tuners, medians_table
 
     if problem["robust"] is not False:
@@ -442,6 +447,7 @@ def _compare(args, problem) -> int:
 def _write_outputs(args, result, problem, paths, design=None) -> None:
     """The gains file (with the run's metadata: its margins, which limit binds and, for a
     design for the cart as measured, its prediction), the figure and the JSON summary."""
+    # lazy: imports jax, scipy and matplotlib, 1.5 s at start-up (python -X importtime)
     from jaxcart.experiments import step
     from tuning.design.margins import margins
 
@@ -499,6 +505,7 @@ def _finite(value, flag, *, positive=False, nonnegative=False):
 
 
 def _spec(args):
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from tuning.design.losses import Spec
 
     _finite(args.step, "--step")
@@ -570,6 +577,7 @@ def _controller(args):
 
 
 def _plant(args):
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.plantsource import load_plant
     from jaxcart.plantspec import build_plant, handout_plant
 
@@ -628,6 +636,7 @@ def _fmt(value, unit="", digits=3):
 
 
 def _print_summary(result, robust, n_processes=1, margins=None):
+    # lazy: imports jax, scipy and matplotlib, 1.5 s at start-up (python -X importtime)
     from tuning.design.margins import margins as margins_of
 
     g = result.gains
@@ -679,6 +688,7 @@ def _plot(path, result, experiment):
     """The exact simulator's step response (and the worst plant of a robust set). The smooth
     run at the final widths is not drawn: it lies on the exact one (the printed metrics give
     both), and simulating it here cost a compilation and seconds of eager operations."""
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.exact import simulate_exact
 
     g, spec = result.gains, result.spec
@@ -701,6 +711,7 @@ def _plot(path, result, experiment):
             range(len(result.plant_set)), key=lambda i: _sort_key(result.plant_set[i]["exact"])
         )
         values = result.plant_set[worst]["params"]
+        # lazy: imports jax, 0.3 s at start-up (python -X importtime)
         from jaxcart.plantspec import build_plant
 
         worst_plant = build_plant(values, base=result.plant, check=False, where="robust set")

@@ -106,7 +106,9 @@ class Prediction:
         """The position's band [m] at each time: the fit's, widened in time by the model's
         error in the settling time (the least of the band's low edge and the most of its high
         edge within that many seconds either side)."""
-        from scipy.ndimage import maximum_filter1d, minimum_filter1d  # (one path needs it)
+        # lazy: scipy.ndimage costs 0.1-0.3 s at start-up (python -X importtime) in a helper
+        # process, which imports this module alone for step_run; one path here needs it
+        from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
         lo, hi = (np.asarray(x, dtype=float) for x in self.band)
         dt = float(self.time[1] - self.time[0]) if self.time.size > 1 else 1.0

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.plots import EXPERIMENT_STYLE, REFERENCE_STYLE, figure_legend, save
@@ -39,8 +40,6 @@ def plot_predictions(panels, path, *, title: str | None = None, zoom: bool = Tru
     suffix sets the format); ``zoom``: the position axis spans the last 20 % of the step and
     its overshoot, the time axis twice the spec's settling bound, where settling and overshoot
     show. Returns the path."""
-    from matplotlib.figure import Figure
-
     panels = list(panels)
     fig = Figure(figsize=(4.0 * len(panels) + 1.0, 4.6), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(panels), sharex=True, sharey=True))

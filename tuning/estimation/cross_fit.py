@@ -27,7 +27,8 @@ import numpy as np
 def cross_rows(rec, recordings, params, *, progress=False, executor=None) -> list:
     """Fit ``rec`` alone; predict every one of ``recordings`` with those values (its start
     state refitted). One row per recording, in their order (see :func:`cross_table`)."""
-    # Imported here: `jaxcart fit`'s parser imports this module, and its --help starts no jax.
+    # lazy: these import jax and the fit, 0.5 s at start-up (python -X importtime), and
+    # `jaxcart fit`'s parser imports this module: its --help starts no jax
     from tuning.estimation import fit
     from tuning.estimation.engine.segments import recording_name
     from tuning.estimation.fitting.result import _finite

@@ -56,7 +56,10 @@ from pathlib import Path
 import numpy as np
 
 from hw.jsonio import write_json
+from jaxcart import xlaflags
+from jaxcart.cache import enable_persistent_cache
 from jaxcart.errors import UserError
+from jaxcart.parallel import use_cpu_devices
 from tuning.design.losses import Spec
 from tuning.lab import classfigures, classpage
 from tuning.lab.inputs import INDEX_NAME, SLOTS, find_inputs
@@ -294,16 +297,10 @@ def _start_worker(n_devices: int, cache: bool) -> None:
     """A worker process: jaxcart's XLA setting, the compilation cache and its share of the
     cores as XLA devices, before JAX starts (as ``jaxcart`` sets them for a command)."""
     os.environ.setdefault("MPLBACKEND", "Agg")
-    from jaxcart import xlaflags
-
     xlaflags.request()  # loops compiled whole, before jax starts
 
     if cache:
-        from jaxcart.cache import enable_persistent_cache
-
         enable_persistent_cache()
-    from jaxcart.parallel import use_cpu_devices
-
     use_cpu_devices(n_devices)
 
 

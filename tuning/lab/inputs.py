@@ -51,7 +51,7 @@ import numpy as np
 from hw.expfile import ExpFileError, read_toml, toml_str, toml_value
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment, read_imported
-from jaxcart.matimport import data_prefix, scan
+from jaxcart.matimport import data_prefix, read_signals, scan
 from jaxcart.params import TRACK_LENGTH
 from jaxcart.plausibility import time_unit_doubt, warn
 from jaxcart.recognition import EXPERIMENTS
@@ -545,8 +545,6 @@ def _scan(inputs: Inputs, paths: list) -> list:
     """The runs of the raw .mat files ``paths`` (:func:`jaxcart.matimport.scan`, which refuses
     them all for one file that does not load); partial, such a file is said broken and the
     others are scanned."""
-    from jaxcart.matimport import read_signals, scan
-
     try:
         return scan(paths)
     except UserError:

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from hw.gains import read_gains
 from tuning.verification.artefacts import NONE, Artefacts, draw, drift, push_profile
 from tuning.verification.controller import DiscretePID
 from tuning.verification.experiments import Experiment, step
@@ -277,8 +278,6 @@ def run_controller(
     (``hw.gains``, "jaxcart-gains").
     """
     if isinstance(controller, str | os.PathLike):
-        from hw.gains import read_gains
-
         controller = read_gains(controller)
     run = simulate(
         cart, step(controller, amplitude, horizon=horizon), artefacts, seed=seed, substeps=substeps

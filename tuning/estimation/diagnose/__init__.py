@@ -5,15 +5,8 @@ the model with it, and the fit improving (``jaxcart diagnose``; docs/diagnose.md
     print(render_markdown(d)); plot_diagnosis(d, "diagnosis.png"); d.to_json()
 """
 
+from tuning.estimation.diagnose.report import plot_diagnosis, render_markdown, write_outputs
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.search import diagnose
 
 __all__ = ["Diagnosis", "diagnose", "plot_diagnosis", "render_markdown", "write_outputs"]
-
-
-def __getattr__(name):
-    if name in ("render_markdown", "plot_diagnosis", "write_outputs"):
-        from tuning.estimation.diagnose import report
-
-        return getattr(report, name)
-    raise AttributeError(name)

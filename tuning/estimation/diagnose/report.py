@@ -316,7 +316,8 @@ def plot_diagnosis(d, path) -> Path:
     suffix sets the format: .png, .svg, .pdf). The mismatch of the baseline is shaded between
     it and the recording, the encoder floor is a grey band around zero residual, and the
     located windows are a strip along the time axis, each in the legend below the axes."""
-    # matplotlib only where a figure is drawn (its import takes about 0.5 s).
+    # lazy: matplotlib.pyplot costs 0.3-0.5 s at start-up (python -X importtime), and
+    # matplotlib.use("Agg") must not run on import (it sets the process's backend)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -41,6 +41,9 @@ from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
+import jaxcart as jc
+from hw.jsonio import write_json
+from jaxcart.cache import enable_persistent_cache
 from jaxcart.effects import (
     Coulomb,
     CoulombAsymmetry,
@@ -56,7 +59,16 @@ from jaxcart.effects import (
     ViscousAsymmetry,
     VoltageOffset,
 )
+from jaxcart.files import read_experiment
+from jaxcart.parallel import use_cpu_devices
+from jaxcart.plantspec import build_plant
+from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from jaxcart.workers import Helpers
+from tuning.estimation.diagnose import diagnose
+from tuning.estimation.diagnose.structures import PER_RUN
+from tuning.verification import REALISTIC, TrueCart
+from tuning.verification import experiments as ex
+from tuning.verification import make_recording as make_independent_recording
 
 #: What counts as right, per case (:func:`judge`). "names": the named effects are the expected
 #: ones, or the expected ones are among the structures said to fit equally well (a tie said
@@ -533,10 +545,6 @@ def make_recordings(case: Case, folder, generator: str = "exact") -> list[tuple[
 
 
 def _write_run(case: Case, path: Path) -> tuple[Path, dict]:
-    import jaxcart as jc
-    from jaxcart.plantspec import build_plant
-    from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
-
     truth, horizon = case.truth, case.horizon
     if case.kind == "tap":
         plant = build_plant(truth, motor_connected=False)
@@ -575,10 +583,6 @@ def _write_run(case: Case, path: Path) -> tuple[Path, dict]:
 def _write_independent(case: Case, path: Path, several: bool) -> tuple[Path, dict]:
     """A recording of ``case`` by :mod:`tuning.verification`, with REALISTIC artefacts (and
     the case's changes to them); ``several``: one of several runs of one cart."""
-    import jaxcart as jc
-    from tuning.verification import REALISTIC, TrueCart, make_recording
-    from tuning.verification import experiments as ex
-
     horizon = case.horizon
     pid = jc.PID(kp=case.kp, ki=case.ki, kd=case.kd, v_limit=case.v_limit)
     made = {
@@ -603,7 +607,7 @@ def _write_independent(case: Case, path: Path, several: bool) -> tuple[Path, dic
     spread = {} if several else {"gain_spread": 0.0, "limit_spread": 0.0}
     artefacts = REALISTIC.replace(**{**spread, **case.independent.get("artefacts", {})})
     drop = ("v",) * case.drop_v + tuple(case.drop)
-    rec = make_recording(
+    rec = make_independent_recording(
         TrueCart.from_values(case.truth),
         made[case.kind](),
         path,
@@ -635,8 +639,6 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
     clean case, the drive freed per run where the runs share it: where their truths give them
     one limit). ``truths``: each recording's own truth (:func:`make_recordings`; default: the
     case's)."""
-    from tuning.estimation.diagnose.structures import PER_RUN
-
     named = set(d.left_out)
     expect = set(case.expect)
     chosen = next((c for c in d.candidates if c.name == d.chosen), None)
@@ -720,9 +722,6 @@ def run_suite(
 ) -> list[dict]:
     """Diagnose every chosen case made by each of ``generators``; the score rows (each with
     its ``generator``), printed as they come."""
-    from jaxcart.files import read_experiment
-    from tuning.estimation.diagnose import diagnose
-
     chosen = [c for c in CASES if names is None or c.name in names]
     unknown = sorted(set(names or ()) - {c.name for c in CASES})
     if unknown:
@@ -808,16 +807,11 @@ def main(argv=None) -> int:
         if mine:
             print(f"{generator}: {summary(mine)}")
     if args.json_out:
-        from hw.jsonio import write_json
-
         write_json(args.json_out, rows)
     return 0
 
 
 if __name__ == "__main__":
-    from jaxcart.cache import enable_persistent_cache
-    from jaxcart.parallel import use_cpu_devices
-
     enable_persistent_cache()  # as the command line does: compiled batches kept on disk
     use_cpu_devices()
     sys.exit(main())

@@ -12,6 +12,8 @@ from tuning.estimation.fitting.result import FitResult
 def plot_fit(result: FitResult, path, *, dpi: int = 130) -> Path:
     """Overlay of each recording and the model before and after the fit (exact simulator solid,
     smooth simulator dashed), with the residuals below; saves a PNG at ``path``."""
+    # lazy: matplotlib.figure costs 0.3-0.5 s at start-up (python -X importtime) after
+    # tuning.estimation.fit; the command preloads it in a thread (jaxcart.plots.preload)
     from matplotlib.figure import Figure
 
     segs = result.segments
