@@ -228,21 +228,25 @@ def _check_motion(where, label, rec, plant, volts) -> list[str]:
     return out
 
 
-def _check_tap_ends_at_rest(where, label, rec) -> list[str]:
-    """A tap recorded until the cart rests: one cut while it still coasts (over 3 counts in
-    its last DIFF_WINDOW) loses the stop, where Coulomb friction shows apart from B_eq."""
-    if rec.kind != "tap":
-        return []
+def _edge_motion(rec, last: bool) -> tuple[float, float] | None:
+    """(distance [m], span [s]) the cart covers over DIFF_WINDOW at the first (or ``last``)
+    samples of ``rec``; None where the recording is shorter."""
     y = np.asarray(rec.position, dtype=float)
     ts = float(rec.sample_time)
     w = max(1, int(round(DIFF_WINDOW / ts)))
     if y.size <= w:
-        return []
-    moved = abs(float(y[-1] - y[-1 - w]))
-    if moved <= 3 * ENCODER_RESOLUTION:
+        return None
+    return abs(float(y[-1] - y[-1 - w] if last else y[w] - y[0])), w * ts
+
+
+def _check_tap_ends_at_rest(where, label, rec) -> list[str]:
+    """A tap recorded until the cart rests: one cut while it still coasts (over 3 counts in
+    its last DIFF_WINDOW) loses the stop, where Coulomb friction shows apart from B_eq."""
+    edge = _edge_motion(rec, last=True) if rec.kind == "tap" else None
+    if edge is None or edge[0] <= 3 * ENCODER_RESOLUTION:
         return []
     return [
-        f"{where}: {label}: the cart still moves at {moved / (w * ts):.3g} m/s at the last "
+        f"{where}: {label}: the cart still moves at {edge[0] / edge[1]:.3g} m/s at the last "
         "sample: the tap was cut before the cart came to rest, and B_eq and f_c are hard to "
         "tell apart without its stop; record until the cart rests"
     ]
@@ -254,14 +258,11 @@ def _check_start_at_rest(where, label, rec, plant, volts) -> list[str]:
     from rest (and two counts) was already moving: the recording started late."""
     if rec.kind == "tap" or "initial_velocity" in rec.meta:
         return []
-    y = np.asarray(rec.position, dtype=float)
-    ts = float(rec.sample_time)
-    w = max(1, int(round(DIFF_WINDOW / ts)))
-    if y.size <= w:
+    edge = _edge_motion(rec, last=False)
+    if edge is None:
         return []
-    h = w * ts
+    moved, h = edge
     from_rest = 0.5 * float(plant.gamma) * volts / float(plant.m) * h**2
-    moved = abs(float(y[w] - y[0]))
     if moved <= MARGIN * from_rest + 2 * ENCODER_RESOLUTION:
         return []
     t0 = float(np.asarray(rec.time)[0])
