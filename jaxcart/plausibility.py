@@ -410,6 +410,12 @@ def _check_command(where, label, rec) -> list[str]:
     if abs(scale - 1) > 0.1 and scale > 0:
         times = " ".join(f"{k}={scale * float(getattr(pid, k)):.3g}" for k in ("kp", "ki", "kd"))
         hint = f"; the recorded u is about {scale:.3g} times it ({times}?)"
+    elif scale < -0.5:
+        hint = (
+            f"; the recorded u is about {scale:.3g} times it, of the opposite sign: y (and r) "
+            "measured the other way along the track (a distance from the far end?) or v of the "
+            "other sign; y must grow where a positive voltage drives the cart"
+        )
     return [
         f"{where}: {label}: the recorded u is not what {gains} (v_limit {float(pid.v_limit):g} V)"
         f" produce from the recorded y and r (median difference {best:.3g} V{hint}): wrong "

@@ -63,6 +63,18 @@ def test_pcontrol_bounds_bracket_the_truth():
     assert est.lower == pytest.approx(50.0 * float(plant.gamma) * abs(e_true), abs=0.01)
 
 
+def test_pcontrol_bounds_on_positions_with_white_noise():
+    # No encoder, 20 um of white noise (a cart read by another sensor): the cart at rest
+    # scatters by several IP02 counts, which is neither motion nor reversals.
+    f_c = 0.38
+    plant = jc.handout_plant(f_c=f_c, B_eq=3.2)
+    rec = make_recording(
+        plant, P50, jc.step(0.4, horizon=3.0), quantization=0.0, noise=20e-6, seed=1
+    )
+    est = pcontrol_fc_bounds(rec)
+    assert est.lower <= f_c < est.upper
+
+
 def test_classic_methods_refuse_the_wrong_recording():
     tap = make_recording(jc.tap_plant(B_eq=3.0), None, jc.tap(1.0, horizon=0.5), seed=0)
     with pytest.raises(UserError, match="open_loop"):

@@ -268,3 +268,23 @@ def test_an_encoder_count_is_found_whatever_the_origin_and_the_digits(realdata):
     assert encoder_count(ten_digits) == pytest.approx(q, rel=1e-6)
     noisy = y + np.random.default_rng(0).normal(0.0, 1e-6, y.size)
     assert encoder_count(noisy) == 0.0
+
+
+def test_encoder_counts_written_to_9_digits_or_6_decimals_and_noise_written_to_1_um():
+    """Another author's encoder (1024 or 4096 counts of a 14.8 mm pinion) written with numpy's
+    "%.9g" over 0.1-0.31 m (a 9-digit value starting with 1 is off by up to 5e-9 |y|, beyond
+    the old 1e-9 |y|, and the smallest step between such values by 3e-5 of a count) or with
+    "%.6f" (1 um: the smallest step 3 % off) is still whole counts; white noise of 20 um written
+    with "%.6f" is not an encoder of 1 um counts (its floor would be 0.001 mm, not 0.02 mm)."""
+    from tuning.estimation.engine.noise import encoder_count
+
+    t = np.arange(2500) * 1e-3
+    x = 0.31 * (1 - np.exp(-3 * t)) * (1 + 0.02 * np.sin(7 * t))
+    for counts in (1024, 4096):
+        q = 2 * np.pi * 0.0148 / counts
+        y = np.floor(x / q) * q
+        for fmt in ("%.9g", "%.6f"):
+            written = np.array([float(fmt % v) for v in y])
+            assert encoder_count(written) == pytest.approx(q, rel=1e-5), (counts, fmt)
+    noise = x + np.random.default_rng(1).normal(0.0, 20e-6, x.size)
+    assert encoder_count(np.round(noise, 6)) == 0.0

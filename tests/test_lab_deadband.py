@@ -13,6 +13,7 @@ import pytest
 import jaxcart as jc
 from jaxcart.exact import simulate_exact
 from jaxcart.synthetic import make_recording
+from tuning.estimation.engine.noise import encoder_count
 from tuning.lab import data, deadband
 
 Q = data.TRUE["quantization"]
@@ -75,7 +76,7 @@ def test_encoder_adds_at_most_one_count_and_the_lower_bound_holds():
     m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
     b = deadband.band(0.45, 10.0, gamma)
     creep = deadband.creep(m, c, gamma, 10.0, 0.45, 0.2, 8.0)
-    assert deadband.count_size(rec.position) == pytest.approx(Q, rel=1e-9)
+    assert encoder_count(rec.position) == pytest.approx(Q, rel=1e-9)
     assert abs(e_meas) <= b + creep + Q
     lower = deadband.f_c_lower(e_meas, 10.0, gamma, Q)
     assert 0.449 < lower <= 0.45

@@ -257,6 +257,10 @@ def test_recorded_command_checked_against_the_files_controller(tmp_path):
     _scale_column(tmp_path / "p50.csv", "v", 1000.0)  # v in mV
     (warning,) = read_experiment(path).warnings
     assert "about 1e+03 times" in warning
+    _scale_column(tmp_path / "p50.csv", "v", -0.001)  # back in V, of the other sign
+    (warning,) = read_experiment(path).warnings
+    assert "about -1 times it, of the opposite sign" in warning
+    assert "distance from the far end?" in warning
 
 
 def test_simulated_cart_leaving_the_track_is_flagged():

@@ -66,13 +66,6 @@ def creep(m, c, gamma, k, f_c, step, t) -> float:
     return x0 * (s2 * math.exp(s1 * t) - s1 * math.exp(s2 * t)) / (s2 - s1)
 
 
-def count_size(position) -> float:
-    """The encoder count q [m] seen in a recording: its smallest non-zero step (0 if none)."""
-    steps = np.abs(np.diff(np.asarray(position, dtype=float)))
-    steps = steps[steps > 1e-15]
-    return float(steps.min()) if steps.size else 0.0
-
-
 def f_c_lower(e_inf: float, k: float, gamma: float, q: float, v_limit: float = math.inf):
     """Lower bound on f_c [N] from a P-controlled cart at rest with recorded error e_inf [m]:
     gamma min(k (|e_inf| - q), v_limit), one count q [m] taken off for the encoder."""

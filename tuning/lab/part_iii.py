@@ -17,6 +17,7 @@ import numpy as np
 import jaxcart as jc
 from jaxcart.errors import UserError
 from tuning.estimation.classic import pcontrol_fc_bounds, ramp_breakaway_fc
+from tuning.estimation.engine.noise import encoder_count
 from tuning.lab import deadband, fits
 from tuning.lab.context import value
 from tuning.lab.data import ENCODER_PARAM
@@ -144,7 +145,7 @@ def p_bounds(recordings: dict) -> tuple:
             out.append(PBound(slot, name, error=str(exc)))
             continue
         d, pid = est.details, rec.controller
-        q = deadband.count_size(rec.position)
+        q = encoder_count(rec.position)
         lower = deadband.f_c_lower(d["e_inf"], float(pid.kp), d["gamma"], q, float(pid.v_limit))
         out.append(PBound(slot, name, est, lower, q))
     return tuple(out)
@@ -232,7 +233,7 @@ def steady_state(rec, model: CartModel, *, say=lambda text: None) -> SteadyState
         deadband.creep(m, c, gamma, k, model.f_c, step, t_creep),
         t_creep,
         deadband.poles(m, c, gamma, k),
-        deadband.count_size(rec.position) if rec is not None else 0.0,
+        encoder_count(rec.position) if rec is not None else 0.0,
         deadband.overdamped(m, c, gamma, k),
     )
 

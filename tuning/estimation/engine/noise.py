@@ -19,10 +19,12 @@ FLOOR_MIN = 1e-6
 def encoder_count(position) -> float:
     """The count size q [m] of encoder data (every value a whole number of counts), or 0.
 
-    q is the smallest step between samples, accepted when it is between 0.1 um and 1 mm and
-    every position is the first one plus a whole multiple of it (to 1e-6 of a count, or the
-    text's rounding: positions shifted by an offset, or written to 9 digits, are still
-    counts)."""
+    q is the smallest step between samples (or that refined on the steps, then on the
+    positions), accepted when it is between 0.1 um and 1 mm, every position is the first one
+    plus a whole multiple of it (to 1e-6 of a count, or the text's rounding: positions shifted
+    by an offset, written to 9 digits or to fixed decimals, are still counts), and the
+    positions scatter from sample to sample by less than a count (white noise written to
+    1 um is not an encoder of 1 um counts)."""
     y = np.asarray(position, dtype=float)
     steps = np.abs(np.diff(y))
     steps = steps[steps > 1e-12]
@@ -30,14 +32,50 @@ def encoder_count(position) -> float:
         return 0.0
     q = float(steps.min())
     d = y - y[0]
-    # A value written with n significant digits is off by up to |y| 10^-n: allow 9 digits.
-    slack = 1e-9 * float(np.max(np.abs(y)))
-    counts = np.round(d / q)
-    # The smallest step, else q from all the counts (a step between rounded values is off).
-    for size in (q, float(np.dot(counts, d) / max(np.dot(counts, counts), 1.0))):
+    # A value written with 9 significant digits is off by up to half a unit of its 9th digit,
+    # 5e-9 |y| where the digits start with 1 (0.169908620); a difference of two such values
+    # by up to one unit of the largest one's 9th digit.
+    ymax = float(np.max(np.abs(y)))
+    slack = 10.0 ** (math.floor(math.log10(ymax)) - 8) if ymax > 0 else 0.0
+    # Written to fixed decimals ("%.6f": 1 um), a difference is off by up to one unit of them.
+    slack = max(slack, _decimal_unit(y))
+    # White noise written to a resolution is not an encoder: its samples scatter by many
+    # "counts" (an encoder's second differences are 0 or one count: the level 0.6 count at most).
+    scatter = noise_level(y)
+    # The smallest step; else q refined on the steps (the smallest one, a difference of two
+    # rounded values, can be off by 1e-5 of a count written to 9 digits, by 3 % to 1 um); else
+    # q refined on all the positions, counted from the first one.
+    by_steps = _refined(steps, q)
+    sizes = [q, by_steps, _refined(d, by_steps)]
+    for size in sizes:
         off = np.abs(d / size - np.round(d / size)) if size > 0 else np.inf
         if 1e-7 <= size <= 1e-3 and np.max(off) < max(1e-6, slack / size):
+            return size if scatter <= size else 0.0
+    return 0.0
+
+
+def _refined(values, size: float) -> float:
+    """The count size that makes ``values`` [m] whole multiples of it, from ``size`` [m]: fitted
+    on the values within 2 counts of 0, then 4 times farther each pass (a size good to a
+    tenth of a count at 2 counts is good to a tenth at 8 once refitted on them)."""
+    reach = 2.5
+    while True:
+        near = np.abs(values) <= reach * size
+        counts = np.round(values[near] / size)
+        if np.any(counts):
+            size = float(np.dot(counts, values[near]) / np.dot(counts, counts))
+        if np.all(near):
             return size
+        reach *= 4.0
+
+
+def _decimal_unit(y) -> float:
+    """The unit of the last decimal the positions were written with (1e-6 for "%.6f"), or 0
+    when they carry more than 12 decimals."""
+    for places in range(1, 13):
+        scaled = y * 10.0**places
+        if np.max(np.abs(scaled - np.round(scaled))) < 1e-3:
+            return 10.0**-places
     return 0.0
 
 
