@@ -213,12 +213,14 @@ def _exact_polish(problem, theta, active, jac, iterations):
         return [np.concatenate(pos) - problem.observed for pos in runs]
 
     low, high = problem.theta_bounds()
+    with np.errstate(over="ignore"):  # a runaway loop's columns: inf, a column that acts
+        reference = np.linalg.norm(jac[:, idx], axis=0)
     done = polish(
         residuals,
         [problem.entries[i] for i in idx],
         theta[idx],
         iterations,
-        reference=np.linalg.norm(jac[:, idx], axis=0),
+        reference=reference,
         bounds=(low[idx], high[idx]),
         slopes=np.ones(idx.size),  # internal units: the staircase's secant over +-STAIRCASE
         steps=1e-6,  # a relative step of 1e-6 for the logs

@@ -83,8 +83,11 @@ def levenberg_marquardt(problem, theta, active, width, iterations, tolerance=LM_
     while done < iterations:
         done += 1
         ja = jac[:, idx]
-        g = ja.T @ r
-        b = ja.T @ ja
+        # A loop that runs away (unstable gains, a clock in ms) may overflow the normal
+        # equations: its trial steps are then not finite, and none decreases the cost.
+        with np.errstate(over="ignore", invalid="ignore"):
+            g = ja.T @ r
+            b = ja.T @ ja
         best = None
         while best is None and lam < 1e10:
             lams = lam * np.asarray(LM_DAMPING)
