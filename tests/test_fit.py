@@ -190,7 +190,7 @@ def test_a_limit_the_run_never_reaches_is_held_where_it_does_not_act():
     assert peak < 1.5
     result = fit.fit([rec], ("B_eq", "f_c", "v_sat"), progress=False)
     v = result.params["v_sat"]
-    assert not v.identifiable and v.held_at > peak and "a limit not reached" in v.note
+    assert not v.identifiable and v.held_at > peak and "a limit the runs never reached" in v.note
     assert result.params["B_eq"].value == pytest.approx(2.0, rel=0.01)
     assert result.params["f_c"].value == pytest.approx(0.35, rel=0.03)
     assert result.rms_after < 2 * result.noise_floor

@@ -490,9 +490,11 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
 
 def _held_source(problem, name, where_fitted) -> str:
     """Where a held parameter's value comes from, in words."""
-    if where_fitted:
-        return "where the fit left it: the data do not depend on it there (a limit not reached)"
-    return problem.start_source(name)
+    if not where_fitted:
+        return problem.start_source(name)
+    effect = plantspec.effect_of_param(base_name(name))
+    limit = " (a limit the runs never reached)" if effect is not None and effect.limits else ""
+    return f"where the fit left it: the data do not depend on it there{limit}"
 
 
 def _widened(problem, r, cov: Covariance) -> tuple:
