@@ -28,7 +28,7 @@ def encoder_count(position) -> float:
     y = np.asarray(position, dtype=float)
     steps = np.abs(np.diff(y))
     steps = steps[steps > 1e-12]
-    if steps.size == 0:
+    if steps.size == 0 or not np.all(np.isfinite(y)):
         return 0.0
     q = float(steps.min())
     d = y - y[0]
@@ -59,14 +59,15 @@ def _refined(values, size: float) -> float:
     on the values within 2 counts of 0, then 4 times farther each pass (a size good to a
     tenth of a count at 2 counts is good to a tenth at 8 once refitted on them)."""
     reach = 2.5
-    while True:
+    while size > 0:
         near = np.abs(values) <= reach * size
         counts = np.round(values[near] / size)
         if np.any(counts):
             size = float(np.dot(counts, values[near]) / np.dot(counts, counts))
         if np.all(near):
-            return size
+            break
         reach *= 4.0
+    return size
 
 
 def _decimal_unit(y) -> float:
