@@ -18,6 +18,7 @@ import functools
 import math
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -136,8 +137,12 @@ def run(args) -> int:
             if args.horizon is not None
             else recording.experiment
         )
+        released = _released(recording) if args.horizon is None else None
+        if released is not None:
+            experiment = released.experiment
         overrides = recording.plant_overrides
     else:
+        released = None
         source = "the default experiment"
         horizon = DEFAULT_HORIZON if args.horizon is None else args.horizon
         if not (math.isfinite(horizon) and horizon > 0):
@@ -170,9 +175,12 @@ def run(args) -> int:
             f"{_gains(controller) if controller else 'no controller'}; lower the gains, set a "
             f"voltage limit (--v-limit 6) or check [plant]"
         )
-    if recording is not None and recording.time[0] != 0:
+    if recording is not None:
+        first = 0 if released is None else released.start
         # Keep the recording's clock so that the two files line up sample by sample.
-        response = dataclasses.replace(response, time=np.asarray(response.time) + recording.time[0])
+        response = dataclasses.replace(
+            response, time=np.asarray(response.time) + recording.time[first]
+        )
 
     method = "smooth" if args.smooth else "exact"
     written = dict(
@@ -207,6 +215,7 @@ def run(args) -> int:
         response,
         recording,
         (csv_path, toml_path, png_path),
+        released,
     )
     return 0
 
@@ -280,6 +289,34 @@ def _outputs(args, recording):
             force=args.force,
         )
     return csv_path, toml_path, png_path
+
+
+class _Released(NamedTuple):
+    """A tap simulated from where the hand let go: its first sample in the recording and the
+    experiment from there to the recording's end."""
+
+    start: int
+    experiment: object
+
+
+def _released(recording) -> _Released | None:
+    """A tap recording without its own ``initial_velocity``, from where the hand let go (the
+    start of the coasting part the fit uses, :func:`tuning.estimation.engine.segments.prepare`,
+    with its position and velocity read from the recording) to its end: the push before it
+    is a hand's, not the model's. None for any other recording."""
+    if recording.kind != "tap" or "initial_velocity" in recording.meta:
+        return None
+    # lazy: imports jax, 0.3 s at start-up (python -X importtime)
+    from tuning.estimation.engine.segments import prepare
+
+    seg = prepare(recording)
+    signal = np.asarray(recording.experiment.signal)[seg.start :]
+    return _Released(
+        seg.start,
+        dataclasses.replace(
+            recording.experiment, signal=signal, y0=seg.experiment.y0, yd0=seg.experiment.yd0
+        ),
+    )
 
 
 def _check_horizon(horizon, sample_time, n_recorded):
@@ -411,7 +448,9 @@ def _metrics_line(info) -> str:
     )
 
 
-def _summary(source, experiment, method, controller, plant, response, recording, paths):
+def _summary(
+    source, experiment, method, controller, plant, response, recording, paths, released=None
+):
     # lazy: imports jax, 0.3 s at start-up (python -X importtime)
     from jaxcart.plantspec import describe_plant
 
@@ -432,14 +471,21 @@ def _summary(source, experiment, method, controller, plant, response, recording,
         if recording is not None and recording.reference is not None:
             measured = recording.as_response()
             print(f"  recorded:  {_metrics_line(jc.step_info(measured, v_limit=limit))}")
-    if experiment.kind == "tap":
+    if released is not None:
         print(
-            f"  tap from rest at y0 = {experiment.y0:g} m with initial_velocity = "
+            f"  tap from where the hand let go, t = {recording.time[released.start]:.3f} s: "
+            f"y0 = {experiment.y0:.4g} m, initial velocity {float(experiment.yd0):.4g} m/s "
+            "(read from the recording; the push before it is not simulated)"
+        )
+    elif experiment.kind == "tap":
+        print(
+            f"  tap from y0 = {experiment.y0:g} m with initial_velocity = "
             f"{float(experiment.yd0):g} m/s (the file's initial_velocity)"
         )
     if recording is not None:
-        k = min(recording.n_samples, n)
-        diff = np.asarray(response.position)[:k] - recording.position[:k]
+        first = 0 if released is None else released.start
+        k = min(recording.n_samples - first, n)
+        diff = np.asarray(response.position)[:k] - recording.position[first : first + k]
         print(
             f"  position minus recording ({method} simulator): rms "
             f"{1e3 * np.sqrt(np.mean(diff**2)):.2f} mm, max |.| {1e3 * np.abs(diff).max():.2f} mm "
