@@ -171,7 +171,7 @@ def extend(seeds, additions, seen, kmax=K_MAX, limit=PER_ROUND) -> list:
     at most ``limit`` of them, by the sum of the seed's and the addition's ranks (the best
     seed first among equals). Returns [(candidate, seed, addition)]."""
     ranked = sorted(
-        ((i + j, i, a, b) for i, a in enumerate(seeds) for j, b in enumerate(additions)),
+        ((j, i, a, b) for i, a in enumerate(seeds) for j, b in enumerate(additions)),
         key=lambda t: t[:2],
     )
     out = []
