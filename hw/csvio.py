@@ -36,13 +36,14 @@ def read_numeric_csv(path, name: str, progress=None):
     array of shape (rows, columns) and the 1-based line number of each row (int64 array), or
     (None, empty, empty) for a file without a header.
 
-    Blank lines and lines starting with # are skipped, a UTF-8 byte-order mark dropped, CRLF
-    line ends and a comma at the end of every line (a spreadsheet's empty last column)
-    accepted. Raises :class:`CSVError` naming ``name``, the line and the column for a line
-    with the wrong number of fields or a value that is not a number, and naming the cause and
-    the fix for a file that is not CSV text (UTF-16, a workbook, :mod:`hw.textfiles`), has no
-    header line, or is MATLAB's ``save -ascii`` output. ``progress`` (a
-    callable taking a fraction 0-1, or None) defaults to a line on stderr for large files.
+    Blank lines and lines starting with # or % (MATLAB's comment) are skipped, a UTF-8
+    byte-order mark dropped, CRLF line ends and a comma at the end of every line (a
+    spreadsheet's empty last column) accepted. Raises :class:`CSVError` naming ``name``, the
+    line and the column for a line with the wrong number of fields or a value that is not a
+    number, and naming the cause and the fix for a file that is not CSV text (UTF-16, a
+    workbook, :mod:`hw.textfiles`), has no header line, or is MATLAB's ``save -ascii`` output.
+    ``progress`` (a callable taking a fraction 0-1, or None) defaults to a line on stderr for
+    large files.
     """
     try:
         return _read_numeric_csv(path, name, progress)
@@ -125,7 +126,7 @@ def _header(f, name):
             raise CSVError(reason.replace(" line 1:", f" line {lineno}:", 1))
         text = raw.decode("utf-8")
         row = next(csv.reader([text]), [])
-        if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+        if not row or not "".join(row).strip() or row[0].lstrip().startswith(COMMENTS):
             continue
         return [h.strip() for h in row], lineno, f.tell()
 
@@ -174,7 +175,8 @@ def _parse(data: bytes, ncols: int, lineno: int, header, name):
     if body.endswith(b"\n"):
         body = body[:-1]
     n = body.count(b"\n") + 1 if body else 0
-    fast = n and not any(c in body for c in (b"#", b'"', b"\n\n")) and not body.startswith(b"\n")
+    fast = n and not any(c in body for c in (b"#", b"%", b'"', b"\n\n"))
+    fast = fast and not body.startswith(b"\n")
     if fast:
         buf = np.frombuffer(body, dtype=np.uint8)
         ends = np.flatnonzero(buf == 10)
@@ -207,7 +209,7 @@ def _parse_slowly(data: bytes, ncols, lineno, header, name):
         raise CSVError(f"{head} line {lineno + int(first)}:{rest}")
     text = data.decode("utf-8")
     for i, row in enumerate(csv.reader(io.StringIO(text, newline="")), start=lineno + 1):
-        if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+        if not row or not "".join(row).strip() or row[0].lstrip().startswith(COMMENTS):
             continue
         if len(row) == ncols + 1 and not row[-1].strip():
             row = row[:-1]  # a comma at the end of the line: an empty last column
@@ -229,6 +231,10 @@ def _parse_slowly(data: bytes, ncols, lineno, header, name):
     values = np.asarray(rows, dtype=float).reshape(len(rows), ncols)
     return values, np.asarray(numbers, dtype=np.int64)
 
+
+#: A line whose first field starts with one of these is a comment: "#" (Python, the hardware
+#: loop) and "%" (MATLAB's comment, fprintf'ed before the data).
+COMMENTS = ("#", "%")
 
 #: What to do about numbers written with a decimal comma (a spreadsheet's regional setting).
 DECIMAL_COMMA = (

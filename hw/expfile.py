@@ -331,6 +331,7 @@ class Reader:
                     f'e.g. [data] y = "{data}:variable"'
                 )
             header, columns, lines = self.read_csv(data, "data")
+            header, columns = self.unit_header(data, header, columns)
             unknown = [name for name in header if name not in COLUMNS + TIMING_COLUMNS]
             for required in ("t",) if "e" in columns else ("t", "y"):  # e: y = r - e
                 if required not in columns:
@@ -372,6 +373,34 @@ class Reader:
                 "error e = r - y [m] with the reference)"
             )
         return {name: self.mapped(name, source) for name, source in data.items()}
+
+    def unit_header(self, data, header, columns):
+        """(header, columns) with a column's unit dropped from its name where it is the
+        format's own ("t [s]", "y (m)", "v [V]": what a spreadsheet or writetable adds); a
+        column of the format in another unit ("y [mm]", "t (ms)") is an error that says how
+        to convert it."""
+        renamed = {}
+        for name in header:
+            match = _UNIT_HEADER.match(name)
+            if match is None or match["name"] not in COLUMN_UNITS:
+                continue
+            column, unit = match["name"], match["unit"].strip()
+            want = COLUMN_UNITS[column]
+            if unit in (want, want.lower()):  # "v [v]" too
+                renamed[name] = column
+                continue
+            factor = _TO_SI.get((want, unit))
+            how = f"multiply it by {factor:g}" if factor else f"convert it to {want}"
+            self.fail(
+                f"column {name!r} of {data} is in {unit}; the format takes {_LONG[column]}: "
+                f"{how} and name the column {column}"
+            )
+        if not renamed:
+            return header, columns
+        header = [renamed.get(h, h) for h in header]
+        if len(set(header)) != len(header):
+            self.fail(f"{data}: repeated column names in the header {header}; name each once")
+        return header, {renamed.get(h, h): v for h, v in columns.items()}
 
     def mapped(self, name, source) -> Signal:
         field = f"[data] {name}"
@@ -625,7 +654,7 @@ def read_csv_rows(path: Path, name: str):
     (rows x columns), read fast and in bounded memory by :mod:`hw.csvio` (progress on stderr
     for a large file).
 
-    Blank lines and lines starting with # are skipped; a UTF-8 byte-order mark (Excel's "CSV
+    Blank lines and lines starting with # or % are skipped; a UTF-8 byte-order mark (Excel's "CSV
     UTF-8") is dropped. Raises :class:`ExpFileError` (message without the TOML file's name)
     for a line with the wrong number of fields or a value that is not a number.
     """
@@ -641,6 +670,17 @@ _LONG = {
     "v": "voltage [V]",
     "r": "reference [m]",
     "e": "error [m]",
+}
+
+
+#: A column named with its unit: "t [s]", "y (m)", "v[V]".
+_UNIT_HEADER = re.compile(r"(?P<name>\w+)\s*[\[(](?P<unit>[^\])]*)[\])]\Z")
+#: Factors to the format's units from those a recording is often written in.
+_TO_SI = {
+    ("s", "ms"): 1e-3,
+    ("m", "mm"): 1e-3,
+    ("m", "cm"): 1e-2,
+    ("V", "mV"): 1e-3,
 }
 
 

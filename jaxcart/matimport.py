@@ -47,7 +47,9 @@ from jaxcart.recognition import EXPERIMENTS, Guess, Traces, recognise
 ASSUMED_SAMPLE_TIME = 0.001
 ROLES = ("y", "v", "e", "r")
 _ROLE_WORDS = (  # first match wins: "voltage out" is a voltage, "cart position" a position
-    ("t", r"^(t|time|tout|tt)$"),
+    # "t", "time", "tout" and their numbered or suffixed forms ("t1", "time1", "t_tap",
+    # "tout1", "time [s]"): MATLAB users number the runs of one session
+    ("t", r"^(t|time|tout|tt)([\d_ \[(].*)?$"),
     ("?", r"rod|pendulum|angle|alpha|theta"),  # the pendulum's sensor, not the cart's loop
     ("e", r"err|(?<![a-z])e(?![a-z])"),
     ("v", r"volt|(?<![a-z])(v|u|vm|um)(?![a-z])|motor|command|control|drive|input"),
@@ -307,10 +309,21 @@ def _assemble(files, signals) -> Imported:
         by_role[role] = found
         if len(found) > 1:
             listed = ", ".join(s.source for s in found)
+            if role in ("y", "e"):  # FILE.mat:variable chooses the position (or error)
+                fix = (
+                    f"choose the one to use: jaxcart import {found[0].source} (or map it in an "
+                    f"experiment file's [data] table)"
+                )
+            else:  # FILE.mat:variable would take it for the position: map the run instead
+                mapped = [f'{k} = "{s.source}"' for k, s in run.signals.items()]
+                mapped.append(f'{role} = "{found[0].source}"')
+                fix = (
+                    "two runs in one file? write an experiment file whose [data] table maps "
+                    f"one run's signals, e.g. [data] {', '.join(mapped)}"
+                )
             run.problem = (
                 f"{run.label}: {len(found)} different signals look like {_LONG[role]} "
-                f"({listed}); choose the one to use: jaxcart import {found[0].source} (or map "
-                f"it in an experiment file's [data] table)"
+                f"({listed}); {fix}"
             )
             return run
         if found and role != "t":

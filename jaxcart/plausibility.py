@@ -138,6 +138,11 @@ def _check_positions(where, label, y) -> list[str]:
             guess = "recorded in cm (or mm)? divide by 100 (or 1000) for metres"
         elif units:
             guess = f"recorded in {units[0][0]}? divide by {units[0][1]} for metres"
+        elif np.all(y == np.rint(y)) and extent * ENCODER_RESOLUTION <= TRACK_LENGTH:
+            guess = (  # the encoder's counts, as the QUARC block outputs them before its gain
+                f"whole numbers: encoder counts? multiply by {ENCODER_RESOLUTION:g} (m per "
+                "count) for metres"
+            )
         else:
             guess = "not a position in metres? convert it to metres"
         raise UserError(

@@ -444,3 +444,28 @@ def test_signal_read_without_x64_stays_float64():
     with jax.enable_x64(True):
         longer = rec.experiment_for(4.0)
     assert np.asarray(longer.signal)[0] == rec.signal64()[0]
+
+
+def test_csv_saved_differently_matlab_comments_and_units_in_the_header(tmp_path):
+    """MATLAB's % comment lines are skipped like #; a header with the format's own units
+    ("t [s],y [m],v [V]", "y (m)") reads as t, y, v; another unit is one line that says how to
+    convert it; positions in encoder counts are named so."""
+    t = np.arange(400) * 0.001
+    y = np.rint(0.02 * (1 - np.exp(-t / 0.05)) / 2.275e-5) * 2.275e-5
+    body = "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(t, y, strict=True))
+    tap = 'kind = "tap"\ndata = "run.csv"\n'
+    (tmp_path / "run.csv").write_text("% tap, group 7, 2021-09-01\nt,y\n" + body + "% end\n")
+    rec = read_experiment(_toml(tmp_path, tap))
+    assert np.array_equal(rec.position, y) and np.array_equal(rec.time, t)
+    for header in ("t [s],y [m]", "t (s), y (m)", "t[s],y[m]"):
+        (tmp_path / "run.csv").write_text(header + "\n" + body)
+        assert np.array_equal(read_experiment(_toml(tmp_path, tap)).position, y)
+    (tmp_path / "run.csv").write_text("t [s],y [mm]\n" + body)
+    with pytest.raises(
+        UserError, match=r"column 'y \[mm\]' of run.csv is in mm; .*multiply it by 0.001"
+    ):
+        read_experiment(_toml(tmp_path, tap))
+    counts = "".join(f"{a:.17g},{round(b / 2.275e-5) + 10000}\n" for a, b in zip(t, y, strict=True))
+    (tmp_path / "run.csv").write_text("t,y\n" + counts)
+    with pytest.raises(UserError, match="encoder counts\\? multiply by 2.275e-05"):
+        read_experiment(_toml(tmp_path, tap))

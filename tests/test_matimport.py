@@ -704,3 +704,58 @@ def test_files_named_as_one_run_in_lab_toml_are_one_run_whatever_their_names(tmp
     found = find_inputs(folder)
     rec = found.recordings["p_step"]
     assert rec.command is not None and float(np.max(np.abs(rec.command))) == pytest.approx(6.0)
+
+
+# ---------------------------------------------------------------- saved differently (probe 9)
+
+
+def test_numbered_time_vector_is_time_not_a_voltage(tmp_path):
+    """MATLAB users number a session's runs: t1, time1, t_tap, tout1 are the time (they were
+    read as a voltage: "values beyond 1"), and the run's time comes from them."""
+    t, y, v = _p50(1500, ts=0.002)
+    for names in (("t1", "y1", "u1"), ("time1", "pos1", "volt1"), ("t_p50", "y_p50", "u_p50")):
+        path = tmp_path / f"{names[0]}.mat"
+        scipy.io.savemat(path, dict(zip(names, (t, y, v), strict=True)), oned_as="column")
+        roles = {s.source.split(":")[1]: s.role for s in matimport.read_signals(path)}
+        assert roles == dict(zip(names, ("t", "y", "v"), strict=True))
+        run = matimport.run_of(path)
+        assert run.problem is None and not run.time_assumed and run.sample_time == 0.002
+    assert matimport._role(("tap",), matfile.ScopeSignal(t, None, "", 1, 1), many=False)[0] != "t"
+
+
+def test_two_runs_in_one_file_advice_maps_them(tmp_path):
+    """Two runs saved in one .mat (y1, v1, y2, v2): choosing y1 leaves two voltages, and the
+    advice is a [data] table (jaxcart import FILE.mat:v1 would take the voltage for the
+    position); following it reads the run."""
+    t, y, v = _p50(1500)
+    t2, y2, v2 = _p50(1800)
+    path = tmp_path / "p50.mat"
+    scipy.io.savemat(
+        path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t2), "v2": _scope(v2, t2)}
+    )
+    run = matimport.run_of(f"{path}:y1")
+    assert "look like a voltage" in run.problem
+    assert "jaxcart import" not in run.problem
+    assert '[data] y = "p50.mat:y1", v = "p50.mat:v1"' in run.problem
+    (tmp_path / "run1.toml").write_text(
+        'kind = "closed_loop"\n[data]\ny = "p50.mat:y1"\nv = "p50.mat:v1"\n'
+        '[controller]\nkp = 50.0\nv_limit = 6.0\n[reference]\nkind = "step"\namplitude = 0.4\n'
+    )
+    assert read_experiment(tmp_path / "run1.toml").n_samples == 1500
+
+
+def test_lab_finds_upper_case_mat_and_says_why_no_run_is_used(real_folder, tmp_path):
+    """A Windows copy's PART1.1.MAT is the tap (it was left out, unsaid); a folder whose only
+    .mat holds two runs says why, not 'no experiment files found'."""
+    from tuning.lab.inputs import find_inputs
+
+    (real_folder / "part1.1.mat").rename(real_folder / "PART1.1.MAT")
+    inputs = find_inputs(real_folder)
+    assert Path(inputs.recordings["tap"].path).name == "PART1.1.MAT"
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    t, y, v = _p50(1500)
+    tap = scipy.io.loadmat(real_folder / "PART1.1.MAT")["Cartposition"]
+    scipy.io.savemat(lone / "lab1.mat", {"Cartposition": tap, "y": _scope(y, t), "v": _scope(v, t)})
+    with pytest.raises(UserError, match="no recording can be used: lab1.mat: 2 different signals"):
+        find_inputs(lone)

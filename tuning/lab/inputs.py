@@ -330,7 +330,11 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             inputs.how[slot] += f"; the first of {len(found)} runs of it (name one in {INDEX_NAME})"
         for rec, _ in found[1:]:
             _add_repeat(inputs, slot, rec)
-    raw = sorted(p for p in folder.glob("*.mat") if p.is_file() and p.resolve() not in mats)
+    raw = sorted(  # any case: a Windows copy or rename may give "PART1.1.MAT"
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() == ".mat" and p.is_file() and p.resolve() not in mats
+    )
     _recognise_raw(inputs, raw)
     if inputs.recordings:  # (the raw files' parts too: a subfolder's run repeats them)
         _repeats_in_subfolders(inputs, folder)
@@ -347,6 +351,13 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             if below
             else ""
         )
+        if inputs.unused:  # files found, none usable: say why each is not (not "none found")
+            raise UserError(
+                f"--data {folder}: no recording can be used: "
+                + "; ".join(
+                    f"{name}: {why.removeprefix(name + ': ')}" for name, why in inputs.unused
+                )
+            )
         raise UserError(
             f'--data {folder}: no experiment files found (TOML files with kind = "tap", '
             f'"open_loop" or "closed_loop", or .mat files saved by the lab\'s scopes); see '
