@@ -18,23 +18,6 @@ def rms(parts) -> float:
     return float(np.sqrt(np.mean(r * r)))
 
 
-def one_path(a, b, floors) -> bool:
-    """Whether structures ``a`` and ``b`` (each at its fitted values) simulate every recording
-    along one path: their exact runs differ by less than the criterion's floor of that
-    recording (RMS, ``floors`` [m]), under which a residual explains nothing. They are then
-    one model on these recordings whatever their scores: on the independent generator's
-    0.4 V dead band under a P step whose command never fell below 0.39 V, the dead band and
-    a -0.40 V drive offset (each with M idle) ran 0.0026 mm apart, under the criterion's
-    floor of 0.0099 mm, yet the offset scored 36 lower (the dead band's fit sits on its
-    corner at the run's end) and was named alone."""
-    if not a.residuals or not b.residuals:
-        return False
-    return all(
-        np.sqrt(np.mean((np.asarray(ra) - np.asarray(rb)) ** 2)) < f
-        for ra, rb, f in zip(a.residuals, b.residuals, floors, strict=True)
-    )
-
-
 def score(cand, residuals, noise) -> float:
     """The information criterion of ``cand`` at ``residuals`` [m] (one array per recording;
     in-sample or held out): the recordings' misfit, each against its own floor

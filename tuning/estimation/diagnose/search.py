@@ -650,13 +650,7 @@ class Search:
             for c in level
             if not (PER_RUN in c.parts and per_run.per_run_inconsistency(c.values, self.peaks(c)))
         ]
-        seeds = []
-        for c in self.promising(sound, before):
-            if len(seeds) < SEEDS and not any(
-                scoring.one_path(c, s, self.noise.floors) for s in seeds
-            ):
-                seeds.append(c)
-        return seeds
+        return self.promising(sound, before)[:SEEDS]
 
     def backward(self, seen, number):
         """Backward step: the best structure with a part that is not significant (a delay gone

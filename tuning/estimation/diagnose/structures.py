@@ -168,12 +168,10 @@ def extend(seeds, additions, seen, kmax=K_MAX, limit=PER_ROUND) -> list:
     """Forward selection: each seed structure with one more addition (a single structure),
     at most ``kmax`` free parameters (the batch's slots) and one parameter correction, not in
     ``seen`` (sets of parts; updated), Coulomb and stiction not both (stiction holds Coulomb),
-    at most ``limit`` of them: every seed (best first) with the best addition, then every
-    seed with the second best, and so on (by the sum of the two ranks, the third seed of three
-    got one addition of six, and the truth's delay was not among them). Returns
-    [(candidate, seed, addition)]."""
+    at most ``limit`` of them, by the sum of the seed's and the addition's ranks (the best
+    seed first among equals). Returns [(candidate, seed, addition)]."""
     ranked = sorted(
-        ((j, i, a, b) for i, a in enumerate(seeds) for j, b in enumerate(additions)),
+        ((i + j, i, a, b) for i, a in enumerate(seeds) for j, b in enumerate(additions)),
         key=lambda t: t[:2],
     )
     out = []
