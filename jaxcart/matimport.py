@@ -242,6 +242,17 @@ _STEM_WORDS = re.compile(
 )
 
 
+def siblings(path: Path) -> list[Path]:
+    """The .mat files beside ``path`` whose names differ from its only by the signal
+    (2.1pos.mat: 2.1volt.mat), any case of the suffix."""
+    key = run_key(path)
+    return sorted(
+        p
+        for p in Path(path).parent.iterdir()
+        if key and p.suffix.lower() == ".mat" and p != path and run_key(p) == key
+    )
+
+
 def run_key(path: Path) -> str:
     """A file's name without the signal words: "2.1pos.mat" and "2.1volt.mat" give "2.1"."""
     stem = _STEM_WORDS.sub("", Path(path).stem.lower())
@@ -542,12 +553,9 @@ def run_of(path, experiment: str | None = None) -> Imported:
         raise UserError(f"{path}: a folder; give a .mat file")
     if not path.is_file():
         raise UserError(f"{path}: no such file; give the path of a .mat file")
-    key = run_key(path)
-    siblings = sorted(
-        p for p in path.parent.glob("*.mat") if p != path and run_key(p) == key and key
-    )
     named = {path.name: experiment} if experiment else {}
-    runs = scan([path, *siblings], named=named, chosen={path.name: variable} if variable else None)
+    chosen = {path.name: variable} if variable else None
+    runs = scan([path, *siblings(path)], named=named, chosen=chosen)
     for run in runs:
         if path in run.files:
             if experiment and run.guess is not None and not run.guess.named:

@@ -609,6 +609,13 @@ def test_import_command(real_folder, tmp_path, capsys):
     assert from_toml.controller == direct.controller
     assert main(["--no-cache", "import", files[1], "--out", str(out)]) == 2  # exists
     assert "exists" in capsys.readouterr().err
+    # 2.1pos.mat alone brings its sibling 2.1volt.mat, as every other command reads it (the
+    # import wrote "no voltage recorded").
+    alone = tmp_path / "alone"
+    assert main(["--no-cache", "import", files[1], "--out", str(alone)]) == 0
+    assert "from 2.1pos.mat + 2.1volt.mat" in (alone / "2.1pos.toml").read_text()
+    assert read_experiment(alone / "2.1pos.toml").command is not None
+    capsys.readouterr()
     t, y, _ = _p50(1000)
     scipy.io.savemat(tmp_path / "x.mat", {"a": np.column_stack([t, 0.75 * y])})
     assert main(["--no-cache", "import", str(tmp_path / "x.mat"), "--out", str(out)]) == 2

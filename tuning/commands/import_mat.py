@@ -59,7 +59,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     # lazy: imports jax, 0.45 s at start-up (python -X importtime)
-    from jaxcart.matimport import scan, split_source, write_imported
+    from jaxcart.matimport import scan, siblings, split_source, write_imported
 
     paths, named, chosen = [], {}, {}
     for text in args.files:
@@ -74,6 +74,8 @@ def run(args) -> int:
             chosen[path.name] = variable
         if args.experiment:
             named[path.name] = args.experiment
+    # A file's siblings (2.1pos.mat brings 2.1volt.mat), as every other command reads it.
+    paths += [s for s in dict.fromkeys(x for p in paths for x in siblings(p)) if s not in paths]
     weak = 0
     for imported in scan(paths, named=named, chosen=chosen):
         print("\n".join(imported.lines()))
