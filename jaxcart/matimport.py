@@ -246,11 +246,13 @@ def siblings(path: Path) -> list[Path]:
     """The .mat files beside ``path`` whose names differ from its only by the signal
     (2.1pos.mat: 2.1volt.mat), any case of the suffix."""
     key = run_key(path)
-    return sorted(
-        p
-        for p in Path(path).parent.iterdir()
-        if key and p.suffix.lower() == ".mat" and p != path and run_key(p) == key
-    )
+    return [p for p in mat_files(Path(path).parent) if key and p != path and run_key(p) == key]
+
+
+def mat_files(folder: Path) -> list[Path]:
+    """The .mat files of ``folder``, sorted, any case of the suffix (a Windows copy or rename
+    may give "PART1.1.MAT")."""
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() == ".mat" and p.is_file())
 
 
 def run_key(path: Path) -> str:

@@ -51,7 +51,7 @@ import numpy as np
 from hw.expfile import ExpFileError, read_toml, toml_str, toml_value
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment, read_imported
-from jaxcart.matimport import data_prefix, read_signals, scan
+from jaxcart.matimport import data_prefix, mat_files, read_signals, scan
 from jaxcart.params import TRACK_LENGTH
 from jaxcart.plausibility import time_unit_doubt, warn
 from jaxcart.recognition import EXPERIMENTS
@@ -330,11 +330,7 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             inputs.how[slot] += f"; the first of {len(found)} runs of it (name one in {INDEX_NAME})"
         for rec, _ in found[1:]:
             _add_repeat(inputs, slot, rec)
-    raw = sorted(  # any case: a Windows copy or rename may give "PART1.1.MAT"
-        p
-        for p in folder.iterdir()
-        if p.suffix.lower() == ".mat" and p.is_file() and p.resolve() not in mats
-    )
+    raw = [p for p in mat_files(folder) if p.resolve() not in mats]
     _recognise_raw(inputs, raw)
     if inputs.recordings:  # (the raw files' parts too: a subfolder's run repeats them)
         _repeats_in_subfolders(inputs, folder)
