@@ -327,7 +327,7 @@ def test_the_fits_adam_is_optax_adam():
     import jax.numpy as jnp
     import optax
 
-    from tuning.estimation.engine.lm import adam
+    from tuning.estimation.engine.least_squares import adam
 
     a = np.array([[1.0, 0.5], [0.0, 3.0], [2.0, -1.0]])
     b = np.array([0.3, -1.0, 2.0])

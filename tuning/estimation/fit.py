@@ -63,12 +63,14 @@ from jaxcart.smoothing import continuation
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.covariance import Covariance, covariance
 from tuning.estimation.engine.exact_polish import polish
-from tuning.estimation.engine.lm import (
+from tuning.estimation.engine.least_squares import (
+    LM_DAMPING,
     LM_TOLERANCE,
     LM_TOLERANCE_WIDE,
     MAX_STEP,
     adam,
     levenberg_marquardt,
+    minimize,
 )
 from tuning.estimation.engine.noise import (
     effective_samples,
@@ -189,12 +191,55 @@ def _peaks(recording, plant) -> dict:
 # ---------------------------------------------------------------- optimizers
 
 
+def _levenberg_marquardt(problem, theta, active, width, iterations, tolerance=LM_TOLERANCE):
+    """The engine's :func:`~tuning.estimation.engine.least_squares.levenberg_marquardt` on the
+    active entries of theta (internal units) of the smooth fit ``problem``: the dampings
+    :data:`LM_DAMPING` tried in one batched evaluation per iteration, each entry's step at most
+    MAX_STEP (an e-fold of a parameter, 1 mm of y0: far from the optimum the Gauss-Newton step
+    can throw a log-parameter to where the data no longer depend on it), converged when a step
+    moves the parameters by under ``tolerance`` of a standard error that the residual supports
+    (:func:`effective_samples`), or no step lowers the cost. Returns (theta, r, J, iterations
+    done, converged)."""
+    r, jac = problem.evaluate(theta, width)
+    if not math.isfinite(float(r @ r)):
+        raise UserError(
+            "the model does not simulate at the starting values (not finite); "
+            "give starting values closer to the cart's (a plant file, --plant FILE, or the "
+            "recording's [plant] table); where a warning above says a column is in other "
+            "units, fix that first"
+        )
+    if not np.any(active):
+        return theta, r, jac, 0, True
+    solver = levenberg_marquardt(
+        dampings=LM_DAMPING,
+        shrink=5.0,
+        damping_range=(1e-12, 1e10),
+        give_up=True,
+        bounds=problem.theta_bounds(),
+        max_step=MAX_STEP,
+        # A nuisance's step may be cut without holding convergence back.
+        trusted=active & (np.arange(theta.size) < problem.n_params),
+        # Near the minimum d cost = sum (d theta / stderr)^2 sigma^2 N / n_eff (the stderr that
+        # n_eff independent samples support, of the current residual, which whitens as the
+        # fit improves).
+        tolerance=lambda r: tolerance**2 / effective_samples(problem.split(r)),
+        free=active.astype(float),
+    )
+    state = minimize(
+        solver,
+        lambda trials: problem.evaluate_batch(trials, width),
+        solver.init(theta, r, jac),
+        iterations,
+    )
+    return state.x, state.r, state.jac, int(state.iterations), bool(state.converged)
+
+
 def _exact_polish(problem, theta, active, jac, iterations):
     """The engine's exact polish (:func:`~tuning.estimation.engine.exact_polish.polish`:
     Gauss-Newton, residuals and forward-difference Jacobian both from
     :func:`jaxcart.exact.simulate_exact`), started from the smooth fit, in the internal
     coordinates (each entry moves at most MAX_STEP per iteration, as in the engine's
-    :func:`~tuning.estimation.engine.lm.levenberg_marquardt`; a column the exact model's
+    :func:`_levenberg_marquardt`; a column the exact model's
     staircase flattens is a secant over +-STAIRCASE). Returns (theta,
     exact residuals, Jacobian with exact active columns, iterations, converged)."""
     # A bounded nuisance may have been pushed to its bound by the smooth model's own errors
@@ -295,7 +340,7 @@ class _Run:
 
     def lm(self, label, problem, theta, active, width, cap, tol=LM_TOLERANCE):
         """One Levenberg-Marquardt run, recorded and said; returns (theta, r, J)."""
-        theta, r, jac, n_it, ok = levenberg_marquardt(problem, theta, active, width, cap, tol)
+        theta, r, jac, n_it, ok = _levenberg_marquardt(problem, theta, active, width, cap, tol)
         self.stage(label, n_it, cap, ok)
         self.say(
             f"{label}: {n_it} iterations{'' if ok else ' (stopped at its cap)'}, "
@@ -418,7 +463,7 @@ def _optimize(problem, active, settings, run):
     # the narrowest width, 0.0043 mm and the truth). So the narrowest width is also fitted
     # straight from the start (at most DIRECT_ITERATIONS), and the lower cost there wins.
     cap = min(settings.lm_iterations, DIRECT_ITERATIONS)
-    direct = levenberg_marquardt(problem, problem.theta0.copy(), active, narrow, cap, LM_TOLERANCE)
+    direct = _levenberg_marquardt(problem, problem.theta0.copy(), active, narrow, cap)
     # Lower by more than 1 %: where both find the same minimum, the continuation's stays.
     d, c = _rms(direct[1]), _rms(r)
     if not (math.isfinite(d) and (not math.isfinite(c) or d < 0.99 * c)):

@@ -41,7 +41,7 @@ from tuning.estimation.engine import parameters
 from tuning.estimation.engine.batch import Layout
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.exact_polish import polish, values_jacobian
-from tuning.estimation.engine.lm import marquardt_step
+from tuning.estimation.engine.least_squares import line_search, marquardt_step, minimize
 from tuning.estimation.engine.noise import MISFIT_RATIO, RecordingNoise
 
 #: Gauss-Newton iterations of a held-out recording's own values fitted to it (its drive limit,
@@ -241,21 +241,20 @@ def one_step(search, c, fold: Fold) -> dict:
     def fitted(values):  # the weighted residual of what is fitted
         return np.concatenate(search.exact(c, values)[0])[keep] * root[keep]
 
-    r = fitted(c.values)
-    jw = jac[keep] * root[keep, None]
-    step = marquardt_step(jw.T @ jw, jw.T @ r, DAMPING)
-    low = np.array([parameters.bounds(n)[0] for n in names])
-    high = np.array([parameters.bounds(n)[1] for n in names])
-    x0 = np.array([c.values[n] for n in names])
-    cost, t = float(r @ r), 1.0
-    while t >= SHORTEST:
-        x = np.clip(x0 + t * step, low, high)
-        values = {**c.values, **dict(zip(names, (float(v) for v in x), strict=True))}
-        trial = fitted(values)
-        if float(trial @ trial) < cost:
-            return values
-        t /= 2
-    return dict(c.values)
+    def at(x):
+        return {**c.values, **dict(zip(names, (float(v) for v in x), strict=True))}
+
+    solver = line_search(
+        bounds=tuple(np.array([parameters.bounds(n)[k] for n in names]) for k in (0, 1)),
+        shortest=SHORTEST,
+        tolerance=None,
+        direction=lambda j, r: marquardt_step(j.T @ j, j.T @ r, DAMPING),
+    )
+    start = solver.init(
+        np.array([c.values[n] for n in names]), fitted(c.values), jac[keep] * root[keep, None]
+    )
+    end = minimize(solver, lambda xs: ([fitted(at(x)) for x in xs], None), start, 1)
+    return at(end.x) if end.cost < start.cost else dict(c.values)
 
 
 def own_names(search, c, k: int) -> list:

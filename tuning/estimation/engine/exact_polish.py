@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from tuning.estimation.engine import parameters
-from tuning.estimation.engine.lm import gauss_newton_step
+from tuning.estimation.engine.least_squares import gauss_newton_step, line_search, minimize
 
 #: Secant half-width in a fit's internal units (3 % of a log-fitted parameter) where the exact
 #: output's staircase flattens a forward difference (:func:`jacobian`).
@@ -72,13 +72,6 @@ def _moved(x, i, h):
     return out
 
 
-def _standard_errors(jac, r) -> np.ndarray:
-    """The naive standard errors sigma sqrt(diag (J^T J)^+) of the Gauss-Newton model."""
-    b_pinv = np.linalg.pinv(jac.T @ jac)
-    dof = max(r.size - jac.shape[1], 1)
-    return np.sqrt(np.maximum(np.diag(b_pinv) * float(r @ r) / dof, 1e-300))
-
-
 def gauss_newton(
     residuals,
     x0,
@@ -93,10 +86,11 @@ def gauss_newton(
     staircase: float | None = None,
     target: float | None = None,
 ) -> Polished:
-    """Gauss-Newton on ``residuals``: a list of parameter vectors -> the list of their residuals
-    (one array [m] each), the one contract of the engine's least-squares steps (a smooth fit's
-    ``evaluate_batch`` too): the points of a Jacobian come in one call, so that their runs are
-    made at once; a line search's trials one at a time (most are taken at once).
+    """Gauss-Newton on ``residuals`` (the engine's
+    :func:`~tuning.estimation.engine.least_squares.line_search`, driven by its ``minimize``):
+    a list of parameter vectors -> the list of their residuals (one array [m] each); the points
+    of a Jacobian come in one call, so that their runs are made at once; a line search's trials
+    one at a time (most are taken at once).
 
     x0: the start (p,), inside the bounds; steps: the forward-difference steps (p,), or a
     function of x giving them; bounds: (low, high) arrays (p,) every trial is clipped to;
@@ -110,40 +104,21 @@ def gauss_newton(
     the one at the values returned (the standard errors are computed from it)."""
     x = np.asarray(x0, dtype=float).copy()
     r = residuals([x])[0]
-    cost = float(r @ r)
-    if x.size == 0 or iterations <= 0 or not math.isfinite(cost):
+    if x.size == 0 or iterations <= 0 or not math.isfinite(float(r @ r)):
         return Polished(x, r, None, False, 0, True)
     step_of = steps if callable(steps) else (lambda _x: np.asarray(steps, dtype=float))
-    jac = jacobian(residuals, x, r, step_of(x), reference, staircase)
-    improved = converged = False
-    done = 0
+
+    def jacobian_at(x, r):
+        return jacobian(residuals, x, r, step_of(x), reference, staircase)
+
+    solver = line_search(bounds=bounds, max_step=max_step, shortest=shortest, tolerance=tolerance)
+    start = solver.init(x, r, jacobian_at(x, r))
     if target is not None:
-        reach = r + jac @ gauss_newton_step(jac, r)
+        reach = r + start.jac @ gauss_newton_step(start.jac, r)
         if float(reach @ reach) > target:
-            return Polished(x, r, jac, False, 0, False)
-    while done < iterations:
-        done += 1
-        step = gauss_newton_step(jac, r)
-        if max_step is not None:
-            step = np.clip(step, -max_step, max_step)
-        t = 1.0
-        while t >= shortest:
-            trial = np.clip(x + t * step, *bounds)
-            r2 = residuals([trial])[0]
-            cost2 = float(r2 @ r2)
-            if math.isfinite(cost2) and cost2 < cost:
-                break
-            t /= 2
-        else:
-            converged = True  # no descent along the Gauss-Newton direction: a minimum
-            break
-        small = np.all(np.abs(trial - x) <= tolerance * _standard_errors(jac, r))
-        x, r, cost, improved = trial, r2, cost2, True
-        jac = jacobian(residuals, x, r, step_of(x), reference, staircase)
-        if small:
-            converged = True
-            break
-    return Polished(x, r, jac, improved, done, converged)
+            return Polished(x, r, start.jac, False, 0, False)
+    end = minimize(solver, lambda xs: (residuals(list(xs)), None), start, iterations, jacobian_at)
+    return Polished(end.x, end.r, end.jac, end.cost < start.cost, end.iterations, end.converged)
 
 
 def difference_floors(names) -> np.ndarray:

@@ -22,7 +22,7 @@ from jaxcart.smoothing import Smoothing
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.exact_runs import exact_position
-from tuning.estimation.engine.lm import LM_DAMPING
+from tuning.estimation.engine.least_squares import LM_DAMPING
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
     _default_start,

@@ -1,0 +1,98 @@
+"""The engine's least-squares solvers share one contract (engine/least_squares.py): each
+of them, driven by the same host loop, and the Levenberg-Marquardt also inside a compiled
+step, reaches scipy's least-squares solution of a small nonlinear problem."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from tuning.estimation.engine.least_squares import (
+    LM_DAMPING,
+    State,
+    levenberg_marquardt,
+    line_search,
+    minimize,
+)
+
+T = np.linspace(0.0, 2.0, 60)
+TRUTH = np.array([0.8, 1.7, 0.3])  # a * exp(-b t) + c, with a little deterministic noise
+Y = TRUTH[0] * np.exp(-TRUTH[1] * T) + TRUTH[2] + 1e-3 * np.sin(37.0 * T)
+START = np.array([0.3, 0.5, 0.0])
+
+
+def _residual(x, xp=np):
+    return x[0] * xp.exp(-x[1] * T) + x[2] - Y
+
+
+def _jacobian(x):
+    e = np.exp(-x[1] * T)
+    return np.column_stack([e, -x[0] * T * e, np.ones_like(T)])
+
+
+def _evaluate(xs):
+    return np.stack([_residual(x) for x in xs]), np.stack([_jacobian(x) for x in xs])
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return least_squares(_residual, START, jac=_jacobian, xtol=1e-14, ftol=1e-14).x
+
+
+def _lm_host():
+    return levenberg_marquardt(
+        dampings=LM_DAMPING, shrink=5.0, damping_range=(1e-12, 1e10), give_up=True, max_step=1.0
+    )
+
+
+@pytest.mark.parametrize("kind", ["levenberg_marquardt", "line_search"])
+def test_one_driver_takes_every_solver(kind, reference):
+    solver = _lm_host() if kind == "levenberg_marquardt" else line_search(tolerance=1e-6)
+    r0 = _residual(START)
+    state = minimize(
+        solver,
+        _evaluate if kind == "levenberg_marquardt" else lambda xs: (_evaluate(xs)[0], None),
+        solver.init(START, r0, _jacobian(START)),
+        100,
+        jacobian=lambda x, r: _jacobian(x),
+    )
+    assert state.converged
+    np.testing.assert_allclose(state.x, reference, rtol=1e-7)
+    assert state.cost < float(r0 @ r0)
+
+
+def test_a_held_entry_stays_and_the_rest_fit_as_alone():
+    """``free``: a held entry does not move; the others reach the fit with it fixed."""
+    held = np.array([1.0, 1.0, 0.0])
+    solver = levenberg_marquardt(
+        dampings=LM_DAMPING, give_up=True, damping_range=(1e-12, 1e10), free=held
+    )
+    start = np.array([0.3, 0.5, 0.25])
+    state = minimize(solver, _evaluate, solver.init(start, _residual(start), _jacobian(start)), 200)
+    alone = least_squares(lambda ab: _residual(np.r_[ab, 0.25]), start[:2], xtol=1e-14).x
+    assert state.x[2] == 0.25
+    np.testing.assert_allclose(state.x[:2], alone, rtol=1e-6)
+
+
+def test_the_compiled_step_is_the_same_solver(reference):
+    """The diagnosis's form: ask, evaluate and tell in one jitted step (one damping), which
+    starts from a state without a residual (cost inf: its own point first)."""
+    solver = levenberg_marquardt(xp=jnp)
+
+    @jax.jit
+    def step(state):
+        trials = solver.ask(state)
+        r = _residual(trials[0], jnp)
+        jac = jax.jacfwd(lambda x: _residual(x, jnp))(trials[0])
+        return solver.tell(state, trials, r[None], jac[None])
+
+    with jax.enable_x64(True):
+        x = jnp.asarray(START)
+        state = State(x, jnp.zeros(T.size), jnp.zeros((T.size, 3)), jnp.inf, 1e-2)
+        state = step(state)
+        assert int(state.iterations) == 0  # the first step only took its own point
+        np.testing.assert_allclose(state.r, _residual(START), rtol=1e-12)
+        for _ in range(60):
+            state = step(state)
+        np.testing.assert_allclose(np.asarray(state.x), reference, rtol=1e-7)
