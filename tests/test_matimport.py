@@ -622,6 +622,15 @@ def test_import_command(real_folder, tmp_path, capsys):
     assert "the evidence is weak" in capsys.readouterr().err
     assert main(["--no-cache", "import", str(tmp_path / "x.mat"), "--as", "pid"]) == 0
     assert (tmp_path / "x.toml").is_file()
+    # A run every command would refuse (positions saved in mm) is told what to convert, and
+    # no experiment file is written (one that every later read refused, before).
+    t, y, v = _p50(2000)
+    scipy.io.savemat(tmp_path / "mm.mat", {"y": _scope(1000.0 * y, t), "v": _scope(v, t)})
+    capsys.readouterr()
+    assert main(["--no-cache", "import", str(tmp_path / "mm.mat"), "--as", "p_step"]) == 2
+    err = capsys.readouterr().err
+    assert "not written" in err and "recorded in mm? divide by 1000 for metres" in err
+    assert not (tmp_path / "mm.toml").exists()
 
 
 def test_slider_moves_recognised(tmp_path):

@@ -8,7 +8,8 @@ Each run (a file, or files whose names differ only by the signal: 2.1pos.mat + 2
 is recognised from its content and names (jaxcart.recognition); the guess and its evidence are
 printed, and the experiment file it implies is written (its [data] maps the .mat variables,
 nothing is copied). Weak evidence writes nothing for that run and asks, in one line, to name
-the experiment with --as. Existing files are never replaced without --force.
+the experiment with --as; nor does a run that every command would refuse (positions in mm,
+say), which is told what to convert. Existing files are never replaced without --force.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     # lazy: imports jax, 0.45 s at start-up (python -X importtime)
+    from jaxcart.files import read_imported
     from jaxcart.matimport import scan, siblings, split_source, write_imported
 
     paths, named, chosen = [], {}, {}
@@ -86,6 +88,14 @@ def run(args) -> int:
             weak += 1
             how = f"with jaxcart import {imported.files[0].name} --as PART"
             print(imported.guess.question(imported.label, how), file=sys.stderr)
+            continue
+        try:  # what every command would refuse is not written (positions in mm, say)
+            read_imported(imported, quiet=True)
+        except UserError as exc:
+            weak += 1
+            print(
+                f"  not written: {exc}; convert the .mat variable and import again", file=sys.stderr
+            )
             continue
         folder = args.out if args.out is not None else imported.files[0].parent
         toml = write_imported(imported, folder / f"{imported.stem}.toml", force=args.force)
