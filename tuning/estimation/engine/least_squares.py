@@ -127,9 +127,10 @@ def levenberg_marquardt(
     +-``max_step`` (a trust region; an entry of ``trusted`` whose step was cut rules out
     convergence on that iteration); ``free``: 1 for the entries that move. ``objective(r, xp)``
     -> (cost, row weights or None): iteratively reweighted least squares where the weights
-    depend on r. ``tolerance(r)`` -> f: converged once a step lowers the cost by under f times
-    it (None: never; the caller counts iterations). A state whose cost is not finite asks for
-    its own point and takes it (the start at a new smoothing width) without counting it."""
+    depend on r. ``tolerance(r)`` -> f (NumPy only): converged once a step lowers the cost by
+    under f times it (None: never; the caller counts iterations). A state whose cost is not
+    finite asks for its own point and takes it (the start at a new smoothing width) without
+    counting it."""
     dampings = tuple(float(d) for d in dampings)
     low, high = damping_range
 
@@ -169,11 +170,9 @@ def levenberg_marquardt(
         stop = give_up & ~taken & (lam >= high)
         cost = xp.where(taken, costs[best], state.cost)
         converged = stop
-        if tolerance is not None:
+        if tolerance is not None and taken:  # (on the host: a tolerance is NumPy's)
             cut = _cut(raw_steps(state)[best], max_step, trusted, xp)
-            converged = converged | (
-                taken & ~cut & (state.cost - cost <= tolerance(rs[best]) * cost)
-            )
+            converged = ~cut & (state.cost - cost <= tolerance(rs[best]) * cost)
         pick = functools.partial(xp.where, taken)
         return State(
             pick(trials[best], state.x),
