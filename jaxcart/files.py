@@ -50,7 +50,7 @@ from hw.expfile import (  # noqa: F401  (the format's names, re-exported for jax
 from jaxcart import matfile, plausibility
 from jaxcart.errors import UserError
 from jaxcart.experiments import Experiment
-from jaxcart.matimport import run_of, split_source
+from jaxcart.matimport import is_csv, run_of, split_source
 from jaxcart.params import Plant
 from jaxcart.plantspec import build_plant, check_plant_overrides
 from jaxcart.smooth_sim import Response
@@ -208,6 +208,9 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
     """
     raw = split_source(path)  # "file.mat" or "file.mat:scope[1]": a raw scope file, no TOML
     if raw is not None:
+        toml = raw[0].with_suffix(".toml")
+        if is_csv(raw[0]) and toml.is_file():  # the data of an experiment file: read that
+            raise UserError(f"{raw[0]} is the data of {toml}: give {toml.name}")
         return read_imported(run_of(path, experiment), raw[0], check=check)
     _not_found_hint(path)
     return _recording(

@@ -22,6 +22,10 @@ struct array, in one variable), MATLAB v7.3 (HDF5) files. This module
 >>> [(r.label, r.guess.experiment) for r in runs]                 # doctest: +SKIP
 [('2.1pos.mat + 2.1volt.mat', 'p_step'), ('part1.1.mat', 'tap')]
 
+A CSV file of named columns without an experiment file (another simulator's, a spreadsheet's:
+"time,position,voltage") is a raw recording too: each column a signal whose role its name (else
+its content) gives, the time column the run's time, mapped as "file.csv:column".
+
 Units: s, m, V. A sample time is the data's own; a file without time (the "Structure" layout)
 is taken at the lab's 1 kHz (``ASSUMED_SAMPLE_TIME``) and says so.
 """
@@ -37,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from hw.atomicio import write_text
+from hw.csvio import CSVError, read_numeric_csv
 from hw.expfile import toml_value
 from jaxcart import matfile
 from jaxcart.errors import UserError
@@ -147,12 +152,23 @@ class Imported:
 # ---------------------------------------------------------------- reading the files
 
 
+#: The suffixes of raw recordings (any case): the scopes' .mat files; CSV (or .txt) files of
+#: named columns without an experiment file.
+RAW_SUFFIXES = (".mat", ".csv", ".txt")
+
+
+def is_csv(path) -> bool:
+    return Path(path).suffix.lower() in (".csv", ".txt")
+
+
 def read_signals(path: Path) -> list[RawSignal]:
-    """Every signal of every variable of one .mat file, each with its role. Raises
-    :class:`UserError` (one line) for a file that does not load."""
+    """Every signal of every variable of one .mat file (every column of a CSV file), each with
+    its role. Raises :class:`UserError` (one line) for a file that does not load."""
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"{path}: no such .mat file; give the path of a .mat file")
+        raise UserError(f"{path}: no such file; give the path of a .mat or .csv file")
+    if is_csv(path):
+        return _csv_signals(path)
     try:
         variables = matfile.load_mat(path)
     except Exception as exc:  # scipy and h5py raise several kinds for a broken file
@@ -174,6 +190,31 @@ def read_signals(path: Path) -> list[RawSignal]:
                 RawSignal(path, f"{path.name}:{name}{selector}", s.values, s.time, role, why, names)
             )
     return out
+
+
+def _csv_signals(path: Path) -> list[RawSignal]:
+    """The columns of a CSV file as signals, each named by its header (the time column by its
+    name: the run's time)."""
+    try:
+        header, table, _ = read_numeric_csv(path, path.name)
+    except CSVError as exc:
+        raise UserError(str(exc)) from None
+    if header is None or table.shape[0] < 2:
+        raise UserError(f"{path}: no header line and rows of numbers; not a recording")
+    out = []
+    for k, name in enumerate(header):
+        column = _Column(table[:, k].copy())
+        role, why = _role((name,), column, many=False)
+        out.append(RawSignal(path, f"{path.name}:{name}", column.values, None, role, why, (name,)))
+    return out
+
+
+@dataclass(frozen=True)
+class _Column:
+    """A CSV column as :func:`_role` reads a signal (no time of its own)."""
+
+    values: np.ndarray
+    time: None = None
 
 
 def _role(names, signal, *, many: bool) -> tuple[str, str]:
@@ -246,13 +287,15 @@ def siblings(path: Path) -> list[Path]:
     """The .mat files beside ``path`` whose names differ from its only by the signal
     (2.1pos.mat: 2.1volt.mat), any case of the suffix."""
     key = run_key(path)
+    if is_csv(path):  # a CSV file holds its run's columns together
+        return []
     return [p for p in mat_files(Path(path).parent) if key and p != path and run_key(p) == key]
 
 
-def mat_files(folder: Path) -> list[Path]:
-    """The .mat files of ``folder``, sorted, any case of the suffix (a Windows copy or rename
-    may give "PART1.1.MAT")."""
-    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() == ".mat" and p.is_file())
+def mat_files(folder: Path, suffixes=(".mat",)) -> list[Path]:
+    """The .mat files of ``folder`` (or those of other ``suffixes``), sorted, any case of the
+    suffix (a Windows copy or rename may give "PART1.1.MAT")."""
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes and p.is_file())
 
 
 def run_key(path: Path) -> str:
@@ -505,12 +548,13 @@ def write_imported(run: Imported, toml_path, *, force: bool = False) -> Path:
     return write_text(toml_path, text, force=force)
 
 
-_SOURCE = re.compile(r"(?P<file>.*\.mat)(?::(?P<variable>[^:/\\]+))?\Z", re.IGNORECASE)
+_SOURCE = re.compile(r"(?P<file>.*\.(mat|csv|txt))(?::(?P<variable>[^:/\\]+))?\Z", re.IGNORECASE)
 
 
 def split_source(text) -> tuple[Path, str | None]:
     """(file, variable or None) of "file.mat" or "file.mat:variable" ("scope[1]", "scope[cart
-    position]": one signal of a muxed scope); None when ``text`` names no .mat file."""
+    position]": one signal of a muxed scope; "file.csv:column"); None when ``text`` names no
+    raw recording (:data:`RAW_SUFFIXES`)."""
     match = _SOURCE.match(str(text))
     if match is None:
         return None
@@ -520,6 +564,12 @@ def split_source(text) -> tuple[Path, str | None]:
 def _choose(path: Path, signals: list[RawSignal], variable: str) -> list[RawSignal]:
     """``signals`` of ``path`` with ``variable`` (the user's choice) as the position; the
     signals that looked like positions before no longer do."""
+    if is_csv(path):
+        source = f"{path.name}:{variable}"
+        if all(s.source != source for s in signals):
+            columns = ", ".join(s.names[0] for s in signals)
+            raise UserError(f"{source}: no column {variable!r} (columns: {columns}); choose one")
+        return _as_position(signals, source)
     base, selector = matfile.parse_variable(variable)
     try:
         obj = matfile.load_mat(path)[base]
@@ -535,7 +585,13 @@ def _choose(path: Path, signals: list[RawSignal], variable: str) -> list[RawSign
         )
     except matfile.LayoutError as exc:
         raise UserError(str(exc)) from None
-    source = f"{path.name}:{base}" + (f"[{one.index}]" if one.count > 1 else "")
+    return _as_position(
+        signals, f"{path.name}:{base}" + (f"[{one.index}]" if one.count > 1 else "")
+    )
+
+
+def _as_position(signals: list[RawSignal], source: str) -> list[RawSignal]:
+    """``signals`` with the one of ``source`` the position, chosen by the user."""
     out = []
     for s in signals:
         if s.source == source:

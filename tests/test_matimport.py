@@ -775,3 +775,49 @@ def test_lab_finds_upper_case_mat_and_says_why_no_run_is_used(real_folder, tmp_p
     scipy.io.savemat(lone / "lab1.mat", {"Cartposition": tap, "y": _scope(y, t), "v": _scope(v, t)})
     with pytest.raises(UserError, match="no recording can be used: lab1.mat: 2 different signals"):
         find_inputs(lone)
+
+
+# ---------------------------------------------------------------- CSV files of named columns
+
+
+def _csv(path, header, *columns):
+    np.savetxt(path, np.column_stack(columns), delimiter=",", header=header, comments="")
+
+
+def test_a_csv_of_named_columns_is_a_raw_recording(tmp_path, capsys):
+    """Another simulator's CSV ("time,position,voltage", no experiment file) is recognised as
+    a .mat run is, read as its experiment, and imported to a TOML that maps its columns."""
+    from tuning.commands.main import main
+
+    t, y, v = _p50(2000)
+    _csv(tmp_path / "other_sim.csv", "time,position,voltage", t, y, v)
+    got = read_experiment(tmp_path / "other_sim.csv")
+    assert got.meta["notes"]["recognised_as"] == "p_step"
+    assert got.controller.kp == pytest.approx(50.0, rel=1e-3)
+    np.testing.assert_array_equal(got.position, y)
+    assert main(["--no-cache", "import", str(tmp_path / "other_sim.csv")]) == 0
+    toml = (tmp_path / "other_sim.toml").read_text()
+    assert 'y = "other_sim.csv:position"' in toml and 't = "other_sim.csv:time"' in toml
+    np.testing.assert_array_equal(read_experiment(tmp_path / "other_sim.toml").position, y)
+    # The data of an experiment file is read through it, not guessed.
+    with pytest.raises(UserError, match=r"other_sim.csv is the data of .*other_sim.toml"):
+        read_experiment(tmp_path / "other_sim.csv")
+    # A column chosen as the position, as a muxed scope's signal is.
+    _csv(tmp_path / "two.csv", "t,a,b,voltage", t, y, 0.5 * y, v)
+    assert matimport.run_of(f"{tmp_path / 'two.csv'}:a").signals["y"].source == "two.csv:a"
+    with pytest.raises(UserError, match=r"no column 'c' \(columns: t, a, b, voltage\)"):
+        matimport.run_of(f"{tmp_path / 'two.csv'}:c")
+
+
+def test_the_lab_takes_a_folder_of_csv_files(tmp_path):
+    """A data folder of raw CSV files: each run recognised for its part; a CSV that is no
+    recording is listed unused, and the lab goes on."""
+    from tuning.lab.inputs import find_inputs
+
+    t, y, v = _p50(2000)
+    _csv(tmp_path / "p50_run.csv", "time,cart position,voltage", t, y, v)
+    (tmp_path / "notes.csv").write_text("student,grade\nalice,A\n")
+    inputs = find_inputs(tmp_path)
+    assert inputs.how["p_step"] == "recognised, strong evidence"
+    np.testing.assert_array_equal(inputs.recordings["p_step"].position, y)
+    assert "not a recording" in dict(inputs.unused)["notes.csv"]

@@ -1,8 +1,10 @@
-"""``jaxcart import``: raw QUARC/Simulink .mat files to experiment files, nothing else.
+"""``jaxcart import``: raw QUARC/Simulink .mat files (and CSV files of named columns without
+an experiment file) to experiment files, nothing else.
 
     jaxcart import part1.1.mat 2.1pos.mat 2.1volt.mat          # -> part1.1.toml, 2.1pos.toml
     jaxcart import run7.mat --as pi --out lab/                 # name the experiment yourself
     jaxcart import mux.mat:scope[1]                            # the position is column 1
+    jaxcart import other_sim.csv                               # time,position,voltage
 
 Each run (a file, or files whose names differ only by the signal: 2.1pos.mat + 2.1volt.mat)
 is recognised from its content and names (jaxcart.recognition); the guess and its evidence are
@@ -28,18 +30,20 @@ from jaxcart.recognition import EXPERIMENTS
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "import",
-        help="turn raw QUARC/Simulink .mat files into experiment files (no TOML to write)",
+        help="turn raw QUARC/Simulink .mat files (or CSV files of named columns) into "
+        "experiment files (no TOML to write)",
         description="Read .mat files as the lab's scopes saved them (structure with or "
         "without time, N x 2 arrays, muxed scopes, MATLAB v7.3), recognise each run's "
         "experiment from its content and names, print the guess with its evidence and write "
-        "the experiment file (TOML) that maps its signals.",
+        "the experiment file (TOML) that maps its signals. A CSV file of named columns "
+        "(time,position,voltage) is read the same way.",
     )
     p.add_argument(
         "files",
         nargs="+",
-        metavar="FILE.mat",
-        help='.mat files; "FILE.mat:var[k]" or "FILE.mat:var[label]" chooses the position '
-        "among a muxed scope's signals (k counted from 1, as MATLAB does)",
+        metavar="FILE",
+        help='.mat (or .csv) files; "FILE.mat:var[k]" or "FILE.mat:var[label]" chooses the '
+        "position among a muxed scope's signals (k counted from 1, as MATLAB does)",
     )
     p.add_argument(
         "--as",
@@ -67,10 +71,12 @@ def run(args) -> int:
     for text in args.files:
         found = split_source(text)
         if found is None:
-            raise UserError(f"{text}: not a .mat file; give FILE.mat or FILE.mat:variable")
+            raise UserError(
+                f"{text}: not a .mat or .csv file; give FILE.mat, FILE.mat:variable or FILE.csv"
+            )
         path, variable = found
         if not path.is_file():
-            raise UserError(f"{path}: no such file; give the path of a .mat file")
+            raise UserError(f"{path}: no such file; give the path of a .mat or .csv file")
         paths.append(path)
         if variable:
             chosen[path.name] = variable
@@ -93,9 +99,7 @@ def run(args) -> int:
             read_imported(imported, quiet=True)
         except UserError as exc:
             weak += 1
-            print(
-                f"  not written: {exc}; convert the .mat variable and import again", file=sys.stderr
-            )
+            print(f"  not written: {exc}; convert it and import again", file=sys.stderr)
             continue
         folder = args.out if args.out is not None else imported.files[0].parent
         toml = write_imported(imported, folder / f"{imported.stem}.toml", force=args.force)

@@ -14,7 +14,9 @@ a *slot* of the lab:
 The folder may also hold raw .mat files as QUARC/Simulink scopes saved them, without any
 TOML: each run (a file, or files whose names differ only by the signal, "2.1pos.mat" +
 "2.1volt.mat") is recognised from its content and names (:mod:`jaxcart.recognition`), with
-its evidence; a run whose evidence is weak is left out with one line that asks the user to
+its evidence; so is a CSV file of named columns that no experiment file maps (another
+simulator's "time,position,voltage"; a CSV that is no such table is listed unused, not an
+error); a run whose evidence is weak is left out with one line that asks the user to
 name its part, and a second run of a part is a repeat (the experiment file's, else the first
 by name, is the part's). When any recording came from raw .mat files, :func:`write_used` writes the
 lab.toml and the experiment files that were used beside the report, so that a user can correct
@@ -51,7 +53,14 @@ import numpy as np
 from hw.expfile import ExpFileError, read_toml, toml_str, toml_value
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment, read_imported
-from jaxcart.matimport import data_prefix, mat_files, read_signals, scan
+from jaxcart.matimport import (
+    RAW_SUFFIXES,
+    data_prefix,
+    mat_files,
+    read_signals,
+    scan,
+    split_source,
+)
 from jaxcart.params import TRACK_LENGTH
 from jaxcart.plausibility import time_unit_doubt, warn
 from jaxcart.recognition import EXPERIMENTS
@@ -293,7 +302,7 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             _use_raw(inputs, slot, paths, index_path)
 
     taken = {p.resolve() for p in named.values()}
-    mats = {p.resolve() for paths in named_raw.values() for p in paths}
+    mapped = {p.resolve() for paths in named_raw.values() for p in paths}
     guesses: dict[str, list] = {}
     candidates = sorted(p for p in folder.glob("*.toml") if p.name != INDEX_NAME)
     for path in candidates:
@@ -302,12 +311,12 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             continue
         if path.resolve() in taken:  # read as the part lab.toml names (or said broken there)
             with contextlib.suppress(UserError):
-                mats |= _mat_files(_load_toml(path), folder)
+                mapped |= _raw_files(_load_toml(path), folder)
             continue
         recording = None
         with inputs.reading(path.name):
             meta = _load_toml(path)
-            mats |= _mat_files(meta, folder)
+            mapped |= _raw_files(meta, folder)
             if "kind" not in meta:
                 inputs.unused.append((path.name, "not an experiment file (no kind)"))
                 continue
@@ -330,8 +339,8 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             inputs.how[slot] += f"; the first of {len(found)} runs of it (name one in {INDEX_NAME})"
         for rec, _ in found[1:]:
             _add_repeat(inputs, slot, rec)
-    raw = [p for p in mat_files(folder) if p.resolve() not in mats]
-    _recognise_raw(inputs, raw)
+    raw = [p for p in mat_files(folder) if p.resolve() not in mapped]
+    _recognise_raw(inputs, raw + _raw_csv_files(inputs, folder, mapped))
     if inputs.recordings:  # (the raw files' parts too: a subfolder's run repeats them)
         _repeats_in_subfolders(inputs, folder)
     if not inputs.recordings and inputs.broken:
@@ -420,8 +429,8 @@ def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
 
 
 def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:
-    """({slot: experiment file}, {slot: [raw .mat files of one run]}) named in lab.toml (and
-    its [synthetic] table into ``inputs``); ({}, {}) without one."""
+    """({slot: experiment file}, {slot: [raw .mat (or CSV) files of one run]}) named in
+    lab.toml (and its [synthetic] table into ``inputs``); ({}, {}) without one."""
     named, named_raw = {}, {}
     if not index_path.is_file():
         return named, named_raw
@@ -434,7 +443,7 @@ def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:
         # Each entry on its own: a partial read loses only the part of an entry it cannot use.
         with inputs.reading(", ".join(map(str, names)), slot if slot in SLOTS else None):
             paths = _named_paths(index_path, slot, names)
-            if all(p.suffix.lower() == ".mat" for p in paths):
+            if all(p.suffix.lower() in RAW_SUFFIXES for p in paths):
                 named_raw[slot] = paths
             elif len(paths) == 1:
                 named[slot] = paths[0]
@@ -468,15 +477,31 @@ def _named_paths(index_path: Path, slot: str, names: list) -> list[Path]:
     return paths
 
 
-def _mat_files(meta: dict, folder: Path) -> set:
-    """The .mat files (resolved) that an experiment file's [data] maps."""
+def _raw_files(meta: dict, folder: Path) -> set:
+    """The data files (resolved: .mat, CSV) that an experiment file's data maps."""
     data = meta.get("data")
     sources = data.values() if isinstance(data, dict) else [data]
     out = set()
     for source in sources:
-        file = str(source).rsplit(":", 1)[0] if ":" in str(source) else str(source)
-        if file.lower().endswith(".mat"):
-            out.add((folder / file).resolve())
+        found = split_source(source) or (Path(str(source)), None)
+        out.add((folder / found[0]).resolve())
+    return out
+
+
+def _raw_csv_files(inputs: Inputs, folder: Path, mapped: set) -> list[Path]:
+    """The CSV files of ``folder`` that no experiment file maps and that read as a table of
+    named columns (another simulator's recordings); any other CSV file is listed unused,
+    with why, and does not stop the lab."""
+    out = []
+    for path in mat_files(folder, (".csv",)):
+        if path.resolve() in mapped:
+            continue
+        try:
+            read_signals(path)
+        except UserError as exc:
+            inputs.unused.append((path.name, f"not a recording ({exc})"))
+            continue
+        out.append(path)
     return out
 
 
