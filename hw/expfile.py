@@ -127,6 +127,16 @@ class ExperimentData:
 # ---------------------------------------------------------------- reading
 
 
+#: How ``jaxcart simulate`` begins the description of what it writes: a simulation, which
+#: the lab never takes for a recording of the cart (:func:`is_simulation`).
+SIMULATED_BY = "jaxcart simulate"
+
+
+def is_simulation(meta: dict) -> bool:
+    """Whether an experiment file's tables (``meta``) are a run ``jaxcart simulate`` wrote."""
+    return str(meta.get("description", "")).startswith(SIMULATED_BY)
+
+
 def read_toml(path) -> dict:
     """The parsed TOML of an experiment file (one-line errors for a missing or broken file)."""
     path = Path(path)

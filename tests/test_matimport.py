@@ -817,7 +817,18 @@ def test_the_lab_takes_a_folder_of_csv_files(tmp_path):
     t, y, v = _p50(2000)
     _csv(tmp_path / "p50_run.csv", "time,cart position,voltage", t, y, v)
     (tmp_path / "notes.csv").write_text("student,grade\nalice,A\n")
+    # What jaxcart simulate wrote beside the data and below it is no run of the cart (it was
+    # taken as a second run of its part, and fitted with the recordings).
+    from tuning.commands.main import main
+
+    for out in ("p50-sim.csv", "jaxcart-out/p50-sim.csv"):
+        sim = ["simulate", str(tmp_path / "p50_run.csv"), "--out", str(tmp_path / out)]
+        assert main(["--no-cache", *sim]) == 0
     inputs = find_inputs(tmp_path)
     assert inputs.how["p_step"] == "recognised, strong evidence"
     np.testing.assert_array_equal(inputs.recordings["p_step"].position, y)
-    assert "not a recording" in dict(inputs.unused)["notes.csv"]
+    unused = dict(inputs.unused)
+    assert "not a recording" in unused["notes.csv"]
+    for name in ("p50-sim.toml", "jaxcart-out/p50-sim.toml"):
+        assert unused[name].startswith("a simulation (jaxcart simulate (exact simulator) of")
+    assert not inputs.repeats

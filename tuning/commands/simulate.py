@@ -25,6 +25,7 @@ import numpy as np
 import jaxcart as jc
 from hw.atomicio import all_or_none
 from hw.control_law import setting_problem
+from hw.expfile import SIMULATED_BY
 from jaxcart import plots
 from jaxcart.errors import SimulationDiverged, UserError
 from jaxcart.outputs import OUT_DIR, check_writable, free_names
@@ -186,7 +187,7 @@ def run(args) -> int:
     written = dict(
         controller=controller if experiment.kind == "closed_loop" else None,
         plant_overrides=overrides,
-        description=f"jaxcart simulate ({method} simulator) of {source}",
+        description=f"{SIMULATED_BY} ({method} simulator) of {source}",
         force=args.force,
     )
 

@@ -33,6 +33,9 @@ An optional index ``lab.toml`` in the folder names the files and wins over the g
 and may carry a ``[synthetic]`` table: the true parameters that generated synthetic data (the
 built-in example recordings use it; the report prints it and compares the fits with it).
 
+What ``jaxcart simulate`` wrote (in the folder or below it: its description says so) is a
+simulation, never a run of the cart: it is listed as not used.
+
 A file that cannot be read (a broken data file, an unreadable .mat, a recording lab.toml names
 that is not there) refuses the lab with its one line, so that ``jaxcart lab`` says what to fix.
 With ``partial=True`` (``jaxcart class``: one student's broken file must not cost the whole lab)
@@ -50,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hw.expfile import ExpFileError, read_toml, toml_str, toml_value
+from hw.expfile import ExpFileError, is_simulation, read_toml, toml_str, toml_value
 from jaxcart.errors import UserError
 from jaxcart.files import read_experiment, read_imported
 from jaxcart.matimport import (
@@ -231,6 +234,13 @@ def _load_toml(path: Path) -> dict:
         raise UserError(f"{exc}; or move it out of the folder") from None
 
 
+def _not_a_recording(meta: dict) -> str:
+    """Why an experiment file of the folder is no recording of the cart."""
+    if "kind" not in meta:
+        return "not an experiment file (no kind)"
+    return f"a simulation ({meta.get('description')}), not a recording of the cart"
+
+
 def guess_slot(recording) -> tuple[str | None, str]:
     """(slot or None, the reason) for one recording, from its kind, controller and input."""
     kind = recording.kind
@@ -317,8 +327,8 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
         with inputs.reading(path.name):
             meta = _load_toml(path)
             mapped |= _raw_files(meta, folder)
-            if "kind" not in meta:
-                inputs.unused.append((path.name, "not an experiment file (no kind)"))
+            if "kind" not in meta or is_simulation(meta):
+                inputs.unused.append((path.name, _not_a_recording(meta)))
                 continue
             recording = _read_experiment(path)
         if recording is None:
@@ -411,6 +421,9 @@ def _repeats_in_subfolders(inputs: Inputs, folder: Path) -> None:
             except UserError:
                 continue
             if "kind" not in meta:
+                continue
+            if is_simulation(meta):
+                inputs.unused.append((str(path.relative_to(folder)), _not_a_recording(meta)))
                 continue
             recording = None
             with inputs.reading(str(path.relative_to(folder))):
