@@ -56,6 +56,11 @@ _ROLE_WORDS = (  # first match wins: "voltage out" is a voltage, "cart position"
     # "tout1", "time [s]"): MATLAB users number the runs of one session
     ("t", r"^(t|time|tout|tt)([\d_ \[(].*)?$"),
     ("?", r"rod|pendulum|angle|alpha|theta"),  # the pendulum's sensor, not the cart's loop
+    # What the model does not read: a speed, an acceleration, a current, a force.
+    (
+        "-",
+        r"veloc|speed|accel|current|force|dot(?![a-z])|(?<![a-z])(amps?|xd|yd|dx|dy|i|f)(?![a-z])",
+    ),
     ("e", r"err|(?<![a-z])e(?![a-z])"),
     ("v", r"volt|(?<![a-z])(v|u|vm|um)(?![a-z])|motor|command|control|drive|input"),
     ("r", r"ref|setpoint|set point|desired|slider|(?<![a-z])r(?![a-z])"),
@@ -206,7 +211,18 @@ def _csv_signals(path: Path) -> list[RawSignal]:
         column = _Column(table[:, k].copy())
         role, why = _role((name,), column, many=False)
         out.append(RawSignal(path, f"{path.name}:{name}", column.values, None, role, why, (name,)))
+    if all(s.role != "t" for s in out) and _is_clock(out[0].values):
+        # No column named time: the first, where it ticks at a steady step, as in every CSV.
+        out[0] = dataclasses.replace(out[0], role="t", why="the first column, a steady clock")
     return out
+
+
+def _is_clock(values) -> bool:
+    """Whether ``values`` rise at a steady step (within 5 %) from near 0, as a time column."""
+    step = np.diff(values)
+    if step.size < 2 or not np.all(step > 0):
+        return False
+    return bool(abs(values[0]) <= 10 * step[0] and np.ptp(step) <= 0.05 * np.mean(step))
 
 
 @dataclass(frozen=True)
@@ -231,6 +247,8 @@ def _role(names, signal, *, many: bool) -> tuple[str, str]:
             if role == "t" and (many or signal.time is not None):
                 continue
             if re.search(pattern, low):
+                if role == "-":
+                    return "?", f"name {text!r}: a signal the model does not read"
                 whose = ": the pendulum's, not the cart's" if role == "?" else ""
                 return role, f"name {text!r}{whose}"
     values = signal.values  # time only by name: a voltage ramp increases too
@@ -608,9 +626,9 @@ def run_of(path, experiment: str | None = None) -> Imported:
     names differ only by the signal (2.1pos.mat brings 2.1volt.mat); ``experiment`` names it."""
     path, variable = split_source(path) or (Path(path), None)
     if path.is_dir():
-        raise UserError(f"{path}: a folder; give a .mat file")
+        raise UserError(f"{path}: a folder; give a .mat or .csv file")
     if not path.is_file():
-        raise UserError(f"{path}: no such file; give the path of a .mat file")
+        raise UserError(f"{path}: no such file; give the path of a .mat or .csv file")
     named = {path.name: experiment} if experiment else {}
     chosen = {path.name: variable} if variable else None
     runs = scan([path, *siblings(path)], named=named, chosen=chosen)

@@ -807,6 +807,13 @@ def test_a_csv_of_named_columns_is_a_raw_recording(tmp_path, capsys):
     assert matimport.run_of(f"{tmp_path / 'two.csv'}:a").signals["y"].source == "two.csv:a"
     with pytest.raises(UserError, match=r"no column 'c' \(columns: t, a, b, voltage\)"):
         matimport.run_of(f"{tmp_path / 'two.csv'}:c")
+    # No column named time: the first, a steady clock; a speed is no voltage (it was taken for
+    # a second one).
+    _csv(tmp_path / "sim2.csv", "col1,x,x_dot,u", t, y, np.gradient(y, t), v)
+    run = matimport.run_of(tmp_path / "sim2.csv")
+    assert run.signals["t"].why == "the first column, a steady clock"
+    assert [s.source for s in run.ignored] == ["sim2.csv:x_dot"]
+    assert run.guess.experiment == "p_step" and run.sample_time == pytest.approx(0.001)
 
 
 def test_the_lab_takes_a_folder_of_csv_files(tmp_path):
