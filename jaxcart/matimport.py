@@ -307,12 +307,12 @@ def siblings(path: Path) -> list[Path]:
     key = run_key(path)
     if is_csv(path):  # a CSV file holds its run's columns together
         return []
-    return [p for p in mat_files(Path(path).parent) if key and p != path and run_key(p) == key]
+    return [p for p in files_of(Path(path).parent) if key and p != path and run_key(p) == key]
 
 
-def mat_files(folder: Path, suffixes=(".mat",)) -> list[Path]:
-    """The .mat files of ``folder`` (or those of other ``suffixes``), sorted, any case of the
-    suffix (a Windows copy or rename may give "PART1.1.MAT")."""
+def files_of(folder: Path, suffixes=(".mat",)) -> list[Path]:
+    """The files of ``folder`` with one of ``suffixes`` (default the .mat files), sorted, any
+    case of the suffix (a Windows copy or rename may give "PART1.1.MAT")."""
     return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes and p.is_file())
 
 

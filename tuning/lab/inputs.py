@@ -59,7 +59,7 @@ from jaxcart.files import read_experiment, read_imported
 from jaxcart.matimport import (
     RAW_SUFFIXES,
     data_prefix,
-    mat_files,
+    files_of,
     read_signals,
     scan,
     split_source,
@@ -349,7 +349,7 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
             inputs.how[slot] += f"; the first of {len(found)} runs of it (name one in {INDEX_NAME})"
         for rec, _ in found[1:]:
             _add_repeat(inputs, slot, rec)
-    raw = [p for p in mat_files(folder) if p.resolve() not in mapped]
+    raw = [p for p in files_of(folder) if p.resolve() not in mapped]
     _recognise_raw(inputs, raw + _raw_csv_files(inputs, folder, mapped))
     if inputs.recordings:  # (the raw files' parts too: a subfolder's run repeats them)
         _repeats_in_subfolders(inputs, folder)
@@ -506,7 +506,7 @@ def _raw_csv_files(inputs: Inputs, folder: Path, mapped: set) -> list[Path]:
     named columns (another simulator's recordings); any other CSV file is listed unused,
     with why, and does not stop the lab."""
     out = []
-    for path in mat_files(folder, (".csv",)):
+    for path in files_of(folder, (".csv",)):
         if path.resolve() in mapped:
             continue
         try:
