@@ -279,14 +279,59 @@ def base_start(mask: np.ndarray, start_params: np.ndarray) -> np.ndarray:
     return np.where(mask & (start_params <= 0), [ZERO_START[n] for n in PARAM_NAMES], start_params)
 
 
+def model_start(p: TuningProblem) -> np.ndarray | None:
+    """A pole-placement design for the plant being tuned, as a start (:data:`PARAM_NAMES`
+    order), or None where it would not differ from the given start (or kp and kd are fixed).
+
+    The PD part is placed by the textbook's second-order design on the cart's linear model
+    m y'' + c y' = gamma v (c = B_eq + B_emf; the nominal plant's, friction, delay and
+    saturation left out): the closed loop m s^2 + (c + gamma kd) s + gamma kp has the damping
+    ratio zeta of the spec's overshoot, zeta = -ln(OS) / sqrt(pi^2 + ln^2 OS), and settles
+    into the spec's band at its settling bound, omega_n = -ln(band sqrt(1 - zeta^2)) /
+    (zeta T_max). So kp = m omega_n^2 / gamma and kd = (2 zeta omega_n m - c) / gamma; where the
+    cart's own damping is already more than that (kd <= 0), kd starts where a zero start would
+    (:data:`ZERO_START`). Only free kp and kd take these values; every other parameter keeps the
+    given start's. Inside the box like every start."""
+    if not p.free_mask[:2].any():
+        return None
+    try:
+        plant = p.plant
+        m, c, gamma = float(plant.m), float(plant.c), float(plant.gamma)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    spec = p.spec
+    shoot = min(max(float(spec.overshoot) / 100.0, 1e-4), 0.9)
+    zeta = -math.log(shoot) / math.sqrt(math.pi**2 + math.log(shoot) ** 2)
+    band = min(max(float(spec.band), 1e-6), 0.5)
+    omega = -math.log(band * math.sqrt(1.0 - zeta**2)) / (zeta * float(spec.settling_time))
+    if not all(math.isfinite(x) and x > 0 for x in (m, gamma, omega)) or not math.isfinite(c):
+        return None
+    kp = m * omega**2 / gamma
+    kd = (2.0 * zeta * omega * m - c) / gamma
+    given = base_start(p.free_mask, p.start_params)
+    designed = given.copy()
+    for i, value in ((0, kp), (1, kd if kd > 0 else ZERO_START["kd"])):
+        if p.free_mask[i]:
+            designed[i] = min(max(value, math.exp(p.lo[i])), math.exp(p.hi[i]))
+    if np.allclose(designed[p.free_mask], given[p.free_mask], rtol=1e-3):
+        return None
+    return designed
+
+
 def starts(p: TuningProblem, n_starts: int, spread: float, seed: int):
     """(theta, rows): the logs of the starts, on the devices, and their placement. The given
-    start, then log-normal perturbations of the free parameters (``spread``: standard
-    deviation of their logs), clipped into the box."""
+    start, then (with two or more starts) a pole-placement design for the plant
+    (:func:`model_start`), then log-normal perturbations of the given start's free parameters
+    (``spread``: standard deviation of their logs), clipped into the box."""
     theta0 = np.log(np.where(p.free_mask, base_start(p.free_mask, p.start_params), 1.0))
     rng = np.random.default_rng(seed)
     noise = spread * rng.standard_normal((n_starts - 1, len(PARAM_NAMES)))
-    theta = np.concatenate([theta0[None], theta0[None] + noise]) * p.free_mask
+    blocks = [theta0[None], theta0[None] + noise]
+    designed = model_start(p) if n_starts > 1 else None
+    if designed is not None:
+        model = np.log(np.where(p.free_mask, designed, 1.0))
+        blocks = [theta0[None], model[None], (theta0[None] + noise)[: n_starts - 2]]
+    theta = np.concatenate(blocks) * p.free_mask
     theta = np.clip(theta, p.lo, p.hi) * p.free_mask
     # The batch of starts is sharded over every device: pad it to a multiple with copies of the
     # first start (never new random ones), so the result does not depend on the device count.

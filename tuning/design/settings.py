@@ -12,8 +12,9 @@ from typing import NamedTuple
 
 
 class TuneSettings(NamedTuple):
-    """n_starts: starts in the batch (the given one and log-normal perturbations of the free
-    parameters; ``spread``: the standard deviation of their logs); max_iterations: the most
+    """n_starts: starts in the batch (the given one, a pole-placement design for the plant
+    (:func:`tuning.design.problem.model_start`) and log-normal perturbations of the given one's
+    free parameters; ``spread``: the standard deviation of their logs); max_iterations: the most
     iterations; learning_rate: adam's step in log parameter (0.25 is a 25 % step), decayed
     along a cosine to a tenth of it over ``max_iterations``; stage_iterations: the most
     iterations at one smoothing width (fewer once the parameters stop moving); patience:
