@@ -86,12 +86,10 @@ def tune(
     check_every, seed) defaults to :data:`tuning.design.settings.DEFAULT`, the one set of
     settings that ``jaxcart tune`` and the lab use too.
     n_starts: starts in the vmapped batch: the given one, a pole-placement design for the plant
-        (kp and kd placed on its linear model for the spec's overshoot and settling time,
-        :func:`tuning.design.problem.model_start`; with two or more starts, where kp or kd is
-        free) and log-normal perturbations of the given start's free parameters
-        (``spread``: standard deviation of their logs); sharded over the
-        devices (jaxcart.parallel), padded with copies of the first start to a multiple of
-        their number, so the result is the same on any number of devices.
+        (:func:`tuning.design.problem.model_start`, where kp or kd is free) and log-normal
+        perturbations of the given start (``spread``: standard deviation of their logs);
+        sharded over the devices (jaxcart.parallel), padded with copies of the first start to
+        a multiple of their number, so the result is the same on any number of devices.
     max_iterations, learning_rate (adam, cosine decay, in log parameter: 0.25 is a 25 % step),
         stage_iterations (most iterations at one smoothing width; fewer once the parameters
         stop moving), patience (iterations at the final width without a better point before
