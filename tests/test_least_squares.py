@@ -76,8 +76,8 @@ def test_a_held_entry_stays_and_the_rest_fit_as_alone():
 
 
 def test_the_compiled_step_is_the_same_solver(reference):
-    """The diagnosis's form: ask, evaluate and tell in one jitted step (one damping), which
-    starts from a state without a residual (cost inf: its own point first)."""
+    """Inside a compiled step: ask, evaluate and tell in one jitted function (one damping),
+    from a state without a residual (cost inf: its own point first)."""
     solver = levenberg_marquardt(xp=jnp)
 
     @jax.jit

@@ -29,7 +29,7 @@ from jaxcart.smoothing import Smoothing
 from jaxcart.substeps import substeps_per_sample
 from tuning.distributed import gather_rows
 from tuning.estimation.engine import parameters
-from tuning.estimation.engine.least_squares import State, levenberg_marquardt, sum_of_squares
+from tuning.estimation.engine.least_squares import marquardt_step
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
 VOLTAGE_WIDTH = 4e-3
@@ -215,16 +215,16 @@ def _theta_arrays(layout):
 
 def _lm_trial(residuals, lo, hi, row_segment, noise=None):
     """The batched LM's step for one candidate, ``step(theta, lam, cost, jac, r, idx, free,
-    base, own, seeds, support, width)`` -> (theta, lam, cost, jac, r): one ask and tell of the
-    engine's :func:`~tuning.estimation.engine.least_squares.levenberg_marquardt` (one damping a
-    step, then a third of it, or four times it) from the accepted values theta, whose residual
-    r and Jacobian jac are carried. The trial's residual and Jacobian come from one forward
-    pass, and a trial that is kept brings its Jacobian for the next step (a rejected one costs
-    no second pass at theta). A carried cost of inf asks for theta itself (a fit's first step
-    at a width). Forward mode, one tangent per colour (see :meth:`BatchFitter._colouring`):
-    slots that act on different recordings share a tangent, and each column is read back on
-    its own recordings' rows (``row_segment``: the recording of every residual row). ``lo``,
-    ``hi``: bounds of every slot, internal units.
+    base, own, seeds, support, width)`` -> (theta, lam, cost, jac, r): one LM trial
+    (:func:`~tuning.estimation.engine.least_squares.marquardt_step`, fused with the forward
+    pass: see that module for why not its ask and tell) from the accepted values theta, whose
+    residual r and Jacobian jac are carried. The trial's residual
+    and Jacobian come from one forward pass, and a trial that is kept brings its Jacobian for
+    the next step (a rejected one costs no second pass at theta). A carried cost of inf asks
+    for theta itself (a fit's first step at a width). Forward mode, one tangent per colour (see
+    :meth:`BatchFitter._colouring`): slots that act on different recordings share a tangent,
+    and each column is read back on its own recordings' rows (``row_segment``: the recording
+    of every residual row). ``lo``, ``hi``: bounds of every slot, internal units.
 
     ``noise``: (nu, floor) per recording, the effective samples and the floor of the scaled
     residual's sum of squares: the cost is then sum_k nu_k log(SSE_k + floor_k) (each
@@ -232,29 +232,37 @@ def _lm_trial(residuals, lo, hi, row_segment, noise=None):
     and each step weighs a recording's rows by nu_k / (SSE_k + floor_k) at theta (iteratively
     reweighted least squares); None: the plain sum of squares."""
 
-    def objective(r, xp=jnp):
+    def objective(r):
         if noise is None:
-            return sum_of_squares(r)
+            return r @ r, jnp.ones_like(r)
         nu, floor = noise
         sse = jax.ops.segment_sum(r * r, row_segment, num_segments=nu.shape[0])
         weights = nu / (sse + floor)
         return jnp.sum(nu * jnp.log(sse + floor)), weights[row_segment] / jnp.max(weights)
 
     def step(theta, lam, cost, jac, r, idx, free, base, own, seeds, support, width):
-        solver = levenberg_marquardt(
-            bounds=(lo[idx], hi[idx]), objective=objective, free=free, xp=jnp
-        )
-        state = State(theta, r, jac, cost, lam)
-        trials = solver.ask(state)
+        fresh = ~jnp.isfinite(cost)
+        _, w = objective(r)
+        jw = jac * jnp.sqrt(w)[:, None]
+        delta = marquardt_step(jw.T @ jw, jw.T @ (r * jnp.sqrt(w)), lam, free, xp=jnp)
+        new = jnp.where(fresh, theta, jnp.clip(theta + delta, lo[idx], hi[idx]))
 
         def push(t):
-            return jax.jvp(lambda th: residuals(th, idx, base, own, width), (trials[0],), (t,))
+            return jax.jvp(lambda th: residuals(th, idx, base, own, width), (new,), (t,))
 
         r_new, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
         colour = jnp.argmax(seeds, axis=0)
         jac_new = packed[:, colour] * support[row_segment, :] * free[None, :]
-        state = solver.tell(state, trials, r_new[None], jac_new[None])
-        return state.x, state.damping, state.cost, state.jac, state.r
+        cost_new, _ = objective(r_new)
+        ok = jnp.isfinite(cost_new) & (cost_new < cost)
+        lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
+        return (
+            jnp.where(ok, new, theta),
+            jnp.where(fresh, lam, lam_out),
+            jnp.where(ok, cost_new, cost),
+            jnp.where(ok, jac_new, jac),
+            jnp.where(ok, r_new, r),
+        )
 
     return step
 

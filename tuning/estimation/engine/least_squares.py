@@ -6,9 +6,12 @@
     state = solver.tell(state, trials, rs, jacs)    their residuals (k, m) and Jacobians
 
 and :func:`minimize` drives any of them on the host (``jaxcart fit``'s smooth fit, the exact
-polish of every fit, a held-out re-fit's step), while a diagnosis runs ask, one evaluation
-and tell of the same Levenberg-Marquardt inside one compiled, vmapped step
-(:mod:`tuning.estimation.engine.batch`, ``xp=jax.numpy``): one solver, whoever evaluates.
+polish of every fit, a held-out re-fit's step). The Levenberg-Marquardt runs in NumPy or, with
+``xp=jax.numpy``, inside a compiled step; a diagnosis's batched step
+(:mod:`tuning.estimation.engine.batch`) keeps its own fused form of the same step
+(:func:`marquardt_step`, a third or four times the damping): run as ask and tell inside the
+vmapped, forward-mode step, it compiled and ran twice as long (a joint diagnosis of a tap and
+a P 50 run, 21.6 s against 30.4 s, measured 2026-12-05).
 
 - :func:`levenberg_marquardt`: Marquardt's diagonal scaling, the step solves
   (J^T W J + lam D) delta = -J^T W r, D the diagonal of J^T W J (a column the data do not see
