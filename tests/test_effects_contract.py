@@ -60,6 +60,14 @@ CASES = {
     "deadzone_asymmetry": ({"deadzone": 0.5, "deadzone_asym": 0.2}, jc.PID(kp=20.0), BOTH_WAYS),
     "voltage_offset": ({"v_offset": 0.3}, PID_STEP, jc.step(0.3, horizon=HORIZON)),
     "tilt": ({"f_tilt": 0.5}, PID_STEP, jc.step(0.3, horizon=HORIZON)),
+    # Both directions, the curve growing unlike viscous friction, each way its own. Without
+    # f_c: beside Coulomb friction this run's stops hold the smooth simulator at 4e-6 m at
+    # every width, Coulomb's own floor on it (the curve adds nothing at rest).
+    "friction_curve": (
+        {"f_curve_right": [0.25, 0.3, 0.3], "f_curve_left": [0.1, 0.2, 0.4]},
+        PID_STEP,
+        BOTH_WAYS,
+    ),
     # Stiction's ramp: after the breakaway at 0.9 N the friction falls to 0.3 N over ~1 cm/s.
     "stribeck": (
         {"f_c": 0.3, "f_s": 0.9, "v_stribeck": 0.01},

@@ -590,6 +590,65 @@ def test_stribeck_nests_stiction_and_coulomb():
     assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 2e-6, gaps
 
 
+# ---------------------------------------------------------------- friction as a curve of the speed
+
+#: A 3-entry friction curve's nodes, written out from its docstring [m/s]: 0 up to the anchor
+#: at 5 mm/s, then the entries at 20, 80 and 320 mm/s, held beyond.
+CURVE_SPEEDS = (0.0, 0.005, 0.02, 0.08, 0.32)
+
+
+def _curve(levels, q):
+    """The curve's departure [N] at speed q >= 0, linear between its nodes."""
+    return float(np.interp(q, CURVE_SPEEDS, (0.0, 0.0, *levels)))
+
+
+@pytest.mark.parametrize("v0", [0.5, -0.4])
+def test_friction_curve_tap_decelerates_along_the_curve(v0):
+    """A tap (motor unplugged) whose sliding friction falls from 0.6 N to 0.35 N above 8 cm/s
+    moving right and rises to 0.9 N moving left: solve_ivp (DOP853, rtol 1e-12) of
+    m y'' + B_eq y' = -sign(y') (f_c + d(|y'|)) with an event at y' = 0 gives the reference;
+    the exact simulator's closed form between the nodes agrees to 1e-9 m."""
+    f_c, b_eq = 0.6, 1.5
+    right, left = (-0.15, -0.25, -0.25), (0.1, 0.2, 0.3)
+    s = math.copysign(1.0, v0)
+    levels = right if s > 0 else left
+
+    def rhs(_, x):
+        return [x[1], (-b_eq * x[1] - s * (f_c + _curve(levels, abs(x[1])))) / M]
+
+    def stop(_, x):
+        return x[1]
+
+    stop.terminal = True
+    sol = solve_ivp(
+        rhs, (0.0, 2.0), [0.0, v0], method="DOP853", rtol=1e-12, atol=1e-14, events=stop,
+        dense_output=True,
+    )  # fmt: skip
+    t_stop = float(sol.t_events[0][0])
+    plant = jc.tap_plant(B_eq=b_eq, f_c=f_c, f_curve_right=list(right), f_curve_left=list(left))
+    res = simulate_exact(plant, None, jc.tap(v0, horizon=round(t_stop + 0.05, 3)))
+    moving = res.time < t_stop
+    ref = sol.sol(res.time[moving])
+    np.testing.assert_allclose(res.position[moving], ref[0], rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.velocity[moving], ref[1], rtol=0, atol=TOL_RK4)
+    np.testing.assert_allclose(res.position[~moving], sol.y_events[0][0][0], rtol=0, atol=TOL_RK4)
+    assert np.all(res.velocity[~moving] == 0.0)
+
+
+def test_friction_curve_above_its_last_node_is_coulomb_at_the_held_level():
+    """Above 0.32 m/s the curve holds its last entry: a tap from 1.2 m/s is, until it slows to
+    0.32 m/s, the closed form of the linear cart under the constant force -(f_c + d_n) (1e-12
+    m), and slows to it at the closed form's time."""
+    f_c, d_n, b_eq = 0.3, 0.4, 1.5
+    plant = jc.tap_plant(B_eq=b_eq, f_c=f_c, f_curve_right=[0.1, 0.2, d_n])
+    res = simulate_exact(plant, None, jc.tap(1.2, horizon=0.8))
+    y, v = linear(res.time, -(f_c + d_n), m=M, c=b_eq, v0=1.2)
+    fast = v > CURVE_SPEEDS[-1]
+    assert 50 < np.count_nonzero(fast) < fast.size
+    np.testing.assert_allclose(res.position[fast], y[fast], rtol=0, atol=TOL_CLOSED)
+    np.testing.assert_allclose(res.velocity[fast], v[fast], rtol=0, atol=TOL_CLOSED)
+
+
 # ---------------------------------------------------------------- every effect has one
 
 #: The tests above that reference each effect's exact form.
@@ -633,6 +692,10 @@ REFERENCES = {
     "stribeck": (
         test_stribeck_breakaway_is_the_ode_with_the_falling_friction,
         test_stribeck_nests_stiction_and_coulomb,
+    ),
+    "friction_curve": (
+        test_friction_curve_tap_decelerates_along_the_curve,
+        test_friction_curve_above_its_last_node_is_coulomb_at_the_held_level,
     ),
 }
 #: Registered by another change; its reference is still to be written.

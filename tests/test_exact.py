@@ -18,6 +18,7 @@ from jaxcart import (
     Saturation,
     Smoothing,
     handout_plant,
+    setpoints,
     simulate,
     step,
     step_info,
@@ -381,16 +382,33 @@ VELOCITY_CASES = {
         step(0.2, horizon=1.0),
     ),
     "limit_open_loop": ({"i_max": 0.6, "f_c": 0.3}, None, voltage_step(-5.0, horizon=0.5)),
+    # A friction curve (nine breaks) beside the current limit, both ways under PID with
+    # stiction: out 0.3 m, back to -0.1 m.
+    "curve_limit_stiction": (
+        {
+            "i_max": 1.0,
+            "f_c": 0.4,
+            "f_s": 0.6,
+            "f_curve_right": [-0.2, 0.1, 0.3],
+            "f_curve_left": [0.2, 0.3, 0.1],
+        },
+        PID(kp=40.0, ki=10.0, kd=2.0, v_limit=6.0),
+        setpoints([0.0, 0.8], [0.3, -0.1], horizon=1.6),
+    ),
 }
+#: (position [m], velocity [m/s]) tolerances where the RK4 reference is the looser: it steps
+#: over the curve's kinks at +-5, 20, 80 and 320 mm/s without locating them (measured 6.2e-10
+#: m, and 8e-12 m at four times the sub-steps: it converges to the closed form).
+VELOCITY_TOLERANCES = {"curve_limit_stiction": (2e-9, 2e-7)}
 
 
 @pytest.mark.parametrize("name", list(VELOCITY_CASES))
 def test_velocity_piecewise_closed_form_matches_rk4(name, monkeypatch):
-    """A current limit's force is piecewise linear in the velocity: the exact simulator solves
-    it in closed form (jaxcart.exact._VelocityCart), events included. Against the RK4 cart on
-    Ts/20 sub-steps with bisected stick-slip events (the effect's law hidden from the
-    simulator), on runs where the limit acts (it moves the cart by > 1 cm): 1e-11 m
-    (measured under 1e-14 m)."""
+    """A current limit's force (and a friction curve's) is piecewise linear in the velocity:
+    the exact simulator solves it in closed form (jaxcart.exact._VelocityCart), events
+    included. Against the RK4 cart on Ts/20 sub-steps with bisected stick-slip events (the
+    effects' laws hidden from the simulator), on runs where the limit acts (it moves the cart
+    by > 1 cm): 1e-11 m (measured under 1e-14 m)."""
     from jaxcart.effects import REGISTRY
     from jaxcart.plantspec import build_plant
 
@@ -401,11 +419,13 @@ def test_velocity_piecewise_closed_form_matches_rk4(name, monkeypatch):
         build_plant({k: v for k, v in values.items() if k != "i_max"}), pid, exp
     )
     assert np.max(np.abs(closed.position - unlimited.position)) > 0.01
-    limit = next(c for c in REGISTRY.values() if hasattr(c, "exact_velocity_pieces"))
-    monkeypatch.delattr(limit, "exact_velocity_pieces")
+    for cls in REGISTRY.values():
+        if hasattr(cls, "exact_velocity_pieces") and cls.name in plant.structure:
+            monkeypatch.delattr(cls, "exact_velocity_pieces")
     rk4 = simulate_exact(plant, pid, exp)
-    np.testing.assert_allclose(closed.position, rk4.position, rtol=0, atol=1e-11)
-    np.testing.assert_allclose(closed.velocity, rk4.velocity, rtol=0, atol=1e-9)
+    atol_y, atol_v = VELOCITY_TOLERANCES.get(name, (1e-11, 1e-9))
+    np.testing.assert_allclose(closed.position, rk4.position, rtol=0, atol=atol_y)
+    np.testing.assert_allclose(closed.velocity, rk4.velocity, rtol=0, atol=atol_v)
 
 
 def test_velocity_pieces_are_the_exact_force():
@@ -418,7 +438,7 @@ def test_velocity_pieces_are_the_exact_force():
     for cls in REGISTRY.values():
         if not hasattr(cls, "exact_velocity_pieces"):
             continue
-        effect = cls(**{p.name: p.start for p in cls.params})
+        effect = cls(**{p.name: (0.1, -0.2, 0.3) if p.size else p.start for p in cls.params})
         for v in (-6.0, -1.0, 0.0, 0.5, 6.0):
             breaks, pieces = effect.exact_velocity_pieces(drive, v)
             assert list(breaks) == sorted(breaks) and len(pieces) == len(breaks) + 1
@@ -480,7 +500,7 @@ def test_affine_forms_are_the_exact_force():
     drive = _Drive(1.76, 2.6, 7.04)
     found = 0
     for cls in REGISTRY.values():
-        effect = cls(**{p.name: p.start for p in cls.params})
+        effect = cls(**{p.name: (0.1, -0.2, 0.3) if p.size else p.start for p in cls.params})
         affine = effect.exact_affine(drive)
         if affine is None:
             continue

@@ -21,6 +21,7 @@ from jaxcart.effects.current_limit import CurrentLimit
 from jaxcart.effects.deadzone import Deadzone
 from jaxcart.effects.deadzone_asymmetry import DeadzoneAsymmetry
 from jaxcart.effects.delay import Delay
+from jaxcart.effects.friction_curve import FrictionCurve
 from jaxcart.effects.quantization import Quantization
 from jaxcart.effects.saturation import Saturation
 from jaxcart.effects.spring import Spring
@@ -47,6 +48,7 @@ __all__ = [
     "Deadzone",
     "DeadzoneAsymmetry",
     "Delay",
+    "FrictionCurve",
     "Quantization",
     "Saturation",
     "Spring",

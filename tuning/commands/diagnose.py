@@ -36,6 +36,12 @@ def register(subparsers) -> None:
     p.add_argument("--out", metavar="DIR", help="report folder (default ./jaxcart-out/diagnose-N)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument(
+        "--curve",
+        action="store_true",
+        help="where nothing named explains the recordings, read friction as a curve of the "
+        "speed (each direction; named where it predicts the recordings held out better)",
+    )
 
     add_format_option(p)
     p.add_argument("--suite", action="store_true", help="run the concealed-effect suite")
@@ -121,7 +127,14 @@ def _run(args, share, out, pool) -> int:
     if share is not None:
         share.sync()  # every process has its inputs: an error reading them stops all now
     progress = not args.quiet and me == 0
-    d = diagnose(recordings, start=start, progress=progress, processes=share, executor=pool)
+    d = diagnose(
+        recordings,
+        start=start,
+        progress=progress,
+        processes=share,
+        executor=pool,
+        curve=args.curve,
+    )
     if share is not None and not share.finish():
         print(f"process {me} of {share.count}: done, results sent to process 0")
         return 0 if d.status == "diagnosed" else 1

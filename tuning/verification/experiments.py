@@ -45,8 +45,8 @@ class Experiment:
             raise ValueError(
                 f"the pid runs at {self.pid.sample_time} s, the experiment at {self.sample_time} s"
             )
-        if self.kind == "tap" and not (self.speed > 0 and self.rest >= 0):
-            raise ValueError("a tap needs speed > 0 and rest >= 0")
+        if self.kind == "tap" and not (self.speed != 0 and self.rest >= 0):
+            raise ValueError("a tap needs a speed (> 0 towards +y, < 0 towards -y) and rest >= 0")
         signal = np.asarray(self.signal, dtype=np.float64)
         if signal.ndim != 1 or signal.size < 2 or not np.all(np.isfinite(signal)):
             raise ValueError("the signal must be a finite 1-D sequence of at least 2 samples")
@@ -121,7 +121,8 @@ def voltage_sequence(u, *, sample_time: float = 0.001) -> Experiment:
 
 def tap(*, speed: float = 0.6, rest: float = 0.3, horizon: float = 1.5, sample_time=0.001):
     """The tap test: the motor unplugged, the cart at rest for ``rest`` [s], pushed by hand to
-    about ``speed`` [m/s] (the push's shape and length are the artefacts'), then coasting."""
+    about ``speed`` [m/s] (< 0: towards -y; the push's shape and length are the artefacts'),
+    then coasting."""
     t = _times(horizon, sample_time)
     label = f"tap: rest {rest} s, pushed to {speed} m/s, coasting"
     return Experiment("tap", np.zeros(t.size), sample_time, label=label, speed=speed, rest=rest)

@@ -195,12 +195,13 @@ def _push_peak(truth: TrueCart, experiment: Experiment, shape, length, substeps)
         return model.advance((0.0, 0.0, 0.0), 0.0, length, 0.0)[1]
 
     target = experiment.speed
-    friction = truth.static(+1) + truth.viscous(+1) * target / 2
+    d = 1 if target > 0 else -1
+    friction = d * (truth.static(d) + truth.viscous(d) * abs(target) / 2)
     a = truth.m * target / (length * mean) + friction / mean
     b = 1.1 * a
     fa, fb = speed_at_end(a) - target, speed_at_end(b) - target
     for _ in range(6):
-        if fb == fa or abs(fb) < 1e-6 * target:
+        if fb == fa or abs(fb) < 1e-6 * abs(target):
             break
         a, b = b, b - fb * (b - a) / (fb - fa)
         fa, fb = fb, speed_at_end(b) - target

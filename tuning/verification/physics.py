@@ -12,7 +12,8 @@ rest; it stays stuck (y' = 0, y held) while the force on it (all but friction, a
 within the breakaway level towards that force, S = max(f_s, K); else it slides on (towards the
 force, or against it until its velocity reverses). Sliding in direction d,
 friction is d (K + (S - K) exp(-(y'/v_stribeck)^2)), K = the kinetic level of that direction
-plus the track's table at y: from S at breakaway down to K (v_stribeck = 0: at once, the lurch).
+plus the track's table at y and the rise with speed, rise_d (1 - exp(-|y'| / v_rise)): from S at
+breakaway down to K (v_stribeck = 0: at once, the lurch).
 Viscous friction B_dir y' takes the direction's value.
 
 Integrator: classical RK4 on (y, y') on a fixed sub-step (``SUBSTEPS`` = 40 a sample, 25 us at
@@ -86,7 +87,8 @@ class Cart:
         self.b_pos, self.b_neg = truth.viscous(+1), truth.viscous(-1)
         self.band, self.v_st = truth.v_band, truth.v_stribeck
         self.stribeck = truth.v_stribeck > 0 and truth.f_s is not None
-        self.varying = self.stribeck or bool(truth.track_y)
+        self.rises = bool(truth.rise_pos or truth.rise_neg)
+        self.varying = self.stribeck or self.rises or bool(truth.track_y)
         self.kinetic_pos, self.kinetic_neg = truth.kinetic(+1), truth.kinetic(-1)
         self.f_tilt, self.k_s, self.y_rest = truth.f_tilt, truth.k_s, truth.y_rest
 
@@ -134,11 +136,12 @@ class Cart:
 
     def friction(self, d: int, y: float, speed: float) -> float:
         """Friction's magnitude sliding in direction ``d`` at ``speed`` = |y'| [m/s] [N]:
-        the Stribeck curve from the breakaway level to the kinetic one."""
+        the Stribeck curve from the breakaway level to the kinetic one, and the rise to a
+        plateau."""
         if not self.varying:
             return self.kinetic_pos if d > 0 else self.kinetic_neg
         truth = self.truth
-        kinetic = truth.kinetic(d, y)
+        kinetic = truth.kinetic(d, y) + (truth.rise(d, speed) if self.rises else 0.0)
         if not self.stribeck:
             return kinetic
         breakaway = truth.static(d, y)

@@ -43,6 +43,9 @@ class TrueCart:
       v_stribeck: Stribeck speed [m/s]: sliding friction is K + (S - K) exp(-(v / v_stribeck)^2)
         from the breakaway level S down to the kinetic K; 0 drops to K at once (the lurch)
       v_band: Karnopp's zero-velocity band [m/s]: below it the cart counts as at rest
+      rise_pos, rise_neg, v_rise: sliding friction that rises with the speed to a plateau, by
+        rise_pos (moving towards +y) or rise_neg [N] times 1 - exp(-|y'| / v_rise) [m/s] (a
+        shape none of jaxcart's named effects has; 0: none)
       track_y, track_f: friction along the track, a table: kinetic friction track_f [N] added at
         positions track_y [m] (increasing), linear between points, held beyond the ends
       f_tilt: a constant force towards +y [N] (a tilted track: M g sin(angle))
@@ -72,6 +75,9 @@ class TrueCart:
     f_s: float | None = None
     v_stribeck: float = 0.0
     v_band: float = 1e-4
+    rise_pos: float = 0.0
+    rise_neg: float = 0.0
+    v_rise: float = 0.01
     track_y: tuple = ()
     track_f: tuple = ()
     f_tilt: float = 0.0
@@ -106,7 +112,7 @@ class TrueCart:
             raise ValueError("TrueCart: track_y and track_f must have one value each")
         if any(b <= a for a, b in zip(self.track_y, self.track_y[1:], strict=False)):
             raise ValueError("TrueCart.track_y must increase")
-        for name in ("M", "Rm", "Kg", "r_mp", "v_band"):
+        for name in ("M", "Rm", "Kg", "r_mp", "v_band", "v_rise"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"TrueCart.{name} must be positive")
 
@@ -166,6 +172,12 @@ class TrueCart:
         """Kinetic friction level moving in ``direction`` (+1 / -1) at position y [N]."""
         level = self.f_c_pos if direction > 0 else self.f_c_neg
         return (self.f_c if level is None else level) + self.track(y)
+
+    def rise(self, direction: int, speed: float) -> float:
+        """The sliding friction's rise with the speed [N] moving in ``direction`` at ``speed``
+        = |y'| [m/s]."""
+        top = self.rise_pos if direction > 0 else self.rise_neg
+        return top * (1.0 - math.exp(-speed / self.v_rise)) if top else 0.0
 
     def static(self, direction: int, y: float = 0.0) -> float:
         """Breakaway level towards ``direction`` at position y [N]: at least the kinetic."""

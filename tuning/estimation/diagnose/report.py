@@ -18,6 +18,7 @@ from jaxcart.errors import UserError
 from jaxcart.plantspec import write_plant_file
 from jaxcart.plots import EXPERIMENT_STYLE, figure_legend
 from tuning.estimation.diagnose.crossval import WORSE
+from tuning.estimation.diagnose.curve_report import curve_section, plot_curve
 from tuning.estimation.diagnose.policy import SIGNIFICANCE
 from tuning.estimation.engine.parameters import at_edge
 
@@ -30,8 +31,9 @@ def _num(x) -> str:
     return "n/a" if x is None or not math.isfinite(x) else f"{x:.5g}"
 
 
-def render_markdown(d, figure: str | None = None) -> str:
-    """The diagnosis as a Markdown section (for ``report.md`` and the lab report)."""
+def render_markdown(d, figure: str | None = None, curve_files: dict | None = None) -> str:
+    """The diagnosis as a Markdown section (for ``report.md`` and the lab report);
+    ``curve_files``: {"figure", "plant"} of the friction curve's outputs, where written."""
     lines = [f"# Diagnosis of {', '.join(d.recordings)}", "", f"**{d.verdict}**", ""]
     if d.controller_checks:
         lines += ["## Controller check", ""]
@@ -41,6 +43,8 @@ def render_markdown(d, figure: str | None = None) -> str:
         return "\n".join(lines + [f"- {m}" for m in d.messages]) + "\n"
     lines += _caveats(d) + _fit_section(d) + _per_recording_section(d) + _where_section(d)
     lines += _candidates_section(d, figure)
+    files = curve_files or {}
+    lines += curve_section(d, files.get("figure"), files.get("plant"))
     return "\n".join(lines) + "\n"
 
 
@@ -396,6 +400,10 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
     elif d.implausible:
         # A value a cart of this lab does not have is never handed to other commands.
         del paths["plant_file"]
+    if d.status == "diagnosed" and d.friction_curve.get("sides"):
+        paths["curve_figure"] = out / f"friction_curve.{fmt}"
+        if d.curve_plant is not None:
+            paths["curve_plant"] = out / "curve_plant.toml"
     if json_path:
         paths["json"] = Path(json_path)
     for p in paths.values():
@@ -424,7 +432,15 @@ def _write_outputs(d, out, paths, json_path, force) -> None:
             write_plant_file(paths["plant_file"], d.plant, fit=fit, force=force)
             d.plant_file = str(paths["plant_file"])
         plot_diagnosis(d, paths["figure"])
-    text = render_markdown(d, figure=paths["figure"].name if d.status == "diagnosed" else None)
+    curve_files = {}
+    if "curve_figure" in paths:
+        curve_files["figure"] = plot_curve(d, paths["curve_figure"]).name
+    if "curve_plant" in paths:
+        fit = {"source": "jaxcart diagnose --curve", "recordings": ", ".join(d.recordings)}
+        write_plant_file(paths["curve_plant"], d.curve_plant, fit=fit, force=force)
+        curve_files["plant"] = paths["curve_plant"].name
+    figure = paths["figure"].name if d.status == "diagnosed" else None
+    text = render_markdown(d, figure=figure, curve_files=curve_files)
     write_text(paths["report"], text, force=True)
     if json_path:
         write_json(paths["json"], d.to_json(), force=True)  # checked above

@@ -82,6 +82,11 @@ class Diagnosis:
     #: The same on the taps alone (:func:`tuning.estimation.diagnose.crossval.taps_alone`):
     #: the tap's B_eq beside the driven runs', a consistency check of the one cart.
     taps_alone: dict = field(default_factory=dict)
+    #: Not explained, with ``diagnose(curve=True)``: friction read as a curve of the speed
+    #: (:func:`tuning.estimation.diagnose.friction_curve.discover`, its "plant" aside), else {}.
+    friction_curve: dict = field(default_factory=dict)
+    #: That curve's fitted cart (a :class:`jaxcart.Plant`), or None.
+    curve_plant: object = None
 
     @property
     def floor_ratio(self) -> float:
@@ -166,6 +171,10 @@ class Diagnosis:
             text += "; implausible: " + "; ".join(self.implausible)
         if self.cross_validation.get("text"):
             text += "; " + self.cross_validation["text"]
+        curve = self.friction_curve
+        if curve.get("words"):
+            named = "named" if curve.get("named") else "tried, not named"
+            text += f"; friction as a curve of the speed ({named}): {curve['words']}"
         return text
 
     @property
@@ -226,6 +235,7 @@ class Diagnosis:
             "cross_validation": self.cross_validation,
             "driven_alone": self.driven_alone,
             "taps_alone": self.taps_alone,
+            "friction_curve": self.friction_curve,
         }
 
 

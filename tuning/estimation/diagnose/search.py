@@ -33,6 +33,7 @@ from tuning.distributed import spread
 from tuning.estimation.diagnose import (
     candidate_runs,
     crossval,
+    friction_curve,
     locate,
     per_run,
     scoring,
@@ -72,7 +73,14 @@ from tuning.estimation.engine.starts import start_values
 
 
 def diagnose(
-    recordings, *, start=None, progress=True, pairs: bool = True, processes=None, executor=None
+    recordings,
+    *,
+    start=None,
+    progress=True,
+    pairs: bool = True,
+    processes=None,
+    executor=None,
+    curve: bool = False,
 ) -> Diagnosis:
     """Diagnose one recording or several of one cart jointly.
 
@@ -90,11 +98,23 @@ def diagnose(
     meets is raised on every process at its next exchange, none waiting for another.
 
     executor: what makes the exact runs several at a time (a :class:`jaxcart.workers.Helpers`
-    the caller owns; default: one after the other in this process). Runs in float64 whatever
-    jax_enable_x64 says, and leaves it as it was.
+    the caller owns; default: one after the other in this process). curve: where no structure
+    explains the recordings, read friction as a curve of the speed as the last candidate
+    (:mod:`.friction_curve`: named only where it predicts the recordings held out better).
+    Runs in float64 whatever jax_enable_x64 says, and leaves it as it was.
     """
     with jax.enable_x64(True):
-        return _diagnose(recordings, start, progress, pairs, processes, executor)
+        d = _diagnose(recordings, start, progress, pairs, processes, executor)
+        if curve and d.status == "diagnosed" and not d.explained:
+            found = friction_curve.discover(
+                list(recordings) if isinstance(recordings, list | tuple) else [recordings],
+                d,
+                executor=executor,
+                say=_progress_printer(progress),
+            )
+            d.curve_plant = found.pop("plant", None)
+            d.friction_curve = found
+        return d
 
 
 def _diagnose(recordings, start, progress, pairs, processes, executor) -> Diagnosis:
