@@ -401,3 +401,38 @@ def test_structures_that_run_along_one_path_tie(tmp_path):
     assert {"deadzone"} in [named, *tied] and {"voltage_offset"} in [named, *tied], row
     if "v_offset" in d.parameters:
         assert d.parameters["v_offset"]["value"] == pytest.approx(-0.4, abs=0.01)
+
+
+def test_the_suite_judges_a_friction_curve():
+    """Rule "curve": the curve named and within 0.05 N of the truth's friction at 80 and 320
+    mm/s; a curve named where the truth's friction does not vary with the speed (a dead band)
+    is a false alarm, and so is one named on a clean case."""
+    rising = BY_NAME["one cart (taps both ways): friction rising with speed"]
+    truth = {"B_eq": 4.6, "f_c": 0.3, "rise_pos": 0.3, "rise_neg": 0.15, "v_rise": 0.03}
+    speeds = (0.0, 0.005, 0.02, 0.08, 0.32)
+    right, left = [0.3, 0.3, 0.45, 0.58, 0.6], [0.3, 0.3, 0.37, 0.44, 0.45]
+    bands = {"right": [0.01] * 5, "left": [0.01] * 5}
+
+    def curve(named, levels):
+        c = {"speeds": speeds, "levels": dict(zip(("right", "left"), levels, strict=True))}
+        c["bands"] = bands
+        return {"named": named, "curve": c, "sides": ("right", "left")}
+
+    row = judge(rising, _diagnosis(friction_curve=curve(True, (right, left))), [truth])
+    assert row["correct"] and not row["false_alarm"] and "curve" in row["named"]
+    wrong = (right, [0.3, 0.3, 0.37, 0.55, 0.56])  # 0.11 N too high moving left
+    assert not judge(rising, _diagnosis(friction_curve=curve(True, wrong)), [truth])["correct"]
+    assert not judge(rising, _diagnosis(friction_curve=curve(False, (right, left))), [truth])[
+        "correct"
+    ]
+    dead_band = BY_NAME["one cart (tap + P 50 + PI): deadzone 0.3 V"]
+    row = judge(dead_band, _diagnosis(friction_curve=curve(True, (right, left))), [{"f_c": 0.4}])
+    assert row["false_alarm"]
+    clean = BY_NAME["clean PD step"]
+    assert judge(clean, _diagnosis(friction_curve=curve(True, (right, left))))["false_alarm"]
+
+
+def _diagnosis(**fields):
+    from tuning.estimation.diagnose.result import Diagnosis
+
+    return Diagnosis(["a"], "diagnosed", [], [], rms_before=1e-3, rms_after=1e-5, **fields)

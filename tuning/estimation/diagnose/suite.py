@@ -80,8 +80,12 @@ from tuning.verification import make_recording as make_independent_recording
 #: within PER_RUN_TOLERANCE of its truth; "shared": the expected effects named and the drive's
 #: limit shared (one cart, one drive: freeing it per run is a false alarm); "not_explained":
 #: the recording is said to be not explained and a suggestion names ``case.suggest`` (the
-#: truth is no candidate, e.g. friction that varies along the track).
-RULES = ("names", "exact", "nothing", "corrected", "per_run", "shared", "not_explained")
+#: truth is no candidate, e.g. friction that varies along the track); "curve": friction read as a
+#: curve of the speed is named (the suite run with ``--curve``) and lies within
+#: CURVE_TOLERANCE of the truth's at every entry from 80 mm/s on that the recordings determine.
+RULES = ("names", "exact", "nothing", "corrected", "per_run", "shared", "not_explained", "curve")
+#: The discovered curve is right within this much of the truth's friction [N].
+CURVE_TOLERANCE = 0.05
 #: A run's own drive limit is right within this share of its truth.
 PER_RUN_TOLERANCE = 0.05
 #: The generators of the recordings (module docstring).
@@ -132,6 +136,7 @@ class Case:
     runs: tuple = ()
     seed: int = 1
     period: float = 1.0  # square [s]
+    speed: float = 0.6  # tap, independent generator [m/s] (< 0: pushed towards -y)
     drop: tuple = ()
     generators: tuple = GENERATORS
     independent: dict = field(default_factory=dict)
@@ -225,6 +230,11 @@ ONE_CART = (
                {"kp": 10.0, "kd": 0.0, "amplitude": -0.1},
                {"kind": "open_ramp", "rate": 0.5, "horizon": 2.0}),
               (OFFSET,)),
+    # A shape no named effect has (issue 33): sliding friction rising with the speed to a
+    # plateau, 0.3 N more moving right, 0.15 N left (TrueCart's rise); two taps each way.
+    _one_cart("one cart (taps both ways): friction rising with speed",
+              {**B, "f_c": 0.3, "rise_pos": 0.3, "rise_neg": 0.15, "v_rise": 0.03},
+              tuple({**TAP, "speed": v} for v in (0.6, -0.6, 0.4, -0.4)), (), rule="curve"),
 )  # fmt: skip
 CASES = (
     Case("clean PD step", "clean", B, rule="nothing"),
@@ -586,7 +596,7 @@ def _write_independent(case: Case, path: Path, several: bool) -> tuple[Path, dic
     horizon = case.horizon
     pid = jc.PID(kp=case.kp, ki=case.ki, kd=case.kd, v_limit=case.v_limit)
     made = {
-        "tap": lambda: ex.tap(speed=0.6, rest=0.3, horizon=horizon or 1.5),
+        "tap": lambda: ex.tap(speed=case.speed, rest=0.3, horizon=horizon or 1.5),
         "step": lambda: ex.step(pid, case.amplitude, horizon=horizon or 2.0),
         "ramp": lambda: ex.ramp(pid, case.amplitude, horizon=horizon or 2.0),
         "square": lambda: ex.square(
@@ -653,15 +663,21 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
         "per_run": lambda: named == expect and per_run and _own_limits_right(case, d, truths),
         "shared": lambda: named == expect and not per_run,
         "not_explained": lambda: not d.explained and any(case.suggest in s for s in d.suggestions),
+        "curve": lambda: _curve_right(d, truths or [case.truth]),
     }[case.rule]
     varies = case.rule == "per_run" or _limits_vary(truths)
-    false_alarm = (case.group in ("clean", "parameter") and bool(named)) or (per_run and not varies)
+    curve = bool(d.friction_curve.get("named"))
+    false_alarm = (
+        (case.group in ("clean", "parameter") and (bool(named) or curve))
+        or (per_run and not varies)
+        or (curve and not _speed_friction(truths or [case.truth]))
+    )
     return {
         "case": case.name,
         "group": case.group,
         "rule": case.rule,
         "expected": _expected_text(case),
-        "named": sorted(named) + ([PER_RUN] if per_run else []),
+        "named": sorted(named) + ([PER_RUN] if per_run else []) + (["curve"] if curve else []),
         "corrected": d.corrected_parameters,
         "equivalent": d.equivalent,
         "explained": d.explained,
@@ -674,9 +690,36 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
     }
 
 
+def _curve_right(d, truths) -> bool:
+    """The curve named, and each entry from 80 mm/s on that it determines within
+    CURVE_TOLERANCE of the truth's friction there (the first recording's truth: the mechanics
+    are one cart's)."""
+    fc = d.friction_curve
+    if not fc.get("named"):
+        return False
+    truth = TrueCart.from_values(dict(truths[0]))
+    c = fc["curve"]
+    for side, direction in (("right", 1), ("left", -1)):
+        for q, level, band in zip(c["speeds"], c["levels"].get(side, ()), c["bands"].get(side, ()),
+                                  strict=False):  # fmt: skip
+            want = truth.kinetic(direction) + truth.rise(direction, q)
+            if q >= 0.08 and band is not None and abs(level - want) > CURVE_TOLERANCE:
+                return False
+    return True
+
+
+def _speed_friction(truths) -> bool:
+    """Whether a truth's friction varies with the speed (a rise, a Stribeck fall, viscous
+    friction by direction): a curve named there reads physics that is there."""
+    keys = ("rise_pos", "rise_neg", "v_stribeck", "B_asym", "B_pos", "B_neg")
+    return any(t.get(k) for t in truths for k in keys)
+
+
 def _expected_text(case: Case) -> list:
     if case.rule == "corrected":
         return ["corrected M/gamma"]
+    if case.rule == "curve":
+        return ["friction curve"]
     if case.rule == "not_explained":
         return [f"not explained ({case.suggest})"]
     extra = {"per_run": ["per_run"], "exact": ["only"]}.get(case.rule, [])
@@ -718,11 +761,14 @@ def _own_limits_right(case: Case, d, truths=None) -> bool:
 
 
 def run_suite(
-    names=None, progress=False, out=sys.stdout, generators=GENERATORS, executor=None
+    names=None, progress=False, out=sys.stdout, generators=GENERATORS, executor=None, curve=False
 ) -> list[dict]:
-    """Diagnose every chosen case made by each of ``generators``; the score rows (each with
-    its ``generator``), printed as they come."""
-    chosen = [c for c in CASES if names is None or c.name in names]
+    """Diagnose every chosen case made by each of ``generators`` (``curve``: with friction read
+    as a curve of the speed where nothing named explains, ``diagnose(curve=True)``; a case of
+    rule "curve" is left out without it); the score rows (each with its ``generator``),
+    printed as they come."""
+    chosen = [c for c in CASES if (names is None or c.name in names)]
+    chosen = [c for c in chosen if curve or c.rule != "curve"]
     unknown = sorted(set(names or ()) - {c.name for c in CASES})
     if unknown:
         raise SystemExit(f"suite: no case named {', '.join(map(repr, unknown))}")
@@ -735,7 +781,10 @@ def run_suite(
                 made = make_recordings(case, folder, generator)
                 t = time.perf_counter()
                 d = diagnose(
-                    [read_experiment(p) for p, _ in made], progress=progress, executor=executor
+                    [read_experiment(p) for p, _ in made],
+                    progress=progress,
+                    executor=executor,
+                    curve=curve,
                 )
                 row = judge(case.on(generator), d, [truth for _, truth in made])
                 row["seconds"] = round(time.perf_counter() - t, 2)
@@ -797,11 +846,23 @@ def main(argv=None) -> int:
     )
     p.add_argument("--json", dest="json_out", help="write the score rows to this JSON file")
     p.add_argument("--progress", action="store_true")
+    p.add_argument(
+        "--curve",
+        action="store_true",
+        help="diagnose with friction read as a curve of the speed where nothing named explains "
+        "(and score the case whose friction only a curve has)",
+    )
     args = p.parse_args(argv)
     names = FAST if args.fast else (args.only.split(",") if args.only else None)
     generators = GENERATORS if args.generator == "both" else (args.generator,)
     with Helpers() as helpers:  # the exact runs several at a time, closed at the end
-        rows = run_suite(names, progress=args.progress, generators=generators, executor=helpers)
+        rows = run_suite(
+            names,
+            progress=args.progress,
+            generators=generators,
+            executor=helpers,
+            curve=args.curve,
+        )
     for generator in generators:
         mine = [r for r in rows if r["generator"] == generator]
         if mine:
