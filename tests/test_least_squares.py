@@ -1,16 +1,13 @@
 """The engine's least-squares solvers share one contract (engine/least_squares.py): each
-of them, driven by the same host loop, and the Levenberg-Marquardt also inside a compiled
-step, reaches scipy's least-squares solution of a small nonlinear problem."""
+of them, driven by the same host loop, reaches scipy's least-squares solution of a small
+nonlinear problem."""
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
 from tuning.estimation.engine.least_squares import (
     LM_DAMPING,
-    State,
     levenberg_marquardt,
     line_search,
     minimize,
@@ -22,8 +19,8 @@ Y = TRUTH[0] * np.exp(-TRUTH[1] * T) + TRUTH[2] + 1e-3 * np.sin(37.0 * T)
 START = np.array([0.3, 0.5, 0.0])
 
 
-def _residual(x, xp=np):
-    return x[0] * xp.exp(-x[1] * T) + x[2] - Y
+def _residual(x):
+    return x[0] * np.exp(-x[1] * T) + x[2] - Y
 
 
 def _jacobian(x):
@@ -73,26 +70,3 @@ def test_a_held_entry_stays_and_the_rest_fit_as_alone():
     alone = least_squares(lambda ab: _residual(np.r_[ab, 0.25]), start[:2], xtol=1e-14).x
     assert state.x[2] == 0.25
     np.testing.assert_allclose(state.x[:2], alone, rtol=1e-6)
-
-
-def test_the_compiled_step_is_the_same_solver(reference):
-    """Inside a compiled step: ask, evaluate and tell in one jitted function (one damping),
-    from a state without a residual (cost inf: its own point first)."""
-    solver = levenberg_marquardt(xp=jnp)
-
-    @jax.jit
-    def step(state):
-        trials = solver.ask(state)
-        r = _residual(trials[0], jnp)
-        jac = jax.jacfwd(lambda x: _residual(x, jnp))(trials[0])
-        return solver.tell(state, trials, r[None], jac[None])
-
-    with jax.enable_x64(True):
-        x = jnp.asarray(START)
-        state = State(x, jnp.zeros(T.size), jnp.zeros((T.size, 3)), jnp.inf, 1e-2)
-        state = step(state)
-        assert int(state.iterations) == 0  # the first step only took its own point
-        np.testing.assert_allclose(state.r, _residual(START), rtol=1e-12)
-        for _ in range(60):
-            state = step(state)
-        np.testing.assert_allclose(np.asarray(state.x), reference, rtol=1e-7)

@@ -6,17 +6,16 @@
     state = solver.tell(state, trials, rs, jacs)    their residuals (k, m) and Jacobians
 
 and :func:`minimize` drives any of them on the host (``jaxcart fit``'s smooth fit, the exact
-polish of every fit, a held-out re-fit's step). The Levenberg-Marquardt runs in NumPy or, with
-``xp=jax.numpy``, inside a compiled step; a diagnosis's batched step
-(:mod:`tuning.estimation.engine.batch`) keeps its own fused form of the same step
-(:func:`marquardt_step`, a third or four times the damping): run as ask and tell inside the
-vmapped, forward-mode step, it compiled and ran twice as long (a joint diagnosis of a tap and
-a P 50 run, 21.6 s against 30.4 s, measured 2026-12-05).
+polish of every fit, a held-out re-fit's step). A diagnosis's batched step
+(:mod:`tuning.estimation.engine.batch`) keeps its own fused form of the Levenberg-Marquardt
+step (:func:`marquardt_step`, a third or four times the damping): run as ask and tell inside
+the vmapped, forward-mode step, it compiled and ran twice as long (a joint diagnosis of a tap
+and a P 50 run, 21.6 s against 30.4 s, measured 2026-12-05).
 
 - :func:`levenberg_marquardt`: Marquardt's diagonal scaling, the step solves
-  (J^T W J + lam D) delta = -J^T W r, D the diagonal of J^T W J (a column the data do not see
-  gets a tiny floor so the system stays solvable), W the weights of its objective; several
-  dampings may be tried per ask (a batch of K trial steps costs about one run on a CPU).
+  (J^T J + lam D) delta = -J^T r, D the diagonal of J^T J (a column the data do not see gets a
+  tiny floor so the system stays solvable); several dampings may be tried per ask (a batch of
+  K trial steps costs about one run on a CPU).
 - :func:`line_search`: Gauss-Newton (or any ``direction``) halved until the cost falls; a
   point it takes needs its Jacobian anew (``state.jac`` None: :func:`minimize`'s ``jacobian``).
 
@@ -100,11 +99,6 @@ def standard_errors(jac, r) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(b_pinv) * float(r @ r) / dof, 1e-300))
 
 
-def sum_of_squares(r, xp=np):
-    """The plain objective: (r . r, no weights)."""
-    return r @ r, None
-
-
 def levenberg_marquardt(
     *,
     dampings=(1.0,),
@@ -116,74 +110,61 @@ def levenberg_marquardt(
     max_step: float | None = None,
     trusted=None,
     tolerance: Callable | None = None,
-    objective: Callable = sum_of_squares,
     free=None,
-    xp=np,
 ) -> Solver:
-    """Levenberg-Marquardt with Marquardt's diagonal scaling, in NumPy or (``xp=jax.numpy``)
-    inside a compiled step: no branch on values.
+    """Levenberg-Marquardt with Marquardt's diagonal scaling (NumPy, on the host).
 
     Each ask tries the damping times each of ``dampings``; tell keeps the least damped trial
     whose cost is finite and lower, then divides its damping by ``shrink``, else multiplies
     the largest by ``grow``, within ``damping_range`` (``give_up``: reaching its top is a
     minimum, done). Trials are clipped to ``bounds`` (low, high), each entry's step to
     +-``max_step`` (a trust region; an entry of ``trusted`` whose step was cut rules out
-    convergence on that iteration); ``free``: 1 for the entries that move. ``objective(r, xp)``
-    -> (cost, row weights or None): iteratively reweighted least squares where the weights
-    depend on r. ``tolerance(r)`` -> f (NumPy only): converged once a step lowers the cost by
-    under f times it (None: never; the caller counts iterations). A state whose cost is not
-    finite asks for its own point and takes it (the start at a new smoothing width) without
-    counting it."""
+    convergence on that iteration); ``free``: 1 for the entries that move. ``tolerance(r)`` ->
+    f: converged once a step lowers the cost by under f times it (None: never; the caller
+    counts iterations)."""
     dampings = tuple(float(d) for d in dampings)
     low, high = damping_range
 
     def init(x, r, jac, damping=1e-3):
-        return State(x, r, jac, objective(r, xp)[0], damping)
+        return State(x, r, jac, float(r @ r), damping)
 
     def raw_steps(state):
-        _, w = objective(state.r, xp)
-        jw, rw = state.jac, state.r
-        if w is not None:
-            jw, rw = state.jac * xp.sqrt(w)[:, None], state.r * xp.sqrt(w)
-        if free is not None:  # a held entry's column moves nothing
-            jw = jw * free[None, :]
+        jw = state.jac if free is None else state.jac * free[None, :]  # a held entry's column
         # A loop that runs away may overflow the normal equations: its trial steps are then
         # not finite, and none decreases the cost.
         with np.errstate(over="ignore", invalid="ignore"):
-            jtj, g = jw.T @ jw, jw.T @ rw
-        return [_solved(jtj, g, state.damping * d, free, xp) for d in dampings]
+            jtj, g = jw.T @ jw, jw.T @ state.r
+        return [_solved(jtj, g, state.damping * d, free) for d in dampings]
 
     def ask(state):
         steps = raw_steps(state)
         if max_step is not None:
-            steps = [xp.clip(s, -max_step, max_step) for s in steps]
-        trials = xp.stack([xp.clip(state.x + s, *bounds) for s in steps])
-        return xp.where(xp.isfinite(state.cost), trials, state.x[None, :])
+            steps = [np.clip(s, -max_step, max_step) for s in steps]
+        return np.stack([np.clip(state.x + s, *bounds) for s in steps])
 
     def tell(state, trials, rs, jacs):
-        fresh = ~xp.isfinite(state.cost)
-        costs = xp.stack([objective(r, xp)[0] for r in rs])
-        ok = xp.isfinite(costs) & (costs < state.cost)
-        best = xp.argmax(ok)  # the least damped that decreases the cost
-        taken = xp.any(ok)
-        lams = state.damping * xp.asarray(dampings)
-        lam = xp.where(
-            taken, xp.maximum(lams[best] / shrink, low), xp.minimum(lams[-1] * grow, high)
-        )
-        stop = give_up & ~taken & (lam >= high)
-        cost = xp.where(taken, costs[best], state.cost)
-        converged = stop
-        if tolerance is not None and taken:  # (on the host: a tolerance is NumPy's)
-            cut = _cut(raw_steps(state)[best], max_step, trusted, xp)
-            converged = ~cut & (state.cost - cost <= tolerance(rs[best]) * cost)
-        pick = functools.partial(xp.where, taken)
+        costs = np.array([r @ r for r in rs])
+        ok = np.isfinite(costs) & (costs < state.cost)
+        if not ok.any():
+            lam = min(state.damping * dampings[-1] * grow, high)
+            stop = give_up and lam >= high
+            return state._replace(damping=lam, iterations=state.iterations + stop, done=stop,
+                                  converged=stop)  # fmt: skip
+        best = int(np.argmax(ok))  # the least damped that decreases the cost
+        cost = float(costs[best])
+        converged = False
+        if tolerance is not None:
+            cut = _cut(raw_steps(state)[best], max_step, trusted)
+            converged = not cut and state.cost - cost <= tolerance(rs[best]) * cost
+        # Copies in C order: a row of the evaluation's (k, m, p) block may be strided, and
+        # the normal equations' rounding follows the layout (1e-14 in a step).
         return State(
-            pick(trials[best], state.x),
-            pick(rs[best], state.r),
-            pick(jacs[best], state.jac),
+            np.ascontiguousarray(trials[best]),
+            np.ascontiguousarray(rs[best]),
+            np.ascontiguousarray(jacs[best]),
             cost,
-            xp.where(fresh, state.damping, lam),
-            state.iterations + xp.where(fresh | ~(taken | stop), 0, 1),
+            max(state.damping * dampings[best] / shrink, low),
+            state.iterations + 1,
             converged,
             converged,
         )
@@ -191,22 +172,20 @@ def levenberg_marquardt(
     return Solver(init, ask, tell)
 
 
-def _solved(jtj, g, lam, free, xp):
-    """:func:`marquardt_step`; a singular system (NumPy) is no step."""
-    if xp is not np:
-        return marquardt_step(jtj, g, lam, free, xp)
+def _solved(jtj, g, lam, free):
+    """:func:`marquardt_step`; a singular system is no step."""
     try:
         return marquardt_step(jtj, g, lam, free)
     except np.linalg.LinAlgError:
         return np.zeros(g.shape)
 
 
-def _cut(step, max_step, trusted, xp):
+def _cut(step, max_step, trusted) -> bool:
     """Whether the trust region cut an entry of ``trusted`` of ``step``."""
     if max_step is None:
-        return xp.asarray(False)
-    moved = xp.abs(step) > max_step
-    return xp.any(moved if trusted is None else moved & trusted)
+        return False
+    moved = np.abs(step) > max_step
+    return bool(np.any(moved if trusted is None else moved & trusted))
 
 
 def line_search(
