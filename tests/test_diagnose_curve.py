@@ -91,3 +91,20 @@ def test_a_curve_is_described_in_words():
     assert "moving right, friction falls from 0.60 N at 5 mm/s to 0.40 N at 32 cm/s" in words
     # The left side's last entry was held: its words stop at the last determined one.
     assert "to 0.46 N at 8 cm/s" in words and not math.isnan(c.b_eq)
+
+
+def test_the_curve_replaces_the_mechanics_forces_and_keeps_the_drive():
+    """The curve's structure: the named drive (a saturation and a current limit per run, a
+    delay, an offset) and dry friction stay; a spring, a tilt and viscous friction by direction
+    (what a search reaches for where friction's shape is missing) give way to the tables."""
+    from types import SimpleNamespace
+
+    names = ("B_eq", "f_c", "delay", "v_offset", "k_s", "y_rest", "f_tilt", "B_asym")
+    d = SimpleNamespace(
+        parameters={n: {"value": 1.0} for n in names},
+        per_recording={"p50": {"parameters": {"v_sat": {}, "i_max": {}}}, "tap": {}},
+    )
+    named, curve, per_run = friction_curve.structures(d, ("right",))
+    assert set(named) == {*names, "v_sat", "i_max"}
+    assert curve == ("B_eq", "f_c", "delay", "v_offset", "v_sat", "i_max", "f_curve_right")
+    assert per_run == ("v_sat", "i_max")

@@ -74,11 +74,16 @@ def sides_slid(recordings) -> tuple:
 
 
 def _replaced(name: str) -> bool:
-    """A force on the cart that is not dry friction (a spring, a tilt, viscous friction by
-    direction): what a search reaches for where friction's shape is missing, and what the curve
-    takes the place of."""
+    """A force of the cart's mechanics that is not dry friction (a spring, a tilt, viscous
+    friction by direction): what a search reaches for where friction's shape is missing, and
+    what the curve takes the place of (the drive's, a current limit, stays)."""
     cls = effect_of_param(base_name(name))
-    return cls is not None and cls.stage == "force" and not cls.dry_friction
+    return (
+        cls is not None
+        and cls.stage == "force"
+        and not cls.dry_friction
+        and not parameters.is_drive(base_name(name))
+    )
 
 
 def structures(d, sides) -> tuple[tuple, tuple, tuple]:
@@ -91,7 +96,7 @@ def structures(d, sides) -> tuple[tuple, tuple, tuple]:
     named = tuple(dict.fromkeys([*(n for n in d.parameters if "@" not in n), *per_run]))
     kept = [n for n in named if not _replaced(n)]
     curve = tuple(dict.fromkeys([*kept, "f_c", *(f"f_curve_{s}" for s in sides)]))
-    return named, curve, per_run
+    return named, curve, tuple(n for n in per_run if n in curve)
 
 
 def discover(recordings, d, *, executor=None, say=None) -> dict:
@@ -109,9 +114,13 @@ def discover(recordings, d, *, executor=None, say=None) -> dict:
     initial = {n: float(p["value"]) for n, p in d.parameters.items() if "@" not in n}
     say(f"friction as a curve of the speed ({', '.join(sides)}): {', '.join(curve)}")
     joint = {}
-    for label, params in (("named", named), ("curve", curve)):
-        joint[label] = fit(recordings, params, per_recording=per_run, initial=initial,
-                           progress=False, executor=executor)  # fmt: skip
+    try:
+        for label, params in (("named", named), ("curve", curve)):
+            joint[label] = fit(recordings, params, per_recording=per_run, initial=initial,
+                               progress=False, executor=executor)  # fmt: skip
+    except UserError as exc:  # the diagnosis stands; the curve could not be fitted
+        say(f"friction curve: not fitted: {exc}")
+        return {"sides": (), "why": f"the curve could not be fitted: {exc}"}
     result = joint["curve"]
     found = read(result, sides)
     held = held_out(recordings, {"named": named, "curve": curve}, per_run, joint, executor, say)
