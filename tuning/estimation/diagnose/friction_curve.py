@@ -104,8 +104,8 @@ def discover(recordings, d, *, executor=None, say=None) -> dict:
     "structure" (the curve's parameters), "parameters" {name: {"value", "stderr", "unit"}},
     "curve" (:class:`Curve` as a dict), "rms" [m], "held_out" (:func:`held_out`, or None with
     one recording), "named" (bool), "why" (the decision in words), "words" (what the curve
-    shows), "plant" (the fitted cart with the curve)}, or {"sides": (), "why"} where the cart
-    never slid fast enough."""
+    shows), "plant" (the fitted cart with the curve, :func:`_cart`)}, or {"sides": (), "why"}
+    where the cart never slid fast enough or the curve could not be fitted."""
     say = say or (lambda _: None)
     sides = sides_slid(recordings)
     if not sides:
@@ -140,8 +140,15 @@ def discover(recordings, d, *, executor=None, say=None) -> dict:
         "named": is_named,
         "why": why,
         "words": describe(found),
-        "plant": result.segments[0].plant if result.segments else None,
+        "plant": _cart(result),
     }
+
+
+def _cart(result):
+    """The fitted cart with the curve: a driven run's plant (its drive with it), else a
+    tap's."""
+    plants = [s.plant for s in result.segments]
+    return next((p for p in plants if p.motor_connected), plants[0] if plants else None)
 
 
 def read(result, sides) -> Curve:

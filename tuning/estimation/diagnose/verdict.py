@@ -258,8 +258,8 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
 BEYOND = {
     "position": "a force that varies along the track (track_friction, not a candidate: "
     "jaxcart fit --params B_eq,f_track)",
-    "sign_velocity": "friction beyond Coulomb and stiction (speed-dependent, Stribeck) or "
-    "backlash (jaxcart fit --params B_eq,backlash)",
+    "sign_velocity": "friction beyond Coulomb and stiction (speed-dependent: jaxcart diagnose "
+    "--curve reads it as a curve of the speed) or backlash (jaxcart fit --params B_eq,backlash)",
     "command": "a drive nonlinearity beyond saturation, deadzone and current limit",
     "acceleration": "inertia or lag beyond M and delay (the motor's electrical lag)",
 }
