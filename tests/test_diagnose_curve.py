@@ -71,6 +71,17 @@ def test_the_curve_is_named_only_where_it_predicts_better_and_departs():
     assert not friction_curve.decide(_held(1.0, 0.1), [])[0]
     named, why = friction_curve.decide(None, departs)
     assert not named and "held out" in why
+    # Friction that pushes the cart along (below 0) is never named, however well it predicts.
+    c = friction_curve.Curve(
+        (0.0, 0.005, 0.02, 0.08, 0.32),
+        {"left": [0.59, 0.59, -0.27, 0.3, 0.3]},
+        {"left": [0.08, 0.08, 0.1, 0.1, None]},
+        0.86,
+    )
+    pushes = friction_curve.below_zero(c)
+    assert pushes == [("left", 0.02, -0.27)]
+    named, why = friction_curve.decide(_held(1.0, 0.1), departs, pushes)
+    assert not named and "below 0" in why
 
 
 def test_sides_slid_reads_the_directions_faster_than_the_first_entry(rise_taps):

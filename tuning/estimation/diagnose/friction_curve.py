@@ -13,7 +13,8 @@ it, as :mod:`.crossval` does); a recording counts only where the others determin
 The curve is named where its held-out sum of squares is at most
 :data:`HELD_OUT_SHARE` of the named structure's and some entry departs from the slow level by
 :data:`MIN_DEPARTURE` and :data:`MIN_Z` standard errors; with one recording nothing is held out
-and it is shown, never named.
+and it is shown, never named, and a curve whose friction falls below 0 somewhere (it would push
+the cart along: the fit absorbs other physics with it) is never named.
 
 The fits are :func:`tuning.estimation.fit.fit`'s (its parameters may be vectors; the diagnosis's
 batch fits scalars).
@@ -124,7 +125,7 @@ def discover(recordings, d, *, executor=None, say=None) -> dict:
     result = joint["curve"]
     found = read(result, sides)
     held = held_out(recordings, {"named": named, "curve": curve}, per_run, joint, executor, say)
-    is_named, why = decide(held, significant(result, sides))
+    is_named, why = decide(held, significant(result, sides), below_zero(found))
     say(f"friction curve: {why}")
     return {
         "sides": sides,
@@ -214,7 +215,8 @@ def held_out(recordings, structures, per_run, joint, executor=None, say=None) ->
                            progress=False, executor=executor)  # fmt: skip
             except UserError:  # a value only this recording drives
                 break
-            known = {n for n, e in joint[label].params.items() if e.identifiable}
+            # (Shared values: a run's own, name@k, is numbered anew among the others.)
+            known = {n for n, e in joint[label].params.items() if e.identifiable and "@" not in n}
             if any(not e.identifiable for n, e in rest.params.items() if n in known):
                 break  # the others leave a value this recording alone determines
             pred = fit([rec], own, initial={**start, **shared_values(rest, params)},
@@ -251,8 +253,26 @@ def shared_values(result, params) -> dict:
     return out
 
 
-def decide(held, departs) -> tuple[bool, str]:
-    """(named, why): the rule of the module's docstring, in words."""
+def below_zero(c: Curve) -> list:
+    """Where the curve's friction falls below 0 (it would push the cart along): [(side, speed
+    [m/s], level [N])]. A fit puts it there only to absorb some other physics."""
+    return [
+        (side, q, v)
+        for side, levels in c.levels.items()
+        for q, v, b in zip(c.speeds, levels, c.bands[side], strict=True)
+        if b is not None and v < 0
+    ]
+
+
+def decide(held, departs, pushes=()) -> tuple[bool, str]:
+    """(named, why): the rule of the module's docstring, in words; ``pushes``
+    (:func:`below_zero`): a friction that pushes is never named."""
+    if pushes:
+        side, q, v = pushes[0]
+        return False, (
+            f"not named: its friction falls below 0 ({v:.2f} N moving {side} at "
+            f"{q * 1e3:.0f} mm/s), which no friction does: it absorbs other physics"
+        )
     if not departs:
         return False, "no entry departs from the slow level (Coulomb and B_eq hold)"
     if held is None or not held["recordings"]:
