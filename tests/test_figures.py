@@ -24,6 +24,7 @@ PLOTTING = {
     "jaxcart/plots.py",
     "tuning/estimation/fitting/plot.py",
     "tuning/estimation/diagnose/report.py",
+    "tuning/estimation/diagnose/curve_report.py",
     "tuning/lab/figures.py",
     "tuning/design/grid.py",
     "tuning/lab/classfigures.py",
@@ -169,6 +170,36 @@ def test_diagnosis_figure(tmp_path, names):
 
     path = plot_diagnosis(_diagnosis(names), tmp_path / "diagnosis.png")
     assert _pixels(path) == (726, 715 * len(names))
+
+
+def test_friction_curve_figure(tmp_path):
+    """diagnose --curve's figure: both directions with their bands, an entry held (drawn
+    hollow), beside the named law; the legend inside the axes, nothing repeated."""
+    from tuning.estimation.diagnose.curve_report import plot_curve
+
+    speeds = (0.0, 0.005, 0.02, 0.08, 0.32)
+    d = types.SimpleNamespace(
+        friction_curve={
+            "named": True,
+            "curve": {
+                "speeds": speeds,
+                "levels": {
+                    "right": [0.445, 0.445, 0.445, 0.599, 0.606],
+                    "left": [0.307, 0.307, 0.387, 0.448, 0.457],
+                },
+                "bands": {
+                    "right": [0.009, 0.009, None, 0.013, 0.011],
+                    "left": [0.009, 0.009, 0.013, 0.011, 0.011],
+                },
+                "b_eq": 4.58,
+            },
+        },
+        parameters={"B_eq": {"value": 4.80}, "f_c": {"value": 0.479}, "f_c_asym": {"value": 0.069}},
+        plant=jc.handout_plant(f_c=0.479, f_c_asym=0.069),
+        chosen="coulomb_asymmetry",
+    )
+    path = plot_curve(d, tmp_path / "friction_curve.png")
+    assert _pixels(path) == (484, 770)
 
 
 def test_lab_figures(tmp_path):
