@@ -12,8 +12,9 @@ that falls with speed, a positive one friction that grows faster than B_eq says.
 the curve is 0: how friction behaves at the very start of motion (a breakaway above the
 kinetic level, Stribeck's fall) is the named effects' (stiction, :mod:`.stribeck`), and a
 table reaching down to rest would let a fit trade a steep slope there against the cart's few
-samples that slow (a fit of one step put 1.8 N at 5 mm/s for a truth of 0.35 N). The sum
-f_c + d stays >= 0 (friction never pushes: :meth:`FrictionCurve.consistent`).
+samples that slow (a fit of one step put 1.8 N at 5 mm/s for a truth of 0.35 N). Nothing
+holds f_c + d >= 0 here; a curve whose friction would push the cart is never named by the
+diagnosis (:func:`tuning.estimation.diagnose.friction_curve.below_zero`).
 
 Exact form: piecewise linear in the velocity alone, breaks at +-q_0 .. +-q_n, so the exact
 simulator solves it in closed form between events (``exact_velocity_pieces``). Smooth form: the
@@ -62,6 +63,13 @@ def _table(levels, q: float) -> float:
     return ys[k - 1] + (ys[k] - ys[k - 1]) * (q - xs[k - 1]) / (xs[k] - xs[k - 1])
 
 
+def _force(right, left, yd: float) -> float:
+    """The exact force [N] at velocity yd [m/s] of the tables ``right`` and ``left``."""
+    if yd > 0.0:
+        return -_table(right, yd)
+    return _table(left, -yd) if yd < 0.0 else 0.0
+
+
 def _pieces(levels, side: float):
     """(breaks, (f0, k) pieces) of -side d(side y') for side y' >= 0, breaks ascending in y'."""
     xs, ys = _nodes(levels)
@@ -94,7 +102,6 @@ class FrictionCurve(Effect):
         "friction as a curve of the speed, each direction: f_c + d(|y'|), a table over 20-320 mm/s"
     )
     requires = ("coulomb",)
-    needs = ("both_ways",)
     shows_in = ("sign_velocity",)
     not_candidate = (
         "the diagnosis's batch does not fit a vector yet; fit it with jaxcart fit "
@@ -117,18 +124,6 @@ class FrictionCurve(Effect):
         for side in ("right", "left")
     )
 
-    @classmethod
-    def consistent(cls, values: dict) -> dict:
-        """Friction never pushes: every entry >= -f_c where f_c is given."""
-        if "f_c" not in values:
-            return values
-        low = -abs(float(values["f_c"]))
-        out = dict(values)
-        for p in cls.params:
-            if p.name in out:
-                out[p.name] = tuple(max(float(v), low) for v in out[p.name])
-        return out
-
     def smooth_force(self, y, yd, v, smoothing, plant):
         q = smooth_abs(yd, smoothing.velocity)
         s = smooth_sign(yd, smoothing.velocity)
@@ -137,23 +132,19 @@ class FrictionCurve(Effect):
         return -s * (0.5 * (1 + s) * right + 0.5 * (1 - s) * left)
 
     def exact_force(self, y, yd, v, plant):
-        if yd > 0.0:
-            return -_table(self.f_curve_right, yd)
-        return _table(self.f_curve_left, -yd) if yd < 0.0 else 0.0
+        return _force(self.f_curve_right, self.f_curve_left, yd)
 
     def exact_force_for(self, drive):
         right, left = self._levels()
-        return lambda y, yd, v: (
-            -_table(right, yd) if yd > 0.0 else (_table(left, -yd) if yd < 0.0 else 0.0)
-        )
+        return lambda y, yd, v: _force(right, left, yd)
 
     def exact_velocity_pieces(self, drive, v):
-        """Breaks at -q_n .. -q_0, 0, q_0 .. q_n: the tables' linear pieces, constant beyond."""
+        """Breaks at -q_n .. -q_0, q_0 .. q_n: the tables' linear pieces, constant beyond."""
         right, left = self._levels()
         b_left, p_left = _pieces(left, -1.0)
         b_right, p_right = _pieces(right, 1.0)
-        # The left side's last piece (-q_1, 0) and the right side's first (0, q_1) meet at 0.
-        return (*b_left, 0.0, *b_right), (*p_left, *p_right)
+        # The left side's last piece (-q_0, 0) and the right side's first (0, q_0) are one: 0.
+        return (*b_left, *b_right), (*p_left[:-1], *p_right)
 
     def _levels(self):
         return tuple(float(x) for x in self.f_curve_right), tuple(
