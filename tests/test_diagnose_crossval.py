@@ -88,8 +88,11 @@ def test_a_run_held_out_is_predicted_given_its_own_drive_limit(tmp_path):
     refit = crossval.own_refit(search, best, 1, moved)
     assert refit["v_sat@1"] == pytest.approx(truths[1]["v_sat"], rel=1e-3)
     cv = crossval.cross_validate(search, best, _names(search), {})
-    for f in cv["folds"]:
+    for k, f in enumerate(cv["folds"]):
         assert f["held_out"] and f["predicted_rms"] < FACTOR * max(f["fitted_rms"], search.floor)
+        # The fold's values, kept for a design's model error, are what predicted it.
+        again = scoring.rms([crossval.predict(best, search, k, f["values"])])
+        assert again == pytest.approx(f["predicted_rms"], rel=1e-12)
     assert cv["own"] == ["v_sat"] and cv["ratio"] < crossval.WORSE
     assert "its own v_sat fitted to it" in cv["text"]
     d = Diagnosis(_names(search), "diagnosed", [], [], rms_before=1e-2, rms_after=1e-5)
@@ -131,6 +134,7 @@ def test_the_only_driven_run_held_out_is_predicted_with_the_joint_values(tmp_pat
     cv = crossval.cross_validate(search, best, _names(search), {})
     tap, p_run = cv["folds"]
     assert tap["held_out"] and not p_run["held_out"]
+    assert tap["values"] and p_run["values"] is None  # not held out: no fold's cart
     assert "v_sat" in p_run["why"]
     assert cv["not_held_out"] == [p_run["recording"]]
     per = {n: {} for n in _names(search)}

@@ -351,6 +351,11 @@ def test_builtin_report_fits_the_cart_once_and_writes_it(builtin_report):
     assert "tap.toml" not in alone["recordings"] and len(alone["recordings"]) == 5
     assert cart["driven_only_B_eq"]["value"] == alone["parameters"]["B_eq"]["value"]
     assert alone["parameters"]["B_eq"]["value"] == pytest.approx(data.TRUE["B_eq"], rel=TOL_B_EQ)
+    # Part (v)'s model error: every recorded step predicted by the cart fitted without it.
+    misses = results["part_v"]["designs"]["misses"]
+    assert len(misses) >= 3 and all(m["held_out"] for m in misses), misses
+    md = (out / "report.md").read_text()
+    assert "the cart fitted without it (each step held out of the joint fit in turn)" in md
 
 
 def test_builtin_report_recovers_the_true_cart(builtin_report):
@@ -539,6 +544,7 @@ def _real_part_v_designs(results, md, gains):
     # The model error: how far the fitted cart misses the recorded steps (P 50, its repeat, PD)
     assert {m["recording"] for m in section["misses"]} == {"p50.toml", "p50_repeat.toml", "pd.toml"}
     assert section["model_error"]["settling_time"] > 0
+    assert not any(m["held_out"] for m in section["misses"])  # no diagnosis: no fold's cart
     assert set(designs) == {"prelab", "retuned", "recording"}
     for d in designs.values():
         p = d["prediction"]

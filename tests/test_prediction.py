@@ -4,6 +4,7 @@ synthetic carts, the draws' statistics, the drive's spread, the plant file's rou
 run outside its band explained by the value that moved."""
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -182,3 +183,41 @@ def test_the_model_error_bounds_a_new_runs_miss_from_the_recorded_steps():
     assert np.mean(np.abs(draws[:, 3]) <= np.abs(draws[:, :3]).max(axis=1)) == pytest.approx(
         0.75, abs=0.01
     )
+
+
+def test_a_recorded_step_is_predicted_by_the_cart_fitted_without_it():
+    """tuning.lab.part_v_design.own_cart: a step the joint fit held out is predicted by that
+    fold's cart (its shared values fitted to the other recordings, its own drive limit to it
+    alone); one not held out by the fitted cart with its own drive limit; the others' limits
+    never enter."""
+    from tuning.estimation.fit import Estimate
+    from tuning.lab.part_v_design import held_values, own_cart
+
+    plant = build_plant({"B_eq": 2.0, "f_c": 0.4, "v_sat": 5.5})
+    u = CartUncertainty(
+        plant, ("B_eq", "f_c"), np.array([2.0, 0.4]), np.diag([0.02, 0.01]) ** 2,
+        drive={"v_sat": [5.0, 6.0]},
+    )  # fmt: skip
+    fold = {"B_eq": 2.3, "f_c": 0.35, "v_sat@1": 5.2, "v_sat@2": 9.9, "y0@0": 0.1}
+    params = {
+        "B_eq": Estimate("B_eq", 2.0, 0.02), "f_c": Estimate("f_c", 0.4, 0.01),
+        "v_sat@1": Estimate("v_sat@1", 5.0, 0.01), "v_sat@2": Estimate("v_sat@2", 6.0, 0.01),
+    }  # fmt: skip
+    segments = [SimpleNamespace(held_out=None), SimpleNamespace(held_out=fold)]
+    segments.append(SimpleNamespace(held_out=None))
+    joint = SimpleNamespace(
+        uncertainty=u,
+        names=("tap.toml", "p50.toml", "pd.toml"),
+        fit=SimpleNamespace(params=params, segments=segments),
+    )
+    p50, pd = (SimpleNamespace(path=Path(n)) for n in ("p50.toml", "pd.toml"))
+    assert held_values(joint, p50) is fold and held_values(joint, pd) is None
+    fitted, held = own_cart(joint, p50), own_cart(joint, p50, held_out=True)
+
+    def of(cart, names=("B_eq", "f_c", "v_sat")):
+        return tuple(float(cart.get(n)) for n in names)
+
+    assert of(fitted) == pytest.approx((2.0, 0.4, 5.0))
+    assert of(held) == pytest.approx((2.3, 0.35, 5.2))
+    other = own_cart(joint, pd, held_out=True)  # not held out: the fit, its own limit
+    assert of(other) == pytest.approx((2.0, 0.4, 6.0))

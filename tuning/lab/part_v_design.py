@@ -86,7 +86,11 @@ def compute(
         return None
     u, cart_design = joint.uncertainty, joint.design
     say("Part (v): the designs on the cart as measured, with their bands and margins")
-    misses = tuple(step_miss(own_cart(joint, r), r) for r in recordings if is_step(r))
+    steps = [r for r in recordings if is_step(r)]
+    misses = tuple(
+        step_miss(own_cart(joint, r, held_out=True), r, held_values(joint, r) is not None)
+        for r in steps
+    )
     error = model_error(misses)
     ran = None if rec is None or rec.controller is None else rec.controller
     chosen = [
@@ -110,19 +114,35 @@ def compute(
     return Designs(tuple(designs), name, joint.source, misses, error)
 
 
-def own_cart(joint, recording):
+def own_cart(joint, recording, held_out: bool = False):
     """The fitted cart with the recording's own drive values (``v_sat@k`` of its run k in the
-    joint fit), the others at the runs' mean."""
+    joint fit), the others at the runs' mean; ``held_out``: the cart fitted without the
+    recording where the joint fit held it out (:func:`held_values`), with its own drive values
+    fitted to it alone."""
     u = joint.uncertainty
     values = u.nominal()
     names = list(joint.names)
-    if recording.path.name in names:
-        k = names.index(recording.path.name)
-        for n, e in joint.fit.params.items():
-            base, _, run = n.partition("@")
-            if run == str(k) and e.value is not None and base in values:
-                values[base] = float(e.value)
+    if recording.path.name not in names:
+        return u.cart(values)
+    k = names.index(recording.path.name)
+    held = held_values(joint, recording) if held_out else None
+    fitted = {n: e.value for n, e in joint.fit.params.items()} if held is None else held
+    for n, v in fitted.items():
+        base, _, run = n.partition("@")
+        shared = run == "" and held is not None  # in-sample: the fitted mean already
+        if v is not None and base in values and (shared or run == str(k)):
+            values[base] = float(v)
     return u.cart(values)
+
+
+def held_values(joint, recording) -> dict | None:
+    """The values of the joint fit that left ``recording`` out ({name: value [SI]},
+    :attr:`tuning.estimation.fitting.result.SegmentFit.held_out`), None where it was not held
+    out (a fit of the lab's own, a single recording, a run only it determines)."""
+    names = list(joint.names)
+    if recording.path.name not in names:
+        return None
+    return joint.fit.segments[names.index(recording.path.name)].held_out
 
 
 def _measured(rec, prediction: Prediction) -> dict:

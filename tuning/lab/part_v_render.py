@@ -80,24 +80,35 @@ def _misses(lab, d) -> None:
         )
         return
     e = d.model_error
+    held = sum(m.held_out for m in d.misses)
+    by = (
+        "the cart fitted without it (each step held out of the joint fit in turn)"
+        if held == len(d.misses)
+        else "the fitted cart"
+        if not held
+        else f"the cart fitted without it where it could be held out ({held} of "
+        f"{len(d.misses)}), else the fitted cart"
+    )
     lab.doc.paragraph(
         "The fit's standard errors say how well the recordings pin the model's values, not "
-        "how right the model is; the recorded steps say that. Each is simulated on the fitted "
-        "cart with its own controller, step and drive limit, and compared with the recording; "
+        "how right the model is; the recorded steps say that. Each is simulated on "
+        f"{by}, with its own controller, step and drive limit, and compared with the "
+        "recording; "
         f"what a new run may miss by at the bands' level (Student's t over the runs' misses), "
         f"{e['settling_time'] * 1e3:.3g} ms in time and {e['overshoot']:.3g} % in overshoot, "
         "widens every band above on both sides."
     )
     lab.doc.table(
-        ["recording", "enters the 2 % band [s]: measured, simulated",
+        ["recording", "predicted by", "enters the 2 % band [s]: measured, simulated",
          "settling time [s]: measured, simulated", "overshoot [%]: measured, simulated"],
         [
-            [m.name, f"{seconds(m.entering[0])}, {seconds(m.entering[1])}",
+            [m.name, "held out" if m.held_out else "the fit",
+             f"{seconds(m.entering[0])}, {seconds(m.entering[1])}",
              f"{seconds(m.settling[0])}, {seconds(m.settling[1])}",
              f"{m.overshoot[0]:.2f}, {m.overshoot[1]:.2f}"]
             for m in d.misses
         ],
-        numeric=[False, True, True, True],
+        numeric=[False, False, True, True, True],
     )  # fmt: skip
 
 

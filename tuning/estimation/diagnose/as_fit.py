@@ -17,13 +17,17 @@ from tuning.estimation.fit import Estimate, FitResult, SegmentFit, plant_values
 def fit_result(d) -> FitResult:
     """The :class:`FitResult` of :class:`~.result.Diagnosis` ``d`` (status "diagnosed"): its
     shared values and each recording's own (``v_sat@2``) with standard errors, each
-    recording's exact runs before (the handout's model, B_eq fitted) and after, and the
-    fitted cart (effects included) as :attr:`FitResult.cart`."""
+    recording's exact runs before (the handout's model, B_eq fitted) and after and the values
+    of the fit that left it out (:attr:`SegmentFit.held_out`), and the fitted cart (effects
+    included) as :attr:`FitResult.cart`."""
     if d.status != "diagnosed":
         raise ValueError(f"the diagnosis has no fit (status {d.status!r})")
     params = {n: _estimate(n, p) for n, p in d.parameters.items() if p.get("value") is not None}
     segments = []
-    for k, (rec, trace) in enumerate(zip(d.per_recording.values(), d.traces, strict=True)):
+    folds = d.cross_validation.get("folds") or [{}] * len(d.traces)
+    for k, (rec, trace, fold) in enumerate(
+        zip(d.per_recording.values(), d.traces, folds, strict=True)
+    ):
         # A drive limit above what its run drove is not determined there: not a run's value.
         params.update(
             {
@@ -46,6 +50,7 @@ def fit_result(d) -> FitResult:
                 after,
                 {},
                 d.plant,
+                fold.get("values"),
             )  # fmt: skip
         )
     return FitResult(

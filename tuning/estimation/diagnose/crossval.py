@@ -291,22 +291,25 @@ def own_refit(search, c, k: int, values: dict, iterations: int = ITERATIONS) -> 
     return {**values, **dict(zip(own, (float(v) for v in done.x), strict=True))}
 
 
-def held_out(search, c) -> list:
+def held_out(search, c) -> tuple[list, list]:
     """Each recording's residual [m] predicted out of ``c``'s fit (:func:`folds`): the cart's
     values re-fitted without it (:func:`one_step`), then its own values fitted to it
-    (:func:`own_refit`); one array per recording, every sample predicted by the fit that left
-    it out."""
+    (:func:`own_refit`). Returns (one array per recording, every sample predicted by the fit
+    that left it out; per recording the values [SI] of the fit that left all of it out, None
+    for a single recording's stretches)."""
     out = [np.full(s.target.size, np.nan) for s in search.segments]
+    values_of = [None] * len(search.segments)
     for fold in folds(search.segments):
         values = one_step(search, c, fold)
         if fold.rows is None:
             values = own_refit(search, c, fold.recording, values)
+            values_of[fold.recording] = values
         r = predict(c, search, fold.recording, values)
         if fold.rows is None:
             out[fold.recording] = r
         else:
             out[fold.recording][fold.rows] = r[fold.rows]
-    return out
+    return out, values_of
 
 
 def cross_validate(search, best, names, levels) -> dict:
@@ -321,10 +324,11 @@ def cross_validate(search, best, names, levels) -> dict:
     "folds": per recording its "fitted_rms", "predicted_rms" [m], "held_out" (False: a value
     only it determines stayed at the joint fit's, "why" says which), "floor" [m], "level" [m]
     (what it is judged against), "repeat" [m] or None, "judged_by" ("held out"; "fit" for a
-    single recording), "judged_rms" [m] and "explained"."""
+    single recording), "judged_rms" [m], "explained" and "values" (the fit that left it out,
+    {name: value [SI]} in the diagnosis's names; None where it was not held out whole)."""
     t0 = _time.perf_counter()
     search.held_score(best)
-    predicted = best.held["residuals"]
+    predicted, values_of = best.held["residuals"], best.held["values"]
     segments = search.segments
     folds = []
     for k in range(len(segments)):
@@ -343,6 +347,11 @@ def cross_validate(search, best, names, levels) -> dict:
                 "predicted_rms": scoring.rms([predicted[k]]),
                 "held_out": not why,
                 "why": why,
+                # The cart fitted without it (its own drive values fitted to it): what
+                # predicts it, for a design's model error (tuning.design.calibration).
+                "values": None
+                if why or values_of[k] is None
+                else {n: float(v) for n, v in values_of[k].items()},
                 "floor": floor,
                 "repeat": repeat,
                 "level": level,

@@ -817,8 +817,12 @@ class Search:
         (:func:`~.scoring.score`); computed once per set of values."""
         key = candidate_runs.values_key(c.values)
         if c.held_out_key != key:
-            residuals = crossval.held_out(self, c)
-            c.held = {"residuals": residuals, "score": scoring.score(c, residuals, self.noise)}
+            residuals, values = crossval.held_out(self, c)
+            c.held = {
+                "residuals": residuals,
+                "values": values,
+                "score": scoring.score(c, residuals, self.noise),
+            }
             c.held_out_key = key
         return c.held["score"]
 

@@ -64,7 +64,9 @@ class Estimate:
 @dataclass(frozen=True, eq=False)
 class SegmentFit:
     """The fit seen on one segment: the measured positions and the model's before and after
-    (smooth at the narrowest width, and exact) [m], their RMS errors [m], fitted nuisance."""
+    (smooth at the narrowest width, and exact) [m], their RMS errors [m], fitted nuisance;
+    held_out: the values [SI] of the fit that left this recording out (its own drive values
+    fitted to it alone; in the fit's names, ``v_sat@2``), None where it was not held out."""
 
     name: str
     kind: str
@@ -76,6 +78,7 @@ class SegmentFit:
     after_exact: np.ndarray | None
     nuisance: dict
     plant: Plant
+    held_out: dict | None = None
 
     @property
     def rms_before(self) -> float:
