@@ -221,3 +221,30 @@ def test_a_recorded_step_is_predicted_by_the_cart_fitted_without_it():
     assert of(held) == pytest.approx((2.3, 0.35, 5.2))
     other = own_cart(joint, pd, held_out=True)  # not held out: the fit, its own limit
     assert of(other) == pytest.approx((2.0, 0.4, 6.0))
+
+
+def test_a_value_the_recordings_disagree_on_is_drawn_from_its_held_out_spread():
+    """tuning.design.uncertainty.held_out_spread is the jackknife's standard error: for the
+    mean of n numbers, whose fits without each number are the means of the rest, it is the
+    textbook s / sqrt(n) (to rounding). from_fit widens a standard error to that spread where
+    the spread is larger (the correlation kept), says so, and leaves the others."""
+    from tuning.design.uncertainty import held_out_spread
+    from tuning.estimation.fit import Estimate
+
+    z = np.random.default_rng(3).normal(1.2, 0.05, 6)
+    rest = [np.delete(z, i).mean() for i in range(z.size)]
+    segments = [SimpleNamespace(held_out={"i_max": r, "B_eq": 2.5 + 1e-5 * i}) for i, r in
+                enumerate(rest)]  # fmt: skip
+    spread = held_out_spread(("i_max", "B_eq", "f_c"), segments)
+    assert spread[0] == pytest.approx(np.std(z, ddof=1) / math.sqrt(z.size), rel=1e-12)
+    assert spread[2] == 0.0  # no fold has it
+    assert held_out_spread(("i_max",), segments[:2])[0] == 0.0  # too few folds
+    fit = SimpleNamespace(
+        params={"i_max": Estimate("i_max", 1.2, 0.003), "B_eq": Estimate("B_eq", 2.5, 0.01)},
+        segments=[*segments, SimpleNamespace(held_out=None)],
+        correlation={("i_max", "B_eq"): 0.5},
+    )
+    u = from_fit(fit, plant=build_plant({"B_eq": 2.5, "i_max": 1.2}))
+    assert u.stderr("i_max") == pytest.approx(spread[0]) and u.stderr("B_eq") == 0.01
+    assert u.widened == {"i_max": (0.003, pytest.approx(spread[0]))}
+    assert u.cov[0, 1] == pytest.approx(0.5 * spread[0] * 0.01)

@@ -241,6 +241,18 @@ def render(lab: Lab, c: JointCart | None) -> None:
         else:
             rows.append([base, who, fmt(est.value), fmt(est.stderr, 2), ""])
     doc.table(["parameter", "recording", "value", "standard error", "note"], rows)
+    wide = c.uncertainty.widened if c.uncertainty is not None else {}
+    if wide:  # the design and its band draw from the wider spread
+        doc.paragraph(
+            "Fitted again with each recording left out in turn, the cart's values spread "
+            "further than their standard errors say: "
+            + ", ".join(
+                f"{n} {fmt(a, 2)} -> {fmt(b, 2)} {plantspec.unit(n)}".rstrip()
+                for n, (a, b) in wide.items()
+            )
+            + ". The recordings disagree where the model leaves something out; the design "
+            "for the cart as measured and every band below draw from the wider spread."
+        )
     doc.table(
         ["recording", "RMS error of the fitted cart [mm] (exact simulator)"],
         [[s.name, _mm(s.rms_after_exact)] for s in c.fit.segments],
