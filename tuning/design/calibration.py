@@ -31,10 +31,11 @@ usual three, so a "90 %" band held about 75 %; on the independent cart with an e
 fit that reproduces its steps exactly adds nothing.
 
 Held out, not fitted: a design is a run the fit has not seen, and a fitted step's miss is what
-the model misses where it was fitted. On the independent cart with a 1.2 A current limit (the
-5.8 V amplifier limit beside it not named) the fitted steps missed by 3, 1 and 8 ms, a bound of
-12 ms, and the re-tuned design, which drives the current limit harder than any recorded step,
-settled 17 ms from its prediction, outside its band.
+the model misses where it was fitted. On the lab's independent carts the two seldom differ by
+much (the current-limited cart's steps: 3, 1 and 8 ms fitted, 2, 1 and 8 held out), and
+neither measures an extrapolation: that cart's re-tuned design, braking at the current limit
+harder than any recorded step, settles 17 ms from its prediction, 2 ms past its band, for the
+5.8 V amplifier limit its structure lacks.
 """
 
 from __future__ import annotations
