@@ -12,7 +12,8 @@ fit, or a diagnosis's through :func:`tuning.estimation.diagnose.as_fit.fit_resul
   fitted values, covariance from the standard errors and correlations (a fit that gives
   standard errors alone: independent), each standard error at least the spread of the value
   over the fits that left one recording out (:func:`held_out_spread`, the jackknife's: where
-  the recordings disagree, the model leaves something out and its standard errors understate);
+  the recordings disagree, the model leaves something out or its noise is not white, and the
+  standard errors understate);
 - each drive value (a limit free per run) as a new run's: the mean of the runs' values plus
   their standard deviation times sqrt(1 + 1/n) (the spread of a new run about a mean known
   from n runs) and the standard error of the mean of their fits;

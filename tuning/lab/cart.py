@@ -250,8 +250,11 @@ def render(lab: Lab, c: JointCart | None) -> None:
                 f"{n} {fmt(a, 2)} -> {fmt(b, 2)} {plantspec.unit(n)}".rstrip()
                 for n, (a, b) in wide.items()
             )
-            + ". The recordings disagree where the model leaves something out; the design "
-            "for the cart as measured and every band below draw from the wider spread."
+            + ". A standard error says how well the recordings pin a value if the model and "
+            "its noise are right; the spread, how much the value depends on which recordings "
+            "were fitted (a model that leaves something out, or noise that is not white, "
+            "widens it). The design for the cart as measured and every band below draw from "
+            "the wider of the two."
         )
     doc.table(
         ["recording", "RMS error of the fitted cart [mm] (exact simulator)"],
