@@ -2,6 +2,8 @@
 textbook references: ordinary least squares with white noise, and the error of a position read
 through an encoder count."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -42,6 +44,20 @@ def test_a_cart_at_rest_has_the_encoder_error_of_one_count():
     assert np.sqrt(cov.robust[0, 0]) == pytest.approx(q / np.sqrt(12), rel=1e-9)
     # The naive one sees no spread at all: that is why the floor is there.
     assert cov.naive[0, 0] == 0.0
+
+
+def test_one_run_that_misses_gives_a_finite_covariance_without_a_warning():
+    """A model that stays within one count while the recording reads elsewhere (a candidate
+    whose dead band holds the cart through a slow ramp): one run, one score, so no
+    autocorrelation to estimate; the covariance is the encoder's floor, finite, and numpy
+    warns of no empty mean (it did, from the bandwidth's AR(1) fit)."""
+    n, q = 500, 2.275e-5
+    jac = np.ones((n, 1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cov = covariances(jac, [np.full(n, 3 * q)], [np.full(n, 0.3 * q)], [q])
+    assert np.all(np.isfinite(cov.robust))
+    assert np.sqrt(cov.robust[0, 0]) >= q / np.sqrt(12) * (1 - 1e-9)
 
 
 def test_the_encoder_floor_bounds_the_robust_covariance():

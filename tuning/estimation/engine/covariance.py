@@ -80,8 +80,12 @@ class Covariance:
 
 
 def bartlett_bandwidth(scores) -> int:
-    """Andrews (1991) AR(1) plug-in bandwidth for the Bartlett kernel (scores: (n, p))."""
+    """Andrews (1991) AR(1) plug-in bandwidth for the Bartlett kernel (scores: (n, p)); 0 for
+    fewer than 3 scores (a recording whose model stays within one encoder count is one run:
+    one score, no autocorrelation to estimate)."""
     n = scores.shape[0]
+    if n < 3:
+        return 0
     num = den = 0.0
     for x in scores.T:
         if not np.any(x):
@@ -91,7 +95,7 @@ def bartlett_bandwidth(scores) -> int:
         s2 = float(np.mean((x[1:] - rho * x[:-1]) ** 2))
         num += 4 * rho**2 * s2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)
         den += s2**2 / (1 - rho) ** 4
-    if den == 0 or n < 3:
+    if den == 0:
         return 0
     alpha = num / den
     return int(min(n - 1, max(0, math.ceil(1.1447 * (alpha * n) ** (1 / 3)))))
