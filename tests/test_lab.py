@@ -528,7 +528,7 @@ def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
 
 def _to_run(results) -> dict:
     """Part (v)'s design that gains.json should hold: the re-tuned one, unless the pre-lab's
-    meets the spec on more of the carts drawn from the fit."""
+    is likelier to meet the spec (P(spec), with the model error)."""
     designs = {d["design"]: d for d in results["part_v"]["designs"]["designs"]}
     new, old = designs["retuned"], designs["prelab"]
     return old if old["prediction"]["p_meet"] > new["prediction"]["p_meet"] else new

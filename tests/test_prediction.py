@@ -3,6 +3,7 @@ tuning.design.prediction) and a run checked against it (hw.predicted): the band'
 synthetic carts, the draws' statistics, the drive's spread, the plant file's round trip, and a
 run outside its band explained by the value that moved."""
 
+import dataclasses
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -13,7 +14,8 @@ import pytest
 import jaxcart as jc
 from hw.predicted import check_lines, check_run
 from jaxcart.plantspec import build_plant, read_plant_file, write_plant_file
-from tuning.design.prediction import band_of, predict, step_run
+from tuning.design.losses import Spec
+from tuning.design.prediction import Prediction, band_of, predict, step_run, t_factor
 from tuning.design.uncertainty import CartUncertainty, fit_table, from_fit, from_fit_table
 
 #: The coverage test's design and step: a PID on a cart with Coulomb friction and the drive's
@@ -173,7 +175,13 @@ def test_the_model_error_bounds_a_new_runs_miss_from_the_recorded_steps():
         2.920 * math.sqrt((0.019**2 + 0.003**2) / 2), 1e-3
     )
     assert error["overshoot"] == pytest.approx(2.353 * math.sqrt((0.3**2 + 0.2**2) / 3), 1e-3)
-    assert model_error([]) == {"settling_time": 0.0, "overshoot": 0.0}
+    assert error["steps"] == {"settling_time": 2, "overshoot": 3}
+    assert model_error([]) == {
+        "settling_time": 0.0, "overshoot": 0.0, "steps": {"settling_time": 0, "overshoot": 0}
+    }  # fmt: skip
+    # The table's t_{0.95, n}: one step's miss alone is multiplied by 6.314.
+    assert t_factor(1) == pytest.approx(6.314, abs=1e-3)
+    assert t_factor(3) == pytest.approx(2.353, abs=1e-3)
     # Of three runs' misses, a new one is past their largest a quarter of the time; the bound
     # holds a new normal miss 90 % of the time.
     rng = np.random.default_rng(0)
@@ -183,6 +191,48 @@ def test_the_model_error_bounds_a_new_runs_miss_from_the_recorded_steps():
     assert np.mean(np.abs(draws[:, 3]) <= np.abs(draws[:, :3]).max(axis=1)) == pytest.approx(
         0.75, abs=0.01
     )
+
+
+def test_no_band_edge_falls_below_zero():
+    """A model error larger than the fit's band (the one recorded step of a PD run, missed by
+    216 ms, gives 1.36 s) widens every metric's band upwards in full and downwards to 0 at
+    most: a settling time, an overshoot, a peak command and an excursion are never negative."""
+    t = np.arange(0.0, 1.0, 1e-3)
+    metrics = {"settling_time": np.full(63, 0.88), "overshoot": np.full(63, 1.2),
+               "peak_voltage": np.full(63, 6.0), "excursion": np.full(63, 0.5)}  # fmt: skip
+    p = Prediction(
+        None, Spec(), 0.9, t, np.full(t.size, 0.5), t, t, {}, (t, t), metrics,
+        np.ones(63, dtype=bool),
+        model_error={"settling_time": 1.36, "overshoot": 2.0},
+    )  # fmt: skip
+    assert p.interval("settling_time") == pytest.approx((0.0, 0.88 + 1.36))
+    assert p.interval("overshoot") == pytest.approx((0.0, 3.2))
+    assert p.interval("peak_voltage") == pytest.approx((6.0, 6.0))
+
+
+def test_the_chance_of_meeting_the_spec_carries_the_models_miss():
+    """P(spec): without a model error, the share of the drawn carts that meet the spec; with
+    one, each cart's chance that a new run's miss (Student's t, as many degrees of freedom as
+    recorded steps, scaled to the bound) keeps it inside: a cart at 0.88 s with one step's
+    bound of 1.364 s meets a 1 s spec with t_1's probability of 0.12 / 0.216 (0.66, from
+    scipy.stats.t); a cart past the command's range never does."""
+    from scipy.stats import t as student_t
+
+    t = np.arange(0.0, 1.0, 1e-3)
+    settling = np.array([0.88, 0.88, 1.2, 0.5])
+    metrics = {"settling_time": settling, "overshoot": np.array([1.0, 1.0, 1.0, 1.0]),
+               "peak_voltage": np.array([6.0, 6.0, 6.0, 7.0]),
+               "excursion": np.full(4, 0.5)}  # fmt: skip
+    meets = np.array([True, True, False, False])
+    p = Prediction(None, Spec(), 0.9, t, t, t, t, {}, (t, t), metrics, meets)
+    assert p.p_meet == pytest.approx(0.5)
+    bound = 0.216 * t_factor(1)
+    steps = {"settling_time": 1, "overshoot": 4}
+    error = {"settling_time": bound, "overshoot": 0.0, "steps": steps}
+    p = dataclasses.replace(p, model_error=error)
+    want = (2 * student_t.cdf(0.12 / 0.216, 1) + student_t.cdf(-0.2 / 0.216, 1)) / 4
+    assert p.p_meet == pytest.approx(want, rel=1e-12)
+    assert 0.3 < p.p_meet < 0.5
 
 
 def test_a_recorded_step_is_predicted_by_the_cart_fitted_without_it():

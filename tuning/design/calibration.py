@@ -44,10 +44,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import t as student_t
 
 from jaxcart.metrics import SETTLING_BAND, step_info
-from tuning.design.prediction import LEVEL, step_run
+from tuning.design.prediction import LEVEL, step_run, t_factor
 
 #: A recorded step's settling time counts in its time miss where it settles within this many
 #: seconds (the design problem's horizon, :class:`tuning.design.losses.Spec`).
@@ -123,12 +122,17 @@ def step_miss(cart, recording, held_out: bool = False) -> StepMiss:
 
 
 def model_error(misses, level: float = LEVEL) -> dict:
-    """{"settling_time": [s], "overshoot": [%]}: the bound at ``level`` on a new run's miss
-    from the time and overshoot misses of ``misses`` (:func:`miss_bound`; 0 where none
-    applies)."""
+    """{"settling_time": [s], "overshoot": [%], "steps": {metric: n}}: the bound at ``level``
+    on a new run's miss from the time and overshoot misses of ``misses`` (:func:`miss_bound`;
+    0 where none applies) and how many steps each rests on (the degrees of freedom of its t,
+    for :attr:`~tuning.design.prediction.Prediction.p_meet`)."""
     times = [m.time for m in misses if math.isfinite(m.time)]
     overs = [abs(a - b) for m in misses for a, b in [m.overshoot] if _finite(a, b)]
-    return {"settling_time": miss_bound(times, level), "overshoot": miss_bound(overs, level)}
+    return {
+        "settling_time": miss_bound(times, level),
+        "overshoot": miss_bound(overs, level),
+        "steps": {"settling_time": len(times), "overshoot": len(overs)},
+    }
 
 
 def miss_bound(misses, level: float = LEVEL) -> float:
@@ -137,4 +141,4 @@ def miss_bound(misses, level: float = LEVEL) -> float:
     x = np.asarray(misses, dtype=float)
     if x.size == 0:
         return 0.0
-    return float(student_t.ppf((1.0 + level) / 2.0, x.size) * np.sqrt(np.mean(x**2)))
+    return t_factor(x.size, level) * float(np.sqrt(np.mean(x**2)))

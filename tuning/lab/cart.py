@@ -146,7 +146,8 @@ def _fitted(inputs, runs, tap_b_eq, start, fit, say):
     driven = [r for r in runs if r.kind != "tap"]
     params, per = structure(inputs)
     per = per if len(driven) >= 2 else ()
-    say(f"the cart: one joint fit of {len(runs)} recordings ({', '.join(params)})")
+    many = "s" if len(runs) != 1 else ""
+    say(f"the cart: one joint fit of {len(runs)} recording{many} ({', '.join(params)})")
     initial = {k: v for k, v in start.items() if k in params}
     joint = fit(runs, params, per_recording=per, initial=initial, quick=bool(initial))
     alone = None

@@ -12,6 +12,7 @@ import numpy as np
 from hw.predicted import check_lines
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.plots import plot_runs, reference_run
+from tuning.design.prediction import t_factor
 from tuning.design.prediction_plot import Panel, plot_predictions
 from tuning.lab.context import HANDOUT_B_EQ, V_SAT, fmt
 from tuning.lab.model import render_source, run, seconds
@@ -40,9 +41,10 @@ def render_designs(lab, d) -> None:
         f"on {first.n} carts drawn from that fit: each fitted value from its standard error, "
         f"each run's drive limit from the spread of the runs' own. The band holds "
         f"{first.level:.0%} of such carts (a run of the design lies inside it with that "
-        "probability, if the cart is as the fit says); P(spec) is the share of them on which "
+        "probability, if the cart is as the fit says); P(spec) is the chance that a run of "
         "the design settles under 1 s with under 5 % overshoot, within 6 V and the track's "
-        "0.814 m. Exact simulator throughout."
+        "0.814 m, over these carts and a new run's miss of the model (below, where a step was "
+        "recorded). Exact simulator throughout."
     )
     doc.table(
         ["design", "kp, ki, kd", "settling [s]", f"{first.level:.0%} band [s]", "overshoot [%]",
@@ -71,6 +73,12 @@ def render_designs(lab, d) -> None:
             )
 
 
+def _ms(seconds: float) -> str:
+    """A time in milliseconds, three digits (whole ones from a second up: 1364, not 1.36e+03)."""
+    ms = seconds * 1e3
+    return f"{ms:.3g}" if abs(ms) < 1000 else f"{ms:.0f}"
+
+
 def _misses(lab, d) -> None:
     """How far the fitted cart misses each recorded step: the model error in every band."""
     if not d.misses:
@@ -89,14 +97,23 @@ def _misses(lab, d) -> None:
         else f"the cart fitted without it where it could be held out ({held} of "
         f"{len(d.misses)}), else the fitted cart"
     )
+    timed = e["steps"]["settling_time"]
     lab.doc.paragraph(
         "The fit's standard errors say how well the recordings pin the model's values, not "
         "how right the model is; the recorded steps say that. Each is simulated on "
         f"{by}, with its own controller, step and drive limit, and compared with the "
         "recording; "
-        f"what a new run may miss by at the bands' level (Student's t over the runs' misses), "
-        f"{e['settling_time'] * 1e3:.3g} ms in time and {e['overshoot']:.3g} % in overshoot, "
-        "widens every band above on both sides."
+        f"what a new run may miss by at the bands' level (Student's t over the misses of "
+        f"{timed} step{'s' if timed != 1 else ''} in time), "
+        f"{_ms(e['settling_time'])} ms in time and {e['overshoot']:.3g} % in overshoot, "
+        "widens every band above on both sides (no edge below 0)."
+        + (
+            f" One step alone sets it: t with one degree of freedom is "
+            f"{t_factor(1):.1f} times its miss; each further recorded "
+            "step narrows it."
+            if timed == 1
+            else ""
+        )
     )
     lab.doc.table(
         ["recording", "predicted by", "enters the 2 % band [s]: measured, simulated",

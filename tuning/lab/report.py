@@ -487,15 +487,16 @@ def _summary_row(v, synthetic) -> list:
 
 def _gains_to_run(lab: Lab, r) -> None:
     """gains.json's design where the lab has a cart as measured: the one tuned for it, unless
-    the pre-lab's meets the spec on more of the carts drawn from the fit (both predicted on the
-    same carts: :mod:`tuning.lab.part_v_design`); its prediction and margins go with it."""
+    the pre-lab's is likelier to meet the spec (P(spec): both predicted on the same carts, with
+    the same model error, :mod:`tuning.lab.part_v_design`); its prediction and margins go with
+    it."""
     retuned, prelab = r.designs.get("retuned"), r.designs.get("prelab")
     p_new, p_old = retuned.prediction.p_meet, prelab.prediction.p_meet
     if p_old > p_new:
         lab.gains = prelab.controller  # (gains_metrics: the pre-lab's, set above)
         lab.gains_source = (
-            f"jaxcart lab: pre-lab design (handout model), which meets the spec on {p_old:.0%} "
-            f"of the carts drawn from the fit against {p_new:.0%} for the one tuned for it"
+            f"jaxcart lab: pre-lab design (handout model), which meets the spec with a chance "
+            f"of {p_old:.0%} against {p_new:.0%} for the one tuned for it"
         )
         lab.gains_extra = {
             "prediction": prelab.prediction.to_json(),
