@@ -91,7 +91,9 @@ class Prediction:
         of each one's chance with its settling time and overshoot shifted by a new run's miss
         of the model (:attr:`model_error`: the recorded steps' RMS miss times Student's t with
         as many degrees of freedom as steps, the bound's own assumption); without a model
-        error, the share of the drawn carts that meet it. On the real PD run alone (one step
+        error (or a model error without its "steps", :func:`~tuning.design.calibration.
+        model_error`'s degrees of freedom), the share of the drawn carts that meet it; the
+        bound is taken at this prediction's level. On the real PD run alone (one step
         missed by 216 ms) the pre-lab's design, predicted at 0.88 s, meets a 1 s spec with a
         chance of 66 %, where 98 % of the drawn carts meet it."""
         if not self.meets.size:
@@ -107,8 +109,8 @@ class Prediction:
             miss, n = float(self.model_error.get(metric, 0.0)), int(steps.get(metric, 0))
             if miss > 0 and n > 0:
                 scale = miss / t_factor(n, self.level)
-                with np.errstate(invalid="ignore"):  # inf - inf: a run that never settles
-                    z = np.where(np.isfinite(value), (bound - value) / scale, -np.inf)
+                # A run that never settles (inf) or has no overshoot to speak of (nan) fails.
+                z = np.where(np.isfinite(value), (bound - value) / scale, -np.inf)
                 chance = chance * student_t.cdf(z, n)
             else:
                 chance = chance * (value < bound)

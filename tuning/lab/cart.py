@@ -286,7 +286,8 @@ def render(lab: Lab, c: JointCart | None) -> None:
         f"{fmt(p.nominal['overshoot'])} % overshoot, in {fmt(lo)}-{fmt(hi)} s on "
         f"{p.level:.0%} of carts drawn from the fit (the fit's band: Part (v) widens it by how "
         f"far the model misses the recorded steps), meeting the handout's spec on "
-        f"{p.p_meet:.0%} of them. What limits it: {c.design.binding}. Part (v) shows it beside "
+        f"{p.p_meet:.0%} of them (Part (v)'s P(spec) adds the model's miss). What limits "
+        f"it: {c.design.binding}. Part (v) shows it beside "
         "the pre-lab's design, with its margins."
     )
 

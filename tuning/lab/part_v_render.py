@@ -12,7 +12,7 @@ import numpy as np
 from hw.predicted import check_lines
 from jaxcart.metrics import SETTLING_BAND
 from jaxcart.plots import plot_runs, reference_run
-from tuning.design.prediction import t_factor
+from tuning.design.prediction import LEVEL, t_factor
 from tuning.design.prediction_plot import Panel, plot_predictions
 from tuning.lab.context import HANDOUT_B_EQ, V_SAT, fmt
 from tuning.lab.model import render_source, run, seconds
@@ -75,8 +75,26 @@ def render_designs(lab, d) -> None:
 
 def _ms(seconds: float) -> str:
     """A time in milliseconds, three digits (whole ones from a second up: 1364, not 1.36e+03)."""
-    ms = seconds * 1e3
-    return f"{ms:.3g}" if abs(ms) < 1000 else f"{ms:.0f}"
+    ms = float(f"{seconds * 1e3:.3g}")
+    return f"{ms:.3g}" if abs(ms) < 1000 else f"{seconds * 1e3:.0f}"
+
+
+def _bounds(e) -> str:
+    """The model error's bounds in words, each with the steps it rests on (Student's t over
+    their misses; none where no step measures it)."""
+    sizes = {
+        "settling_time": (f"{_ms(e['settling_time'])} ms", "in time"),
+        "overshoot": (f"{e['overshoot']:.3g} %", "in overshoot"),
+    }
+    parts = []
+    for metric, (size, what) in sizes.items():
+        n = e["steps"][metric]
+        parts.append(
+            f"{size} {what} (Student's t over {n} step{'s' if n != 1 else ''})"
+            if n
+            else f"nothing {what} (no step measures it)"
+        )
+    return " and ".join(parts)
 
 
 def _misses(lab, d) -> None:
@@ -97,21 +115,19 @@ def _misses(lab, d) -> None:
         else f"the cart fitted without it where it could be held out ({held} of "
         f"{len(d.misses)}), else the fitted cart"
     )
-    timed = e["steps"]["settling_time"]
+    steps = e["steps"]
+    level = d.designs[0].prediction.level if d.designs else LEVEL
     lab.doc.paragraph(
         "The fit's standard errors say how well the recordings pin the model's values, not "
         "how right the model is; the recorded steps say that. Each is simulated on "
         f"{by}, with its own controller, step and drive limit, and compared with the "
-        "recording; "
-        f"what a new run may miss by at the bands' level (Student's t over the misses of "
-        f"{timed} step{'s' if timed != 1 else ''} in time), "
-        f"{_ms(e['settling_time'])} ms in time and {e['overshoot']:.3g} % in overshoot, "
-        "widens every band above on both sides (no edge below 0)."
+        f"recording; what a new run may miss by at the bands' level, {_bounds(e)}, widens "
+        "every band above on both sides (no edge below 0), and P(spec) counts it."
         + (
-            f" One step alone sets it: t with one degree of freedom is "
-            f"{t_factor(1):.1f} times its miss; each further recorded "
-            "step narrows it."
-            if timed == 1
+            f" One step alone sets the time bound: t_{{{(1 + level) / 2:g}, 1}} = "
+            f"{t_factor(1, level):.1f} times its one miss; each further recorded step "
+            "narrows it."
+            if steps["settling_time"] == 1
             else ""
         )
     )
