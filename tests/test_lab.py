@@ -338,6 +338,9 @@ def test_builtin_report_fits_the_cart_once_and_writes_it(builtin_report):
     assert cart["retuned"]["meets"]
     gains = json.loads((out / "gains.json").read_text())
     assert gains["controller"]["kp"] == pytest.approx(_to_run(results)["controller"]["kp"])
+    # Both designs meet the spec on the built-in cart (chances 1 - 6e-8, 1e-9 apart): a
+    # difference the drawn carts cannot resolve does not send the pre-lab's design to the cart.
+    assert gains["source"].endswith("PID tuned for the cart as measured (the recordings)")
     # The cart is the joint diagnosis's fit, not a second one: the same values, standard
     # errors and exact RMS per recording, and the driven runs' own B_eq is the diagnosis's too.
     d = results["diagnosis"]
@@ -528,10 +531,12 @@ def test_real_recordings_give_parts_i_and_ii(realdata, tmp_path):
 
 def _to_run(results) -> dict:
     """Part (v)'s design that gains.json should hold: the re-tuned one, unless the pre-lab's
-    is likelier to meet the spec (P(spec), with the model error)."""
+    is likelier to meet the spec (P(spec), with the model error) by more than one drawn cart's
+    share."""
     designs = {d["design"]: d for d in results["part_v"]["designs"]["designs"]}
     new, old = designs["retuned"], designs["prelab"]
-    return old if old["prediction"]["p_meet"] > new["prediction"]["p_meet"] else new
+    p_new, p_old = new["prediction"]["p_meet"], old["prediction"]["p_meet"]
+    return old if p_old > p_new + 1.0 / old["prediction"]["carts"] else new
 
 
 def _real_part_v_designs(results, md, gains):
