@@ -99,6 +99,8 @@ class Prediction:
         if not self.meets.size:
             return math.nan
         steps = self.model_error.get("steps", {})
+        if not any(self.model_error.get(m, 0.0) > 0 and steps.get(m, 0) for m in steps):
+            return float(np.mean(self.meets))
         chance = (self.metrics["peak_voltage"] <= V_RANGE * (1 + 1e-9)) & (
             self.metrics["excursion"] <= TRAVEL
         )
