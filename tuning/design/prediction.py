@@ -101,10 +101,7 @@ class Prediction:
         steps = self.model_error.get("steps", {})
         if not any(self.model_error.get(m, 0.0) > 0 and steps.get(m, 0) for m in steps):
             return float(np.mean(self.meets))
-        chance = (self.metrics["peak_voltage"] <= V_RANGE * (1 + 1e-9)) & (
-            self.metrics["excursion"] <= TRAVEL
-        )
-        chance = chance.astype(float)
+        chance = np.asarray(within_reach(self.metrics), dtype=float)
         for metric, bound in (("settling_time", self.spec.settling_time),
                               ("overshoot", self.spec.overshoot)):  # fmt: skip
             value = np.asarray(self.metrics[metric], dtype=float)
@@ -225,9 +222,15 @@ def meets_spec(metrics: dict, spec: Spec) -> bool:
         not metrics["diverged"]
         and metrics["settling_time"] < spec.settling_time
         and metrics["overshoot"] < spec.overshoot
-        and metrics["peak_voltage"] <= V_RANGE * (1 + 1e-9)
-        and metrics["excursion"] <= TRAVEL
+        and within_reach(metrics)
     )
+
+
+def within_reach(metrics):
+    """The spec's limits besides time and overshoot, on one run's metrics or arrays of them:
+    the command within the drive's range and the cart within the track's travel (a diverged
+    run's are inf: outside)."""
+    return (metrics["peak_voltage"] <= V_RANGE * (1 + 1e-9)) & (metrics["excursion"] <= TRAVEL)
 
 
 def predict(
