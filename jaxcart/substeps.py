@@ -23,10 +23,13 @@ BACKLASH_SUBSTEPS = 4
 #: against 58 s, measured on the shared 2-core machine).
 SCREENING_SUBSTEPS = 1
 #: RK4 sub-steps per sample of the exact simulator's smooth force phases (spring, current
-#: limit, track friction, backlash's modes): within a phase the right-hand side is smooth and
-#: RK4 converges at fourth order, below 1e-12 m per sample at Ts/20 (jaxcart.exact, tested
-#: against the closed form where both apply).
-RK4_SUBSTEPS = 20
+#: limit, track friction, Stribeck friction, backlash's modes): within a phase the right-hand
+#: side is smooth and RK4 converges at fourth order. A PD step of 2 s at Ts/5 against Ts/80
+#: (measured 2026-12-06): track friction 9e-15 m, Stribeck friction 2.6e-12 m, backlash 5e-14
+#: m, a spring with Stribeck friction 1.6e-11 m at most, 1e-6 of an encoder count; a friction
+#: curve's kinks stepped over inside a phase 1.5e-8 m (6e-10 m at Ts/20). Ts/20 ran 4 times as
+#: long. Tested against the closed form where both apply and against solve_ivp.
+RK4_SUBSTEPS = 5
 
 
 def substeps_per_sample(plant, *, rk4: bool = False, screening: bool = False) -> int:

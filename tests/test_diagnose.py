@@ -116,6 +116,27 @@ def test_the_suite_judges_each_case_by_its_rule():
     assert _judged(clean)["correct"]
     row = _judged(clean, left_out=["spring"])
     assert not row["correct"] and row["false_alarm"]
+    _judges_the_curve_along_the_track()
+
+
+def _judges_the_curve_along_the_track():
+    """Rule "curve" where the truth's friction varies along the track: the position's curve
+    named and within 0.05 N of the truth (0.2 N, +0.4 N from +0.2 m on, linear from -0.2 m)
+    at the knots it fitted; the speed's curve named there is wrong, and the position's named
+    on a cart without it a false alarm."""
+    along = BY_NAME["one cart (steps and out-and-back both ways): friction along the track"]
+    # The truth's friction at -0.2, 0 and 0.2 m is 0.2, 0.4 and 0.6 N.
+    read = {"positions": [-0.2, 0.0, 0.2], "levels": [0.21, 0.44, 0.6]}
+    track = {"named": True, "curve": read}
+    row = _judged(along, explained=False, friction_curve={"track": track})
+    assert row["correct"] and not row["false_alarm"] and "track curve" in row["named"]
+    off = {**track, "curve": {**read, "levels": [0.21, 0.46, 0.6]}}
+    assert not _judged(along, explained=False, friction_curve={"track": off})["correct"]
+    speed = {"named": True, "curve": {"speeds": [], "levels": {}, "bands": {}}}
+    assert not _judged(along, explained=False, friction_curve=speed)["correct"]
+    rise = BY_NAME["one cart (taps both ways): friction rising with speed"]
+    row = _judged(rise, explained=False, friction_curve={"track": track})
+    assert not row["correct"] and row["false_alarm"]
 
 
 def test_a_case_of_several_runs_is_one_cart(tmp_path):
@@ -419,7 +440,7 @@ def test_the_suite_judges_a_friction_curve():
         return {"named": named, "curve": c, "sides": ("right", "left")}
 
     row = judge(rising, _diagnosis(friction_curve=curve(True, (right, left))), [truth])
-    assert row["correct"] and not row["false_alarm"] and "curve" in row["named"]
+    assert row["correct"] and not row["false_alarm"] and "speed curve" in row["named"]
     wrong = (right, [0.3, 0.3, 0.37, 0.55, 0.56])  # 0.11 N too high moving left
     assert not judge(rising, _diagnosis(friction_curve=curve(True, wrong)), [truth])["correct"]
     assert not judge(rising, _diagnosis(friction_curve=curve(False, (right, left))), [truth])[

@@ -33,6 +33,7 @@ from tuning.estimation.diagnose.report import figure_title
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.significance import implausible, significance
 from tuning.estimation.diagnose.structures import PER_RUN, Candidate, extend, swapped_correction
+from tuning.estimation.diagnose.suite import TRACK_WAVE
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
     MISFIT_RATIO,
@@ -340,9 +341,7 @@ def test_a_recording_no_candidate_explains_says_so(tmp_path):
     structure ends far above the floor. The verdict says no candidate explains it, names the
     best approximation and how far it is, suggests what may be missing, and the standard errors
     are widened for model error as jaxcart fit widens its own."""
-    rec = _recording(
-        tmp_path, "track", {**B, "f_track": [0.05, 0.6, 0.05, 0.6, 0.05]}, amplitude=0.4
-    )
+    rec = _recording(tmp_path, "track", {**B, "f_track": TRACK_WAVE}, amplitude=0.4)
     d = diagnose([rec], progress=False)
     assert not d.explained and d.floor_ratio > MISFIT_RATIO
     assert d.verdict.startswith("not explained: the best approximation")

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
 import jaxcart as jc
-from jaxcart.effects import REGISTRY
+from jaxcart.effects import REGISTRY, TrackFriction
 from jaxcart.exact import simulate_exact
 from jaxcart.plantspec import build_plant
 
@@ -40,7 +41,7 @@ C = B_EQ + B_EMF  # [kg/s] (motor connected)
 
 #: Closed-form tolerance [m] (float64 rounding over a few thousand steps of a 0.1 m motion).
 TOL_CLOSED = 1e-12
-#: Tolerance [m] where the exact simulator integrates with RK4 on Ts/20 sub-steps.
+#: Tolerance [m] where the exact simulator integrates with RK4 on Ts/5 sub-steps.
 TOL_RK4 = 1e-9
 
 
@@ -330,12 +331,31 @@ def test_track_friction_equal_knots_equal_coulomb():
 
 def _track_level(y, knots):
     """The documented map (jaxcart/effects/track_friction.py): a normalized Gaussian basis,
-    knots evenly spaced over [-0.4, 0.4] m, width their spacing."""
+    knots evenly spaced over [-0.4, 0.4] m, width their spacing, its weights solved so that
+    it passes through the levels at the knots."""
     n = len(knots)
     centers = np.linspace(-0.4, 0.4, n)
     h = 0.8 / (n - 1)
-    w = np.exp(-0.5 * ((y - centers) / h) ** 2)
-    return float(np.dot(knots, w) / np.sum(w))
+
+    def basis(q):
+        w = np.exp(-0.5 * ((np.atleast_1d(q)[:, None] - centers) / h) ** 2)
+        return w / w.sum(axis=1, keepdims=True)
+
+    weights = np.linalg.solve(basis(centers), np.asarray(knots, dtype=float))
+    return float(basis(y)[0] @ weights)
+
+
+def test_track_friction_passes_through_its_levels_at_the_knots():
+    """A level is the friction at its knot (both simulators' map, against the reference map
+    to 1e-12 N everywhere), and equal levels give that level everywhere."""
+    levels = (0.1, 0.3, 0.9, 0.5, 0.2)
+    effect = TrackFriction(f_track=levels)
+    for y, level in zip(np.linspace(-0.4, 0.4, 5), levels, strict=True):
+        assert effect.kinetic(float(y), math) == pytest.approx(level, abs=1e-12)
+    for y in np.linspace(-0.45, 0.45, 37):
+        assert effect.kinetic(float(y), math) == pytest.approx(_track_level(y, levels), abs=1e-12)
+        assert float(effect.kinetic(y, jnp)) == pytest.approx(_track_level(y, levels), abs=1e-6)
+    assert TrackFriction(f_track=(0.4,) * 4).kinetic(0.13, math) == pytest.approx(0.4, abs=1e-12)
 
 
 @pytest.mark.parametrize("v0", [1.2, -1.0])

@@ -202,6 +202,35 @@ def test_friction_curve_figure(tmp_path):
     assert _pixels(path) == (484, 770)
 
 
+def test_friction_along_the_track_figure(tmp_path):
+    """diagnose --curve's figure of the position: the map through its levels, those fitted
+    with their bands, those held drawn hollow, the covered stretch shaded, beside the named
+    Coulomb level each way."""
+    from tuning.estimation.diagnose.curve_report import plot_track
+
+    levels = [0.4, 0.208, 0.419, 0.596, 0.4]
+    d = types.SimpleNamespace(
+        friction_curve={
+            "track": {
+                "named": True,
+                "curve": {
+                    "positions": [-0.2, 0.0, 0.2],
+                    "levels": levels[1:4],
+                    "bands": [0.012, 0.039, 0.012],
+                    "knots": [-0.4, -0.2, 0.0, 0.2, 0.4],
+                    "knot_values": levels,
+                    "span": [-0.247, 0.285],
+                },
+            }
+        },
+        parameters={"B_eq": {"value": 4.6}, "f_c": {"value": 0.4}},
+        plant=jc.handout_plant(f_c=0.4),
+        chosen="coulomb",
+    )
+    path = plot_track(d, tmp_path / "friction_track.png")
+    assert _pixels(path) == (484, 770)
+
+
 def test_lab_figures(tmp_path):
     import control
 

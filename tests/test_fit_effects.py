@@ -21,9 +21,11 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import pytest
 
 import jaxcart as jc
+from jaxcart.effects import TrackFriction
 from jaxcart.errors import UserError
 from jaxcart.synthetic import make_recording
 from tuning.estimation import fit
@@ -220,15 +222,20 @@ def test_track_friction_fit_is_rejected_or_fitted():
     except UserError as exc:
         assert "f_track" in str(exc)
         return
-    fitted = 0
-    for i, truth in enumerate(values["f_track"]):
+    # The step runs over 0-0.3 m: the levels at the knots it passes (0, 0.2 m) are found; one
+    # beyond its reach may be held (at its start), a neighbour trading against it.
+    for i in (2, 3):
         e = result.params[f"f_track[{i}]"]
-        if e.identifiable:
-            fitted += 1
-            assert abs(e.value - truth) < 3 * e.stderr, (i, e.value, e.stderr)
-        else:
-            assert "does not act" not in e.note, e.note
-    assert fitted >= 2  # the knots the cart passes are found
+        assert e.identifiable, e.note
+        assert abs(e.value - values["f_track"][i]) < 3 * e.stderr, (i, e.value, e.stderr)
+    for i in range(5):
+        e = result.params[f"f_track[{i}]"]
+        assert e.identifiable or "does not act" not in e.note, e.note
+    # Where the cart was, the fitted map is the truth's to 5 mN (measured 3 mN: B_eq trades).
+    truth = TrackFriction(f_track=tuple(values["f_track"]))
+    found = result.segments[0].plant.effect(TrackFriction)
+    for y in map(float, np.linspace(0.0, 0.29, 30)):
+        assert found.kinetic(y, math) == pytest.approx(truth.kinetic(y, math), abs=5e-3)
     assert result.params["B_eq"].value == pytest.approx(B_EQ, rel=0.02)
 
 

@@ -27,7 +27,7 @@ drive must cross b/2 before the cart moves.
 
 Exact form (:mod:`jaxcart.exact`): no smoothing; the three modes with their events (impact:
 |d| = b/2; separation: N = 0; stick-slip of the cart's dry friction) located by bisection inside
-RK4 sub-steps (Ts/20), the mode switches applied exactly.
+RK4 sub-steps (Ts/5), the mode switches applied exactly.
 
 Smooth form (:mod:`jaxcart.smooth_sim`): the same hybrid model stepped on sub-steps of Ts/substeps:
 each sub-step first advances both bodies free (the motor in closed form, the cart with the

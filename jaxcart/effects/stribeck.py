@@ -13,7 +13,7 @@ named effect: Stribeck is named only where its speed is significant and at least
 
 Exact form: the combined dry-friction law with the level K + max(f_s - K, 0) exp(-(q/v_s)^2) at
 speed q in each slip phase; it varies with the speed, so the exact simulator integrates that
-phase by RK4 (Ts/20 sub-steps, the direction fixed, stops located by bisection). Smooth form:
+phase by RK4 (Ts/5 sub-steps, the direction fixed, stops located by bisection). Smooth form:
 stiction's bump over the speed sqrt(v_stribeck^2 + w c) (w the velocity width, c = 0.01 m/s),
 which tends to v_stribeck as w -> 0.
 """

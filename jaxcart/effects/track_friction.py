@@ -1,15 +1,20 @@
 """Friction that varies along the track: a kinetic level f(y) [N], a smooth map of position
 through a few knots (a worn or dirty stretch, a tight bearing).
 
-    f(y) = sum_i a_i phi_i(y) / sum_i phi_i(y),   phi_i = exp(-((y - k_i) / h)^2 / 2)
+    f(y) = sum_i c_i phi_i(y) / sum_i phi_i(y),   phi_i = exp(-((y - k_i) / h)^2 / 2)
 
 with knots k_i evenly spaced over +/- 0.4 m (the cart's travel), h their spacing: a normalized
-radial basis, so equal values a_i give a constant level and f stays within [min a, max a]. It adds
-to Coulomb's f_c (docs/design.md, "Effects").
+radial basis whose weights c interpolate the levels a_i given at the knots (f(k_i) = a_i; c = W^-1
+a, W_ij = phi_j(k_i) / sum_l phi_l(k_i)). So a level is the friction at its knot (a fit's values
+and standard errors are friction where the cart was), equal levels give a constant one, and
+between the knots f may pass a little beyond its neighbours (0.02 N over levels rising 0.4 N
+over two spacings). It adds to Coulomb's f_c, the sum held at 0 or above (docs/design.md,
+"Effects").
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -40,9 +45,9 @@ class TrackFriction(Effect):
     position_dependent = True
     summary = "friction along the track: a smooth map f(y) through knots over +/-0.4 m"
     not_candidate = (
-        "a candidate only where the recordings cover 0.4 m of the track, and the diagnosis's "
-        "batch does not fit a vector yet (5 knots and B_eq are 6 slots of its 5); fit it with "
-        "jaxcart fit --params B_eq,f_track"
+        "the diagnosis's batch does not fit a vector yet (5 knots and B_eq are 6 slots of its "
+        "5): jaxcart diagnose --curve reads it as the last candidate where the recordings "
+        "cover 0.4 m of the track; fit it with jaxcart fit --params B_eq,f_track"
     )
     # Two knot spacings: three knots within reach, so that a level that varies shows.
     covers = 0.4
@@ -63,15 +68,45 @@ class TrackFriction(Effect):
     )
 
     def kinetic(self, y, xp):
-        if xp is math:  # the exact simulator: plain floats, called ~10^5 times a run
-            n = len(self.f_track)
-            h = 2 * SPAN / (n - 1)
-            w = [math.exp(-0.5 * ((y + SPAN - i * h) / h) ** 2) for i in range(n)]
-            return sum(a * wi for a, wi in zip(self.f_track, w, strict=True)) / sum(w)
+        if xp is math:  # the exact simulator: plain floats, called ~10^6 times a run
+            levels = self.f_track
+            weights, offsets, inv_h = _exact_form(
+                levels if isinstance(levels, tuple) else tuple(levels)
+            )
+            u = y * inv_h
+            num = den = 0.0
+            for c, o in zip(weights, offsets, strict=True):
+                z = u + o  # (y - k_i) / h
+                w = math.exp(-0.5 * z * z)
+                num += c * w
+                den += w
+            return num / den
         a = xp.asarray(self.f_track)
         n = a.shape[-1]
+        c = xp.asarray(_interpolation(n)) @ a
         knots = np.linspace(-SPAN, SPAN, n)
-        h = 2 * SPAN / (n - 1)
-        z = (y - knots) / h  # y is a scalar here (each simulator steps one run)
+        z = (y - knots) / (2 * SPAN / (n - 1))  # y is a scalar here (each simulator steps one run)
         w = xp.exp(-0.5 * z * z)
-        return xp.sum(a * w) / xp.sum(w)
+        return xp.sum(c * w) / xp.sum(w)
+
+
+@functools.cache
+def _interpolation(n: int) -> np.ndarray:
+    """W^-1 of n knots: the basis weights c = W^-1 a that put f through the levels a."""
+    knots = np.linspace(-SPAN, SPAN, n)
+    phi = np.exp(-0.5 * ((knots[:, None] - knots[None, :]) / (2 * SPAN / (n - 1))) ** 2)
+    return np.linalg.inv(phi / phi.sum(axis=1, keepdims=True))
+
+
+@functools.lru_cache(maxsize=256)
+def _exact_form(levels: tuple) -> tuple:
+    """(the basis weights of ``levels``, -k_i / h, 1 / h [1/m]) as plain floats: the exact
+    simulator asks for the same levels ~10^6 times a run."""
+    n = len(levels)
+    h = 2 * SPAN / (n - 1)
+    weights = _interpolation(n) @ np.asarray(levels, dtype=float)
+    return (
+        tuple(float(c) for c in weights),
+        tuple(float(-k / h) for k in np.linspace(-SPAN, SPAN, n)),
+        1.0 / h,
+    )

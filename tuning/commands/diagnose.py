@@ -40,7 +40,8 @@ def register(subparsers) -> None:
         "--curve",
         action="store_true",
         help="where nothing named explains the recordings, read friction as a curve of the "
-        "speed (each direction; named where it predicts the recordings held out better)",
+        "speed (each direction) and, where they cover 0.4 m of the track, of the position "
+        "(each named where it predicts the recordings held out better)",
     )
 
     add_format_option(p)

@@ -1,6 +1,7 @@
-"""The friction curve a diagnosis read (:mod:`.friction_curve`) in its report: a section of
-Markdown and a figure of the friction against the speed, each direction with its 90 % band,
-beside the friction law of the named structure it competed with."""
+"""The friction curves a diagnosis read (:mod:`.friction_curve`) in its report: a section of
+Markdown for each, a figure of the friction against the speed (each direction with its 90 %
+band) and one of the friction along the track, each beside the friction law of the named
+structure it competed with."""
 
 from __future__ import annotations
 
@@ -14,46 +15,83 @@ from jaxcart import plots
 Z90 = 1.645
 
 
-def curve_section(d, figure: str | None = None, plant_file: str | None = None) -> list:
-    """Markdown lines: what the curve shows, whether it is named and why, the held-out table,
-    the curve's values (empty when no curve was tried)."""
-    fc = d.friction_curve
+def curve_section(d, files: dict | None = None) -> list:
+    """Markdown lines: for each curve tried (of the speed, of the position), what it shows,
+    whether it is named and why, the held-out table and its values; ``files`` {"figure",
+    "track_figure", "plant"}: the outputs written (empty when no curve was tried)."""
+    fc, files = d.friction_curve, files or {}
     if not fc:
         return []
     lines = ["", "## Friction as a curve of the speed", ""]
     if not fc.get("sides"):
-        return lines + [fc["why"][:1].upper() + fc["why"][1:] + "."]
-    lines += [
-        f"**{'Named' if fc['named'] else 'Not named'}** ({fc['why']}). {fc['words']}.",
+        lines.append(fc["why"][:1].upper() + fc["why"][1:] + ".")
+    else:
+        lines += _verdict(fc) + _held_table(fc.get("held_out"), "curve") + _speed_table(fc)
+        if files.get("figure"):
+            lines += ["", f"![friction curve]({files['figure']})"]
+    if "track" in fc:
+        lines += ["", "## Friction along the track", ""]
+        lines += _verdict(fc["track"]) + _held_table(fc.get("held_out"), "track")
+        lines += _track_table(fc["track"]["curve"])
+        if files.get("track_figure"):
+            lines += ["", f"![friction along the track]({files['track_figure']})"]
+    if files.get("plant"):
+        lines += ["", f"The cart with the curve: `{files['plant']}` (simulate with `--plant`)."]
+    return lines
+
+
+def _verdict(shape: dict) -> list:
+    return [
+        f"**{'Named' if shape['named'] else 'Not named'}** ({shape['why']}). {shape['words']}.",
         "",
         "The curve replaces the named structure's forces other than dry friction and keeps the "
-        f"rest: fitted {', '.join(fc['structure'])}; RMS {fc['rms'] * 1e3:.4f} mm on the exact "
-        "simulator.",
+        f"rest: fitted {', '.join(shape['structure'])}; RMS {shape['rms'] * 1e3:.4f} mm on the "
+        "exact simulator.",
         "",
     ]
-    held = fc.get("held_out")
-    if held and held["recordings"]:
-        lines += ["| held out | named structure [mm] | with the curve [mm] |", "|---|---:|---:|"]
-        lines += [
-            f"| {name} | {a * 1e3:.4f} | {b * 1e3:.4f} |"
-            for name, a, b in zip(held["recordings"], held["named"], held["curve"], strict=True)
-        ]
-        lines.append("")
+
+
+def _held_table(held, label: str) -> list:
+    if not held or not held["recordings"]:
+        return []
+    lines = ["| held out | named structure [mm] | with the curve [mm] |", "|---|---:|---:|"]
+    lines += [
+        f"| {name} | {a * 1e3:.4f} | {'-' if b is None else f'{b * 1e3:.4f}'} |"
+        for name, a, b in zip(held["recordings"], held["named"], held[label], strict=True)
+    ]
+    return lines + [""]
+
+
+def _cells(levels, bands) -> list:
+    return [
+        f"{v:.3f} ± {b:.3f}" if b is not None else f"{v:.3f} (held)"
+        for v, b in zip(levels, bands, strict=True)
+    ]
+
+
+def _speed_table(fc: dict) -> list:
     c = fc["curve"]
     head = " | ".join(f"{q * 1e3:.0f} mm/s" for q in c["speeds"][1:])
-    lines += [f"| friction [N] | {head} |", "|---" + "|---:" * (len(c["speeds"]) - 1) + "|"]
+    lines = [f"| friction [N] | {head} |", "|---" + "|---:" * (len(c["speeds"]) - 1) + "|"]
     for side, levels in c["levels"].items():
-        cells = [
-            f"{v:.3f} ± {b:.3f}" if b is not None else f"{v:.3f} (held)"
-            for v, b in zip(levels[1:], c["bands"][side][1:], strict=True)
-        ]
+        cells = _cells(levels[1:], c["bands"][side][1:])
         lines.append(f"| moving {side} | " + " | ".join(cells) + " |")
-    lines += ["", f"Viscous friction beside it: B_eq = {c['b_eq']:.4g} kg/s."]
-    if plant_file:
-        lines += [f"The cart with the curve: `{plant_file}` (simulate with `--plant`)."]
-    if figure:
-        lines += ["", f"![friction curve]({figure})"]
-    return lines
+    return lines + ["", f"Viscous friction beside it: B_eq = {c['b_eq']:.4g} kg/s."]
+
+
+def _track_table(c: dict) -> list:
+    head = " | ".join(f"{q:+.2f} m" for q in c["positions"])
+    lo, hi = c["span"]
+    held = [f"{q:+.2f} m" for q in c["knots"] if q not in c["positions"]]
+    return [
+        f"| friction [N] at | {head} |",
+        "|---" + "|---:" * len(c["positions"]) + "|",
+        "| either way | " + " | ".join(_cells(c["levels"], c["bands"])) + " |",
+        "",
+        f"The recordings cover {lo:+.3f} to {hi:+.3f} m; the levels at the knots they leave "
+        f"undetermined ({', '.join(held) or 'none'}) are held at the named f_c. Viscous "
+        f"friction beside it: B_eq = {c['b_eq']:.4g} kg/s.",
+    ]
 
 
 def named_friction(d, speeds, side: str, b_eq: float) -> np.ndarray:
@@ -61,12 +99,7 @@ def named_friction(d, speeds, side: str, b_eq: float) -> np.ndarray:
     viscous ``b_eq`` q [kg/s] the curve has beside it: Coulomb's level split by its asymmetry,
     viscous friction (B_eq, by direction) above ``b_eq``, Stribeck's fall from the static
     level (the diagnosis's fitted values)."""
-    fitted = {n: v["value"] for n, v in d.parameters.items() if v.get("value") is not None}
-    have = d.plant.param_names()
-
-    def get(name):
-        return float(fitted.get(name, d.plant.get(name) if name in have else 0.0))
-
+    get = _named_values(d)
     sign = 1.0 if side == "right" else -1.0
     level = get("f_c") + sign * get("f_c_asym")
     q = np.asarray(speeds, dtype=float)
@@ -75,6 +108,14 @@ def named_friction(d, speeds, side: str, b_eq: float) -> np.ndarray:
     if f_s > level and v_s > 0:
         out = out + (f_s - level) * np.exp(-((q / v_s) ** 2))
     return out
+
+
+def _named_values(d):
+    """name -> the diagnosis's fitted value of it (its cart's where not fitted, 0 where the
+    cart lacks it)."""
+    fitted = {n: v["value"] for n, v in d.parameters.items() if v.get("value") is not None}
+    have = d.plant.param_names()
+    return lambda name: float(fitted.get(name, d.plant.get(name) if name in have else 0.0))
 
 
 def plot_curve(d, path):
@@ -118,6 +159,54 @@ def plot_curve(d, path):
     ax.set_title(f"Friction as a curve of the speed ({named})", fontsize=10)
     ax.legend(fontsize=7, loc="best")
     ax.grid(alpha=0.3, which="both")
+    out = plots.save(fig, path, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_track(d, path):
+    """The friction along the track the curve read (its levels fitted with their 90 % bands,
+    those held, the map through them, the stretch the recordings cover shaded), beside the named
+    structure's kinetic level (Coulomb's, each direction); saved at ``path``."""
+    # lazy: as plot_curve
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxcart.effects.track_friction import TrackFriction
+
+    shape = d.friction_curve["track"]
+    c = shape["curve"]
+    cart = TrackFriction(f_track=tuple(c["knot_values"]))
+    fine = np.linspace(c["knots"][0], c["knots"][-1], 300)
+    fig, ax = plt.subplots(figsize=(7.0, 4.4), layout="constrained")
+    ax.axvspan(*c["span"], color="0.9", label="covered by the recordings")
+    level = np.array([cart.kinetic(float(y), math) for y in fine])
+    inside = (fine >= c["positions"][0]) & (fine <= c["positions"][-1])
+    ax.plot(fine, np.where(inside, level, np.nan), "-", color="C0", lw=1.6,
+            label="curve along the track")  # fmt: skip
+    ax.plot(fine, np.where(inside, np.nan, level), ":", color="C0", lw=1,
+            label="beyond the levels fitted")  # fmt: skip
+    ax.errorbar(c["positions"], c["levels"], yerr=Z90 * np.asarray(c["bands"]), fmt="o",
+                color="C0", capsize=3, label="levels fitted, 90 % band")  # fmt: skip
+    held = [(q, v) for q, v in zip(c["knots"], c["knot_values"], strict=True)
+            if q not in c["positions"]]  # fmt: skip
+    if held:
+        ax.plot(*zip(*held, strict=True), "o", mfc="none", color="C0",
+                label="levels held (not determined)")  # fmt: skip
+    get = _named_values(d)
+    signs = (1.0, -1.0) if get("f_c_asym") else (0.0,)
+    for k, sign in enumerate(signs):  # Coulomb's level, split by its asymmetry where it has one
+        side = {1.0: ", right", -1.0: ", left", 0.0: ""}[sign]
+        ax.axhline(get("f_c") + sign * get("f_c_asym"), ls="--", lw=1, color=f"C{k + 1}",
+                   label=f"named ({d.chosen}){side}")  # fmt: skip
+    ax.set_xlabel("position along the track y [m]")
+    ax.set_ylabel("kinetic friction [N]")
+    named = "named" if shape["named"] else "not named"
+    ax.set_title(f"Friction along the track ({named})", fontsize=10)
+    ax.legend(fontsize=7, loc="best")
+    ax.grid(alpha=0.3)
     out = plots.save(fig, path, dpi=110)
     plt.close(fig)
     return out

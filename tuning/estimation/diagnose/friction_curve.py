@@ -16,6 +16,10 @@ The curve is named where its held-out sum of squares is at most
 and it is shown, never named, and a curve whose friction falls below 0 somewhere (it would push
 the cart along: the fit absorbs other physics with it) is never named.
 
+Where the recordings cover the track, friction as a curve of the position is tried beside it
+(:mod:`.track_curve`), judged on the same held-out recordings by the same rule; where both
+would be named, the one that predicts them best is.
+
 The fits are :func:`tuning.estimation.fit.fit`'s (its parameters may be vectors; the diagnosis's
 batch fits scalars).
 """
@@ -27,9 +31,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxcart.effects.friction_curve import ANCHOR, KNOTS, knots
+from jaxcart.effects.friction_curve import ANCHOR, KNOTS, FrictionCurve, knots
 from jaxcart.errors import UserError
 from jaxcart.plantspec import effect_of_param
+from tuning.estimation.diagnose import track_curve
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.engine.segments import recording_name
@@ -74,6 +79,11 @@ def sides_slid(recordings) -> tuple:
     return tuple(s for s in SIDES if top[s] > reach)
 
 
+def _without_replaced(values: dict) -> dict:
+    """``values`` less those of the forces a curve replaces (:func:`_replaced`)."""
+    return {n: v for n, v in values.items() if not _replaced(n)}
+
+
 def _replaced(name: str) -> bool:
     """A force of the cart's mechanics that is not dry friction (a spring, a tilt, viscous
     friction by direction): what a search reaches for where friction's shape is missing, and
@@ -101,48 +111,106 @@ def structures(d, sides) -> tuple[tuple, tuple, tuple]:
 
 
 def discover(recordings, d, *, executor=None, say=None) -> dict:
-    """The curve tried on ``recordings`` after diagnosis ``d`` (status "diagnosed"): {"sides",
-    "structure" (the curve's parameters), "parameters" {name: {"value", "stderr", "unit"}},
-    "curve" (:class:`Curve` as a dict), "rms" [m], "held_out" (:func:`held_out`, or None with
-    one recording), "named" (bool), "why" (the decision in words), "words" (what the curve
-    shows), "plant" (the fitted cart with the curve, :func:`_cart`)}, or {"sides": (), "why"}
-    where the cart never slid fast enough or the curve could not be fitted."""
+    """The curves tried on ``recordings`` after diagnosis ``d`` (status "diagnosed"): of the
+    speed where the cart slid faster than 20 mm/s ({"sides", "structure" (its parameters),
+    "parameters" {name: {"value", "stderr", "unit"}}, "curve" (:class:`Curve` as a dict),
+    "rms" [m], "named" (bool), "why" (the decision in words), "words" (what it shows)}, else
+    "sides" () and "why"), and of the position where the recordings cover the track
+    (:mod:`.track_curve`: the same keys but "sides" under "track", its "curve"
+    :func:`.track_curve.read`'s);
+    "held_out" (:func:`held_out`, both shapes' rows, or None with one recording), "plant" (the
+    fitted cart of the curve named, else of the one tried: :func:`_cart`). At most one is
+    named: where both predict better, the one that predicts the held-out recordings best."""
     say = say or (lambda _: None)
-    sides = sides_slid(recordings)
-    if not sides:
-        return {"sides": (), "why": "the cart never slid faster than 20 mm/s: no curve to read"}
+    sides, span = sides_slid(recordings), track_curve.covered(recordings)
+    along = track_curve.fitted_knots(recordings) if span is not None else ()
+    span = span if len(along) >= 2 else None  # a level that varies needs two knots
+    if not sides and span is None:
+        reach = track_curve.TrackFriction.covers
+        return {"sides": (), "why": "the cart never slid faster than 20 mm/s nor over "
+                f"{reach:g} m of the track: no curve to read"}  # fmt: skip
     named, curve, per_run = structures(d, sides)
     initial = {n: float(p["value"]) for n, p in d.parameters.items() if "@" not in n}
-    say(f"friction as a curve of the speed ({', '.join(sides)}): {', '.join(curve)}")
+    # A curve starts from the named values less the forces it replaces (a value not fitted is
+    # held: a spring left in would stay at its named stiffness).
+    shapes = {"curve": (curve, _without_replaced(initial))} if sides else {}
+    if span is not None:
+        kept = [n for n in curve if effect_of_param(base_name(n)) is not FrictionCurve]
+        params, held = track_curve.structure(named, kept, along, initial)
+        shapes["track"] = (params, {**_without_replaced(initial), **held})
+    for label, (params, _) in shapes.items():
+        say(f"friction as a curve of the {_OF[label]}: {', '.join(params)}")
     joint = {}
     try:
-        for label, params in (("named", named), ("curve", curve)):
-            joint[label] = fit(recordings, params, per_recording=per_run, initial=initial,
-                               progress=False, executor=executor)  # fmt: skip
+        for label, (params, start) in {"named": (named, initial), **shapes}.items():
+            joint[label] = _FIT.get(label, fit)(recordings, params, per_recording=per_run,
+                                                initial=start, progress=False,
+                                                executor=executor)  # fmt: skip
     except UserError as exc:  # the diagnosis stands; the curve could not be fitted
         say(f"friction curve: not fitted: {exc}")
         return {"sides": (), "why": f"the curve could not be fitted: {exc}"}
-    result = joint["curve"]
-    found = read(result, sides)
-    held = held_out(recordings, {"named": named, "curve": curve}, per_run, joint, executor, say)
-    is_named, why = decide(held, significant(result, sides), below_zero(found))
-    say(f"friction curve: {why}")
+    held = held_out(recordings, {"named": named, **{k: v[0] for k, v in shapes.items()}},
+                    per_run, joint, executor, say,
+                    fixed={"named": initial, **{k: v[1] for k, v in shapes.items()}})  # fmt: skip
+    found = {k: _shape(k, shapes[k][0], joint[k], held, sides, span) for k in shapes}
+    _one_named(found, held)
+    for label, shape in found.items():
+        say(f"friction curve of the {_OF[label]}: {shape['why']}")
+    out = found.get("curve") or {"sides": (), "why": "the cart never slid faster than 20 mm/s"}
+    if "track" in found:
+        out["track"] = found["track"]
+    best = next((k for k in found if found[k]["named"]), next(iter(found)))
+    return {**out, "held_out": held, "plant": _cart(joint[best])}
+
+
+#: Each shape's variable, in words.
+_OF = {"curve": "speed", "track": "position"}
+#: How a shape is fitted where not by :func:`tuning.estimation.fit.fit` itself.
+_FIT = {"track": track_curve.fit_tied}
+
+
+def _shape(label, params, result, held, sides, span) -> dict:
+    """One shape's entry of :func:`discover`: its values, what it shows, and whether the
+    rule names it on its own."""
+    if label == "curve":
+        found = read(result, sides)
+        departs, pushes = significant(result, sides), below_zero(found)
+        words, curve = describe(found), found._asdict()
+    else:
+        curve = track_curve.read(result, span)
+        departs, pushes, words = track_curve.varies(curve), (), track_curve.describe(curve)
+    is_named, why = decide(held, departs, pushes, label=label)
     return {
-        "sides": sides,
-        "structure": curve,
+        **({"sides": sides} if label == "curve" else {}),
+        "structure": params,
         "parameters": {
             n: {"value": e.value, "stderr": e.stderr, "unit": unit_of(n)}
             for n, e in result.params.items()
             if e.identifiable
         },
-        "curve": found._asdict(),
+        "curve": curve,
         "rms": result.rms_after_exact,
-        "held_out": held,
         "named": is_named,
         "why": why,
-        "words": describe(found),
-        "plant": _cart(result),
+        "words": words,
     }
+
+
+def _one_named(found: dict, held) -> None:
+    """Where both shapes would be named, keep the one that predicts the held-out recordings
+    best and say why the other is not."""
+    named = [k for k, v in found.items() if v["named"]]
+    if len(named) < 2:
+        return
+    best = min(named, key=lambda k: _share(held, k))
+    for k in named:
+        if k != best:
+            found[k]["named"] = False
+            found[k]["why"] = (
+                f"not named: held out, it leaves {_share(held, k):.2f} of the named "
+                f"structure's sum of squares, the curve of the {_OF[best]} "
+                f"{_share(held, best):.2f}"
+            )
 
 
 def _cart(result):
@@ -194,49 +262,69 @@ def significant(result, sides) -> list:
     return out
 
 
-def held_out(recordings, structures, per_run, joint, executor=None, say=None) -> dict | None:
-    """Each recording left out in turn: each structure ({label: parameters}) fitted to the
-    others from its joint fit's values (``joint`` {label: FitResult}), then predicting it, its
-    own drive values and start state fitted to it. A recording counts only where the others
-    determine every value of both structures that the joint fit did. {"recordings": names,
-    label: RMS [m] each, "samples": each one's, f"{label}_sse" [m^2]}, or None with one
-    recording."""
+def held_out(recordings, structures, per_run, joint, executor=None, say=None, fixed=None):
+    """Each recording left out in turn: each structure ({label: parameters}, "named" among
+    them) fitted to the others from its joint fit's values (``joint`` {label: FitResult};
+    ``fixed`` {label: {name: value}}: values a structure holds, as its joint fit did), then
+    predicting it, its own drive values and start state fitted to it. A structure predicts a
+    recording only where the others determine every value its joint fit did (else None
+    there); a recording counts where the named structure and some other predict it.
+    {"recordings": names, "samples": each one's, label: RMS [m] each (or None),
+    "named_sse" [m^2]; for each other label, over the recordings it predicts: f"{label}_sse",
+    f"{label}_named_sse" (the named structure's there) [m^2], f"{label}_count"}, or None with
+    one recording."""
     if len(recordings) < 2:
         return None
     rows = {"recordings": [], "samples": [], **{label: [] for label in structures}}
     for i, rec in enumerate(recordings):
         others = [r for j, r in enumerate(recordings) if j != i]
-        own = [n for n in per_run if rec.kind != "tap" or not parameters.is_drive(n)]
-        rms = {}
-        for label, params in structures.items():
-            start = shared_values(joint[label], params)
-            try:
-                rest = fit(others, params, per_recording=per_run, initial=start,
-                           progress=False, executor=executor)  # fmt: skip
-            except UserError:  # a value only this recording drives
-                break
-            # (Shared values: a run's own, name@k, is numbered anew among the others.)
-            known = {n for n, e in joint[label].params.items() if e.identifiable and "@" not in n}
-            if any(not e.identifiable for n, e in rest.params.items() if n in known):
-                break  # the others leave a value this recording alone determines
-            pred = fit([rec], own, initial={**start, **shared_values(rest, params)},
-                       progress=False, executor=executor)  # fmt: skip
-            rms[label] = pred.rms_after_exact
-        if len(rms) < len(structures) or not all(np.isfinite(list(rms.values()))):
+        rms = {
+            label: _predicted(rec, others, params, per_run, joint[label],
+                              (fixed or {}).get(label, {}), executor, _FIT.get(label, fit))
+            for label, params in structures.items()
+        }  # fmt: skip
+        if rms["named"] is None or all(v is None for v in rms.values()):
             if say:
                 say(f"  {recording_name(rec)}: not held out (the others do not determine it)")
             continue
         rows["recordings"].append(recording_name(rec))
         rows["samples"].append(int(np.asarray(rec.position).size))
         for label, value in rms.items():
-            rows[label].append(float(value))
+            rows[label].append(value)
         if say:
             say(f"  {recording_name(rec)} held out: " + ", ".join(
-                f"{label} {value * 1e3:.4f} mm" for label, value in rms.items()))  # fmt: skip
-    n = np.asarray(rows["samples"], dtype=float)
+                f"{label} {'-' if v is None else f'{v * 1e3:.4f}'} mm"
+                for label, v in rms.items()))  # fmt: skip
+    n = rows["samples"]
+    rows["named_sse"] = float(sum(k * v**2 for k, v in zip(n, rows["named"], strict=True)))
     for label in structures:
-        rows[f"{label}_sse"] = float(np.sum(n * np.asarray(rows[label]) ** 2))
+        if label != "named":
+            use = [j for j, v in enumerate(rows[label]) if v is not None]
+            rows[f"{label}_sse"] = float(sum(n[j] * rows[label][j] ** 2 for j in use))
+            rows[f"{label}_named_sse"] = float(sum(n[j] * rows["named"][j] ** 2 for j in use))
+            rows[f"{label}_count"] = len(use)
     return rows
+
+
+def _predicted(rec, others, params, per_run, joint, fixed, executor, fitter) -> float | None:
+    """The RMS [m] of recording ``rec`` predicted by the structure ``params`` fitted to
+    ``others`` (by ``fitter``) from its ``joint`` fit's values, or None where the others do not
+    determine every value that the joint fit did."""
+    own = [n for n in per_run if rec.kind != "tap" or not parameters.is_drive(n)]
+    start = {**fixed, **shared_values(joint, params)}
+    try:
+        rest = fitter(others, params, per_recording=per_run, initial=start, progress=False,
+                   executor=executor)  # fmt: skip
+    except UserError:  # a value only this recording drives
+        return None
+    # (Shared values: a run's own, name@k, is numbered anew among the others.)
+    known = {n for n, e in joint.params.items() if e.identifiable and "@" not in n}
+    if any(not e.identifiable for n, e in rest.params.items() if n in known):
+        return None  # the others leave a value this recording alone determines
+    pred = fit([rec], own, initial={**start, **shared_values(rest, params)}, progress=False,
+               executor=executor)  # fmt: skip
+    value = pred.rms_after_exact
+    return float(value) if value is not None and np.isfinite(value) else None
 
 
 def shared_values(result, params) -> dict:
@@ -264,9 +352,10 @@ def below_zero(c: Curve) -> list:
     ]
 
 
-def decide(held, departs, pushes=()) -> tuple[bool, str]:
-    """(named, why): the rule of the module's docstring, in words; ``pushes``
-    (:func:`below_zero`): a friction that pushes is never named."""
+def decide(held, departs, pushes=(), label="curve") -> tuple[bool, str]:
+    """(named, why): the rule of the module's docstring, in words, for the shape ``label`` of
+    ``held`` ("curve", the speed's; "track", the position's); ``pushes`` (:func:`below_zero`):
+    a friction that pushes is never named."""
     if pushes:
         side, q, v = pushes[0]
         return False, (
@@ -274,15 +363,26 @@ def decide(held, departs, pushes=()) -> tuple[bool, str]:
             f"{q * 1e3:.0f} mm/s), which no friction does: it absorbs other physics"
         )
     if not departs:
-        return False, "no entry departs from the slow level (Coulomb and B_eq hold)"
-    if held is None or not held["recordings"]:
+        return False, (
+            "no entry departs from the slow level (Coulomb and B_eq hold)"
+            if label == "curve"
+            else "the friction does not vary along the track (one level holds)"
+        )
+    if held is None or not held.get(f"{label}_count"):
         return False, "shown, not named: no recording could be held out to judge it"
-    share = held["curve_sse"] / held["named_sse"] if held["named_sse"] > 0 else math.inf
+    share = _share(held, label)
     verdict = "named" if share <= HELD_OUT_SHARE else "not named"
     return share <= HELD_OUT_SHARE, (
         f"{verdict}: held out, it leaves {share:.2f} of the named structure's sum of squares "
-        f"over {len(held['recordings'])} recording(s) (named under {HELD_OUT_SHARE:g})"
+        f"over {held[f'{label}_count']} recording(s) (named under {HELD_OUT_SHARE:g})"
     )
+
+
+def _share(held, label: str) -> float:
+    """The shape's held-out sum of squares as a share of the named structure's, over the
+    recordings it predicts."""
+    named = held[f"{label}_named_sse"]
+    return held[f"{label}_sse"] / named if named > 0 else math.inf
 
 
 def describe(c: Curve) -> str:

@@ -18,7 +18,7 @@ from jaxcart.errors import UserError
 from jaxcart.plantspec import write_plant_file
 from jaxcart.plots import EXPERIMENT_STYLE, figure_legend
 from tuning.estimation.diagnose.crossval import WORSE
-from tuning.estimation.diagnose.curve_report import curve_section, plot_curve
+from tuning.estimation.diagnose.curve_report import curve_section, plot_curve, plot_track
 from tuning.estimation.diagnose.policy import SIGNIFICANCE
 from tuning.estimation.engine.parameters import at_edge
 
@@ -33,7 +33,8 @@ def _num(x) -> str:
 
 def render_markdown(d, figure: str | None = None, curve_files: dict | None = None) -> str:
     """The diagnosis as a Markdown section (for ``report.md`` and the lab report);
-    ``curve_files``: {"figure", "plant"} of the friction curve's outputs, where written."""
+    ``curve_files``: {"figure", "track_figure", "plant"} of the friction curves' outputs,
+    where written."""
     lines = [f"# Diagnosis of {', '.join(d.recordings)}", "", f"**{d.verdict}**", ""]
     if d.controller_checks:
         lines += ["## Controller check", ""]
@@ -43,8 +44,7 @@ def render_markdown(d, figure: str | None = None, curve_files: dict | None = Non
         return "\n".join(lines + [f"- {m}" for m in d.messages]) + "\n"
     lines += _caveats(d) + _fit_section(d) + _per_recording_section(d) + _where_section(d)
     lines += _candidates_section(d, figure)
-    files = curve_files or {}
-    lines += curve_section(d, files.get("figure"), files.get("plant"))
+    lines += curve_section(d, curve_files)
     return "\n".join(lines) + "\n"
 
 
@@ -402,8 +402,10 @@ def write_outputs(d, out_dir, *, json_path=None, force: bool = False, fmt: str =
         del paths["plant_file"]
     if d.status == "diagnosed" and d.friction_curve.get("sides"):
         paths["curve_figure"] = out / f"friction_curve.{fmt}"
-        if d.curve_plant is not None:
-            paths["curve_plant"] = out / "curve_plant.toml"
+    if d.status == "diagnosed" and "track" in d.friction_curve:
+        paths["track_figure"] = out / f"friction_track.{fmt}"
+    if {"curve_figure", "track_figure"} & set(paths) and d.curve_plant is not None:
+        paths["curve_plant"] = out / "curve_plant.toml"
     if json_path:
         paths["json"] = Path(json_path)
     for p in paths.values():
@@ -435,6 +437,8 @@ def _write_outputs(d, out, paths, json_path, force) -> None:
     curve_files = {}
     if "curve_figure" in paths:
         curve_files["figure"] = plot_curve(d, paths["curve_figure"]).name
+    if "track_figure" in paths:
+        curve_files["track_figure"] = plot_track(d, paths["track_figure"]).name
     if "curve_plant" in paths:
         fit = {"source": "jaxcart diagnose --curve", "recordings": ", ".join(d.recordings)}
         write_plant_file(paths["curve_plant"], d.curve_plant, fit=fit, force=force)

@@ -82,8 +82,9 @@ class Diagnosis:
     #: The same on the taps alone (:func:`tuning.estimation.diagnose.crossval.taps_alone`):
     #: the tap's B_eq beside the driven runs', a consistency check of the one cart.
     taps_alone: dict = field(default_factory=dict)
-    #: Not explained, with ``diagnose(curve=True)``: friction read as a curve of the speed
-    #: (:func:`tuning.estimation.diagnose.friction_curve.discover`, its "plant" aside), else {}.
+    #: Not explained, with ``diagnose(curve=True)``: friction read as a curve of the speed and
+    #: of the position (:func:`tuning.estimation.diagnose.friction_curve.discover`, its
+    #: "plant" aside), else {}.
     friction_curve: dict = field(default_factory=dict)
     #: That curve's fitted cart (a :class:`jaxcart.Plant`), or None.
     curve_plant: object = None
@@ -172,9 +173,10 @@ class Diagnosis:
         if self.cross_validation.get("text"):
             text += "; " + self.cross_validation["text"]
         curve = self.friction_curve
-        if curve.get("words"):
-            named = "named" if curve.get("named") else "tried, not named"
-            text += f"; friction as a curve of the speed ({named}): {curve['words']}"
+        for shape, of in ((curve, "the speed"), (curve.get("track", {}), "the position")):
+            if shape.get("words"):
+                named = "named" if shape.get("named") else "tried, not named"
+                text += f"; friction as a curve of {of} ({named}): {shape['words']}"
         return text
 
     @property

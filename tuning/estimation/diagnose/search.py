@@ -99,8 +99,9 @@ def diagnose(
 
     executor: what makes the exact runs several at a time (a :class:`jaxcart.workers.Helpers`
     the caller owns; default: one after the other in this process). curve: where no structure
-    explains the recordings, read friction as a curve of the speed as the last candidate
-    (:mod:`.friction_curve`: named only where it predicts the recordings held out better).
+    explains the recordings, read friction as a curve of the speed and of the position as
+    the last candidate (:mod:`.friction_curve`: named only where it predicts the recordings
+    held out better).
     Runs in float64 whatever jax_enable_x64 says, and leaves it as it was.
     """
     with jax.enable_x64(True):

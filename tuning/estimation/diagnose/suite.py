@@ -4,7 +4,8 @@ a voltage ramp, stick-slip hunting under PI, also strong: static friction 2.2-2.
 kinetic at 2-2.2 N), several recordings of one cart whose drive differs from run to run,
 friction and a dead band that differ by direction, a voltage offset (in closed loop a tie with a
 tilt), a tilt told from it by a tap, Stribeck friction,
-friction that varies along the track (no candidate: "not explained" is the right answer),
+friction that varies along the track (no candidate: "not explained" is the right answer; with
+``--curve`` and runs that cover the track, a curve of the position),
 clean recordings and parameter errors; and its score table. What counts as right is each
 case's ``rule`` (:data:`RULES`).
 
@@ -81,8 +82,10 @@ from tuning.verification import make_recording as make_independent_recording
 #: limit shared (one cart, one drive: freeing it per run is a false alarm); "not_explained":
 #: the recording is said to be not explained and a suggestion names ``case.suggest`` (the
 #: truth is no candidate, e.g. friction that varies along the track); "curve": friction read as a
-#: curve of the speed is named (the suite run with ``--curve``) and lies within
-#: CURVE_TOLERANCE of the truth's at every entry from 80 mm/s on that the recordings determine.
+#: curve (the suite run with ``--curve``) of the truth's shape is named: of the position where
+#: the truth's friction varies along the track, within CURVE_TOLERANCE of it at the knots it
+#: fitted; else of the speed, within CURVE_TOLERANCE of the truth's at every
+#: entry from 80 mm/s on that the recordings determine.
 RULES = ("names", "exact", "nothing", "corrected", "per_run", "shared", "not_explained", "curve")
 #: The discovered curve is right within this much of the truth's friction [N].
 CURVE_TOLERANCE = 0.05
@@ -192,6 +195,9 @@ CART = {"B_eq": 1.5, "f_c": 0.4}
 TAP = {"kind": "tap"}
 P50 = {"kp": 50.0, "kd": 0.0, "amplitude": 0.15}
 PD = {"kp": 50.0, "kd": 2.0, "amplitude": 0.2}
+TRACK_RUN = {"kp": 40.0, "kd": 2.0}
+#: A mild wave of friction along the track, 0.24-0.32 N (the levels at the knots, -0.4 to 0.4 m).
+TRACK_WAVE = [0.2437, 0.3146, 0.3186, 0.3146, 0.2437]
 PI_HUNT = {"kp": 30.0, "ki": 200.0, "kd": 1.0, "amplitude": 0.02, "horizon": 3.0}
 PI_LAB = {"kp": 10.0, "ki": 15.0, "kd": 0.0, "amplitude": 0.1, "horizon": 3.0}
 
@@ -235,6 +241,15 @@ ONE_CART = (
     _one_cart("one cart (taps both ways): friction rising with speed",
               {**B, "f_c": 0.3, "rise_pos": 0.3, "rise_neg": 0.15, "v_rise": 0.03},
               tuple({**TAP, "speed": v} for v in (0.6, -0.6, 0.4, -0.4)), (), rule="curve"),
+    # Friction rising along the track, 0.4 N more from +0.2 m on than before -0.2 m (the truth
+    # a table, linear between its points; jaxcart's curve a smooth map through levels at knots
+    # 0.2 m apart, which holds it within 0.018 N over +-0.3 m at best, 0.022 N through its
+    # levels at the knots): steps and out-and-back runs that cover +-0.3 m, both ways.
+    _one_cart("one cart (steps and out-and-back both ways): friction along the track",
+              {**B, "f_c": 0.2, "track_y": (-0.4, -0.2, 0.2, 0.4), "track_f": (0, 0, 0.4, 0.4)},
+              tuple({**TRACK_RUN, "kind": kind, "amplitude": a}
+                    for kind in ("step", "out_back") for a in (0.3, -0.3)),
+              (), rule="curve"),
 )  # fmt: skip
 CASES = (
     Case("clean PD step", "clean", B, rule="nothing"),
@@ -479,10 +494,16 @@ CASES = (
     Case(
         "track friction (no candidate)",
         "concealed",
-        {**B, "f_track": [0.05, 0.6, 0.05, 0.6, 0.05]},
+        {**B, "f_track": TRACK_WAVE},
         amplitude=0.4,
         rule="not_explained",
         suggest="along the track",
+        independent={
+            "truth": {"f_track": [0.05, 0.6, 0.05, 0.6, 0.05]},
+            "why": "the independent generator's friction is a table through 0.05-0.6 N, "
+            "linear between its points; jaxcart's map through those levels would swing 0.65 N "
+            "between the knots, where the case's mild wave is 0.24-0.32 N",
+        },
     ),
     Case(
         "coulomb under PI recorded as its error (no y)",
@@ -666,18 +687,19 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
         "curve": lambda: _curve_right(d, truths or [case.truth]),
     }[case.rule]
     varies = case.rule == "per_run" or _limits_vary(truths)
-    curve = bool(d.friction_curve.get("named"))
+    curve, had = _curve_named(d), truths or [case.truth]
     false_alarm = (
-        (case.group in ("clean", "parameter") and (bool(named) or curve))
+        (case.group in ("clean", "parameter") and (bool(named) or bool(curve)))
         or (per_run and not varies)
-        or (curve and not _speed_friction(truths or [case.truth]))
+        or (curve == "speed" and not _speed_friction(had))
+        or (curve == "track" and not _track_friction(had))
     )
     return {
         "case": case.name,
         "group": case.group,
         "rule": case.rule,
         "expected": _expected_text(case),
-        "named": sorted(named) + ([PER_RUN] if per_run else []) + (["curve"] if curve else []),
+        "named": sorted(named) + [PER_RUN] * per_run + [f"{curve} curve"] * bool(curve),
         "corrected": d.corrected_parameters,
         "equivalent": d.equivalent,
         "explained": d.explained,
@@ -690,15 +712,25 @@ def judge(case: Case, d, truths: list[dict] | None = None) -> dict:
     }
 
 
-def _curve_right(d, truths) -> bool:
-    """The curve named, and each entry from 80 mm/s on that it determines within
-    CURVE_TOLERANCE of the truth's friction there (the first recording's truth: the mechanics
-    are one cart's)."""
+def _curve_named(d) -> str | None:
+    """The curve a diagnosis named: "speed", "track" or None."""
     fc = d.friction_curve
-    if not fc.get("named"):
-        return False
+    if fc.get("named"):
+        return "speed"
+    return "track" if fc.get("track", {}).get("named") else None
+
+
+def _curve_right(d, truths) -> bool:
+    """The curve of the truth's shape named (along the track where the truth's friction
+    varies there, else of the speed), and within CURVE_TOLERANCE of the truth's friction
+    where the recordings determine it (the first recording's truth: the mechanics are one
+    cart's)."""
     truth = TrueCart.from_values(dict(truths[0]))
-    c = fc["curve"]
+    if _track_friction(truths):
+        return _curve_named(d) == "track" and _track_right(d.friction_curve["track"], truth)
+    if _curve_named(d) != "speed":
+        return False
+    c = d.friction_curve["curve"]
     for side, direction in (("right", 1), ("left", -1)):
         for q, level, band in zip(c["speeds"], c["levels"].get(side, ()), c["bands"].get(side, ()),
                                   strict=False):  # fmt: skip
@@ -706,6 +738,23 @@ def _curve_right(d, truths) -> bool:
             if q >= 0.08 and band is not None and abs(level - want) > CURVE_TOLERANCE:
                 return False
     return True
+
+
+def _track_right(shape: dict, truth) -> bool:
+    """The curve along the track read where it was fitted (its levels at two knots or more)
+    within CURVE_TOLERANCE of the truth's kinetic friction there (between them the map is an
+    interpolation, also through the levels it held)."""
+    c = shape["curve"]
+    return len(c["positions"]) >= 2 and all(
+        abs(level - truth.kinetic(1, q)) <= CURVE_TOLERANCE
+        for q, level in zip(c["positions"], c["levels"], strict=True)
+    )
+
+
+def _track_friction(truths) -> bool:
+    """Whether a truth's friction varies along the track."""
+    return any(len(set(t.get("track_f", ()))) > 1 or len(set(t.get("f_track", ()))) > 1
+               for t in truths)  # fmt: skip
 
 
 def _speed_friction(truths) -> bool:
@@ -719,7 +768,7 @@ def _expected_text(case: Case) -> list:
     if case.rule == "corrected":
         return ["corrected M/gamma"]
     if case.rule == "curve":
-        return ["friction curve"]
+        return ["friction curve" + (" along the track" if _track_friction([case.truth]) else "")]
     if case.rule == "not_explained":
         return [f"not explained ({case.suggest})"]
     extra = {"per_run": ["per_run"], "exact": ["only"]}.get(case.rule, [])
@@ -764,7 +813,7 @@ def run_suite(
     names=None, progress=False, out=sys.stdout, generators=GENERATORS, executor=None, curve=False
 ) -> list[dict]:
     """Diagnose every chosen case made by each of ``generators`` (``curve``: with friction read
-    as a curve of the speed where nothing named explains, ``diagnose(curve=True)``; a case of
+    as a curve where nothing named explains, ``diagnose(curve=True)``; a case of
     rule "curve" is left out without it); the score rows (each with its ``generator``),
     printed as they come."""
     chosen = [c for c in CASES if (names is None or c.name in names)]
@@ -849,8 +898,8 @@ def main(argv=None) -> int:
     p.add_argument(
         "--curve",
         action="store_true",
-        help="diagnose with friction read as a curve of the speed where nothing named explains "
-        "(and score the case whose friction only a curve has)",
+        help="diagnose with friction read as a curve of the speed and of the position where "
+        "nothing named explains (and score the cases whose friction only a curve has)",
     )
     args = p.parse_args(argv)
     names = FAST if args.fast else (args.only.split(",") if args.only else None)

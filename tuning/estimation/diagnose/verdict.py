@@ -256,8 +256,9 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
 #: What a residual that still correlates with each signal after the best structure may point
 #: to beyond the candidates (the suggestions of a diagnosis that explains nothing).
 BEYOND = {
-    "position": "a force that varies along the track (track_friction, not a candidate: "
-    "jaxcart fit --params B_eq,f_track)",
+    "position": "a force that varies along the track (friction: jaxcart diagnose --curve reads "
+    "it as a curve of the position where the recordings cover 0.4 m; jaxcart fit --params "
+    "B_eq,f_track)",
     "sign_velocity": "friction beyond Coulomb and stiction (speed-dependent: jaxcart diagnose "
     "--curve reads it as a curve of the speed) or backlash (jaxcart fit --params B_eq,backlash)",
     "command": "a drive nonlinearity beyond saturation, deadzone and current limit",
