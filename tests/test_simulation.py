@@ -84,4 +84,4 @@ def test_one_substep_policy():
     assert jc.substeps_per_sample(jc.handout_plant(backlash=1e-4)) == BACKLASH_SUBSTEPS == 4
     assert jc.substeps_per_sample(jc.handout_plant(f_c=0.3), screening=True) == 1
     assert SCREENING_SUBSTEPS == 1
-    assert jc.substeps_per_sample(jc.handout_plant(), rk4=True) == RK4_SUBSTEPS == 20
+    assert jc.substeps_per_sample(jc.handout_plant(), rk4=True) == RK4_SUBSTEPS == 5
