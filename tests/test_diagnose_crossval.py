@@ -42,9 +42,9 @@ def _at_truth(search, truths, parts):
     for n in cand.free:
         run = parameters.recording_of(n)
         values[n] = truths[-1 if run is None else run][parameters.base_name(n)]
-    for i in search.layout.nuisance:
+    for i, starts in enumerate(search.layout.starts):
         exp = search.segments[i].experiment
-        values.update({f"y0@{i}": float(exp.y0), f"yd0@{i}": float(exp.yd0)})
+        values.update({f"{v}@{i}": float(getattr(exp, v)) for v, _ in starts})
     cand.values = values
     cand.residuals = search.exact(cand, values)[0]
     return cand
@@ -295,9 +295,9 @@ REAL_START = {
 def _real_fit(search, parts):
     c = structures.structure(parts, search.runs)
     start = {n: REAL_START[n] for n in c.free}
-    for i in search.layout.nuisance:
+    for i, starts in enumerate(search.layout.starts):
         exp = search.segments[i].experiment
-        start.update({f"y0@{i}": float(exp.y0), f"yd0@{i}": float(exp.yd0)})
+        start.update({f"{v}@{i}": float(getattr(exp, v)) for v, _ in starts})
     start, arrays, _ = search.polished(c, start)
     c.values, c.residuals, c.jac = start, arrays[:-1], arrays[-1]
     c.rms_exact = scoring.rms(c.residuals)

@@ -88,10 +88,9 @@ def test_recordings_simulated_side_by_side_are_each_simulated_alone(search):
     offset = 0
     for i, (seg, sup) in enumerate(zip(segs, fitter.supers, strict=True)):
         plant = sup.replace(**{k: v for k, v in start.items() if k in sup.param_names()})
-        exp = seg.experiment
-        if i in fitter.layout.nuisance:
-            a, b = fitter.layout.nuisance[i]
-            exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
+        exp = dataclasses.replace(
+            seg.experiment, **{v: full[j] for v, j in fitter.layout.starts[i]}
+        )
         assert not seg.counts_in_loop
         alone = simulate_smooth(plant, seg.controller, exp, smoothing=smoothing, substeps=1)
         mine = np.asarray(r[offset : offset + seg.target.size]) / scale

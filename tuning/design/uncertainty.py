@@ -5,7 +5,7 @@ A fit gives each value of the cart with a standard error (and, where the fit kno
 correlations between them); a drive that does not repeat itself gives each driven run its own
 limit (``v_sat@k``), whose spread from run to run is what the next run may have.
 :func:`from_fit` collects both from a :class:`tuning.estimation.fit.FitResult` (the lab's joint
-fit, or a diagnosis's through :func:`tuning.estimation.diagnose.as_fit.fit_result`), and
+fit, or a diagnosis's through :attr:`tuning.estimation.diagnose.result.Diagnosis.fit`), and
 :meth:`CartUncertainty.draw` draws carts from it:
 
 - the shared values (B_eq, f_c, delay, ...) from the normal distribution of the fit: mean the

@@ -83,7 +83,7 @@ from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.engine.segments import Segment
 from tuning.estimation.engine.segments import prepare as prepare_segment
 from tuning.estimation.fitting.files import fit_table, load_fitted_plant, write_fitted_plant
-from tuning.estimation.fitting.model import NUISANCE_SCALE, Nuisance, _Problem
+from tuning.estimation.fitting.model import Nuisance, _Problem
 from tuning.estimation.fitting.names import (
     _drives_nothing,
     _initial_value,
@@ -166,8 +166,8 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
     if seg.kind == "tap":
         nuisance = (
-            Nuisance("y0", 0.0, NUISANCE_SCALE["y0"]),
-            Nuisance("yd0", 0.0, NUISANCE_SCALE["yd0"]),
+            Nuisance("y0", 0.0, parameters.NUISANCE["y0"][0]),
+            Nuisance("yd0", 0.0, parameters.NUISANCE["yd0"][0]),
         )
     else:
         # y0 lies within the first count, widened by 4 noise levels either side where the data

@@ -27,7 +27,6 @@ from jaxcart import plantspec
 from jaxcart.plantspec import write_plant_file
 from tuning.design import uncertainty as cart_uncertainty
 from tuning.design.for_cart import design_for_cart
-from tuning.estimation.diagnose.as_fit import fit_result
 from tuning.estimation.engine.parameters import bounds
 from tuning.estimation.fit import Estimate, default_start
 from tuning.lab import fits
@@ -44,7 +43,7 @@ PLANT_FILE = "cart_plant.toml"
 @dataclass(frozen=True)
 class JointCart:
     """fit: the joint fit of every recording (a :class:`tuning.estimation.fit.FitResult`: the
-    diagnosis's, :func:`tuning.estimation.diagnose.as_fit.fit_result`, or a fit of its own);
+    diagnosis's, :attr:`tuning.estimation.diagnose.result.Diagnosis.fit`, or a fit of its own);
     driven: B_eq of the driven runs alone (an :class:`~tuning.estimation.fit.Estimate`; None
     without a tap to compare with); tap: Part (i)'s (B_eq, its standard error) [kg/s] or None;
     names: each recording's file name; source: where the fit comes from, in words; tuned: the
@@ -130,7 +129,9 @@ def with_retune(c: JointCart | None, design) -> JointCart | None:
 
 def _diagnosed(diagnosis, tap_b_eq, say):
     """(the diagnosis's joint fit, B_eq of its driven runs alone or None)."""
-    joint = fit_result(diagnosis)
+    if diagnosis.fit is None:
+        raise ValueError(f"the diagnosis has no fit (status {diagnosis.status!r})")
+    joint = diagnosis.fit
     say(f"the cart: the diagnosis's joint fit of {len(joint.segments)} recordings")
     b = diagnosis.driven_alone.get("parameters", {}).get("B_eq")
     alone = None

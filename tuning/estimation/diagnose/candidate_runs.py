@@ -97,16 +97,19 @@ class ExactMemo:
         return out
 
 
+def started(experiment, starts, values: dict, i: int):
+    """``experiment`` from recording ``i``'s start values in ``values`` (``y0@0``), for each
+    fitted start of ``starts`` (a :class:`~tuning.estimation.engine.layout.Layout`'s)."""
+    given = {v: values[f"{v}@{i}"] for v, _ in starts if f"{v}@{i}" in values}
+    return dataclasses.replace(experiment, **given) if given else experiment
+
+
 def exact_jobs(cand, segments, base_plants, values, layout) -> list:
     """(memo key, :class:`ExactJob`) of each recording of ``cand`` at ``values``."""
     plants = exact_plants(cand, base_plants, values)
     out = []
     for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
-        exp = seg.experiment
-        if i in layout.nuisance:
-            exp = dataclasses.replace(
-                exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
-            )
+        exp = started(seg.experiment, layout.starts[i], values, i)
         job = ExactJob(seg.controller, plant, exp, seg.target, seg.counts_in_loop, seg.motor)
         out.append(((i, plant, exp.y0, exp.yd0), job))
     return out
@@ -152,11 +155,7 @@ def current_peaks(cand, segments, base_plants, values, layout) -> dict:
     for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
         if not seg.motor:
             continue
-        exp = seg.experiment
-        if i in layout.nuisance:
-            exp = dataclasses.replace(
-                exp, y0=values.get(f"y0@{i}", exp.y0), yd0=values.get(f"yd0@{i}", exp.yd0)
-            )
+        exp = started(seg.experiment, layout.starts[i], values, i)
         res = simulate_exact(plant, seg.controller, exp)
         k_b = float(plant.B_emf) / float(plant.gamma)
         i_arm = (np.asarray(res.voltage) - k_b * np.asarray(res.velocity)) / float(plant.Rm)

@@ -38,9 +38,9 @@ import numpy as np
 from tuning.estimation.diagnose import candidate_runs, scoring
 from tuning.estimation.diagnose.policy import FLOOR_FACTOR
 from tuning.estimation.engine import parameters
-from tuning.estimation.engine.batch import Layout
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.exact_polish import polish, values_jacobian
+from tuning.estimation.engine.layout import Layout, for_candidates
 from tuning.estimation.engine.least_squares import line_search, marquardt_step, minimize
 from tuning.estimation.engine.noise import MISFIT_RATIO, RecordingNoise
 
@@ -107,7 +107,7 @@ class Subset:
         )
         segments = [search.segments[i] for i in order]
         plants = [search.base_plants[i] for i in order]
-        layout = Layout(segments, search.layout.per_recording)
+        layout = for_candidates(segments, search.layout.per_recording)
         return cls(order, cand, segments, plants, layout, _Through(search.memo, order))
 
     def values(self, values: dict) -> dict:

@@ -1,7 +1,7 @@
 """What a diagnosis found: :class:`Diagnosis`, its verdict in words and its JSON.
 
 :func:`tuning.estimation.diagnose.search.diagnose` makes it; :mod:`.report` draws and writes
-it; :mod:`tuning.estimation.diagnose.as_fit` gives its chosen structure as a fit's result.
+it; its chosen structure's fit is a fit's result (:attr:`Diagnosis.fit`).
 """
 
 from __future__ import annotations
@@ -88,6 +88,10 @@ class Diagnosis:
     friction_curve: dict = field(default_factory=dict)
     #: That curve's fitted cart (a :class:`jaxcart.Plant`), or None.
     curve_plant: object = None
+    #: The chosen structure fitted over every recording, as :func:`tuning.estimation.fit.fit`
+    #: reports a fit (a :class:`~tuning.estimation.fitting.result.FitResult`: the cart that
+    #: ``jaxcart lab`` takes instead of fitting again); None where nothing was diagnosed.
+    fit: object = None
 
     @property
     def floor_ratio(self) -> float:

@@ -18,6 +18,9 @@ from tuning.estimation.diagnose.policy import K_MAX, TIE
 from tuning.estimation.diagnose.result import Diagnosis, _times
 from tuning.estimation.diagnose.structures import PARAM_ERRORS
 from tuning.estimation.engine import parameters
+from tuning.estimation.engine.noise import effective_samples
+from tuning.estimation.fitting.names import plant_values
+from tuning.estimation.fitting.result import Estimate, FitResult, SegmentFit
 
 
 def named(search):
@@ -207,6 +210,8 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
     for apart in (driven, taps):
         if apart:
             apart["recordings"] = [list(per_recording)[i] for i in apart["recordings"]]
+    plant = per_run.cart_plant(best, search.base_plants, segments, peaks)
+    seconds = elapsed(t_start)
     return Diagnosis(
         names,
         "diagnosed",
@@ -224,8 +229,8 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
         tests=search.tests,
         candidates=sorted(search.cands, key=lambda c: c.score),
         chosen=best.name,
-        plant=per_run.cart_plant(best, search.base_plants, segments, peaks),
-        seconds=elapsed(t_start),
+        plant=plant,
+        seconds=seconds,
         traces=traces,
         explained=explained,
         misfit=misfit,
@@ -250,6 +255,58 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
         taps_alone=taps,
         repeat=level,
         remainder=remainder(best, segments),
+        fit=_fit(search, best, cov, plant, peaks, cv, misfit, seconds),
+    )
+
+
+def _fit(search, best, cov, plant, peaks, cv, misfit, seconds) -> FitResult:
+    """The named structure's fit as every fit reports one (the cart a command takes from a
+    diagnosis instead of fitting again): its shared values and each run's own (``v_sat@2``,
+    where the limit acts: :func:`per_run.acts`) with standard errors, each recording's exact
+    runs before (the handout's model, B_eq fitted) and after, the values of the fit that left
+    it out (:attr:`SegmentFit.held_out`), and the fitted cart, effects included."""
+    own = [k for k in best.free if "@" in k and parameters.base_name(k) not in parameters.NUISANCE]
+    names = [n for n in best.free if "@" not in n]
+    names += [
+        k
+        for k in sorted(own, key=parameters.recording_of)  # recording by recording
+        if per_run.acts(parameters.base_name(k), k, best.values[k], peaks)
+    ]
+    params = {n: Estimate(n, float(best.values[n]), cov.stderr({n: 1.0})) for n in names}
+    folds = cv.get("folds") or [{}] * len(search.segments)
+    segments = []
+    for seg, rb, ra, fold in zip(
+        search.segments, search.round1[0].residuals, best.residuals, folds, strict=True
+    ):
+        before, after = seg.target + rb, seg.target + ra
+        segments.append(
+            SegmentFit(
+                seg.name,
+                seg.kind,
+                seg.time,
+                seg.target,
+                before,
+                after,
+                before,
+                after,
+                {},
+                plant,
+                fold.get("values"),
+            )  # fmt: skip
+        )
+    return FitResult(
+        params=params,
+        values=plant_values(plant, [n for n in params if "@" not in n]),
+        segments=segments,
+        correlation={},
+        n_data=sum(s.measured.size for s in segments),
+        seconds=seconds,
+        smoothing=None,
+        exact_polish=True,
+        noise_floor=search.floor,
+        n_effective=effective_samples(best.residuals),
+        misfit=misfit,
+        cart=plant,
     )
 
 

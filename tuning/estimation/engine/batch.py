@@ -29,47 +29,11 @@ from jaxcart.smoothing import Smoothing
 from jaxcart.substeps import substeps_per_sample
 from tuning.distributed import gather_rows
 from tuning.estimation.engine import parameters
+from tuning.estimation.engine.layout import DUMMY, Layout, for_candidates
 from tuning.estimation.engine.least_squares import marquardt_step
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
 VOLTAGE_WIDTH = 4e-3
-
-
-class Layout:
-    """Slots of the full parameter vector: the superset (:func:`~.parameters.superset`); then,
-    for each name of ``per_recording``, a copy per recording it acts in (``v_sat@2``: the
-    drive's value in recording 2 alone; a drive parameter has none in a tap with the motor
-    unplugged); then (y0, yd0) of each tap; then a dummy."""
-
-    def __init__(self, segments, per_recording=()):
-        # The superset's parameters, from the registry as it is now (an effect registered
-        # later is in the next fitter's).
-        self.shared = parameters.superset()
-        self.names = list(self.shared)
-        self.per_recording = tuple(per_recording)
-        self.copies = {}  # recording -> {name: slot}
-        for i, seg in enumerate(segments):
-            own = {n: None for n in self.per_recording if seg.motor or not parameters.is_drive(n)}
-            for n in own:
-                own[n] = len(self.names)
-                self.names.append(f"{n}@{i}")
-            self.copies[i] = own
-        self.nuisance = {}
-        for i, seg in enumerate(segments):
-            if seg.kind == "tap":
-                self.nuisance[i] = (len(self.names), len(self.names) + 1)
-                self.names += [f"y0@{i}", f"yd0@{i}"]
-        self.dummy = len(self.names)
-        self.names.append("_dummy")
-        self.size = len(self.names)
-
-    def index(self, name: str) -> int:
-        return self.names.index(name)
-
-    def slots_of(self, i: int) -> list:
-        """The slot of each superset name in recording ``i``: its own copy where it has one."""
-        own = self.copies.get(i, {})
-        return [own.get(n, j) for j, n in enumerate(self.shared)]
 
 
 def _superset(plant, shared):
@@ -141,13 +105,12 @@ def _padded(segments, groups) -> dict:
 
 
 class _Runs(NamedTuple):
-    """What :func:`_group_positions` needs of a fitter: its segments, superset plants, layout
-    and each segment's slots, padded experiments and sub-steps."""
+    """What :func:`_group_positions` needs of a fitter: its segments, superset plants, layout,
+    padded experiments and sub-steps."""
 
     segments: list
     supers: list
     layout: Layout
-    slots: list
     padded: dict
     n_subs: list
 
@@ -162,15 +125,13 @@ def _group_positions(runs: _Runs, group, full, own, smoothing):
         # shared value (one compiled step serves both kinds of candidate).
         values = {
             n: jnp.where(own[i, k] > 0, full[j], full[k])
-            for k, (n, j) in enumerate(zip(runs.layout.shared, runs.slots[i], strict=True))
+            for k, (n, j) in enumerate(runs.layout.reads[i])
             if n in have
         }
         plants.append(runs.supers[i].replace(**values))
-        exp = runs.padded[i]
-        if i in runs.layout.nuisance:
-            a, b = runs.layout.nuisance[i]
-            exp = dataclasses.replace(exp, y0=full[a], yd0=full[b])
-        exps.append(exp)
+        exps.append(
+            dataclasses.replace(runs.padded[i], **{v: full[j] for v, j in runs.layout.starts[i]})
+        )
     seg, n_sub = runs.segments[group[0]], runs.n_subs[group[0]]  # one of each in a group
     sm, shift = smoothing, 0.0
     if seg.counts_in_loop:
@@ -200,13 +161,13 @@ def _stacked(trees):
 def _theta_arrays(layout):
     """(log mask, linear scale, lower and upper bounds in internal units) of every slot."""
     names = layout.names
-    log_mask = np.array([n != "_dummy" and parameters.is_log(n) for n in names])
-    ranges = [parameters.bounds(n) if n != "_dummy" else (-1e9, 1e9) for n in names]
+    log_mask = np.array([n != DUMMY and parameters.is_log(n) for n in names])
+    ranges = [parameters.bounds(n) if n != DUMMY else (-1e9, 1e9) for n in names]
     lo = np.array([parameters.to_theta(n, r[0]) for n, r in zip(names, ranges, strict=True)])
     hi = np.array([parameters.to_theta(n, r[1]) for n, r in zip(names, ranges, strict=True)])
     scale = np.array(
         [
-            1.0 if m or n == "_dummy" else parameters.value_slope(n, 1.0)
+            1.0 if m or n == DUMMY else parameters.value_slope(n, 1.0)
             for n, m in zip(names, log_mask, strict=True)
         ]
     )
@@ -291,19 +252,18 @@ class BatchFitter:
         recordings are then fitted each against its own level (see :func:`_lm_trial`);
         None: plain least squares."""
         self.segments = segments
-        self.layout = layout = Layout(segments, per_recording)
+        self.layout = layout = for_candidates(segments, per_recording)
         # The recording each slot acts in alone (-1: every recording, a shared value).
         self._owner = np.array([_owner(n) for n in layout.names], dtype=np.int32)
         self._n_colours = 0  # none compiled yet
         self._compress = compress
         # The most tangents a problem can need: its shared values, and a recording's own slots
         # (per-recording copies, a tap's start state) at most one colour each.
-        own = [len(layout.copies[i]) + 2 * (i in layout.nuisance) for i in range(len(segments))]
+        own = [len(layout.own(i)) for i in range(len(segments))]
         self._most = None if max_shared is None else max_shared + max(own, default=0)
         self.supers = supers = [_superset(plant, layout.shared) for plant in start_plants]
         targets = [jnp.asarray(s.target) for s in segments]
         scale = 1.0 / math.sqrt(sum(s.target.size for s in segments))
-        slots = [layout.slots_of(i) for i in range(len(segments))]
         self.log_mask, scale_v, lo, hi = _theta_arrays(layout)
         log_mask_j, scale_j = jnp.asarray(self.log_mask), jnp.asarray(scale_v)
         lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
@@ -313,7 +273,7 @@ class BatchFitter:
             for sup in supers
         ]
         groups = _groups(segments, supers, n_subs)
-        runs = _Runs(segments, supers, layout, slots, _padded(segments, groups), n_subs)
+        runs = _Runs(segments, supers, layout, _padded(segments, groups), n_subs)
 
         def full_values(theta, idx, base):
             vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta * scale_j[idx])
@@ -363,9 +323,10 @@ class BatchFitter:
                 # nowhere: its stand-in value.
                 sup = next((p for p in self.supers if k in p.param_names()), None)
                 base[j] = parameters.stand_in(k) if sup is None else float(np.asarray(sup.get(k)))
-        for i, (a, b) in self.layout.nuisance.items():
+        for i, starts in enumerate(self.layout.starts):
             exp = self.segments[i].experiment
-            base[a], base[b] = values.get(f"y0@{i}", exp.y0), values.get(f"yd0@{i}", exp.yd0)
+            for v, j in starts:
+                base[j] = values.get(f"{v}@{i}", getattr(exp, v))
         return base
 
     def fit(self, problems, widths, iterations, progress=None, kmax=None, share=None):

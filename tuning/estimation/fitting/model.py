@@ -1,5 +1,6 @@
-"""A fit's model of fixed structure: theta's layout (the fitted parameters, then each
-recording's nuisance values), the smooth simulator's residuals and their Jacobian (forward mode,
+"""A fit's model of fixed structure: theta laid out as every fit's is
+(:func:`tuning.estimation.engine.layout.for_fit`: the fitted parameters, then each recording's
+start values), the smooth simulator's residuals and their Jacobian (forward mode,
 several points in one batched, sharded program), and the exact simulator's runs
 (:class:`_Problem`)."""
 
@@ -22,6 +23,7 @@ from jaxcart.smoothing import Smoothing
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.exact_runs import exact_position
+from tuning.estimation.engine.layout import Layout, for_fit
 from tuning.estimation.engine.least_squares import LM_DAMPING
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
@@ -31,10 +33,6 @@ from tuning.estimation.fitting.names import (
     canonical,
     default_start,
 )
-
-#: Nuisance values and their internal units (the optimizer's unit step): y0, the initial
-#: position [m]; yd0, the initial velocity [m/s].
-NUISANCE_SCALE = {"y0": 1e-3, "yd0": 0.1}
 
 
 class Nuisance(NamedTuple):
@@ -69,43 +67,46 @@ BOUNDED_LIMIT = 6.0
 PAD = 256
 
 
-class _Layout(NamedTuple):
-    """Static description of theta: which entries go where (hashable: a jit static)."""
+class _Static(NamedTuple):
+    """What the compiled residual function is specialised on (hashable: a jit static): theta's
+    layout, each segment's start values' forms (:class:`Nuisance`, base 0: the bases are
+    data) and the RK4 sub-steps per sample."""
 
-    params: tuple[str, ...]  # canonical names, theta[0:len(params)] (logs)
-    segments: tuple  # per segment: ((param name, index), ...), ((Nuisance, index), ...)
+    layout: Layout
+    forms: tuple
     substeps: int
 
 
-def _positions(theta, data, smoothing, layout: _Layout):
+def _positions(theta, data, smoothing, static: _Static):
     """Simulated positions of every segment, concatenated [m]."""
     out = []
-    for (plant, controller, experiment, base), (params, nuisance) in zip(
-        data, layout.segments, strict=True
+    lay = static.layout
+    for (plant, controller, experiment, base), reads, starts, forms in zip(
+        data, lay.reads, lay.starts, static.forms, strict=True
     ):
         plant = plant.replace(
-            **assemble(plant, {p: parameters.to_value(p, theta[i], jnp) for p, i in params}, jnp)
+            **assemble(plant, {p: parameters.to_value(p, theta[i], jnp) for p, i in reads}, jnp)
         )
         # The base values are data (a traced array), so that recordings differing only in them
         # share one compilation.
         values = {
             v.name: v._replace(base=base[j]).value(theta[i], jnp)
-            for j, (v, i) in enumerate(nuisance)
+            for j, (v, (_, i)) in enumerate(zip(forms, starts, strict=True))
         }
         experiment = dataclasses.replace(experiment, **values)
         res = simulate_smooth(
-            plant, controller, experiment, smoothing=smoothing, substeps=layout.substeps
+            plant, controller, experiment, smoothing=smoothing, substeps=static.substeps
         )
         out.append(res.position)
     return jnp.concatenate(out)
 
 
-def _residuals_jacobian(theta, data, measured, weight, smoothing, layout):
+def _residuals_jacobian(theta, data, measured, weight, smoothing, static):
     """(r, dr/dtheta) of one theta: forward mode (a few parameters, many samples)."""
-    TRACES[layout] = TRACES.get(layout, 0) + 1  # runs when traced, not when called
+    TRACES[static] = TRACES.get(static, 0) + 1  # runs when traced, not when called
 
     def residuals(th):
-        r = (_positions(th, data, smoothing, layout) - measured) * weight
+        r = (_positions(th, data, smoothing, static) - measured) * weight
         return r, r
 
     jac, r = jax.jacfwd(residuals, has_aux=True)(theta)
@@ -113,23 +114,23 @@ def _residuals_jacobian(theta, data, measured, weight, smoothing, layout):
 
 
 _BATCHED: dict = {}
-#: How often the residual function was traced, per layout (tests check it is once).
+#: How often the residual function was traced, per :class:`_Static` (tests: once).
 TRACES: dict = {}
 
 
-def _batched_residuals(layout: _Layout):
+def _batched_residuals(static: _Static):
     """``run(thetas (K, m), data, measured, weight, smoothing) -> (r (K, n), J (K, n, m))``:
-    one compiled program per layout, sharded over the devices (:mod:`jaxcart.parallel`).
+    one compiled program per :class:`_Static`, sharded over the devices (:mod:`jaxcart.parallel`).
     The CPU's per-step loop overhead dominates a single run, so K trial points cost little more
     than one."""
-    if layout not in _BATCHED:
-        _BATCHED[layout] = sharded_map(
-            partial(_residuals_jacobian, layout=layout), name="fit-residuals", static=layout
+    if static not in _BATCHED:
+        _BATCHED[static] = sharded_map(
+            partial(_residuals_jacobian, static=static), name="fit-residuals", static=static
         )
-    return _BATCHED[layout]
+    return _BATCHED[static]
 
 
-_positions_jit = jax.jit(_positions, static_argnames="layout")
+_positions_jit = jax.jit(_positions, static_argnames="static")
 
 
 class _Problem:
@@ -142,24 +143,16 @@ class _Problem:
         self.params = tuple(canonical(p) for p in params)
         self.n_params = len(self.params)
         self.settings = settings
-        index = len(self.params)
-        layout = []
+        self.layout = layout = for_fit(self.params, segments)
+        forms = tuple(tuple(v._replace(base=0.0) for v in s.nuisance) for s in segments)
+        self.static = _Static(layout, forms, settings.substeps)
+        # The name of every entry of theta: the parameters, then each segment's start values.
+        self.entries = list(layout.names)
         theta = [parameters.to_theta(p, self._start_value(p)) for p in self.params]
-        for k, seg in enumerate(segments):
-            # A parameter free per recording maps to this recording's own copy (``v_sat@k``).
-            own = [f"{p}@{k}" if f"{p}@{k}" in self.params else p for p in seg.params]
-            ps = tuple((p, self.params.index(q)) for p, q in zip(seg.params, own, strict=True))
-            nu = []
-            for v in seg.nuisance:
-                nu.append((v._replace(base=0.0), index))
-                start = 0.0 if v.bounded else (getattr(seg.experiment, v.name) - v.base) / v.scale
-                theta.append(float(start))
-                index += 1
-            layout.append((ps, tuple(nu)))
-        self.layout = _Layout(self.params, tuple(layout), settings.substeps)
-        # The name of every entry of theta: the parameters, then each segment's nuisances.
-        self.entries = list(self.params) + [
-            f"{v.name}@{k}" for k, seg in enumerate(segments) for v in seg.nuisance
+        theta += [
+            0.0 if v.bounded else (getattr(seg.experiment, v.name) - v.base) / v.scale
+            for seg in segments
+            for v in seg.nuisance
         ]
         self.theta0 = np.asarray(theta, dtype=float)
         # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
@@ -244,7 +237,7 @@ class _Problem:
         finite."""
         th = put(theta, float)
         if th.size == 0:
-            r = _positions_jit(th, self.data, self.smoothing(width), self.layout) - self.measured
+            r = _positions_jit(th, self.data, self.smoothing(width), self.static) - self.measured
             r = np.asarray(r)[self.rows]
             return r, np.zeros((r.size, 0))
         r, jac = self.evaluate_batch(th[None, :], width)
@@ -257,7 +250,7 @@ class _Problem:
         k = thetas.shape[0]
         size = -(-k // LM_BATCH) * LM_BATCH
         padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - k, axis=0)])
-        r, jac = _batched_residuals(self.layout)(
+        r, jac = _batched_residuals(self.static)(
             put(padded, float), self.data, self.measured, self.weight, self.smoothing(width)
         )
         r, jac = np.asarray(r)[:k, self.rows], np.asarray(jac)[:k, self.rows]
@@ -267,9 +260,8 @@ class _Problem:
 
     def segment_values(self, theta, k):
         """(plant values {name: value}, nuisance {name: value}) of segment k at theta."""
-        params, _ = self.layout.segments[k]
         return (
-            {p: float(parameters.to_value(p, theta[i])) for p, i in params},
+            {p: float(parameters.to_value(p, theta[i])) for p, i in self.layout.reads[k]},
             {v.name: float(v.value(theta[i])) for v, i in self.nuisance_index(k)},
         )
 
@@ -300,7 +292,7 @@ class _Problem:
 
     def nuisance_index(self, k):
         """((Nuisance with its base, index in theta), ...) of segment k."""
-        idx = [i for _, i in self.layout.segments[k][1]]
+        idx = [i for _, i in self.layout.starts[k]]
         return tuple(zip(self.segments[k].nuisance, idx, strict=True))
 
     def simulate_exact(self, theta):

@@ -132,7 +132,7 @@ class FitResult:
     n_effective: float = 0.0
     misfit: str = ""
     #: The fitted plant itself, effects included, where the fit made one (a diagnosis's chosen
-    #: structure, :func:`tuning.estimation.diagnose.as_fit.fit_result`); None: from ``values``.
+    #: structure, :attr:`tuning.estimation.diagnose.result.Diagnosis.fit`); None: from ``values``.
     cart: Plant | None = None
 
     @property
