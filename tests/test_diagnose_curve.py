@@ -171,6 +171,8 @@ def test_the_track_curve_is_tried_where_the_recordings_cover_the_track():
     params, held = track_curve.structure(kept, kept, (1, 2), {"f_c": 0.35})
     assert params == ("B_eq", "delay", "deadzone", "f_track[1]", "f_track[2]")
     assert held == {"f_c": 0.0, "f_track": (0.35,) * 5}
+    # A named f_c of 0 N starts the levels at the declared start, not at 0.
+    assert track_curve.structure(kept, kept, (1, 2), {"f_c": 0.0})[1]["f_track"] == (0.3,) * 5
     # Without Coulomb friction named, the dead band stood in for its level: the curve takes it.
     params, held = track_curve.structure(kept[2:], kept, (1, 2), {"deadzone": 0.2})
     assert params == ("B_eq", "delay", "f_track[1]", "f_track[2]")

@@ -85,8 +85,10 @@ def structure(named, kept, fitted, initial: dict) -> tuple[tuple, dict]:
     held = {"f_c": 0.0}
     if "f_c" not in named:
         held.update({n: 0.0 for n in STAND_INS if n in kept})
-    level = float(initial.get("f_c", TrackFriction.params[0].start)) if "f_c" in named else None
-    held["f_track"] = (max(level or TrackFriction.params[0].start, 0.01),) * KNOTS
+    start = TrackFriction.params[0].start
+    # (a named f_c of 0 N starts the levels at the declared start too)
+    level = float(initial.get("f_c") or start) if "f_c" in named else start
+    held["f_track"] = (max(level, 0.01),) * KNOTS
     params = (*(n for n in kept if n not in held), *(f"f_track[{k}]" for k in fitted))
     return params, held
 
