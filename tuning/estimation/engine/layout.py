@@ -37,7 +37,8 @@ class Layout(NamedTuple):
 
     @property
     def shared(self) -> tuple:
-        """The entries shared by every recording (the first ones)."""
+        """The entries shared by every recording, in order (in :func:`for_candidates`'s
+        layout the first ones, so that a shared value's place here is its entry)."""
         return tuple(n for n in self.names if "@" not in n and n != DUMMY)
 
     @property
