@@ -292,7 +292,7 @@ def _fit(search, best, cov, plant, peaks, cv, misfit, seconds) -> FitResult:
                 {},
                 plant,
                 fold.get("values"),
-            )  # fmt: skip
+            )
         )
     return FitResult(
         params=params,
