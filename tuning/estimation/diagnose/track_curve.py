@@ -10,8 +10,9 @@ structure has no Coulomb friction, its dead band (friction's stand-in in closed 
 to the curve too. So that every fold
 fits the same curve, the levels fitted are those at the knots within :data:`REACH` of the
 stretch that every recording but one covers (all of them, with one recording); the others are
-held at the named structure's f_c. A level is the friction at its knot, so the curve is read
-there, with the fit's standard errors. Friction along the track never pushes (f_track >= 0).
+held, each at the nearest fitted level (:func:`fit_tied`). A level is the friction at its
+knot, so the curve is read there, with the fit's standard errors. Friction along the track
+never pushes (f_track >= 0).
 """
 
 from __future__ import annotations
