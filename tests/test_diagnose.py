@@ -19,6 +19,7 @@ from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, write_recording
 from tuning.estimation.diagnose import diagnose, render_markdown, write_outputs
 from tuning.estimation.diagnose.suite import CASES, FAST, judge, make_case
+from tuning.estimation.fitting.result import FitResult
 
 BY_NAME = {c.name: c for c in CASES}
 
@@ -174,11 +175,35 @@ def test_json_and_outputs(fast_results, tmp_path):
         assert key in data
     assert data["left_out"] == ["coulomb"]
     assert all("rms" in c and "score" in c for c in data["candidates"])
+    assert all(c["fit"]["params"]["B_eq"]["stderr"] > 0 for c in data["candidates"])
     plant = jc.read_plant_file(written["plant_file"])[0]
     assert "coulomb" in plant.structure
     assert "Diagnosis" in render_markdown(d)
     with pytest.raises(UserError, match="exists"):
         write_outputs(d, tmp_path / "out")
+
+
+def test_every_candidate_holds_its_fit_and_the_chosen_one_is_the_diagnosis_fit(fast_results):
+    """One result type: each structure tried holds its fit as ``jaxcart fit`` reports one
+    (values with standard errors, each recording's exact runs, the fitted cart); the named
+    one's is ``Diagnosis.fit``, whose values are those the verdict gives."""
+    _, d = fast_results["coulomb plain"]
+    for c in d.candidates:
+        assert isinstance(c.result, FitResult), c.name
+        assert set(c.result.params) <= set(c.values), c.name
+        for n, e in c.result.params.items():
+            assert e.value == pytest.approx(c.values[n]) and e.stderr >= 0, (c.name, n)
+        after = np.concatenate([s.after_exact - s.measured for s in c.result.segments])
+        assert np.sqrt(np.mean(after**2)) == pytest.approx(c.rms_exact, rel=1e-9), c.name
+    chosen = next(c for c in d.candidates if c.name == d.chosen)
+    assert d.fit is chosen.result
+    assert d.fit.params["f_c"].value == pytest.approx(d.parameters["f_c"]["value"])
+    assert d.fit.params["f_c"].stderr == pytest.approx(d.parameters["f_c"]["stderr"])
+    assert abs(d.fit.params["f_c"].value - 0.4) < 0.01  # the truth
+    assert "coulomb" in d.fit.cart.structure
+    assert all(
+        "+/-" in line for line in render_markdown(d).splitlines() if line.startswith("| coulomb |")
+    )
 
 
 def test_no_excitation_is_not_diagnosed():

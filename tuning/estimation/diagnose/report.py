@@ -253,8 +253,9 @@ def _candidates_section(d, figure) -> list:
         "",
         "## Candidates (fitted through the smoothed simulator, scored on the exact one)",
         "",
-        "| structure | round | exact RMS | score | window evidence | significant |",
-        "|---|---|---|---|---|---|",
+        "| structure | round | exact RMS | score | window evidence | significant | values "
+        "(+/- standard error, SI) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for c in d.candidates:
         sig = "yes" if not c.why_not else "no: " + c.why_not
@@ -262,7 +263,7 @@ def _candidates_section(d, figure) -> list:
             sig = "-"
         lines.append(
             f"| {c.name} | {c.round} | {_mm(c.rms_exact)} | {c.score:.1f} | "
-            f"{c.window_evidence * 100:.1f} % | {sig} |"
+            f"{c.window_evidence * 100:.1f} % | {sig} | {_values_text(c.result)} |"
         )
     if figure:
         lines += ["", f"![recording, baseline and corrected model]({figure})"]
@@ -275,6 +276,17 @@ def _candidates_section(d, figure) -> list:
             "lab has, and other commands would use it.",
         ]
     return lines
+
+
+def _values_text(fit) -> str:
+    """A structure's shared values with their standard errors, and how many it fits per run."""
+    if fit is None:
+        return "-"
+    shared = [
+        f"{n} {_num(e.value)} +/- {_num(e.stderr)}" for n, e in fit.params.items() if "@" not in n
+    ]
+    own = sum("@" in n for n in fit.params)
+    return ", ".join(shared + ([f"{own} per run"] if own else []))
 
 
 def _edge(name: str, value) -> tuple[str, float] | None:

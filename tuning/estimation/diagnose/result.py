@@ -1,7 +1,8 @@
 """What a diagnosis found: :class:`Diagnosis`, its verdict in words and its JSON.
 
 :func:`tuning.estimation.diagnose.search.diagnose` makes it; :mod:`.report` draws and writes
-it; its chosen structure's fit is a fit's result (:attr:`Diagnosis.fit`).
+it; each of its candidate structures holds its fit as a fit's result, the chosen one's is
+:attr:`Diagnosis.fit`.
 """
 
 from __future__ import annotations
@@ -88,10 +89,14 @@ class Diagnosis:
     friction_curve: dict = field(default_factory=dict)
     #: That curve's fitted cart (a :class:`jaxcart.Plant`), or None.
     curve_plant: object = None
-    #: The chosen structure fitted over every recording, as :func:`tuning.estimation.fit.fit`
-    #: reports a fit (a :class:`~tuning.estimation.fitting.result.FitResult`: the cart that
-    #: ``jaxcart lab`` takes instead of fitting again); None where nothing was diagnosed.
-    fit: object = None
+
+    @property
+    def fit(self):
+        """The chosen structure's fit (its candidate's :attr:`~.structures.Candidate.result`:
+        a :class:`~tuning.estimation.fitting.result.FitResult`, the cart that ``jaxcart lab``
+        takes instead of fitting again); None where nothing was diagnosed."""
+        chosen = next((c for c in self.candidates if c.name == self.chosen), None)
+        return None if chosen is None else chosen.result
 
     @property
     def floor_ratio(self) -> float:

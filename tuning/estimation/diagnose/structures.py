@@ -78,6 +78,10 @@ class Candidate:
     #: {"residuals": each recording's held-out prediction [m], "score"} at ``held_out_key``
     held: dict = field(default_factory=dict)
     held_out_key: object = None
+    #: Its fit as every fit reports one (a :class:`~tuning.estimation.fitting.result.FitResult`:
+    #: values with standard errors, each recording's runs, the fitted cart), made when the
+    #: search ends (:func:`~.verdict.diagnosis`); None before.
+    result: object = None
 
     @property
     def why_not(self) -> str:
@@ -105,6 +109,7 @@ class Candidate:
             "rms": self.rms_exact,
             "score": self.score,
             "round": self.round,
+            "fit": None if self.result is None else self.result.to_json(),
             "significance": dict(self.z),
             "eligible": self.assessed is not None and not self.why_not,
             "why_not": self.why_not,

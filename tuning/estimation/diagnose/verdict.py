@@ -212,6 +212,13 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
             apart["recordings"] = [list(per_recording)[i] for i in apart["recordings"]]
     plant = per_run.cart_plant(best, search.base_plants, segments, peaks)
     seconds = elapsed(t_start)
+    # Every structure's fit as a fit reports one; the named one's with its held-out folds.
+    for c in search.cands:
+        c.result = (
+            _fit(search, best, seconds, cov, plant, peaks, cv, misfit)
+            if c is best
+            else _fit(search, c, seconds)
+        )
     return Diagnosis(
         names,
         "diagnosed",
@@ -255,28 +262,32 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
         taps_alone=taps,
         repeat=level,
         remainder=remainder(best, segments),
-        fit=_fit(search, best, cov, plant, peaks, cv, misfit, seconds),
     )
 
 
-def _fit(search, best, cov, plant, peaks, cv, misfit, seconds) -> FitResult:
-    """The named structure's fit as every fit reports one (the cart a command takes from a
+def _fit(search, c, seconds, cov=None, plant=None, peaks=None, cv=None, misfit="") -> FitResult:
+    """Structure ``c``'s fit as every fit reports one (the cart a command takes from a
     diagnosis instead of fitting again): its shared values and each run's own (``v_sat@2``,
     where the limit acts: :func:`per_run.acts`) with standard errors, each recording's exact
     runs before (the handout's model, B_eq fitted) and after, the values of the fit that left
-    it out (:attr:`SegmentFit.held_out`), and the fitted cart, effects included."""
-    own = [k for k in best.free if "@" in k and parameters.base_name(k) not in parameters.NUISANCE]
-    names = [n for n in best.free if "@" not in n]
+    it out (:attr:`SegmentFit.held_out`, from ``cv``'s folds: the named structure's), and the
+    fitted cart, effects included. ``cov``, ``plant``, ``peaks``: where the caller has them."""
+    cov = search.cov_of(c) if cov is None else cov
+    peaks = search.peaks(c) if peaks is None else peaks
+    if plant is None:
+        plant = per_run.cart_plant(c, search.base_plants, search.segments, peaks)
+    own = [k for k in c.free if "@" in k and parameters.base_name(k) not in parameters.NUISANCE]
+    names = [n for n in c.free if "@" not in n]
     names += [
         k
         for k in sorted(own, key=parameters.recording_of)  # recording by recording
-        if per_run.acts(parameters.base_name(k), k, best.values[k], peaks)
+        if per_run.acts(parameters.base_name(k), k, c.values[k], peaks)
     ]
-    params = {n: Estimate(n, float(best.values[n]), cov.stderr({n: 1.0})) for n in names}
-    folds = cv.get("folds") or [{}] * len(search.segments)
+    params = {n: Estimate(n, float(c.values[n]), cov.stderr({n: 1.0})) for n in names}
+    folds = (cv or {}).get("folds") or [{}] * len(search.segments)
     segments = []
     for seg, rb, ra, fold in zip(
-        search.segments, search.round1[0].residuals, best.residuals, folds, strict=True
+        search.segments, search.round1[0].residuals, c.residuals, folds, strict=True
     ):
         before, after = seg.target + rb, seg.target + ra
         segments.append(
@@ -304,7 +315,7 @@ def _fit(search, best, cov, plant, peaks, cv, misfit, seconds) -> FitResult:
         smoothing=None,
         exact_polish=True,
         noise_floor=search.floor,
-        n_effective=effective_samples(best.residuals),
+        n_effective=effective_samples(c.residuals),
         misfit=misfit,
         cart=plant,
     )
