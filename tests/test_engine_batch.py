@@ -66,7 +66,7 @@ def test_recordings_simulated_side_by_side_are_each_simulated_alone(search):
 
     from jaxcart.smooth_sim import simulate_smooth
     from jaxcart.smoothing import Smoothing
-    from tuning.estimation.engine.batch import VOLTAGE_WIDTH, BatchFitter, _groups
+    from tuning.estimation.engine.batch import VOLTAGE_WIDTH, BatchFitter
 
     tap, p_step, pd_step = search.segments
     n = 1501
@@ -78,7 +78,7 @@ def test_recordings_simulated_side_by_side_are_each_simulated_alone(search):
     )
     segs = [tap, p_step, pd_step]
     fitter = BatchFitter(segs, search.base_plants)
-    assert sorted(len(g) for g in _groups(segs, fitter.supers, [1] * 3)) == [1, 2]
+    assert sorted(len(g) for g in fitter.shape.groups) == [1, 2]
     names = ("B_eq", "f_c", "y0@0", "yd0@0")
     start = {"B_eq": 4.0, "f_c": 0.3}
     (_, _, _, r), *_ = fitter.fit([(names, start, {})], (1.0,), (0,), kmax=5)

@@ -60,7 +60,7 @@ from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.plausibility import check_fit_recordings
 from jaxcart.smoothing import continuation
-from tuning.estimation.engine import parameters
+from tuning.estimation.engine import parameters, smooth_runs
 from tuning.estimation.engine.covariance import Covariance, covariance
 from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.least_squares import (
@@ -87,7 +87,6 @@ from tuning.estimation.fitting.model import Nuisance, _Problem
 from tuning.estimation.fitting.names import (
     _drives_nothing,
     _initial_value,
-    assemble,
     canonical,
     default_start,
     fittable,
@@ -102,7 +101,7 @@ from tuning.estimation.fitting.result import Estimate, FitResult, SegmentFit, _r
 
 #: The public entry: ``jaxcart fit``'s functions and types, wherever they are written.
 __all__ = [
-    "Estimate", "FitResult", "FitSettings", "Nuisance", "SegmentFit", "assemble", "canonical",
+    "Estimate", "FitResult", "FitSettings", "Nuisance", "SegmentFit", "canonical",
     "cross_predict", "default_start", "fit", "fit_table", "fittable", "load_fitted_plant",
     "not_fitted", "parse_params", "plant_values", "plot_fit", "fit_segment",
     "unit_of", "with_values", "write_fitted_plant"
@@ -632,7 +631,7 @@ def _segment_fits(problem, theta, cov, exact, narrow) -> list:
                 float(se_internal.get(i, math.nan)) * slope,
                 stderr_naive=float(se_naive.get(i, math.nan)) * slope,
             )
-        plant = seg.plant.replace(**assemble(seg.plant, pv))
+        plant = seg.plant.replace(**smooth_runs.with_values(seg.plant, pv))
         fits = (before[k], after[k], before_exact[k], after_exact[k])
         out.append(SegmentFit(seg.name, seg.kind, seg.time, seg.target, *fits, nuis, plant))
     return out

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -24,12 +23,11 @@ import numpy as np
 
 from jaxcart.parallel import devices, sharded_map
 from jaxcart.plantspec import build_plant
-from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing
 from jaxcart.substeps import substeps_per_sample
 from tuning.distributed import gather_rows
-from tuning.estimation.engine import parameters
-from tuning.estimation.engine.layout import DUMMY, Layout, for_candidates
+from tuning.estimation.engine import parameters, smooth_runs
+from tuning.estimation.engine.layout import DUMMY, for_candidates
 from tuning.estimation.engine.least_squares import marquardt_step
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
@@ -67,95 +65,6 @@ def _colours(owners) -> list[int]:
             groups[k].add(int(rec))
         out.append(k)
     return out
-
-
-def _groups(segments, supers, n_subs) -> list[tuple]:
-    """The recordings (indices) that simulate side by side: those alike in everything static
-    (experiment kind and sample time, the plant's and the controller's structure, sub-steps,
-    an encoder in the loop). One loop per group instead of one per recording: a joint
-    diagnosis's step compiles once per kind of run, not once per file."""
-    groups: dict = {}
-    for i, (seg, sup) in enumerate(zip(segments, supers, strict=True)):
-        exp = seg.experiment
-        key = (
-            exp.kind,
-            float(exp.sample_time),
-            jax.tree_util.tree_structure(sup),
-            jax.tree_util.tree_structure(seg.controller),
-            n_subs[i],
-            seg.counts_in_loop,
-            seg.quantization if seg.counts_in_loop else 0.0,
-        )
-        groups.setdefault(key, []).append(i)
-    return [tuple(g) for g in groups.values()]
-
-
-def _padded(segments, groups) -> dict:
-    """Each recording's experiment with its signal held at its last value to the longest of
-    its group (the samples past its end are simulated and dropped)."""
-    out = {}
-    for group in groups:
-        n = max(segments[i].experiment.n_samples for i in group)
-        for i in group:
-            exp = segments[i].experiment
-            signal = np.asarray(exp.signal)
-            signal = np.pad(signal, (0, n - signal.size), mode="edge")
-            out[i] = dataclasses.replace(exp, signal=signal)
-    return out
-
-
-class _Runs(NamedTuple):
-    """What :func:`_group_positions` needs of a fitter: its segments, superset plants, layout,
-    padded experiments and sub-steps."""
-
-    segments: list
-    supers: list
-    layout: Layout
-    padded: dict
-    n_subs: list
-
-
-def _group_positions(runs: _Runs, group, full, own, smoothing):
-    """The smooth positions [m] of ``group``'s recordings (one row each, to the longest one's
-    length) at the full parameter vector ``full``: one loop, the runs side by side."""
-    plants, exps = [], []
-    for i in group:
-        have = runs.supers[i].param_names()
-        # A candidate's own copy of a per-recording parameter where it frees one, else the
-        # shared value (one compiled step serves both kinds of candidate).
-        values = {
-            n: jnp.where(own[i, k] > 0, full[j], full[k])
-            for k, (n, j) in enumerate(runs.layout.reads[i])
-            if n in have
-        }
-        plants.append(runs.supers[i].replace(**values))
-        exps.append(
-            dataclasses.replace(runs.padded[i], **{v: full[j] for v, j in runs.layout.starts[i]})
-        )
-    seg, n_sub = runs.segments[group[0]], runs.n_subs[group[0]]  # one of each in a group
-    sm, shift = smoothing, 0.0
-    if seg.counts_in_loop:
-        # The encoder in the loop as its mean, y - q/2 (a position width of one count leaves
-        # 0.2 % of the staircase; a staircase gives LM a Jacobian only at the count edges),
-        # and the position as that reading + q/2. The exact re-check reads whole counts.
-        sm = dataclasses.replace(smoothing, position=seg.quantization)
-        shift = seg.quantization / 2
-
-    def run(plant, controller, exp):
-        res = simulate_smooth(plant, controller, exp, smoothing=sm, substeps=n_sub)
-        return res.position
-
-    ctrls = [runs.segments[i].controller for i in group]
-    if len(group) == 1:
-        pos = run(plants[0], ctrls[0], exps[0])[None]
-    else:  # the group's runs side by side in one loop (one program to compile)
-        pos = jax.vmap(run)(*(_stacked(x) for x in (plants, ctrls, exps)))
-    return jnp.where(jnp.isfinite(pos), pos + shift, 1.0)
-
-
-def _stacked(trees):
-    """The pytrees ``trees`` (one structure) stacked leaf by leaf along a new first axis."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
 
 
 def _theta_arrays(layout):
@@ -272,8 +181,9 @@ class BatchFitter:
             substeps_per_sample(sup, screening=True) if substeps is None else substeps
             for sup in supers
         ]
-        groups = _groups(segments, supers, n_subs)
-        runs = _Runs(segments, supers, layout, _padded(segments, groups), n_subs)
+        self.shape = shape = smooth_runs.shape_of(segments, supers, n_subs)
+        experiments = smooth_runs.padded(segments, shape)
+        controllers = [s.controller for s in segments]
 
         def full_values(theta, idx, base):
             vals = jnp.where(log_mask_j[idx], jnp.exp(theta), theta * scale_j[idx])
@@ -286,11 +196,13 @@ class BatchFitter:
             # run.
             smoothing = base_smoothing.scaled(width)
             smoothing = dataclasses.replace(smoothing, voltage=VOLTAGE_WIDTH * width / 4.0)
-            out = [None] * len(segments)
-            for group in groups:
-                pos = _group_positions(runs, group, full, own, smoothing)
-                for lane, i in enumerate(group):
-                    out[i] = pos[lane, : targets[i].size] - targets[i]
+            pos = smooth_runs.positions(
+                supers, controllers, experiments, full, layout, smoothing, shape, own
+            )
+            # A run that diverged: a finite, far miss (the step is then rejected).
+            out = [
+                jnp.where(jnp.isfinite(y), y, 1.0) - t for y, t in zip(pos, targets, strict=True)
+            ]
             return jnp.concatenate(out) * scale
 
         # The recording of every sample (a column's support is its slot's recordings).

@@ -16,12 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcart import plantspec
-from jaxcart.experiments import Experiment
 from jaxcart.parallel import put, sharded_map
-from jaxcart.smooth_sim import simulate_smooth
 from jaxcart.smoothing import Smoothing
+from jaxcart.substeps import substeps_per_sample
 from jaxcart.workers import SERIAL
-from tuning.estimation.engine import parameters
+from tuning.estimation.engine import parameters, smooth_runs
 from tuning.estimation.engine.exact_runs import exact_position
 from tuning.estimation.engine.layout import Layout, for_fit
 from tuning.estimation.engine.least_squares import LM_DAMPING
@@ -29,7 +28,6 @@ from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
     _default_start,
     _element,
-    assemble,
     canonical,
     default_start,
 )
@@ -70,35 +68,34 @@ PAD = 256
 class _Static(NamedTuple):
     """What the compiled residual function is specialised on (hashable: a jit static): theta's
     layout, each segment's start values' forms (:class:`Nuisance`, base 0: the bases are
-    data) and the RK4 sub-steps per sample."""
+    data) and the runs' :class:`~tuning.estimation.engine.smooth_runs.Shape`."""
 
     layout: Layout
     forms: tuple
-    substeps: int
+    shape: smooth_runs.Shape
+
+
+def _full(theta, bases, static: _Static):
+    """The natural values [SI] of every entry of theta: a parameter's from its internal
+    coordinate, a start value's through its :class:`Nuisance` form (its base a datum)."""
+    lay = static.layout
+    full = [parameters.to_value(name, theta[i], jnp) for i, name in enumerate(lay.names)]
+    for starts, forms, base in zip(lay.starts, static.forms, bases, strict=True):
+        for j, (form, (_, i)) in enumerate(zip(forms, starts, strict=True)):
+            full[i] = form._replace(base=base[j]).value(theta[i], jnp)
+    return jnp.stack(full) if full else jnp.zeros(0)
 
 
 def _positions(theta, data, smoothing, static: _Static):
-    """Simulated positions of every segment, concatenated [m]."""
-    out = []
-    lay = static.layout
-    for (plant, controller, experiment, base), reads, starts, forms in zip(
-        data, lay.reads, lay.starts, static.forms, strict=True
-    ):
-        plant = plant.replace(
-            **assemble(plant, {p: parameters.to_value(p, theta[i], jnp) for p, i in reads}, jnp)
-        )
-        # The base values are data (a traced array), so that recordings differing only in them
-        # share one compilation.
-        values = {
-            v.name: v._replace(base=base[j]).value(theta[i], jnp)
-            for j, (v, (_, i)) in enumerate(zip(forms, starts, strict=True))
-        }
-        experiment = dataclasses.replace(experiment, **values)
-        res = simulate_smooth(
-            plant, controller, experiment, smoothing=smoothing, substeps=static.substeps
-        )
-        out.append(res.position)
-    return jnp.concatenate(out)
+    """Simulated positions of every segment (padded), concatenated [m]: the engine's
+    :func:`~tuning.estimation.engine.smooth_runs.positions`. The start values' bases are data
+    (a traced array), so that recordings differing only in them share one compilation."""
+    plants, controllers, experiments, bases = (list(x) for x in zip(*data, strict=True))
+    full = _full(theta, bases, static)
+    pos = smooth_runs.positions(
+        plants, controllers, experiments, full, static.layout, smoothing, static.shape
+    )
+    return jnp.concatenate(pos)
 
 
 def _residuals_jacobian(theta, data, measured, weight, smoothing, static):
@@ -145,7 +142,6 @@ class _Problem:
         self.settings = settings
         self.layout = layout = for_fit(self.params, segments)
         forms = tuple(tuple(v._replace(base=0.0) for v in s.nuisance) for s in segments)
-        self.static = _Static(layout, forms, settings.substeps)
         # The name of every entry of theta: the parameters, then each segment's start values.
         self.entries = list(layout.names)
         theta = [parameters.to_theta(p, self._start_value(p)) for p in self.params]
@@ -155,22 +151,25 @@ class _Problem:
             for v in seg.nuisance
         ]
         self.theta0 = np.asarray(theta, dtype=float)
-        # Pad every segment to a multiple of PAD samples (weight 0 there): recordings of
+        # Every segment padded to a multiple of PAD samples (weight 0 there): recordings of
         # nearly the same length then share one compiled residual function.
+        plants = [s.plant for s in segments]
+        n_subs = [
+            substeps_per_sample(p) if settings.substeps is None else settings.substeps
+            for p in plants
+        ]
+        shape = smooth_runs.shape_of(segments, plants, n_subs, side_by_side=False)
+        experiments = smooth_runs.padded(segments, shape, PAD)
+        padded = [e.n_samples for e in experiments]
+        self.static = _Static(layout, forms, shape._replace(lengths=tuple(padded)))
         self.sizes = [s.target.size for s in segments]
         self.observed = np.concatenate([s.target for s in segments])
-        padded = [-(-n // PAD) * PAD for n in self.sizes]
         # On the device once: host leaves would be transferred again at every evaluation.
         self.data = jax.tree.map(
             put,
             tuple(
-                (
-                    s.plant,
-                    s.controller,
-                    _padded_experiment(s.experiment, n),
-                    np.asarray([v.base for v in s.nuisance], dtype=float),
-                )
-                for s, n in zip(segments, padded, strict=True)
+                (s.plant, s.controller, e, np.asarray([v.base for v in s.nuisance], dtype=float))
+                for s, e in zip(segments, experiments, strict=True)
             ),
         )
         self.measured = put(
@@ -306,7 +305,7 @@ class _Problem:
         for theta in thetas:
             for k, seg in enumerate(self.segments):
                 values, nuisance = self.segment_values(theta, k)
-                plant = seg.plant.replace(**assemble(seg.plant, values))
+                plant = seg.plant.replace(**smooth_runs.with_values(seg.plant, values))
                 jobs.append(
                     (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
                 )
@@ -329,10 +328,3 @@ class _Problem:
     def split(self, r):
         """Per-segment parts of a vector over all samples."""
         return np.split(np.asarray(r), np.cumsum(self.sizes)[:-1])
-
-
-def _padded_experiment(experiment: Experiment, n: int) -> Experiment:
-    """The experiment continued to n samples (its last signal value held)."""
-    signal = np.asarray(experiment.signal, dtype=float)
-    signal = np.pad(signal, (0, n - signal.size), mode="edge")
-    return dataclasses.replace(experiment, signal=put(signal, float))

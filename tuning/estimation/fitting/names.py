@@ -94,29 +94,6 @@ def _element(name: str) -> int | None:
     return int(name[name.index("[") + 1 : -1]) if "[" in name else None
 
 
-def assemble(plant: Plant, values: dict, xp=np) -> dict:
-    """{name: value} with vector elements ("f_track[2]") gathered into their vectors (the
-    plant's current vector where an element is not given); scalars pass through."""
-    out, vectors = {}, {}
-    for name, value in values.items():
-        i = _element(name)
-        if i is None:
-            out[name] = value
-            continue
-        base = base_name(name)
-        if base not in vectors:
-            have = plant.get(base) if base in plant.param_names() else default_start()[base]
-            vectors[base] = list(have) if isinstance(have, tuple) else list(xp.asarray(have))
-        vectors[base][i] = value
-    for base, items in vectors.items():
-        out[base] = (
-            xp.stack([xp.asarray(v) for v in items])
-            if xp is not np
-            else tuple(float(v) for v in items)
-        )
-    return out
-
-
 def _known_names() -> set:
     return set(fittable()) | set(plantspec.parameter_names())
 
