@@ -8,12 +8,14 @@ integrated autocorrelation time (1 + rho) / (1 - rho)."""
 
 import math
 
+import jax
 import numpy as np
 import pytest
 
 import jaxcart as jc
 from jaxcart.synthetic import make_recording, write_recording
 from tuning.estimation import fit
+from tuning.estimation.engine import smooth_runs
 from tuning.estimation.engine.noise import MISFIT_RATIO, effective_samples, floor_of
 from tuning.estimation.fitting import model
 
@@ -90,6 +92,30 @@ def test_batched_trials_equal_single_runs(tap):
         np.testing.assert_allclose(r_k[k], r, rtol=0, atol=1e-12)
         np.testing.assert_allclose(j_k[k], jac, rtol=1e-10, atol=1e-12)
     assert not np.allclose(r_k[0], r_k[1])
+
+
+def test_side_by_side_runs_equal_runs_apart(tap):
+    """The engine's one smooth simulation of recordings (smooth_runs.positions): two
+    recordings alike in everything static run as lanes of one loop (a diagnosis's way) give
+    what they give each in its own loop (a fit's), to 1e-12 m; each lane is its own run (the
+    second's start moved by 1 mm moves its positions, not the first's)."""
+    seg = fit.fit_segment(tap, ("B_eq", "f_c"), {}, QUICK)
+    problem = model._Problem([seg, seg], ("B_eq", "f_c"), QUICK)
+    plants, ctrls, exps, bases = (list(x) for x in zip(*problem.data, strict=True))
+    theta = problem.theta0.copy()
+    theta[problem.layout.starts[1][0][1]] += 1.0  # y0 of the second: +1 mm (its scale)
+    with jax.enable_x64(True):
+        full = model._full(theta, bases, problem.static)
+        smoothing = problem.smoothing(1e-3)
+        apart = problem.static.shape
+        assert len(apart.groups) == 2
+        together = apart._replace(groups=((0, 1),))
+        a = smooth_runs.positions(plants, ctrls, exps, full, problem.layout, smoothing, apart)
+        b = smooth_runs.positions(plants, ctrls, exps, full, problem.layout, smoothing, together)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-12)
+    # No force depends on the position: the second run is the first moved by 1 mm.
+    np.testing.assert_allclose(np.asarray(a[1]) - np.asarray(a[0]), 1e-3, rtol=0, atol=1e-12)
 
 
 def test_noise_floor_against_the_true_positions():

@@ -631,7 +631,7 @@ def _segment_fits(problem, theta, cov, exact, narrow) -> list:
                 float(se_internal.get(i, math.nan)) * slope,
                 stderr_naive=float(se_naive.get(i, math.nan)) * slope,
             )
-        plant = seg.plant.replace(**smooth_runs.with_values(seg.plant, pv))
+        plant = seg.plant.replace(**smooth_runs.replacements(seg.plant, pv))
         fits = (before[k], after[k], before_exact[k], after_exact[k])
         out.append(SegmentFit(seg.name, seg.kind, seg.time, seg.target, *fits, nuis, plant))
     return out

@@ -2,10 +2,11 @@
 values: both a fit of fixed structure (:mod:`tuning.estimation.fitting.model`) and a diagnosis's
 batch of candidates (:mod:`tuning.estimation.engine.batch`) call :func:`positions`.
 
-The recordings alike in everything static (the experiment's kind and sample time, the plant's
-and the controller's structure, the sub-steps, the encoder in the loop) are simulated side by
-side, one loop per :class:`Shape` group (``jax.vmap``): a joint fit compiles once per kind of
-run, not once per file. Each recording reads its values from the vector through the engine's
+A diagnosis's recordings alike in everything static (the experiment's kind and sample time, the
+plant's and the controller's structure, the sub-steps, the encoder in the loop) are simulated
+side by side, one loop per :class:`Shape` group (``jax.vmap``): its step compiles once per kind
+of run, not once per file; a fit runs each in a loop of its own (:func:`shape_of`). Each
+recording reads its values from the vector through the engine's
 :class:`~tuning.estimation.engine.layout.Layout`.
 """
 
@@ -76,12 +77,12 @@ def padded(segments, shape: Shape, multiple: int = 1) -> list:
         n = -(-n // multiple) * multiple
         for i in group:
             exp = segments[i].experiment
-            signal = np.asarray(exp.signal, dtype=float)
+            signal = np.asarray(exp.signal)
             out[i] = dataclasses.replace(exp, signal=np.pad(signal, (0, n - signal.size), "edge"))
     return out
 
 
-def with_values(plant, values: dict, xp=np) -> dict:
+def replacements(plant, values: dict, xp=np) -> dict:
     """{name: value} of ``values`` as ``plant.replace`` takes them: vector elements
     (``f_track[2]``) gathered into their vectors (the plant's own where an element is not
     given, else each element's declared start); scalars pass through."""
@@ -127,7 +128,7 @@ def positions(plants, controllers, experiments, full, layout, smoothing, shape: 
                 for k, (n, j) in enumerate(layout.reads[i])
                 if parameters.base_name(n) in have
             }
-            ps.append(plants[i].replace(**with_values(plants[i], values, jnp)))
+            ps.append(plants[i].replace(**replacements(plants[i], values, jnp)))
             starts = {v: full[j] for v, j in layout.starts[i]}
             exps.append(dataclasses.replace(experiments[i], **starts))
         q = shape.counts[group[0]]

@@ -305,7 +305,7 @@ class _Problem:
         for theta in thetas:
             for k, seg in enumerate(self.segments):
                 values, nuisance = self.segment_values(theta, k)
-                plant = seg.plant.replace(**smooth_runs.with_values(seg.plant, values))
+                plant = seg.plant.replace(**smooth_runs.replacements(seg.plant, values))
                 jobs.append(
                     (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
                 )

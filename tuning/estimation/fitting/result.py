@@ -13,7 +13,7 @@ from jaxcart.plantspec import handout_plant
 from jaxcart.smoothing import Smoothing
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.parameters import base_name
-from tuning.estimation.engine.smooth_runs import with_values as gathered
+from tuning.estimation.engine.smooth_runs import replacements
 from tuning.estimation.fitting.names import canonical, unit_of, with_values
 
 
@@ -214,7 +214,7 @@ class FitResult:
         if base is None:
             driven = [s.plant for s in self.segments if s.plant.motor_connected]
             base = driven[0] if driven else handout_plant()
-        return with_values(base, gathered(base, self.values))
+        return with_values(base, replacements(base, self.values))
 
     def to_json(self) -> dict:
         """{"params": {name: {"value", "stderr"}}, "rms_before", "rms_after" [m], ...}: the
