@@ -345,7 +345,7 @@ class Reader:
             unknown = [name for name in header if name not in COLUMNS + TIMING_COLUMNS]
             for required in ("t",) if "e" in columns else ("t", "y"):  # e: y = r - e
                 if required not in columns:
-                    guess = unknown[0] if unknown else "column"
+                    guess = _guess(required, unknown)
                     self.fail(
                         f"column {required!r} missing in {data} (columns: "
                         f"{', '.join(header)}); name the {_LONG[required]} column "
@@ -386,15 +386,18 @@ class Reader:
 
     def unit_header(self, data, header, columns):
         """(header, columns) with a column's unit dropped from its name where it is the
-        format's own ("t [s]", "y (m)", "v [V]": what a spreadsheet or writetable adds); a
-        column of the format in another unit ("y [mm]", "t (ms)") is an error that says how
-        to convert it."""
+        format's own ("t [s]", "y (m)", "v [V]", "y_m": what a spreadsheet or writetable adds);
+        a column of the format in another unit ("y [mm]", "t (ms)", "y_mm") is an error that
+        says how to convert it."""
         renamed = {}
         for name in header:
             match = _UNIT_HEADER.match(name)
-            if match is None or match["name"] not in COLUMN_UNITS:
+            if match is None:
                 continue
-            column, unit = match["name"], match["unit"].strip()
+            column = match["name"] or match["stem"]
+            unit = (match["unit"] or match["suffix"]).strip()
+            if column not in COLUMN_UNITS:
+                continue
             want = COLUMN_UNITS[column]
             if unit in (want, want.lower()):  # "v [v]" too
                 renamed[name] = column
@@ -683,8 +686,32 @@ _LONG = {
 }
 
 
-#: A column named with its unit: "t [s]", "y (m)", "v[V]".
-_UNIT_HEADER = re.compile(r"(?P<name>\w+)\s*[\[(](?P<unit>[^\])]*)[\])]\Z")
+#: Words a column of each kind is often named with (what a hint to map it looks for).
+_WORDS = {
+    "t": ("time", "sec", "t"),
+    "y": ("pos", "cart", "enc", "x", "y"),
+    "v": ("volt", "command", "u", "v"),
+    "r": ("ref", "set", "r"),
+    "e": ("err", "e"),
+}
+
+
+def _guess(column: str, names) -> str:
+    """The name of ``names`` most likely to hold ``column`` (for a hint to map it): the first
+    that starts with one of its words (``Time`` for t, ``position_mm`` for y), else the first
+    name, else "column"."""
+    for word in _WORDS[column]:
+        for name in names:
+            if name.lower().startswith(word):
+                return name
+    return names[0] if names else "column"
+
+
+#: A column named with its unit: "t [s]", "y (m)", "v[V]", or with it as a suffix: "y_mm",
+#: "t_ms" (the suffix one of the units a recording is often written in).
+_UNIT_HEADER = re.compile(
+    r"(?P<name>\w+)\s*[\[(](?P<unit>[^\])]*)[\])]\Z|(?P<stem>[a-z])_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
+)
 #: Factors to the format's units from those a recording is often written in.
 _TO_SI = {
     ("s", "ms"): 1e-3,

@@ -457,13 +457,18 @@ def test_csv_saved_differently_matlab_comments_and_units_in_the_header(tmp_path)
     (tmp_path / "run.csv").write_text("% tap, group 7, 2021-09-01\nt,y\n" + body + "% end\n")
     rec = read_experiment(_toml(tmp_path, tap))
     assert np.array_equal(rec.position, y) and np.array_equal(rec.time, t)
-    for header in ("t [s],y [m]", "t (s), y (m)", "t[s],y[m]"):
+    for header in ("t [s],y [m]", "t (s), y (m)", "t[s],y[m]", "t_s,y_m"):
         (tmp_path / "run.csv").write_text(header + "\n" + body)
         assert np.array_equal(read_experiment(_toml(tmp_path, tap)).position, y)
-    (tmp_path / "run.csv").write_text("t [s],y [mm]\n" + body)
-    with pytest.raises(
-        UserError, match=r"column 'y \[mm\]' of run.csv is in mm; .*multiply it by 0.001"
-    ):
+    for header, column in (("t [s],y [mm]", r"y \[mm\]"), ("t_s,y_mm", "y_mm")):
+        (tmp_path / "run.csv").write_text(header + "\n" + body)
+        with pytest.raises(
+            UserError, match=rf"column '{column}' of run.csv is in mm; .*multiply it by 0.001"
+        ):
+            read_experiment(_toml(tmp_path, tap))
+    # A column under another name: the hint maps the one that looks like it.
+    (tmp_path / "run.csv").write_text("Position,Time\n" + body)
+    with pytest.raises(UserError, match='map it in a \\[data\\] table \\(t = "run.csv:Time"\\)'):
         read_experiment(_toml(tmp_path, tap))
     counts = "".join(f"{a:.17g},{round(b / 2.275e-5) + 10000}\n" for a, b in zip(t, y, strict=True))
     (tmp_path / "run.csv").write_text("t,y\n" + counts)
