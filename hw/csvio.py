@@ -38,7 +38,9 @@ def read_numeric_csv(path, name: str, progress=None):
 
     Blank lines and lines starting with # or % (MATLAB's comment) are skipped, a UTF-8
     byte-order mark dropped, CRLF line ends and a comma at the end of every line (a
-    spreadsheet's empty last column) accepted. Raises :class:`CSVError` naming ``name``, the
+    spreadsheet's empty last column) accepted; a header separated by semicolons or tabs (a
+    spreadsheet's regional export) reads every comma as a decimal point and every separator as a
+    comma. Raises :class:`CSVError` naming ``name``, the
     line and the column for a line with the wrong number of fields or a value that is not a
     number, and naming the cause and the fix for a file that is not CSV text (UTF-16, a
     workbook, :mod:`hw.textfiles`), has no header line, or is MATLAB's ``save -ascii`` output.
@@ -62,12 +64,15 @@ def _read_numeric_csv(path, name: str, progress=None):
         header, lineno, start = _header(f, name)
         if header is None:
             return None, np.empty((0, 0)), np.empty(0, dtype=np.int64)
-        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
-            if len(header) == 1 and sep in header[0]:
-                raise CSVError(
-                    f"{name} line {lineno}: the fields are separated by {what} (a spreadsheet's "
-                    f"regional CSV?); save it with commas (CSV UTF-8)"
-                )
+        sep = next((c for c in ";\t" if len(header) == 1 and c in header[0]), None)
+        if sep is not None:
+            # A spreadsheet's regional export (fields separated by semicolons, decimal commas)
+            # or a tab-separated one: read as the CSV it stands for, every comma a decimal
+            # point and every separator a comma (the line numbers stay). In memory: such
+            # files are a spreadsheet's size.
+            f.seek(0)
+            f = io.BytesIO(f.read().translate(bytes.maketrans(b"," + sep.encode(), b".,")))
+            header, lineno, start = _header(f, name)
         _check_header(header, lineno, name)
         if len(header) > 1 and header[-1] == "":  # "t,y,v,": the spreadsheet's empty column
             header = header[:-1]

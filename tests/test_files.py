@@ -397,10 +397,17 @@ def test_csv_blocks_progress_and_exact_round_trip(tmp_path, monkeypatch, capsys)
     (tmp_path / "big.csv").write_text("\n".join(text) + "\n")
     with pytest.raises(csvio.CSVError, match=r"big.csv line 2501, column y: 'x.*' is not a number"):
         csvio.read_numeric_csv(tmp_path / "big.csv", "big.csv", progress=lambda x: None)
-    # A spreadsheet's regional export (semicolons): said as such, on the header's line.
-    (tmp_path / "semi.csv").write_text("# exported\nt;y;v\n0;0;1\n")
-    with pytest.raises(csvio.CSVError, match="semi.csv line 2: the fields are separated by semi"):
-        csvio.read_numeric_csv(tmp_path / "semi.csv", "semi.csv")
+    # A spreadsheet's regional export (semicolons, decimal commas) and a tab-separated one:
+    # read as the CSV they stand for, line numbers and errors as in any other.
+    for sep in (";", "\t"):
+        text = f"# exported\nt{sep}y{sep}v\n0{sep}0,5{sep}1\n0,001{sep}-2,25e-3{sep}6\n"
+        (tmp_path / "regional.csv").write_text(text)
+        head, table, lines = csvio.read_numeric_csv(tmp_path / "regional.csv", "regional.csv")
+        assert head == ["t", "y", "v"] and lines.tolist() == [3, 4]
+        np.testing.assert_array_equal(table, [[0.0, 0.5, 1.0], [0.001, -2.25e-3, 6.0]])
+        (tmp_path / "regional.csv").write_text(text + f"0,002{sep}x{sep}6\n")
+        with pytest.raises(csvio.CSVError, match=r"regional.csv line 5, column y: 'x'"):
+            csvio.read_numeric_csv(tmp_path / "regional.csv", "regional.csv")
 
 
 @pytest.mark.parametrize("cell", ["", " ", "\t", "  \t "])

@@ -410,8 +410,9 @@ def _reference_read(text: str, name="run.csv"):
             continue
         if header is None:
             header = [h.strip() for h in row]
-            if len(header) == 1 and (";" in header[0] or "\t" in header[0]):
-                raise CSVError(f"{name} line {lineno}: separated by semicolons or tabs")
+            sep = next((c for c in ";\t" if len(header) == 1 and c in header[0]), None)
+            if sep is not None:  # a regional export: its commas decimal points
+                return _reference_read(text.translate(str.maketrans({",": ".", sep: ","})), name)
             words = header[0].split() if len(header) == 1 else [h for h in header if h]
             if words and all(_is_number(w) for w in words):
                 raise CSVError(f"{name} line {lineno}: numbers, no header")
