@@ -221,6 +221,7 @@ class Reader:
         return value
 
     def choice(self, value, field, allowed):
+        value = _spelled(value, allowed)
         if value not in allowed:
             self.fail(f"{field} = {value!r}: use one of {', '.join(map(repr, allowed))}")
         return value
@@ -243,6 +244,13 @@ class Reader:
                 self.fail(f"unknown key {key!r}; allowed keys: {', '.join(TOP_KEYS)}")
         if "kind" not in meta:
             self.fail(f"no kind; add kind = one of {', '.join(map(repr, KINDS))}")
+        # The kinds as the format spells them, wherever they are read from here on.
+        for table, allowed in (
+            (meta, KINDS),
+            *((meta.get(t), SIGNAL_KEYS) for t in ("reference", "input")),
+        ):
+            if isinstance(table, dict) and "kind" in table:
+                table["kind"] = _spelled(table["kind"], allowed)
         kind = self.choice(meta["kind"], "kind", KINDS)
         if "description" in meta and not isinstance(meta["description"], str):
             self.fail(f"description = {meta['description']!r}: give a string")
@@ -684,6 +692,15 @@ _LONG = {
     "r": "reference [m]",
     "e": "error [m]",
 }
+
+
+def _spelled(value, allowed):
+    """``value`` as one of ``allowed`` where it differs from it only in case, spaces and
+    hyphens ("Closed loop", "closed-loop": "closed_loop"), else as it is."""
+    if value in allowed or not isinstance(value, str):
+        return value
+    spelled = "_".join(value.strip().lower().replace("-", " ").split())
+    return spelled if spelled in allowed else value
 
 
 #: Words a column of each kind is often named with (what a hint to map it looks for).

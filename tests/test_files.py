@@ -152,6 +152,22 @@ def _toml(tmp_path, text, name="exp.toml"):
     return path
 
 
+def test_kinds_read_with_another_case_spaces_or_hyphens(tmp_path):
+    """ "Closed loop", "closed-loop" and [reference] kind = "Step" are the format's closed_loop
+    and step (the step's amplitude is then the reference, as with its own spelling); a kind
+    that is none of them still stops with the allowed ones."""
+    t = np.arange(200) * 0.001
+    (tmp_path / "run.csv").write_text("t,y\n" + "".join(f"{a:.3f},0\n" for a in t))
+    body = (
+        'data = "run.csv"\n[controller]\nkp = 10.0\n[reference]\nkind = "{ref}"\namplitude = 0.1\n'
+    )
+    for kind, ref in (("Closed loop", "Step"), ("closed-loop", " STEP "), ("closed_loop", "step")):
+        rec = read_experiment(_toml(tmp_path, f'kind = "{kind}"\n' + body.format(ref=ref)))
+        assert rec.kind == "closed_loop" and np.all(rec.reference == 0.1)
+    with pytest.raises(UserError, match="kind = 'closed loops': use one of 'tap'"):
+        read_experiment(_toml(tmp_path, 'kind = "closed loops"\n' + body.format(ref="step")))
+
+
 def test_mat_layouts_and_mapped_csv_columns(tmp_path):
     n, ts = 50, 0.002
     t = np.arange(n) * ts
