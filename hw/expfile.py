@@ -83,6 +83,10 @@ TAP_KEYS = ("motor_connected",)
 #: Allowed time-step deviation from sample_time (docs/experiment-files.md: more than 1 % off
 #: is an error).
 TIME_TOLERANCE = 0.01
+#: Time stamps within this share of a sample of the uniform grid t_0 + k Ts are a uniform
+#: clock read with jitter (a logger's own clock; the samples are taken as k Ts, and the
+#: recording's check says how far they scatter), not a wrong sample_time or lost samples.
+JITTER_SHARE = 0.25
 
 
 class ExpFileError(ValueError):
@@ -547,6 +551,8 @@ class Reader:
         else:
             where = f"sample_time = {ts!r} s"
         off = np.nonzero(np.abs(steps - ts) > TIME_TOLERANCE * ts)[0]
+        if off.size and _jittered(time, ts):
+            off = off[:0]  # stamps of a uniform clock, each read a little late or early
         if off.size:
             i = off[0] + 1
             step = float(steps[off[0]])
@@ -692,6 +698,17 @@ _LONG = {
     "r": "reference [m]",
     "e": "error [m]",
 }
+
+
+def _jittered(time, ts) -> bool:
+    """Whether ``time`` [s] keeps a mean step of ``ts`` (within TIME_TOLERANCE: else the
+    sample time is wrong) and stays within JITTER_SHARE of a sample of its uniform grid
+    (fitted through its median: a constant offset of every stamp is no jitter)."""
+    if abs((time[-1] - time[0]) / (time.size - 1) - ts) > TIME_TOLERANCE * ts:
+        return False
+    grid = np.arange(time.size) * ts
+    scatter = time - grid
+    return bool(np.max(np.abs(scatter - np.median(scatter))) <= JITTER_SHARE * ts)
 
 
 def _spelled(value, allowed):

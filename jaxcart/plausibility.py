@@ -109,6 +109,7 @@ def _check_recording(rec) -> list[str]:
     warnings = []
     warnings += _check_positions(where, _label(rec, "y"), y)
     warnings += _check_sample_time(where, rec.sample_time)
+    warnings += _check_time_jitter(where, _label(rec, "t"), rec)
     plant = rec.plant()
     volts = _voltage_range(rec, plant)
     warnings += _check_motion(where, _label(rec, "y"), rec, plant, volts)
@@ -165,6 +166,24 @@ def _check_sample_time(where, ts) -> list[str]:
     return [
         f"{where}: sample time {ts:g} s is outside {low:g}-{high:g} s; the lab's loop runs at "
         f"1 kHz (0.001 s){hint}"
+    ]
+
+
+def _check_time_jitter(where, label, rec) -> list[str]:
+    """Time stamps that scatter about the uniform grid t_0 + k Ts by more than 1 % of a sample
+    (a logger's own clock, read with jitter): said, since the samples are taken as k Ts."""
+    t = np.asarray(rec.time, dtype=float)
+    ts = float(rec.sample_time)
+    if t.size < 2:
+        return []
+    scatter = t - np.arange(t.size) * ts
+    worst = float(np.max(np.abs(scatter - np.median(scatter))))
+    if not worst > 0.01 * ts:
+        return []
+    return [
+        f"{where}: the time stamps of {label} scatter by up to {worst * 1e6:.3g} us "
+        f"({100 * worst / ts:.3g} % of a sample) about a uniform {ts:g} s step; the samples are "
+        "taken as uniform in time, as the controller's loop ran them (a clock read with jitter)"
     ]
 
 

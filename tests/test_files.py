@@ -2,6 +2,7 @@
 and the encoder resolution), the Simulink .mat layouts, and one-line errors for bad input."""
 
 import dataclasses
+import re
 
 import jax
 import numpy as np
@@ -166,6 +167,28 @@ def test_kinds_read_with_another_case_spaces_or_hyphens(tmp_path):
         assert rec.kind == "closed_loop" and np.all(rec.reference == 0.1)
     with pytest.raises(UserError, match="kind = 'closed loops': use one of 'tap'"):
         read_experiment(_toml(tmp_path, 'kind = "closed loops"\n' + body.format(ref="step")))
+
+
+def test_time_stamps_read_with_jitter_are_a_uniform_clock(tmp_path):
+    """Stamps that scatter about t_0 + k Ts by up to a quarter of a sample (a logger's clock)
+    read as uniform, with a warning that says by how much; a clock whose steps drift (a wrong
+    sample_time) still stops with the line where it leaves the step."""
+    rng = np.random.default_rng(1)
+    k = np.arange(500)
+    y = 0.1 * (1 - np.exp(-k * 0.001 / 0.05))
+    tap = 'kind = "tap"\nsample_time = 0.001\ndata = "run.csv"\n'
+    for t in (5.0 + k * 0.001 + rng.uniform(-2e-4, 2e-4, k.size), k * 0.00102):
+        body = "".join(f"{a:.9f},{b:.9f}\n" for a, b in zip(t, y, strict=True))
+        (tmp_path / "run.csv").write_text("t,y\n" + body)
+        if t[0] == 0.0:
+            with pytest.raises(UserError, match=r"steps by 0.00102 s at line 3, more than 1 %"):
+                read_experiment(_toml(tmp_path, tap))
+            continue
+        rec = read_experiment(_toml(tmp_path, tap))
+        np.testing.assert_array_equal(rec.time, np.round(t, 9))
+        assert rec.sample_time == 0.001
+        said = [re.search(r"scatter by up to (\d+) us", w) for w in rec.warnings]
+        assert [150 < float(m[1]) < 260 for m in said if m] == [True], rec.warnings
 
 
 def test_mat_layouts_and_mapped_csv_columns(tmp_path):
