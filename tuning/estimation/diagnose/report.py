@@ -27,6 +27,11 @@ def _mm(x) -> str:
     return "n/a" if x is None or not math.isfinite(x) else f"{x * 1e3:.4f} mm"
 
 
+def _two(x) -> str:
+    """A standard error to two digits."""
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.2g}"
+
+
 def _num(x) -> str:
     return "n/a" if x is None or not math.isfinite(x) else f"{x:.5g}"
 
@@ -283,7 +288,7 @@ def _values_text(fit) -> str:
     if fit is None:
         return "-"
     shared = [
-        f"{n} {_num(e.value)} +/- {_num(e.stderr)}" for n, e in fit.params.items() if "@" not in n
+        f"{n} {_num(e.value)} +/- {_two(e.stderr)}" for n, e in fit.params.items() if "@" not in n
     ]
     own = sum("@" in n for n in fit.params)
     return ", ".join(shared + ([f"{own} per run"] if own else []))
