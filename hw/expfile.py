@@ -706,9 +706,14 @@ def _jittered(time, ts) -> bool:
     (fitted through its median: a constant offset of every stamp is no jitter)."""
     if abs((time[-1] - time[0]) / (time.size - 1) - ts) > TIME_TOLERANCE * ts:
         return False
-    grid = np.arange(time.size) * ts
-    scatter = time - grid
-    return bool(np.max(np.abs(scatter - np.median(scatter))) <= JITTER_SHARE * ts)
+    return time_scatter(time, ts) <= JITTER_SHARE * ts
+
+
+def time_scatter(time, ts) -> float:
+    """How far [s] time stamps stray from the uniform grid of step ``ts`` through their median
+    (a constant offset of every stamp is none): the largest distance."""
+    scatter = np.asarray(time, dtype=float) - np.arange(len(time)) * ts
+    return float(np.max(np.abs(scatter - np.median(scatter))))
 
 
 def _spelled(value, allowed):

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from hw.control_law import float_pid, pid_init, pid_update, setting_problem
+from hw.expfile import time_scatter
 from jaxcart.effects import Delay
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL, voltage_limit
@@ -176,8 +177,7 @@ def _check_time_jitter(where, label, rec) -> list[str]:
     ts = float(rec.sample_time)
     if t.size < 2:
         return []
-    scatter = t - np.arange(t.size) * ts
-    worst = float(np.max(np.abs(scatter - np.median(scatter))))
+    worst = time_scatter(t, ts)
     if not worst > 0.01 * ts:
         return []
     return [

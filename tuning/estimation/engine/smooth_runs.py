@@ -36,13 +36,13 @@ class Shape(NamedTuple):
     lengths: tuple
 
 
-def shape_of(segments, plants, substeps, lengths=None, side_by_side=True) -> Shape:
+def shape_of(segments, plants, substeps, side_by_side=True) -> Shape:
     """The :class:`Shape` of ``segments`` (:class:`~.segments.Segment`) on ``plants`` with
-    ``substeps`` per sample; ``lengths``: the samples returned of each (default: its
-    target's); ``side_by_side``: the recordings alike in everything static in one loop, else
-    each in its own. One loop compiles once per kind of run (a diagnosis's step: every round
-    reuses it); on the CPU two lanes of one loop run slower than two loops (a fit of the real
-    P 50 step, its repeat and the PD run: 16.1 s side by side, 11.3 s apart)."""
+    ``substeps`` per sample, each returning its target's length. ``side_by_side``: the
+    recordings alike in everything static in one loop, else each in its own. One loop compiles
+    once per kind of run (a diagnosis's step: every round reuses it); on the CPU two lanes of
+    one loop run slower than two loops (a fit of the real P 50 step, its repeat and the PD run:
+    16.1 s side by side, 11.3 s apart)."""
     counts = tuple(float(s.quantization) if s.counts_in_loop else 0.0 for s in segments)
     groups: dict = {}
     for i, (seg, plant) in enumerate(zip(segments, plants, strict=True)):
@@ -57,13 +57,11 @@ def shape_of(segments, plants, substeps, lengths=None, side_by_side=True) -> Sha
             counts[i],
         )
         groups.setdefault(key, []).append(i)
-    if lengths is None:
-        lengths = [s.target.size for s in segments]
     return Shape(
         tuple(tuple(g) for g in groups.values()),
         tuple(int(n) for n in substeps),
         counts,
-        tuple(int(n) for n in lengths),
+        tuple(s.target.size for s in segments),
     )
 
 

@@ -79,10 +79,13 @@ def _full(theta, bases, static: _Static):
     """The natural values [SI] of every entry of theta: a parameter's from its internal
     coordinate, a start value's through its :class:`Nuisance` form (its base a datum)."""
     lay = static.layout
-    full = [parameters.to_value(name, theta[i], jnp) for i, name in enumerate(lay.names)]
+    full = [None] * lay.size
     for starts, forms, base in zip(lay.starts, static.forms, bases, strict=True):
         for j, (form, (_, i)) in enumerate(zip(forms, starts, strict=True)):
             full[i] = form._replace(base=base[j]).value(theta[i], jnp)
+    for i, name in enumerate(lay.names):
+        if full[i] is None:
+            full[i] = parameters.to_value(name, theta[i], jnp)
     return jnp.stack(full) if full else jnp.zeros(0)
 
 
