@@ -212,9 +212,15 @@ class Reader:
 
     # -- values
 
-    def number(self, value, field, *, positive=False, nonnegative=False, allow_inf=False):
+    def number(
+        self, value, field, *, unit=None, positive=False, nonnegative=False, allow_inf=False
+    ):
+        """``value`` as a float; ``unit``: the field's unit, where a string holding a number
+        and a unit (``"1 ms"``) is read too: in that unit, or one of :data:`_TO_SI` converted."""
+        if isinstance(value, str) and unit is not None:
+            value = self.quantity(value, field, unit)
         if isinstance(value, bool) or not isinstance(value, int | float):
-            self.fail(f"{field} = {value!r}: give a number")
+            self.fail(f"{field} = {value!r}: give a number" + (f" (in {unit})" if unit else ""))
         value = float(value)
         if math.isnan(value) or (math.isinf(value) and not allow_inf):
             self.fail(f"{field} = {value!r}: give a finite number")
@@ -223,6 +229,16 @@ class Reader:
         if nonnegative and not value >= 0:
             self.fail(f"{field} = {value!r}: it must be >= 0")
         return value
+
+    def quantity(self, text, field, unit) -> float:
+        """A number written with its unit (``"1 ms"``, ``"0.001 s"``, ``"40 mm"``) in ``unit``."""
+        match = _QUANTITY.fullmatch(text)
+        factor = None
+        if match is not None:
+            factor = 1.0 if match["unit"] in ("", unit) else _TO_SI.get((unit, match["unit"]))
+        if factor is None:
+            self.fail(f"{field} = {text!r}: give a number in {unit} ({field} = 0.001, say)")
+        return float(match["number"]) * factor
 
     def choice(self, value, field, allowed):
         value = _spelled(value, allowed)
@@ -261,7 +277,7 @@ class Reader:
         for name in FREE_TABLES:
             if name in meta and not isinstance(meta[name], dict):
                 self.fail(f"{name} must be a table [{name}]")
-        yd0 = self.number(meta.get("initial_velocity", 0.0), "initial_velocity")
+        yd0 = self.number(meta.get("initial_velocity", 0.0), "initial_velocity", unit="m/s")
         for section, owner in (
             ("controller", "closed_loop"),
             ("reference", "closed_loop"),
@@ -398,10 +414,11 @@ class Reader:
 
     def unit_header(self, data, header, columns):
         """(header, columns) with a column's unit dropped from its name where it is the
-        format's own ("t [s]", "y (m)", "v [V]", "y_m": what a spreadsheet or writetable adds);
-        a column of the format in another unit ("y [mm]", "t (ms)", "y_mm") is an error that
-        says how to convert it."""
-        renamed = {}
+        format's own ("t [s]", "y (m)", "v [V]", "y_m": what a spreadsheet or writetable adds),
+        and a column of the format in a unit it is often written in ("y [mm]", "t (ms)",
+        "y_mm", "v [mV]") converted to the format's: the header says the unit, so the factor is
+        not a guess. Any other unit is an error that says what to convert it to."""
+        renamed, factors = {}, {}
         for name in header:
             match = _UNIT_HEADER.match(name)
             if match is None:
@@ -415,17 +432,19 @@ class Reader:
                 renamed[name] = column
                 continue
             factor = _TO_SI.get((want, unit))
-            how = f"multiply it by {factor:g}" if factor else f"convert it to {want}"
-            self.fail(
-                f"column {name!r} of {data} is in {unit}; the format takes {_LONG[column]}: "
-                f"{how} and name the column {column}"
-            )
+            if factor is None:
+                self.fail(
+                    f"column {name!r} of {data} is in {unit!r}, a unit the reader does not "
+                    f"convert; the format takes {_LONG[column]}: convert it to {want} and name "
+                    f"the column {column}"
+                )
+            renamed[name], factors[name] = column, factor
         if not renamed:
             return header, columns
         header = [renamed.get(h, h) for h in header]
         if len(set(header)) != len(header):
             self.fail(f"{data}: repeated column names in the header {header}; name each once")
-        return header, {renamed.get(h, h): v for h, v in columns.items()}
+        return header, {renamed.get(h, h): v * factors.get(h, 1.0) for h, v in columns.items()}
 
     def mapped(self, name, source) -> Signal:
         field = f"[data] {name}"
@@ -524,7 +543,7 @@ class Reader:
                     )
         ts = self.meta.get("sample_time")
         if ts is not None:
-            ts = self.number(ts, "sample_time", positive=True)
+            ts = self.number(ts, "sample_time", unit="s", positive=True)
         if time is None:
             if ts is None:
                 self.fail(
@@ -751,9 +770,14 @@ def _guess(column: str, names) -> str:
 _UNIT_HEADER = re.compile(
     r"(?P<name>\w+)\s*[\[(](?P<unit>[^\])]*)[\])]\Z|(?P<stem>[a-z])_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
 )
+#: A number and its unit, as a string (``"1 ms"``).
+_QUANTITY = re.compile(
+    r"\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(?P<unit>[\w/]*)\s*"
+)
 #: Factors to the format's units from those a recording is often written in.
 _TO_SI = {
     ("s", "ms"): 1e-3,
+    ("s", "us"): 1e-6,
     ("m", "mm"): 1e-3,
     ("m", "cm"): 1e-2,
     ("V", "mV"): 1e-3,

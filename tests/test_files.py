@@ -494,8 +494,9 @@ def test_signal_read_without_x64_stays_float64():
 
 def test_csv_saved_differently_matlab_comments_and_units_in_the_header(tmp_path):
     """MATLAB's % comment lines are skipped like #; a header with the format's own units
-    ("t [s],y [m],v [V]", "y (m)") reads as t, y, v; another unit is one line that says how to
-    convert it; positions in encoder counts are named so."""
+    ("t [s],y [m],v [V]", "y (m)") reads as t, y, v; a column in mm, cm or ms by its header is
+    converted (to 1e-15 relative); another unit is one line that says what to convert it to;
+    positions in encoder counts are named so."""
     t = np.arange(400) * 0.001
     y = np.rint(0.02 * (1 - np.exp(-t / 0.05)) / 2.275e-5) * 2.275e-5
     body = "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(t, y, strict=True))
@@ -506,12 +507,23 @@ def test_csv_saved_differently_matlab_comments_and_units_in_the_header(tmp_path)
     for header in ("t [s],y [m]", "t (s), y (m)", "t[s],y[m]", "t_s,y_m"):
         (tmp_path / "run.csv").write_text(header + "\n" + body)
         assert np.array_equal(read_experiment(_toml(tmp_path, tap)).position, y)
-    for header, column in (("t [s],y [mm]", r"y \[mm\]"), ("t_s,y_mm", "y_mm")):
-        (tmp_path / "run.csv").write_text(header + "\n" + body)
-        with pytest.raises(
-            UserError, match=rf"column '{column}' of run.csv is in mm; .*multiply it by 0.001"
-        ):
-            read_experiment(_toml(tmp_path, tap))
+    for header, ts, ys in (
+        ("t [s],y [mm]", 1.0, 1e3),
+        ("t_s,y_mm", 1.0, 1e3),
+        ("t (ms),y (cm)", 1e3, 1e2),
+        ("t_ms,y_m", 1e3, 1.0),
+    ):
+        scaled = "".join(f"{a * ts:.17g},{b * ys:.17g}\n" for a, b in zip(t, y, strict=True))
+        (tmp_path / "run.csv").write_text(header + "\n" + scaled)
+        rec = read_experiment(_toml(tmp_path, tap))
+        np.testing.assert_allclose(rec.position, y, rtol=1e-15, atol=1e-20)
+        np.testing.assert_allclose(rec.time, t, rtol=1e-15, atol=1e-20)
+    (tmp_path / "run.csv").write_text("t [s],y [in]\n" + body)
+    with pytest.raises(
+        UserError,
+        match=r"column 'y \[in\]' of run.csv is in 'in', a unit .*convert it to m and name",
+    ):
+        read_experiment(_toml(tmp_path, tap))
     # A column under another name: the hint maps the one that looks like it.
     (tmp_path / "run.csv").write_text("Position,Time\n" + body)
     with pytest.raises(UserError, match='map it in a \\[data\\] table \\(t = "run.csv:Time"\\)'):
@@ -520,3 +532,28 @@ def test_csv_saved_differently_matlab_comments_and_units_in_the_header(tmp_path)
     (tmp_path / "run.csv").write_text("t,y\n" + counts)
     with pytest.raises(UserError, match="encoder counts\\? multiply by 2.275e-05"):
         read_experiment(_toml(tmp_path, tap))
+
+
+def test_sample_time_written_with_its_unit(tmp_path):
+    """sample_time = "1 ms" (or "0.001 s", "1000 us", "0.001") reads as 0.001 s exactly as the
+    number does; a unit the reader does not convert, or no number, is one line that says what to
+    give."""
+    y = np.rint(0.02 * (1 - np.exp(-np.arange(400) * 0.001 / 0.05)) / 2.275e-5) * 2.275e-5
+    t = np.arange(400) * 0.001
+    body = "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(t, y, strict=True))
+    (tmp_path / "run.csv").write_text("t,y\n" + body)
+    plain = read_experiment(
+        _toml(tmp_path, 'kind = "tap"\ndata = "run.csv"\nsample_time = 0.001\n')
+    )
+    for written in ('"1 ms"', '"0.001 s"', '"1000 us"', '"0.001"', '" 1ms "'):
+        text = f'kind = "tap"\ndata = "run.csv"\nsample_time = {written}\n'
+        rec = read_experiment(_toml(tmp_path, text))
+        assert rec.sample_time == pytest.approx(plain.sample_time, rel=1e-12)
+        assert np.array_equal(rec.position, plain.position)
+    text = 'kind = "tap"\ndata = "run.csv"\nsample_time = "2 ms"\n'
+    with pytest.raises(UserError, match=r"more than 1 % from sample_time = 0\.002 s"):
+        read_experiment(_toml(tmp_path, text))
+    for written in ('"1 min"', '"one ms"', '"1 ms 2"'):
+        text = f'kind = "tap"\ndata = "run.csv"\nsample_time = {written}\n'
+        with pytest.raises(UserError, match=r"sample_time = .*: give a number in s"):
+            read_experiment(_toml(tmp_path, text))
