@@ -32,7 +32,13 @@ from tuning.estimation.diagnose.policy import (
 from tuning.estimation.diagnose.report import figure_title
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.significance import implausible, significance
-from tuning.estimation.diagnose.structures import PER_RUN, Candidate, extend, swapped_correction
+from tuning.estimation.diagnose.structures import (
+    PER_RUN,
+    Candidate,
+    extend,
+    structure,
+    swapped_correction,
+)
 from tuning.estimation.diagnose.suite import TRACK_WAVE
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.noise import (
@@ -419,3 +425,29 @@ def test_a_tap_of_the_same_cart_separates_m_and_gamma_scale(tmp_path):
     assert d.parameters["M"]["value"] == pytest.approx(1.25, rel=0.01)
     assert d.parameters["B_eq"]["value"] == pytest.approx(4.6, rel=0.01)
     assert "settled" not in d.parameters["B_eq"]
+
+
+def test_the_drives_gain_per_run_is_there_where_the_runs_differ():
+    """The gain free per run (Search.gain_per_run's structure): each run's own gamma_scale, and
+    its limits; never grown by the forward selection. Gains 1.0003 and 1.0057 (the independent
+    cart with a 12 ms lag), each within 1 % of the start plant's 1, are there because they
+    differ by 0.0054, 10.8 standard errors of 0.0005 (the Wald test of PER_RUN's limits);
+    gains 1.0003 and 1.0008 are not (1 standard error)."""
+    c = structure(("saturation", "coulomb", "gain", PER_RUN), (1, 2))
+    assert {"gamma_scale@1", "gamma_scale@2", "v_sat@1", "v_sat@2"} <= set(c.free)
+    assert "gamma_scale" not in c.free
+    sat = structure(("saturation", PER_RUN), (1, 2))
+    gain = structure(("gain",))
+    assert extend([sat], [gain], set()) == []  # only from a structure the search reached
+    assert swapped_correction(c.parts, {}, None) is None  # each run's gain is its own
+    values = {"B_eq": 1.5, "gamma_scale@1": 1.0003, "gamma_scale@2": 1.0057}
+    sig = significance(
+        ("gain", PER_RUN), values, lambda w: 0.0005 * math.hypot(*w.values()) / 2**0.5
+    )
+    assert not sig["gamma_scale"]["why"] and sig["gamma_scale"]["z"] == pytest.approx(10.8)
+    assert not sig[PER_RUN]["why"]
+    values["gamma_scale@2"] = 1.0008
+    sig = significance(
+        ("gain", PER_RUN), values, lambda w: 0.0005 * math.hypot(*w.values()) / 2**0.5
+    )
+    assert sig["gamma_scale"]["why"] and sig[PER_RUN]["why"]

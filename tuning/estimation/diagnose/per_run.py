@@ -14,7 +14,13 @@ from jaxcart.effects import REGISTRY
 from tuning.estimation.diagnose.candidate_runs import exact_plants
 from tuning.estimation.diagnose.policy import RUN_SPREAD
 from tuning.estimation.diagnose.scoring import rms
-from tuning.estimation.diagnose.structures import PER_RUN, effect_params, per_run_params, structure
+from tuning.estimation.diagnose.structures import (
+    PER_RUN,
+    effect_params,
+    limit_params,
+    per_run_params,
+    structure,
+)
 from tuning.estimation.engine import parameters
 
 
@@ -24,7 +30,7 @@ def per_run_inconsistency(values, peaks) -> str:
     limit where it acts, else its largest command or current) by more than :data:`RUN_SPREAD`.
     Such a structure does not seed the forward selection, and where it is named for its
     held-out prediction the verdict says so."""
-    for n in per_run_params():
+    for n in limit_params():
         signal = next(REGISTRY[e].limits for e in effect_params() if n in effect_params()[e])
         own = {
             parameters.recording_of(k): v

@@ -120,14 +120,14 @@ class Diagnosis:
                     parts.append(f"{n} {was:.4g} -> {value:.4g} {unit}".rstrip())
             found.append("corrected parameters: " + ", ".join(parts))
         own = [
-            f"{n} = {p['value']:.3g} {p['unit']} in {name}"
+            f"{n} = {p['value']:.4g}{(' ' + p['unit']).rstrip()} in {name}"
             for name, rec in self.per_recording.items()
             for n, p in rec.get("parameters", {}).items()
             if p.get("acts", True)
         ]
         if own:
             note = f" ({self.drive_spread})" if spread and self.drive_spread else ""
-            found.append("the drive's limit differs from run to run: " + ", ".join(own) + note)
+            found.append("the drive differs from run to run: " + ", ".join(own) + note)
         return found
 
     def _context(self) -> str:

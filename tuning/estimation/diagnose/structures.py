@@ -14,8 +14,9 @@ from tuning.estimation.engine import parameters
 #: The parameter corrections a structure may hold, and the parameter each frees: the cart's mass
 #: [kg], the drive's gain (a scale on the handout's force per volt).
 PARAM_ERRORS = {"mass": ("M",), "gain": ("gamma_scale",)}
-#: The part that frees the drive's limits per recording: on several runs of one cart each run
-#: has its own amplifier limit (the motor warms, the supply sags); the mechanics are shared.
+#: The part that frees the drive per recording: on several runs of one cart each run has its
+#: own amplifier limit (the motor warms, the supply sags), and with the gain corrected its own
+#: gain; the mechanics are shared.
 PER_RUN = "per_run"
 
 
@@ -30,10 +31,15 @@ def not_candidates() -> dict:
     return {n: cls.not_candidate for n, cls in REGISTRY.items() if cls.not_candidate}
 
 
-def per_run_params() -> tuple:
-    """The parameters a PER_RUN structure frees per recording: those of the effects that
-    limit the drive (``Effect.limits``)."""
+def limit_params() -> tuple:
+    """The parameters of the effects that limit the drive (``Effect.limits``)."""
     return tuple(p.name for n in effect_params() if REGISTRY[n].limits for p in REGISTRY[n].params)
+
+
+def per_run_params() -> tuple:
+    """The parameters a PER_RUN structure frees per recording: its drive limits, and the
+    drive's gain where it corrects the gain (:meth:`~.search.Search.gain_per_run`)."""
+    return (*limit_params(), *PARAM_ERRORS["gain"])
 
 
 def motor_only() -> set:
@@ -147,7 +153,8 @@ def pair(a: Candidate, b: Candidate) -> Candidate:
 
 def structure(parts, runs=()) -> Candidate:
     """The candidate of ``parts``: B_eq and each part's parameters free; with :data:`PER_RUN`
-    among them, each drive limit's value free per run of ``runs`` instead of shared."""
+    among them, each drive limit's value (and the drive's gain, where corrected) free per run
+    of ``runs`` instead of shared."""
     free = ["B_eq"]
     for p in parts:
         free += list(effect_params().get(p) or PARAM_ERRORS.get(p, ()))
@@ -189,6 +196,7 @@ def extend(seeds, additions, seen, kmax=K_MAX, limit=PER_ROUND) -> list:
             or len(c.free) > kmax
             or parameters.redundant(parts)
             or len([p for p in c.parts if p in PARAM_ERRORS]) > 1
+            or {"gain", PER_RUN} <= parts  # (the gain per run: Search.gain_per_run)
         ):
             continue
         seen.add(parts)
@@ -226,8 +234,8 @@ def swapped_correction(parts, values, plant):
     M_J from the motor's constants). Returns (parts, values) or None (one correction needed;
     None also when the equivalent B_eq or M is not positive: then the two differ)."""
     corr = [p for p in parts if p in PARAM_ERRORS]
-    if len(corr) != 1 or not plant.motor_connected:
-        return None
+    if PER_RUN in parts or len(corr) != 1 or not plant.motor_connected:
+        return None  # (with the drive free per run, each run's gain is its own)
     m_j, b_emf = float(plant.M_J), float(plant.B_emf)
     m0, g0 = float(plant.M), float(plant.gamma_scale)
     new = {k: v for k, v in values.items() if k not in ("M", "gamma_scale")}

@@ -66,7 +66,7 @@ from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
 from jaxcart.workers import Helpers
 from tuning.estimation.diagnose import diagnose
-from tuning.estimation.diagnose.structures import PER_RUN
+from tuning.estimation.diagnose.structures import PER_RUN, per_run_params
 from tuning.verification import REALISTIC, TrueCart
 from tuning.verification import experiments as ex
 from tuning.verification import make_recording as make_independent_recording
@@ -439,9 +439,10 @@ CASES = (
         expect=(COULOMB, SATURATION),
         rule="shared",
         independent={
-            "artefacts": {"limit_spread": 0.0},
-            "why": "one drive limit: on the independent generator the limit does not vary "
-            "from run to run here (the drive's gain still does, by 1 %)",
+            "artefacts": {"limit_spread": 0.0, "gain_spread": 0.0},
+            "why": "one drive: on the independent generator neither the limit nor the gain "
+            "varies from run to run here (with the gain drawn anew each run, the gain per run "
+            "is named, rightly)",
         },
     ),
     # Physics beyond the first library (issue 33): friction, a dead band that differ by
@@ -777,9 +778,9 @@ def _expected_text(case: Case) -> list:
 
 
 def _limits_vary(truths) -> bool:
-    """Whether the runs' drive limits differ in their truths (the independent generator draws
-    each run's anew): freeing them per run is then no false alarm."""
-    for name in ("v_sat", "i_max"):
+    """Whether the runs' drives (limits, gain) differ in their truths (the independent
+    generator draws each run's anew): freeing them per run is then no false alarm."""
+    for name in per_run_params():
         values = {t[name] for t in truths or () if name in t and t.get("motor_connected", True)}
         if len(values) > 1:
             return True
