@@ -119,7 +119,7 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
             mine = [v for v in views if v[0] == item]
             best = max(mine, key=lambda v: (not v[2], v[1] if math.isfinite(v[1]) else -math.inf))
             out[item] = {"z": float(best[1]), "why": best[2], "idle": best[3], "part": part}
-            if _run_copies(item, values):
+            if part in PARAM_ERRORS and _run_copies(item, values):
                 # A correction free per run is there where the runs differ, too (gains 1.0003
                 # and 1.0057 are each within the margin of the start plant's).
                 apart = _per_run_significance(values, stderr, (item,))
