@@ -33,6 +33,7 @@ is taken at the lab's 1 kHz (``ASSUMED_SAMPLE_TIME``) and says so.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -518,6 +519,8 @@ def _meta(run: Imported, toml_folder) -> dict:
                     f"amplitude = ... [m]"
                 )
             meta["reference"] = {"kind": "step", "amplitude": step}
+            if spec.step is not None and not math.isclose(step, spec.step, rel_tol=0.01):
+                meta["description"] += f"; its step {step:.4g} m, not the handout's"
     meta["notes"] = {
         "imported_from": run.label,
         "recognised_as": guess.experiment,

@@ -54,6 +54,9 @@ from jaxcart.params import ENCODER_RESOLUTION, TRACK_LENGTH, TRAVEL, voltage_lim
 LAB_VOLTAGE = 6.0
 #: Positions beyond this many track lengths are a unit error, not a cart off its track.
 ABSURD_TRACK_LENGTHS = 5.0
+#: A closed-loop recording with integral action whose clock starts this late [s] may hold
+#: only the end of its run (:func:`_check_integral_start`).
+LATE_START = 1.0
 #: Margin on the velocity and acceleration limits before a warning (a lower B_eq than the
 #: nominal, the transient of a step, difference noise).
 MARGIN = 1.5
@@ -116,6 +119,7 @@ def _check_recording(rec) -> list[str]:
     warnings += _check_motion(where, _label(rec, "y"), rec, plant, volts)
     warnings += _check_start_at_rest(where, _label(rec, "y"), rec, plant, volts)
     warnings += _check_tap_ends_at_rest(where, _label(rec, "y"), rec)
+    warnings += _check_integral_start(where, rec)
     if rec.kind == "open_loop":
         warnings += check_input_units(rec, plant)
     if rec.kind == "closed_loop" and rec.controller is not None:
@@ -273,6 +277,27 @@ def _check_tap_ends_at_rest(where, label, rec) -> list[str]:
         f"{where}: {label}: the cart still moves at {edge[0] / edge[1]:.3g} m/s at the last "
         "sample: the tap was cut before the cart came to rest, and B_eq and f_c are hard to "
         "tell apart without its stop; record until the cart rests"
+    ]
+
+
+def _check_integral_start(where, rec) -> list[str]:
+    """A run under integral action is simulated with its integral at 0 at the first sample: a
+    recording whose clock starts :data:`LATE_START` or later may hold only a run's end (a
+    scope that kept its last samples), when the integral had built up, which nothing recorded
+    says (the cart may even be at rest there, so the moving-start check sees nothing)."""
+    pid = rec.controller
+    if rec.kind != "closed_loop" or pid is None or float(pid.ki) == 0.0:
+        return []
+    t0 = float(np.asarray(rec.time)[0])
+    if not t0 >= LATE_START:
+        return []
+    data = rec.meta.get("data")
+    label = "the data's time" if isinstance(data, dict) and "t" not in data else _label(rec, "t")
+    return [
+        f"{where}: {label}: the time starts at t = {t0:g} s: if the run started before the "
+        f"recording did (a scope that kept only its last samples), its integral (ki = "
+        f"{float(pid.ki):g} V/(m s)) had built up by then, where the simulations start it at 0 "
+        "at the first sample; record the run from its step (or cut the rows before the step)"
     ]
 
 

@@ -839,3 +839,23 @@ def test_the_lab_takes_a_folder_of_csv_files(tmp_path):
     for name in ("p50-sim.toml", "jaxcart-out/p50-sim.toml"):
         assert unused[name].startswith("a simulation (jaxcart simulate (exact simulator) of")
     assert not inputs.repeats
+
+
+def test_a_scopes_last_samples_are_imported_as_recorded_and_said_so(builtin, tmp_path):
+    """A scope that kept only the PI run's last 5 s (the students' Part (iv) error was saved
+    from t = 15 s): the file gets the step its first error says, the description says that
+    this is not the handout's step, and reading it warns that its clock starts late, when the
+    PI's integral had built up (which the simulations start at 0)."""
+    rec = builtin["pi"]
+    tail = rec.time >= 5.0
+    e = (rec.reference - rec.position)[tail]
+    scipy.io.savemat(tmp_path / "4.1err.mat", {"Error": np.column_stack([rec.time[tail], e])})
+    (run,) = matimport.scan([tmp_path / "4.1err.mat"])
+    assert run.guess.experiment == "pi"
+    toml = matimport.write_imported(run, tmp_path / "4.1err.toml")
+    got = read_experiment(toml)
+    step = float(got.reference[0])
+    assert step == pytest.approx(e[0], rel=0.01)  # the first error: the cart taken at 0
+    assert f"its step {step:.4g} m, not the handout's" in toml.read_text()
+    (late,) = [w for w in got.warnings if "integral" in w]
+    assert "the time starts at t = 5 s" in late and "ki = 15 V/(m s)" in late

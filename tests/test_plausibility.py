@@ -433,3 +433,29 @@ def test_a_run_recorded_late_and_a_tap_cut_while_coasting_are_warned(tmp_path, r
     cut = _rows_written(tmp_path / "cut", tap, slice(0, int(0.6 * tap.position.size)), "tap")
     (warning,) = [w for w in read_experiment(cut).warnings if "last sample" in w]
     assert "still moves at 0.5" in warning and "cut before the cart came to rest" in warning
+
+
+def test_a_run_under_integral_action_whose_clock_starts_late_is_warned(tmp_path):
+    """A scope that kept only a run's last samples (the students' Part (iv) error scope saved
+    from t = 15 s) starts where the PI's integral had built up, which the simulations start
+    at 0: the cart may be at rest there, so only the clock tells. Warned for PI, not for the
+    same file under P control, nor for a PI run recorded from t = 0."""
+    t = 15.0 + 1e-3 * np.arange(2000)
+    y = np.where(t > 15.5, 0.3957 + 2e-5 * (t - 15.5), 0.3957)
+    y = np.round(y / 2.2735e-5) * 2.2735e-5
+    head = 'kind = "closed_loop"\nsample_time = 0.001\ndata = "run.csv"\n'
+    ref = '[reference]\nkind = "step"\namplitude = 0.4\n'
+
+    def warned(start, controller):
+        folder = tmp_path / f"{start}-{controller.count('ki')}"
+        folder.mkdir()
+        np.savetxt(folder / "run.csv", np.column_stack([t - 15.0 + start, y]), delimiter=",",
+                   header="t,y", comments="", fmt="%.17g")  # fmt: skip
+        (folder / "run.toml").write_text(head + controller + ref)
+        return [w for w in read_experiment(folder / "run.toml").warnings if "integral" in w]
+
+    pi, p = "[controller]\nkp = 10.0\nki = 15.0\n", "[controller]\nkp = 10.0\n"
+    (warning,) = warned(15.0, pi)
+    assert "run.csv column t: the time starts at t = 15 s" in warning
+    assert "ki = 15 V/(m s)" in warning and "record the run from its step" in warning
+    assert warned(15.0, p) == [] and warned(0.0, pi) == []
