@@ -94,6 +94,27 @@ def test_the_misfit_rule_and_widening_are_the_fits_own():
     np.testing.assert_allclose(got, [4.0, 5.0])
 
 
+def test_a_run_whose_limit_does_not_act_is_left_out_of_the_runs_comparison():
+    """Two P 50 runs held at 5.02 and 5.83 V (each under its 6 V command) beside a PI run that
+    never sends 4.2 V, whose own limit the fit pushed to the top of its range (no standard
+    error): the drive differs between the runs that reach their limits, and the PI run says
+    nothing of its own. Before, its undefined standard error kept the drive per run out of the
+    real cart's diagnosis once the students' Part (iv) PI run was added to its four recordings
+    (docs/diagnose.md, "A run the diagnosis had not seen")."""
+    values = {"v_sat@1": 5.02, "v_sat@2": 5.83, "v_sat@3": 30.0}
+    peaks = {"command@1": 6.0, "command@2": 6.0, "command@3": 4.2}
+
+    def stderr(w):
+        return math.nan if "v_sat@3" in w else 0.05
+
+    sig = significance((PER_RUN, "saturation"), values, stderr, peaks=peaks)
+    assert not sig[PER_RUN]["why"] and sig[PER_RUN]["z"] == pytest.approx(0.81 / 0.05)
+    # A run whose limit acts counts, determined or not.
+    acting = {**values, "v_sat@3": 4.0}
+    sig = significance((PER_RUN, "saturation"), acting, stderr, peaks=peaks)
+    assert "standard error is not defined" in sig[PER_RUN]["why"]
+
+
 def test_an_effect_at_its_bound_or_idle_is_not_named_and_its_z_is_reported():
     """A spring with k_s at its lower bound (y_rest off the track) is not named; f_c = 0.0005
     +/- 0.0005 N beside a saturation has its z reported (whether it is there is decided by

@@ -14,6 +14,7 @@ from jaxcart import plantspec
 from jaxcart.effects import REGISTRY
 from jaxcart.params import TRACK_LENGTH
 from tuning.estimation.diagnose.candidate_runs import exact_residuals, plant_of
+from tuning.estimation.diagnose.per_run import acts
 from tuning.estimation.diagnose.policy import (
     AT_BOUND,
     CORRECTION_MARGIN,
@@ -101,7 +102,7 @@ def significance(parts, values, stderr, peaks=None, start=None) -> dict:
     out = {}
     for part in parts:
         if part == PER_RUN:
-            out[PER_RUN] = _per_run_significance(values, stderr)
+            out[PER_RUN] = _per_run_significance(values, stderr, peaks=peaks)
             continue
         params = effect_params().get(part) or PARAM_ERRORS.get(part, ())
         views = []
@@ -235,23 +236,25 @@ def _min_size(weights) -> float | None:
         return None
 
 
-def _per_run_significance(values, stderr, names=None) -> dict:
+def _per_run_significance(values, stderr, names=None, peaks=None) -> dict:
     """Does the drive differ between runs? The largest difference between two runs' own values of
     a limit or of the gain (of ``names``; default all), as a Wald test (and beyond the
-    limit's least size worth naming). Every run counts, those whose limit does not act too:
-    a run's own value at the bound of its range has no standard error, and the part is not
-    named. Counting only the runs where the limit acts was tried (2026-12-05): on the
-    independent cart whose limit differs from run to run it named the limits per run with
-    the P 10 step's at 1.83 V, just under that run's 2 V peak, for a truth of 6.0 V (the
-    run's drive gain, 2 % low, absorbed as a clipped peak); the design's band drew next
-    runs' limits from 1.8 to 5.5 V and ran to infinity."""
+    limit's least size worth naming). A run whose own limit does not act (:func:`.per_run.acts`:
+    at or above what the run drove, ``peaks``) says nothing of its limit and is left out;
+    until 2026-12-06 every run counted, and such a run's value (at its bound, no standard
+    error) kept the part from being named, so that one PI run under the limit beside the real
+    cart's P 50 steps and PD run took the drive per run out of the diagnosis (docs/diagnose.md,
+    "A run the diagnosis had not seen"). The cost, on the independent lab cart whose limit
+    differs from run to run: its P 10 step's limit is named at 1.85 V, just under that run's
+    2 V peak (the run's drive gain absorbed as a clipped peak), which the verdict flags as
+    more than one drive's spread, and the design's band for the next run runs to infinity."""
     best = {"z": math.nan, "why": "nothing of the drive is free per run", "idle": False,
             "part": PER_RUN}  # fmt: skip
     for n in per_run_params() if names is None else names:
         own = {
             parameters.recording_of(k): v
             for k, v in values.items()
-            if "@" in k and parameters.base_name(k) == n
+            if "@" in k and parameters.base_name(k) == n and acts(n, k, v, peaks or {})
         }
         if len(own) < 2:
             continue
