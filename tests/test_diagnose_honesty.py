@@ -20,7 +20,7 @@ import jaxcart as jc
 from jaxcart.files import read_experiment
 from jaxcart.plantspec import build_plant
 from jaxcart.synthetic import make_recording, make_tap_recording, write_recording
-from tuning.estimation.diagnose import diagnose, render_markdown
+from tuning.estimation.diagnose import diagnose, per_run, render_markdown
 from tuning.estimation.diagnose.candidate_runs import fitter_scale
 from tuning.estimation.diagnose.policy import (
     CORRECTION_MARGIN,
@@ -113,6 +113,26 @@ def test_a_run_whose_limit_does_not_act_is_left_out_of_the_runs_comparison():
     acting = {**values, "v_sat@3": 4.0}
     sig = significance((PER_RUN, "saturation"), acting, stderr, peaks=peaks)
     assert "standard error is not defined" in sig[PER_RUN]["why"]
+
+
+def test_a_run_whose_limit_is_beyond_the_drives_spread_is_not_drawn_as_the_drive():
+    """The independent cart whose drive limit differs per run (5.3 V, 6 % a run): the P 10
+    step's limit fitted at 1.85 V, just under its 2 V peak (its drive gain read as a clipped
+    peak), 2.9 times below what the P 50 runs drove. The cart's limit and a next run's draw
+    come from the runs that agree (before, the draw took 1.85-5.35 V and the design band ran
+    to infinity: docs/design.md); a limit above what its run drove (the ramp) says nothing.
+    On the real cart the PD run's 0.68 A current limit is the only one that acts: kept."""
+    values = {"v_sat@1": 5.02, "v_sat@2": 5.41, "v_sat@3": 1.85, "v_sat@4": 5.33, "v_sat@5": 9.0}
+    peaks = {"command@1": 6.0, "command@2": 6.0, "command@3": 2.0, "command@4": 6.0,
+             "command@5": 3.0}  # fmt: skip
+    assert "run 4's v_sat is 2.9 times below" in per_run.per_run_inconsistency(values, peaks)
+    assert per_run.drive_runs(values, peaks) == {"v_sat@1", "v_sat@2", "v_sat@4"}
+    # Two acting runs, one of them low: nothing measures the spread without it; both kept.
+    two = {"v_sat@1": 5.02, "v_sat@3": 1.85}
+    assert per_run.drive_runs(two, peaks) == set(two)
+    real = {"i_max@1": 3.0, "i_max@2": 3.0, "i_max@3": 0.68}
+    currents = {"current@1": 2.3, "current@2": 1.5, "current@3": 1.4}
+    assert per_run.drive_runs(real, currents) == {"i_max@3"}
 
 
 def test_an_effect_at_its_bound_or_idle_is_not_named_and_its_z_is_reported():

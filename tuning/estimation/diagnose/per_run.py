@@ -24,12 +24,10 @@ from tuning.estimation.diagnose.structures import (
 from tuning.estimation.engine import parameters
 
 
-def per_run_inconsistency(values, peaks) -> str:
-    """Why the drive limits free per run are more than one drive's spread ("" when they are
-    not): a run's own limit below what another run of the same drive demonstrably drew (its own
-    limit where it acts, else its largest command or current) by more than :data:`RUN_SPREAD`.
-    Such a structure does not seed the forward selection, and where it is named for its
-    held-out prediction the verdict says so."""
+def _limits_by_run(values, peaks):
+    """For each drive limit free per run in ``values``: (name, the signal it limits, {run: own
+    value}, {run: what the run demonstrably drew: its own value where it acts, else its
+    largest command or current (``peaks``)}, {run: own value where it acts})."""
     for n in limit_params():
         signal = next(REGISTRY[e].limits for e in effect_params() if n in effect_params()[e])
         own = {
@@ -39,10 +37,20 @@ def per_run_inconsistency(values, peaks) -> str:
         }
         peak = {i: peaks.get(f"{signal}@{i}", math.inf) for i in own}
         acting = {i: v for i, v in own.items() if v < peak[i]}
+        shown = {i: min(v, peak[i]) for i, v in own.items()}
+        yield n, signal, own, shown, acting
+
+
+def per_run_inconsistency(values, peaks) -> str:
+    """Why the drive limits free per run are more than one drive's spread ("" when they are
+    not): a run's own limit below what another run of the same drive demonstrably drew (its own
+    limit where it acts, else its largest command or current) by more than :data:`RUN_SPREAD`.
+    Such a structure does not seed the forward selection, and where it is named for its
+    held-out prediction the verdict says so."""
+    for n, signal, own, shown, acting in _limits_by_run(values, peaks):
         if len(own) < 2 or not acting:
             continue
         low = min(acting, key=acting.get)
-        shown = {i: min(v, peak[i]) for i, v in own.items()}
         high = max(shown, key=shown.get)
         if shown[high] > RUN_SPREAD * acting[low]:
             unit, ratio = parameters.spec(n).unit, shown[high] / acting[low]
@@ -55,6 +63,20 @@ def per_run_inconsistency(values, peaks) -> str:
     return ""
 
 
+def drive_runs(values, peaks) -> set:
+    """The runs' own drive limits (``v_sat@2``, keys of ``values``) that say what the drive
+    does from run to run, so that the cart's value is their median and a next run's is drawn
+    like them: those that act (:func:`acts`), less any more than :data:`RUN_SPREAD` below
+    what another run drove (:func:`per_run_inconsistency`: that run shows something else, e.g.
+    its drive gain as a clipped peak) where two or more acting runs lie within it (the drive's
+    spread measured without it; one acting run alone is all there is, and is kept)."""
+    out = set()
+    for n, _, _, shown, acting in _limits_by_run(values, peaks):
+        within = {i for i, v in acting.items() if RUN_SPREAD * v >= max(shown.values())}
+        out |= {f"{n}@{i}" for i in (within if len(within) >= 2 else acting)}
+    return out
+
+
 def acts(name, key, value, peaks) -> bool:
     """Whether drive limit ``name``'s value in run ``key`` (``i_max@2``) is below what that run
     drove (``peaks``' ``{command,current}@i``), so that it acts (any other value: True)."""
@@ -64,17 +86,19 @@ def acts(name, key, value, peaks) -> bool:
 
 def cart_plant(best, base_plants, segments, peaks):
     """The cart's plant of ``best`` (the first driven run's); a drive limit free per run at
-    the median of the runs' values where it acts (:func:`acts`: above what a run drove, its
-    value is not determined), each run's own in the per-recording results."""
+    the median of the runs' values that say what the drive does (:func:`drive_runs`: above
+    what a run drove, its value is not determined), each run's own in the per-recording
+    results."""
     # no run's own copy: exact_plants would give the first driven run its own, not the median
     values = {
         k: v
         for k, v in best.values.items()
         if "@" not in k or parameters.base_name(k) not in per_run_params()
     }
+    drive = drive_runs(best.values, peaks)
     for n in per_run_params():
         own = {k: v for k, v in best.values.items() if "@" in k and parameters.base_name(k) == n}
-        acting = [v for k, v in own.items() if acts(n, k, v, peaks)]
+        acting = [v for k, v in own.items() if k in drive or n not in limit_params()]
         if own:
             values[n] = float(np.median(acting or list(own.values())))
     cand = structure(tuple(p for p in best.parts if p != PER_RUN))

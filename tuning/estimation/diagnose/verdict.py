@@ -16,7 +16,7 @@ from jaxcart import plantspec
 from tuning.estimation.diagnose import crossval, locate, per_run, scoring, significance
 from tuning.estimation.diagnose.policy import K_MAX, TIE
 from tuning.estimation.diagnose.result import Diagnosis, _times
-from tuning.estimation.diagnose.structures import PARAM_ERRORS
+from tuning.estimation.diagnose.structures import PARAM_ERRORS, limit_params
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.noise import effective_samples
 from tuning.estimation.fitting.names import plant_values
@@ -268,7 +268,8 @@ def diagnosis(search, names, checks, t_start) -> Diagnosis:
 def _fit(search, c, seconds, cov=None, plant=None, peaks=None, cv=None, misfit="") -> FitResult:
     """Structure ``c``'s fit as every fit reports one (the cart a command takes from a
     diagnosis instead of fitting again): its shared values and each run's own (``v_sat@2``,
-    where the limit acts: :func:`per_run.acts`) with standard errors, each recording's exact
+    where the limit says what the drive does: :func:`per_run.drive_runs`; the drawn runs of a
+    design, :func:`tuning.design.uncertainty.from_fit`) with standard errors, each recording's exact
     runs before (the handout's model, B_eq fitted) and after, the values of the fit that left
     it out (:attr:`SegmentFit.held_out`, from ``cv``'s folds: the named structure's), and the
     fitted cart, effects included. ``cov``, ``plant``, ``peaks``: where the caller has them."""
@@ -278,10 +279,11 @@ def _fit(search, c, seconds, cov=None, plant=None, peaks=None, cv=None, misfit="
         plant = per_run.cart_plant(c, search.base_plants, search.segments, peaks)
     own = [k for k in c.free if "@" in k and parameters.base_name(k) not in parameters.NUISANCE]
     names = [n for n in c.free if "@" not in n]
+    drive = per_run.drive_runs(c.values, peaks)
     names += [
         k
         for k in sorted(own, key=parameters.recording_of)  # recording by recording
-        if per_run.acts(parameters.base_name(k), k, c.values[k], peaks)
+        if k in drive or parameters.base_name(k) not in limit_params()
     ]
     params = {n: Estimate(n, float(c.values[n]), cov.stderr({n: 1.0})) for n in names}
     folds = (cv or {}).get("folds") or [{}] * len(search.segments)
