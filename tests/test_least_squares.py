@@ -2,12 +2,16 @@
 of them, driven by the same host loop, reaches scipy's least-squares solution of a small
 nonlinear problem."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
 from tuning.estimation.engine.least_squares import (
     LM_DAMPING,
+    State,
+    compiled_marquardt,
     levenberg_marquardt,
     line_search,
     minimize,
@@ -70,3 +74,36 @@ def test_a_held_entry_stays_and_the_rest_fit_as_alone():
     alone = least_squares(lambda ab: _residual(np.r_[ab, 0.25]), start[:2], xtol=1e-14).x
     assert state.x[2] == 0.25
     np.testing.assert_allclose(state.x[:2], alone, rtol=1e-6)
+
+
+def test_the_compiled_solver_is_driven_alike_and_runs_inside_a_compiled_step(reference):
+    """compiled_marquardt (a diagnosis's batch runs its ask and tell inside one jitted,
+    vmapped step): the host loop drives it to scipy's solution, and in the diagnosis's form,
+    from a state without a residual (cost inf: its own point first), one jitted step at a time
+    over two starts at once, it reaches the same point (float64 both)."""
+    bounds = (jnp.full(3, -10.0), jnp.full(3, 10.0))
+    with jax.enable_x64(True):
+        solver = compiled_marquardt(bounds=bounds, free=jnp.ones(3))
+        r0 = _residual(START)
+        state = minimize(solver, _evaluate, solver.init(START, r0, _jacobian(START)), 200)
+        np.testing.assert_allclose(state.x, reference, rtol=1e-7)
+
+        def evaluate(x):
+            e = jnp.exp(-x[1] * T)
+            return x[0] * e + x[2] - Y, jnp.stack([e, -x[0] * T * e, jnp.ones_like(T)], axis=1)
+
+        @jax.jit
+        @jax.vmap
+        def step(x, r, jac, cost, lam):
+            state = State(x, r, jac, cost, lam)
+            trial = solver.ask(state)[0]
+            r_new, jac_new = evaluate(trial)
+            state = solver.tell(state, trial[None], r_new[None], jac_new[None])
+            return state.x, state.r, state.jac, state.cost, state.damping
+
+        starts = jnp.array([START, [1.5, 3.0, 0.5]])
+        carry = (starts, jnp.zeros((2, T.size)), jnp.zeros((2, T.size, 3)),
+                 jnp.full(2, jnp.inf), jnp.full(2, 1e-2))  # fmt: skip
+        for _ in range(200):
+            carry = step(*carry)
+        np.testing.assert_allclose(np.asarray(carry[0]), [reference, reference], rtol=1e-7)

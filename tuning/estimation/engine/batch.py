@@ -28,7 +28,7 @@ from jaxcart.substeps import substeps_per_sample
 from tuning.distributed import gather_rows
 from tuning.estimation.engine import parameters, smooth_runs
 from tuning.estimation.engine.layout import DUMMY, for_candidates
-from tuning.estimation.engine.least_squares import marquardt_step
+from tuning.estimation.engine.least_squares import State, compiled_marquardt
 
 #: Voltage smoothing width at the widest stage [V] (narrowing with the others).
 VOLTAGE_WIDTH = 4e-3
@@ -85,10 +85,9 @@ def _theta_arrays(layout):
 
 def _lm_trial(residuals, lo, hi, row_segment, noise=None):
     """The batched LM's step for one candidate, ``step(theta, lam, cost, jac, r, idx, free,
-    base, own, seeds, support, width)`` -> (theta, lam, cost, jac, r): one LM trial
-    (:func:`~tuning.estimation.engine.least_squares.marquardt_step`, fused with the forward
-    pass: see that module for why not its ask and tell) from the accepted values theta, whose
-    residual r and Jacobian jac are carried. The trial's residual
+    base, own, seeds, support, width)`` -> (theta, lam, cost, jac, r): one ask and tell of the
+    engine's :func:`~tuning.estimation.engine.least_squares.compiled_marquardt` from the
+    accepted values theta, whose residual r and Jacobian jac are carried. The trial's residual
     and Jacobian come from one forward pass, and a trial that is kept brings its Jacobian for
     the next step (a rejected one costs no second pass at theta). A carried cost of inf asks
     for theta itself (a fit's first step at a width). Forward mode, one tangent per colour (see
@@ -111,28 +110,18 @@ def _lm_trial(residuals, lo, hi, row_segment, noise=None):
         return jnp.sum(nu * jnp.log(sse + floor)), weights[row_segment] / jnp.max(weights)
 
     def step(theta, lam, cost, jac, r, idx, free, base, own, seeds, support, width):
-        fresh = ~jnp.isfinite(cost)
-        _, w = objective(r)
-        jw = jac * jnp.sqrt(w)[:, None]
-        delta = marquardt_step(jw.T @ jw, jw.T @ (r * jnp.sqrt(w)), lam, free, xp=jnp)
-        new = jnp.where(fresh, theta, jnp.clip(theta + delta, lo[idx], hi[idx]))
+        solver = compiled_marquardt(bounds=(lo[idx], hi[idx]), free=free, objective=objective)
+        state = State(theta, r, jac, cost, lam)
+        trial = solver.ask(state)[0]
 
         def push(t):
-            return jax.jvp(lambda th: residuals(th, idx, base, own, width), (new,), (t,))
+            return jax.jvp(lambda th: residuals(th, idx, base, own, width), (trial,), (t,))
 
         r_new, packed = jax.vmap(push, out_axes=(None, 1))(seeds)
         colour = jnp.argmax(seeds, axis=0)
         jac_new = packed[:, colour] * support[row_segment, :] * free[None, :]
-        cost_new, _ = objective(r_new)
-        ok = jnp.isfinite(cost_new) & (cost_new < cost)
-        lam_out = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
-        return (
-            jnp.where(ok, new, theta),
-            jnp.where(fresh, lam, lam_out),
-            jnp.where(ok, cost_new, cost),
-            jnp.where(ok, jac_new, jac),
-            jnp.where(ok, r_new, r),
-        )
+        state = solver.tell(state, trial[None], r_new[None], jac_new[None])
+        return state.x, state.damping, state.cost, state.jac, state.r
 
     return step
 

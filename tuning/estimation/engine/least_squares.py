@@ -6,16 +6,20 @@
     state = solver.tell(state, trials, rs, jacs)    their residuals (k, m) and Jacobians
 
 and :func:`minimize` drives any of them on the host (``jaxcart fit``'s smooth fit, the exact
-polish of every fit, a held-out re-fit's step). A diagnosis's batched step
-(:mod:`tuning.estimation.engine.batch`) keeps its own fused form of the Levenberg-Marquardt
-step (:func:`marquardt_step`, a third or four times the damping): run as ask and tell inside
-the vmapped, forward-mode step, it compiled and ran twice as long (a joint diagnosis of a tap
-and a P 50 run, 21.6 s against 30.4 s, measured 2026-12-05).
+polish of every fit, a held-out re-fit's step), while a diagnosis's batch runs one ask, its
+forward pass and one tell of :func:`compiled_marquardt` inside each compiled, vmapped step
+(:mod:`tuning.estimation.engine.batch`). (An earlier form that ran the host solver's
+several-damping machinery there compiled and ran twice as long; this one is the batch's own
+arithmetic, and its diagnoses are the same to every digit and as fast: a joint diagnosis of the
+built-in tap and P 50 run without the compilation cache, 18.1 and 18.3 s against 18.3 and
+17.7 s, measured 2026-12-06.)
 
 - :func:`levenberg_marquardt`: Marquardt's diagonal scaling, the step solves
   (J^T J + lam D) delta = -J^T r, D the diagonal of J^T J (a column the data do not see gets a
   tiny floor so the system stays solvable); several dampings may be tried per ask (a batch of
   K trial steps costs about one run on a CPU).
+- :func:`compiled_marquardt`: the same step in JAX, one damping an ask, for a compiled step
+  (bounds and held entries may be traced values; a weighted objective takes reweighted steps).
 - :func:`line_search`: Gauss-Newton (or any ``direction``) halved until the cost falls; a
   point it takes needs its Jacobian anew (``state.jac`` None: :func:`minimize`'s ``jacobian``).
 
@@ -30,6 +34,7 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 
@@ -167,6 +172,50 @@ def levenberg_marquardt(
             state.iterations + 1,
             converged,
             converged,
+        )
+
+    return Solver(init, ask, tell)
+
+
+def compiled_marquardt(*, bounds, free, objective=None) -> Solver:
+    """Levenberg-Marquardt inside a compiled, vmapped step (JAX: a diagnosis's batch,
+    :mod:`tuning.estimation.engine.batch`): one trial an ask at the damping, kept where its
+    objective is finite and lower (the damping then a third, else four times, within 1e-7 to
+    1e7); a state whose cost is inf asks for its own point (a fit's first evaluation at a
+    width: its residual and Jacobian), the damping kept. Arrays throughout (no host branch):
+    ``bounds`` (low, high) and ``free`` (1 for an entry that moves) may be traced values.
+    ``objective(r)`` -> (cost, row weights): a weighted objective takes iteratively reweighted
+    steps, the weights at the accepted point (default: r @ r, weights 1). No convergence test:
+    the caller counts its iterations."""
+    low, high = bounds
+    if objective is None:
+
+        def objective(r):
+            return r @ r, jnp.ones_like(r)
+
+    def init(x, r, jac, damping=1e-2):
+        return State(x, r, jac, objective(r)[0], damping)
+
+    def ask(state):
+        _, w = objective(state.r)
+        jw = state.jac * jnp.sqrt(w)[:, None]
+        delta = marquardt_step(jw.T @ jw, jw.T @ (state.r * jnp.sqrt(w)), state.damping, free,
+                               xp=jnp)  # fmt: skip
+        trial = jnp.where(jnp.isfinite(state.cost), jnp.clip(state.x + delta, low, high), state.x)
+        return trial[None, :]
+
+    def tell(state, trials, rs, jacs):
+        cost, _ = objective(rs[0])
+        ok = jnp.isfinite(cost) & (cost < state.cost)
+        lam = state.damping
+        grown = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-7), jnp.minimum(lam * 4.0, 1e7))
+        return State(
+            jnp.where(ok, trials[0], state.x),
+            jnp.where(ok, rs[0], state.r),
+            jnp.where(ok, jacs[0], state.jac),
+            jnp.where(ok, cost, state.cost),
+            jnp.where(jnp.isfinite(state.cost), grown, lam),
+            state.iterations + 1,
         )
 
     return Solver(init, ask, tell)
