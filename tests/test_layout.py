@@ -7,6 +7,7 @@ the command line is run in a fresh interpreter, where ``sys.modules`` tells what
 
 import ast
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -74,6 +75,26 @@ def test_the_scan_sees_every_kind_of_import(tmp_path):
 def test_jaxcart_never_imports_tuning(path):
     upward = [(line, name) for line, name in _imports(path) if _top(name) == "tuning"]
     assert not upward, f"{path.relative_to(ROOT)} imports the tuning floor: {upward}"
+
+
+def test_no_library_module_uses_pyplot():
+    """Figures are drawn with matplotlib's object API (``matplotlib.figure.Figure``): pyplot
+    keeps open figures and a backend for the process, and a library that draws a report must
+    not switch a notebook's backend or leave figures behind."""
+    found = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for package in ("jaxcart", "tuning", "hw")
+        for path in _modules(package)
+        for line, name in _imports(path)
+        if name == "matplotlib.pyplot"
+    ]
+    found += [
+        str(path.relative_to(ROOT))
+        for package in ("jaxcart", "tuning", "hw")
+        for path in _modules(package)
+        if re.search(r"matplotlib\.use\(|from matplotlib import [^\n]*\bpyplot\b", path.read_text())
+    ]
+    assert not found, found
 
 
 #: A vendor's board API that one hw module may import, lazily (inside a function), so that hw/

@@ -34,8 +34,9 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
 from hw.atomicio import atomic_open
@@ -676,15 +677,8 @@ def _plot_grid(result: GridResult, n_slices: int):
     slices = _slices(span, result.best_index[2], n_slices)
     ncols = min(len(slices), 2 if len(slices) == 4 else 3)
     nrows = -(-len(slices) // ncols)
-    fig, axs = plt.subplots(
-        nrows,
-        ncols,
-        figsize=(4.6 * ncols + 1.2, 3.9 * nrows),
-        squeeze=False,
-        sharex=True,
-        sharey=True,
-        layout="constrained",
-    )
+    fig = Figure(figsize=(4.6 * ncols + 1.2, 3.9 * nrows), layout="constrained")
+    axs = fig.subplots(nrows, ncols, squeeze=False, sharex=True, sharey=True)
     settling, ok = result.slices(slices)
     shown = ok if result.best_feasible else np.isfinite(settling)
     values = np.where(shown, settling, np.nan)
@@ -772,7 +766,7 @@ def _grid_legend(result: GridResult) -> list:
             hatch="///",
             label=_infeasible(result) if result.best_feasible else "does not settle in time",
         ),
-        plt.Line2D(
+        Line2D(
             [],
             [],
             marker="*",
@@ -795,7 +789,8 @@ def slice_note(result: GridResult, slices) -> str:
 
 
 def _plot_list(result):
-    fig, ax = plt.subplots(figsize=(6.4, 4.8), layout="constrained")
+    fig = Figure(figsize=(6.4, 4.8), layout="constrained")
+    ax = fig.subplots()
     g, ok = result.gains, result.feasible
     ts = result.info.settling_time
     ax.scatter(g[~ok, 0], g[~ok, 1], marker="x", color="0.6", label=_infeasible(result))

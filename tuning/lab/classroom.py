@@ -296,7 +296,6 @@ def _runs(inputs) -> dict:
 def _start_worker(n_devices: int, cache: bool) -> None:
     """A worker process: jaxcart's XLA setting, the compilation cache and its share of the
     cores as XLA devices, before JAX starts (as ``jaxcart`` sets them for a command)."""
-    os.environ.setdefault("MPLBACKEND", "Agg")
     xlaflags.request()  # loops compiled whole, before jax starts
 
     if cache:

@@ -4,7 +4,8 @@ line inside the grey band; no markers to hide it), each simulation with its own 
 dashes, one legend below the axes.
 
 Each function draws, saves ``path`` (its suffix sets the format, PNG, SVG or PDF; several paths
-write one file each, :func:`jaxcart.plots.save`) and closes its figure.
+write one file each, :func:`jaxcart.plots.save`), with matplotlib's object API: no pyplot
+figure is left open and no backend is switched for the process.
 """
 
 from __future__ import annotations
@@ -12,9 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import control
-import matplotlib
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from jaxcart.plots import figure_legend, save
 
@@ -48,12 +48,6 @@ class Trace:
     measured: bool = False
 
 
-def _pyplot():
-    matplotlib.use("Agg", force=False)
-
-    return plt
-
-
 def _draw(ax, traces):
     k = 0
     for trace in traces:
@@ -69,17 +63,15 @@ def _save(fig, path, axes=None):
     """Save (the legend of ``axes`` below them, if given) and close."""
     if axes is not None:
         figure_legend(fig, axes, ncols=1 if len(axes) == 1 else 2, fontsize=8.5)
-    out = save(fig, path, dpi=DPI)
-    _pyplot().close(fig)
-    return out
+    return save(fig, path, dpi=DPI)
 
 
 def time_plot(path, traces, *, ylabel, title, hlines=(), xlim=None, ylim=None, zoom=None):
     """Signals against time on one axis. ``hlines``: (value, label, style dict) references.
     zoom: (t0 [s], title) for an inset, upper right, of the traces from t0 on (where the
     answer, a final error of millimetres, is small beside the start)."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=SIZE, layout="constrained")
+    fig = Figure(figsize=SIZE, layout="constrained")
+    ax = fig.subplots()
     _draw(ax, traces)
     if zoom is not None:
         _inset(ax, traces, hlines, *zoom)
@@ -128,8 +120,8 @@ def two_panel(
     bottom_hlines=(),
 ):
     """Two signals against the same time axis (e.g. position above, voltage below)."""
-    plt = _pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7.5, 6.2), sharex=True, layout="constrained")
+    fig = Figure(figsize=(7.5, 6.2), layout="constrained")
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
     for ax, traces, lines, label in (
         (ax1, top, top_hlines, top_ylabel),
         (ax2, bottom, bottom_hlines, bottom_ylabel),
@@ -148,8 +140,8 @@ def two_panel(
 
 def root_locus(path, rldata, *, ki_bound, omega, title):
     """Root locus (python-control's plot) with the imaginary-axis crossing marked."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.0, 5.6), layout="constrained")
+    fig = Figure(figsize=(7.0, 5.6), layout="constrained")
+    ax = fig.subplots()
     cplt = control.root_locus_plot(rldata, ax=ax, legend_loc=False)
     poles_line, _, loci = cplt.lines[0]
     for line in poles_line:

@@ -122,17 +122,15 @@ def plot_curve(d, path):
     """The curve's friction beyond its viscous B_eq q against the speed (a log axis: the
     entries are evenly spaced on it), each direction slid, its 90 % band, beside the named
     structure's friction law on the same footing; saved at ``path``."""
-    # lazy: matplotlib.pyplot costs 0.3-0.5 s at start-up (python -X importtime), and
-    # matplotlib.use("Agg") must not run on import (it sets the process's backend)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # lazy: matplotlib.figure costs 0.3-0.6 s at start-up (python -X importtime); its object
+    # API sets no process state (no pyplot figure, no backend switched)
+    from matplotlib.figure import Figure
 
     c = d.friction_curve["curve"]
     speeds = np.asarray(c["speeds"][1:])  # from the anchor: the curve is 0 below it
     fine = np.geomspace(speeds[0] / 2, speeds[-1] * 1.6, 200)
-    fig, ax = plt.subplots(figsize=(7.0, 4.4), layout="constrained")
+    fig = Figure(figsize=(7.0, 4.4), layout="constrained")
+    ax = fig.subplots()
     for k, (side, levels) in enumerate(c["levels"].items()):
         color = f"C{k}"
         level = np.asarray(levels[1:])
@@ -159,9 +157,7 @@ def plot_curve(d, path):
     ax.set_title(f"Friction as a curve of the speed ({named})", fontsize=10)
     ax.legend(fontsize=7, loc="best")
     ax.grid(alpha=0.3, which="both")
-    out = plots.save(fig, path, dpi=110)
-    plt.close(fig)
-    return out
+    return plots.save(fig, path, dpi=110)
 
 
 def plot_track(d, path):
@@ -169,10 +165,7 @@ def plot_track(d, path):
     those held, the map through them, the stretch the recordings cover shaded), beside the named
     structure's kinetic level (Coulomb's, each direction); saved at ``path``."""
     # lazy: as plot_curve
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from jaxcart.effects.track_friction import TrackFriction
 
@@ -180,7 +173,8 @@ def plot_track(d, path):
     c = shape["curve"]
     cart = TrackFriction(f_track=tuple(c["knot_values"]))
     fine = np.linspace(c["knots"][0], c["knots"][-1], 300)
-    fig, ax = plt.subplots(figsize=(7.0, 4.4), layout="constrained")
+    fig = Figure(figsize=(7.0, 4.4), layout="constrained")
+    ax = fig.subplots()
     ax.axvspan(*c["span"], color="0.9", label="covered by the recordings")
     level = np.array([cart.kinetic(float(y), math) for y in fine])
     inside = (fine >= c["positions"][0]) & (fine <= c["positions"][-1])
@@ -207,6 +201,4 @@ def plot_track(d, path):
     ax.set_title(f"Friction along the track ({named})", fontsize=10)
     ax.legend(fontsize=7, loc="best")
     ax.grid(alpha=0.3)
-    out = plots.save(fig, path, dpi=110)
-    plt.close(fig)
-    return out
+    return plots.save(fig, path, dpi=110)
