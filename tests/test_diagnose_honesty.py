@@ -127,6 +127,9 @@ def test_a_run_whose_limit_is_beyond_the_drives_spread_is_not_drawn_as_the_drive
              "command@5": 3.0}  # fmt: skip
     assert "run 4's v_sat is 2.9 times below" in per_run.per_run_inconsistency(values, peaks)
     assert per_run.drive_runs(values, peaks) == {"v_sat@1", "v_sat@2", "v_sat@4"}
+    # A drive gain free per run is the drive's in every run.
+    gains = {**values, "gamma_scale@3": 0.98}
+    assert per_run.drive_runs(gains, peaks) == {"v_sat@1", "v_sat@2", "v_sat@4", "gamma_scale@3"}
     # Two acting runs, one of them low: nothing measures the spread without it; both kept.
     two = {"v_sat@1": 5.02, "v_sat@3": 1.85}
     assert per_run.drive_runs(two, peaks) == set(two)

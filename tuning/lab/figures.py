@@ -60,7 +60,7 @@ def _draw(ax, traces):
 
 
 def _save(fig, path, axes=None):
-    """Save (the legend of ``axes`` below them, if given) and close."""
+    """Save (the legend of ``axes`` below them, if given)."""
     if axes is not None:
         figure_legend(fig, axes, ncols=1 if len(axes) == 1 else 2, fontsize=8.5)
     return save(fig, path, dpi=DPI)

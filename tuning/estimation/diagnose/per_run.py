@@ -64,13 +64,15 @@ def per_run_inconsistency(values, peaks) -> str:
 
 
 def drive_runs(values, peaks) -> set:
-    """The runs' own drive limits (``v_sat@2``, keys of ``values``) that say what the drive
-    does from run to run, so that the cart's value is their median and a next run's is drawn
-    like them: those that act (:func:`acts`), less any more than :data:`RUN_SPREAD` below
-    what another run drove (:func:`per_run_inconsistency`: that run shows something else, e.g.
-    its drive gain as a clipped peak) where two or more acting runs lie within it (the drive's
-    spread measured without it; one acting run alone is all there is, and is kept)."""
-    out = set()
+    """The runs' own drive values (``v_sat@2``, ``gamma_scale@3``: keys of ``values``) that say
+    what the drive does from run to run, so that the cart's value is their median and a next
+    run's is drawn like them: every gain; of the limits, those that act (:func:`acts`), less
+    any more than :data:`RUN_SPREAD` below what another run drove
+    (:func:`per_run_inconsistency`: that run shows something else, e.g. its drive gain as a
+    clipped peak) where two or more acting runs lie within it (the drive's spread measured
+    without it; one acting run alone is all there is, and is kept)."""
+    gains = set(per_run_params()) - set(limit_params())
+    out = {k for k in values if "@" in k and parameters.base_name(k) in gains}
     for n, _, _, shown, acting in _limits_by_run(values, peaks):
         within = {i for i, v in acting.items() if RUN_SPREAD * v >= max(shown.values())}
         out |= {f"{n}@{i}" for i in (within if len(within) >= 2 else acting)}
@@ -98,7 +100,7 @@ def cart_plant(best, base_plants, segments, peaks):
     drive = drive_runs(best.values, peaks)
     for n in per_run_params():
         own = {k: v for k, v in best.values.items() if "@" in k and parameters.base_name(k) == n}
-        acting = [v for k, v in own.items() if k in drive or n not in limit_params()]
+        acting = [v for k, v in own.items() if k in drive]
         if own:
             values[n] = float(np.median(acting or list(own.values())))
     cand = structure(tuple(p for p in best.parts if p != PER_RUN))

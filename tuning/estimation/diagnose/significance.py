@@ -247,7 +247,8 @@ def _per_run_significance(values, stderr, names=None, peaks=None) -> dict:
     "A run the diagnosis had not seen"). The cost, on the independent lab cart whose limit
     differs from run to run: its P 10 step's limit is named at 1.85 V, just under that run's
     2 V peak (the run's drive gain absorbed as a clipped peak), which the verdict flags as
-    more than one drive's spread, and the design's band for the next run runs to infinity."""
+    more than one drive's spread and :func:`.per_run.drive_runs` keeps out of the cart and
+    of the next run's draw."""
     best = {"z": math.nan, "why": "nothing of the drive is free per run", "idle": False,
             "part": PER_RUN}  # fmt: skip
     for n in per_run_params() if names is None else names:

@@ -16,7 +16,7 @@ from jaxcart import plantspec
 from tuning.estimation.diagnose import crossval, locate, per_run, scoring, significance
 from tuning.estimation.diagnose.policy import K_MAX, TIE
 from tuning.estimation.diagnose.result import Diagnosis, _times
-from tuning.estimation.diagnose.structures import PARAM_ERRORS, limit_params
+from tuning.estimation.diagnose.structures import PARAM_ERRORS
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.noise import effective_samples
 from tuning.estimation.fitting.names import plant_values
@@ -283,7 +283,7 @@ def _fit(search, c, seconds, cov=None, plant=None, peaks=None, cv=None, misfit="
     names += [
         k
         for k in sorted(own, key=parameters.recording_of)  # recording by recording
-        if k in drive or parameters.base_name(k) not in limit_params()
+        if k in drive
     ]
     params = {n: Estimate(n, float(c.values[n]), cov.stderr({n: 1.0})) for n in names}
     folds = (cv or {}).get("folds") or [{}] * len(search.segments)
