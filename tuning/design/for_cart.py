@@ -31,7 +31,10 @@ N_TRAIN = 11
 #: The training carts are drawn this much wider than the fit says: 1, as it says (the worst of
 #: 12 such carts is about the 92nd percentile of the fit's carts; wider draws make the design
 #: more cautious, and with a drive that varies much from run to run, some of them carts no
-#: design moves 0.5 m in a second).
+#: design moves 0.5 m in a second). Their drive values are normal of the scale the prediction's
+#: t has (:meth:`~tuning.design.uncertainty.CartUncertainty.draw`): from two runs the t has one
+#: degree of freedom, and the worst of a dozen such draws (the real cart's amplifier limit,
+#: 5.09 and 5.90 V in two runs: below 1.5 V one time in twenty) would set the design alone.
 TRAIN_WIDTH = 1.0
 #: The design keeps its overshoot under this fraction of the settling band. The settling time
 #: jumps where the overshoot crosses the band: a design tuned to settle fastest overshoots just
@@ -71,7 +74,7 @@ def training_carts(uncertainty: CartUncertainty, n: int = N_TRAIN, *, seed: int 
     """The fitted cart (its drive at the runs' mean) and ``n`` carts drawn :data:`TRAIN_WIDTH`
     times as wide as the fit says, as design models (:func:`design_plant`)."""
     wide = uncertainty.scaled(TRAIN_WIDTH)
-    drawn = [wide.cart(v) for v in wide.draw(n, seed=seed)]
+    drawn = [wide.cart(v) for v in wide.draw(n, seed=seed, tails=False)]
     return [design_plant(p) for p in [uncertainty.nominal_cart(), *drawn]]
 
 

@@ -15,8 +15,11 @@ fit, or a diagnosis's through :attr:`tuning.estimation.diagnose.result.Diagnosis
   the recordings disagree, the model leaves something out or its noise is not white, and the
   standard errors understate);
 - each drive value (a limit free per run) as a new run's: the mean of the runs' values plus
-  their standard deviation times sqrt(1 + 1/n) (the spread of a new run about a mean known
-  from n runs) and the standard error of the mean of their fits;
+  their standard deviation times sqrt(1 + 1/n) times Student's t with n - 1 degrees of
+  freedom (a new run about n runs whose mean and spread are both estimated: the predictive
+  distribution of a normal sample), and the standard error of the mean of their fits. A
+  normal draw of that scale held a new run's value in its 90 % band 66 % of the time from
+  two runs, 76 % from three and 83 % from five (``test_prediction``); the t holds it 90 %;
 - every value clipped into the range a cart of this lab has (the parameter's plausible range,
   :attr:`jaxcart.effects.Param.fit_range`).
 
@@ -71,22 +74,31 @@ class CartUncertainty:
 
     def stderr(self, name: str) -> float:
         """How far ``name`` may be from the fitted cart's value for the next run [SI]: its
-        standard error (a shared value) or a new run's spread (a drive value)."""
+        standard error (a shared value) or the scale of a new run's spread (a drive value,
+        :meth:`drive_spread`: the t's scale, not its standard deviation, which two runs leave
+        infinite)."""
         if name in self.drive:
             return self.drive_spread(name)[1]
         i = self.names.index(name)
         return math.sqrt(max(float(self.cov[i, i]), 0.0))
 
     def drive_spread(self, name: str) -> tuple[float, float]:
-        """(mean, standard deviation) of a new run's value of the drive value ``name`` [SI]:
-        the runs' mean; their spread times sqrt(1 + 1/n), with the standard error of that
-        mean from the runs' own fits."""
+        """(mean, scale) of a new run's value of the drive value ``name`` [SI]: the runs'
+        mean; their spread times sqrt(1 + 1/n) (the scale of the t a new run is drawn from,
+        :meth:`drive_parts`), with the standard error of that mean from the runs' own fits."""
+        mean, spread, se_mean = self.drive_parts(name)[:3]
+        return mean, math.hypot(spread, se_mean)
+
+    def drive_parts(self, name: str) -> tuple[float, float, float, int]:
+        """(mean, scale of the runs' spread, standard error of the mean, degrees of freedom)
+        of a new run's value of ``name`` [SI]: mean + spread t_dof + se_mean z (the module
+        docstring); dof = n - 1 (0 and no spread from one run)."""
         runs = np.asarray(self.drive[name], dtype=float)
         n = runs.size
-        spread = float(np.std(runs, ddof=1)) if n > 1 else 0.0
+        spread = float(np.std(runs, ddof=1)) * math.sqrt(1.0 + 1.0 / n) if n > 1 else 0.0
         se = np.asarray(self.drive_stderr.get(name, np.zeros(n)), dtype=float)
         se_mean = float(np.sqrt(np.sum(se**2))) / n if n else 0.0
-        return float(np.mean(runs)), math.hypot(spread * math.sqrt(1.0 + 1.0 / n), se_mean)
+        return float(np.mean(runs)), spread, se_mean, max(n - 1, 0)
 
     def nominal(self) -> dict:
         """The fitted cart's varied values [SI] (the drive's at its mean over the runs)."""
@@ -98,8 +110,10 @@ class CartUncertainty:
         """The fitted cart at :meth:`nominal`'s values (each drive value at its runs' mean)."""
         return self.cart(self.nominal())
 
-    def draw(self, n: int, *, seed: int = 0) -> list[dict]:
-        """``n`` carts' values ({name: value [SI]}), drawn as the module docstring says."""
+    def draw(self, n: int, *, seed: int = 0, tails: bool = True) -> list[dict]:
+        """``n`` carts' values ({name: value [SI]}), drawn as the module docstring says;
+        ``tails`` False: each drive value from the normal distribution of the t's scale (the
+        tuner's training carts, :func:`tuning.design.for_cart.training_carts`)."""
         rng = np.random.default_rng(seed)
         k = len(self.names)
         shared = np.zeros((n, 0))
@@ -108,9 +122,13 @@ class CartUncertainty:
             shared = self.mean[None, :] + rng.standard_normal((n, k)) @ root.T
         out = [dict(zip(self.names, (float(x) for x in row), strict=True)) for row in shared]
         for name in self.drive:
-            mean, sd = self.drive_spread(name)
-            for values, z in zip(out, rng.standard_normal(n), strict=True):
-                values[name] = mean + sd * float(z)
+            mean, spread, se_mean, dof = self.drive_parts(name)
+            if tails and dof:
+                x = mean + spread * rng.standard_t(dof, n) + se_mean * rng.standard_normal(n)
+            else:
+                x = mean + math.hypot(spread, se_mean) * rng.standard_normal(n)
+            for values, v in zip(out, x, strict=True):
+                values[name] = float(v)
         return [{name: clipped(name, v) for name, v in values.items()} for values in out]
 
     def cart(self, values: dict) -> Plant:

@@ -62,13 +62,14 @@ class Designs:
     """Part (v)'s designs (:class:`Design`, in :data:`LABELS`' order), the recording's name
     (or None), where the cart's fit comes from, and how far the fitted cart misses each
     recorded step (:class:`tuning.design.calibration.StepMiss`; the bound on a new run's miss widens
-    every band: ``model_error``)."""
+    every band: ``model_error``) and the driven runs each drive value is drawn from ({name: n})."""
 
     designs: tuple
     recording: str | None
     source: str
     misses: tuple = ()
     model_error: dict = dataclasses.field(default_factory=dict)
+    drive_runs: dict = dataclasses.field(default_factory=dict)
 
     def get(self, key: str) -> Design | None:
         return next((d for d in self.designs if d.key == key), None)
@@ -111,7 +112,8 @@ def compute(
         fitted = margins(u.nominal_cart(), controller)
         designs.append(Design(key, controller, prediction, fitted, **extra))
     name = None if rec is None else rec.path.name
-    return Designs(tuple(designs), name, joint.source, misses, error)
+    runs = {n: len(v) for n, v in u.drive.items()}
+    return Designs(tuple(designs), name, joint.source, misses, error, runs)
 
 
 def own_cart(joint, recording, held_out: bool = False):

@@ -28,6 +28,18 @@ def render(lab, r: PIDResult, designs=None) -> None:
     _slider(lab, r)
 
 
+def _drive_runs(runs: dict) -> str:
+    """How a new run's drive values are drawn, from how many runs each ({name: n})."""
+    if not runs:
+        return ""
+    each = ", ".join(f"{n} from {k} run{'s' * (k != 1)}" for n, k in runs.items())
+    one = " (from one run: its fit's standard error)" if min(runs.values()) == 1 else ""
+    return (
+        f" ({each}: Student's t over the runs' own values{one}, wide where the runs are few "
+        "and differ; each step recorded again narrows it)"
+    )
+
+
 def render_designs(lab, d) -> None:
     """The subsection: every design on the cart as measured, side by side."""
     doc = lab.doc
@@ -39,7 +51,7 @@ def render_designs(lab, d) -> None:
     doc.paragraph(
         f"Each design's 0.5 m step on the cart fitted from every recording ({d.source}), and "
         f"on {first.n} carts drawn from that fit: each fitted value from its standard error, "
-        f"each run's drive limit from the spread of the runs' own. The band holds "
+        f"each drive value as a new run's{_drive_runs(d.drive_runs)}. The band holds "
         f"{first.level:.0%} of such carts (a run of the design lies inside it with that "
         "probability, if the cart is as the fit says); P(spec) is the chance that a run of "
         "the design settles under 1 s with under 5 % overshoot, within 6 V and the track's "
