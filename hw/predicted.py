@@ -9,7 +9,10 @@ fitted value, moved by how many of its standard errors, would explain the differ
 change needed over the metric's change per standard error, the fewest first): a run that
 settles 80 ms late where the drive's limit moves the settling time by -55 ms per standard
 error is explained by a limit 1.5 standard errors lower. Where every value would have to move
-by more than :data:`FAR` standard errors, the difference is something the model leaves out.
+by more than :data:`FAR` standard errors, the difference is something the model leaves out. A
+drive value the prediction draws from Student's t over a few runs (its sensitivity's "dof")
+is judged in the t's scale, as far as the t reaches as often (:data:`FAR_T`): from two runs a
+new run's drive may lie much further out than a fitted value's three standard errors.
 
 >>> prediction = {"level": 0.9, "step": 0.5, "metrics": {"settling_time": {"nominal": 0.8,
 ...     "band": [0.75, 0.85]}}, "sensitivity": {"v_sat": {"stderr": 0.3, "value": 5.5,
@@ -28,6 +31,23 @@ CHECKED = {"settling_time": ("s", 1.0, "settled"), "overshoot": ("%", 1.0, "over
 #: A value that would have to move further than this many standard errors does not explain a
 #: difference.
 FAR = 3.0
+#: The same for a drive value drawn from Student's t with 1, 2, ... 30 degrees of freedom, in
+#: the t's scale: its two-sided 0.27 % point, as FAR is the normal's (scipy.stats.t.ppf(0.99865,
+#: dof); more degrees of freedom: FAR).
+FAR_T = (
+    235.78, 19.21, 9.22, 6.62, 5.51, 4.90, 4.53, 4.28, 4.09, 3.96, 3.85, 3.76, 3.69, 3.64, 3.59,
+    3.54, 3.51, 3.48, 3.45, 3.42, 3.40, 3.38, 3.36, 3.34, 3.33, 3.32, 3.30, 3.29, 3.28, 3.27,
+)  # fmt: skip
+
+
+def far(entry: dict) -> float:
+    """How far (in its standard errors, or its t's scale) a value of a prediction's
+    sensitivity ``entry`` may move and still explain a difference."""
+    try:
+        dof = int(_number(entry.get("dof")))
+    except (TypeError, ValueError, OverflowError):  # none, or not a number: a fitted value
+        return FAR
+    return FAR_T[dof - 1] if 1 <= dof <= len(FAR_T) else FAR
 
 
 def _number(x) -> float:
@@ -61,8 +81,9 @@ def check_run(measured: dict, prediction: dict) -> dict:
     """The run's ``measured`` metrics ({name: value}: settling_time [s], overshoot [%])
     against ``prediction`` (the gains file's): {"inside": every checked metric within its band,
     "level", "metrics": [{"name", "measured", "nominal", "band", "inside"}], "outside": those
-    outside, each with "explained_by": [{"name", "sigmas", "value", "unit", "stderr"}] (the
-    fitted values that explain it within :data:`FAR` standard errors, the fewest first)}."""
+    outside, each with "explained_by": [{"name", "sigmas", "value", "unit", "stderr", "far"}]
+    (the fitted values that explain it within :func:`far` standard errors, the likeliest
+    first)}."""
     rows = []
     for name in CHECKED:
         pred = prediction.get("metrics", {}).get(name)
@@ -89,8 +110,8 @@ def check_run(measured: dict, prediction: dict) -> dict:
 
 
 def _explained_by(metric: str, difference: float, prediction: dict) -> list[dict]:
-    """The fitted values that would move ``metric`` by ``difference`` within :data:`FAR`
-    standard errors, the fewest first."""
+    """The fitted values that would move ``metric`` by ``difference`` within :func:`far` of
+    their standard errors (a drive value's: its t's scale), the likeliest first."""
     out = []
     if not math.isfinite(difference):
         return out
@@ -99,17 +120,21 @@ def _explained_by(metric: str, difference: float, prediction: dict) -> list[dict
         if not math.isfinite(per_sigma) or per_sigma == 0:
             continue  # (a value the metric does not move with)
         sigmas = difference / per_sigma
-        if abs(sigmas) <= FAR:
+        value, se = _number(s.get("value")), _number(s.get("stderr"))
+        # a drive value (a limit, a gain) moved through zero explains nothing
+        if abs(sigmas) <= far(s) and not ("dof" in s and (value + sigmas * se) * value <= 0):
             out.append(
                 {
                     "name": name,
                     "sigmas": sigmas,
-                    "value": _number(s.get("value")),
-                    "stderr": _number(s.get("stderr")),
+                    "value": value,
+                    "stderr": se,
                     "unit": s.get("unit", ""),
+                    "far": far(s),
                 }
             )
-    return sorted(out, key=lambda e: abs(e["sigmas"]))
+    # the likeliest first: the fewest standard errors, each as a share of how far it may go
+    return sorted(out, key=lambda e: abs(e["sigmas"]) / e["far"])
 
 
 def _fmt(name: str, x: float) -> str:
@@ -142,16 +167,18 @@ def _explanation(row: dict) -> str:
     ways = row.get("explained_by", [])
     if not ways:
         return (
-            f"no single fitted value explains the {name} within {FAR:g} standard errors: the "
-            "run shows something the model of the cart leaves out (jaxcart diagnose with this "
-            "run among the recordings)"
+            f"no single fitted value explains the {name} within {FAR:g} standard errors (a "
+            "drive value: as far as its runs' spread reaches as often): the run shows "
+            "something the model of the cart leaves out (jaxcart diagnose with this run among "
+            "the recordings)"
         )
     parts = []
     for e in ways[:3]:
         side = "higher" if e["sigmas"] > 0 else "lower"
         moved = e["value"] + e["sigmas"] * e["stderr"]
+        what = "standard errors" if e["far"] == FAR else "times its runs' spread"
         parts.append(
-            f"{e['name']} {abs(e['sigmas']):.1f} standard errors {side} ({moved:.4g} "
+            f"{e['name']} {abs(e['sigmas']):.1f} {what} {side} ({moved:.4g} "
             f"{e['unit']} for {e['value']:.4g})".replace(" )", ")")
         )
     return f"the {name} would be explained by " + ", or ".join(parts)

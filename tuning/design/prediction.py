@@ -288,12 +288,15 @@ def predict(
 
 def _sensitivities(uncertainty, names, runs) -> dict:
     """{name: {"value" [SI], "unit", "stderr" [SI], metric: (metric at +1 se - metric at -1
-    se) / 2}} (a metric that is inf either way: nan)."""
+    se) / 2}} (a metric that is inf either way: nan); a drive value drawn from Student's t
+    also "dof", its degrees of freedom (``stderr`` is then the t's scale)."""
     out = {}
     nominal = uncertainty.nominal()
     for i, name in enumerate(names):
         low, high = runs[2 * i][2], runs[2 * i + 1][2]
         entry = {"value": nominal[name], "unit": unit(name), "stderr": uncertainty.stderr(name)}
+        if name in uncertainty.drive and uncertainty.drive_parts(name)[3]:
+            entry["dof"] = uncertainty.drive_parts(name)[3]
         for m in METRICS:
             a, b = low[m], high[m]
             entry[m] = (b - a) / 2.0 if math.isfinite(a) and math.isfinite(b) else math.nan

@@ -18,8 +18,8 @@ fit, or a diagnosis's through :attr:`tuning.estimation.diagnose.result.Diagnosis
   their standard deviation times sqrt(1 + 1/n) times Student's t with n - 1 degrees of
   freedom (a new run about n runs whose mean and spread are both estimated: the predictive
   distribution of a normal sample), and the standard error of the mean of their fits. A
-  normal draw of that scale held a new run's value in its 90 % band 66 % of the time from
-  two runs, 76 % from three and 83 % from five (``test_prediction``); the t holds it 90 %;
+  normal draw of that scale held a new run's value in its 90 % band 63 % of the time from
+  two runs and 74 % from three (in theory 66 and 76 %; ``test_prediction``); the t, 88-90 %;
 - every value clipped into the range a cart of this lab has (the parameter's plausible range,
   :attr:`jaxcart.effects.Param.fit_range`).
 
@@ -75,8 +75,8 @@ class CartUncertainty:
     def stderr(self, name: str) -> float:
         """How far ``name`` may be from the fitted cart's value for the next run [SI]: its
         standard error (a shared value) or the scale of a new run's spread (a drive value,
-        :meth:`drive_spread`: the t's scale, not its standard deviation, which two runs leave
-        infinite)."""
+        :meth:`drive_spread`: the t's scale with the standard error of the mean beside it, not
+        a standard deviation, which two runs leave infinite)."""
         if name in self.drive:
             return self.drive_spread(name)[1]
         i = self.names.index(name)

@@ -29,15 +29,19 @@ def render(lab, r: PIDResult, designs=None) -> None:
 
 
 def _drive_runs(runs: dict) -> str:
-    """How a new run's drive values are drawn, from how many runs each ({name: n})."""
+    """ ", each drive value as a new run's (...)": how a new run's drive values are drawn and
+    from how many runs each ({name: n}; "" without any)."""
     if not runs:
         return ""
-    each = ", ".join(f"{n} from {k} run{'s' * (k != 1)}" for n, k in runs.items())
-    one = " (from one run: its fit's standard error)" if min(runs.values()) == 1 else ""
-    return (
-        f" ({each}: Student's t over the runs' own values{one}, wide where the runs are few "
-        "and differ; each step recorded again narrows it)"
+    many = [f"{n} from {k} runs" for n, k in runs.items() if k > 1]
+    one = [f"{n} from 1 run, by its fit's standard error alone" for n, k in runs.items() if k == 1]
+    t = (
+        f"{', '.join(many)}: Student's t over the runs' own values, wide where the runs are "
+        "few and differ; each step recorded again narrows it"
+        if many
+        else ""
     )
+    return f", each drive value as a new run's ({'; '.join(x for x in (t, ', '.join(one)) if x)})"
 
 
 def render_designs(lab, d) -> None:
@@ -50,8 +54,8 @@ def render_designs(lab, d) -> None:
     first = d.designs[0].prediction
     doc.paragraph(
         f"Each design's 0.5 m step on the cart fitted from every recording ({d.source}), and "
-        f"on {first.n} carts drawn from that fit: each fitted value from its standard error, "
-        f"each drive value as a new run's{_drive_runs(d.drive_runs)}. The band holds "
+        f"on {first.n} carts drawn from that fit: each fitted value from its standard error"
+        f"{_drive_runs(d.drive_runs)}. The band holds "
         f"{first.level:.0%} of such carts (a run of the design lies inside it with that "
         "probability, if the cart is as the fit says); P(spec) is the chance that a run of "
         "the design settles under 1 s with under 5 % overshoot, within 6 V and the track's "
@@ -167,7 +171,7 @@ def _prediction_row(x) -> list[str]:
         x.label,
         f"{c.kp:.4g}, {c.ki:.4g}, {c.kd:.4g}",
         seconds(p.nominal["settling_time"]),
-        f"{seconds(s_lo)}-{seconds(s_hi)}",
+        f"{seconds(s_lo)}-{seconds(s_hi) if math.isfinite(s_hi) else 'never'}",
         f"{p.nominal['overshoot']:.2f}",
         f"{o_lo:.2f}-{o_hi:.2f}",
         f"{p.p_meet:.0%}",
