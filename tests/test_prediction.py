@@ -10,10 +10,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.stats import norm
 from scipy.stats import t as student_t
 
 import jaxcart as jc
-from hw.predicted import check_lines, check_run
+from hw.predicted import FAR, FAR_T, check_lines, check_run, far
 from jaxcart.plantspec import build_plant, read_plant_file, write_plant_file
 from tuning.design.losses import Spec
 from tuning.design.prediction import Prediction, band_of, predict, step_run, t_factor
@@ -179,6 +180,16 @@ def test_a_run_outside_its_band_is_explained_by_the_value_that_moved():
     assert any("v_sat" in line and "spread lower" in line for line in check_lines(check))
     _, _, same = step_run((u.nominal_cart(), pid, exp))
     assert check_run(same, doc)["inside"]
+
+
+def test_how_far_a_drive_value_may_move_is_the_ts_point_of_a_normals_three_sigma():
+    """hw/predicted's table (the lab PC has no scipy) against scipy.stats: the t's two-sided
+    0.27 % point for 1-30 degrees of freedom, to its two decimals; FAR beyond and without."""
+    assert FAR == pytest.approx(norm.ppf(1 - 0.00135), abs=0.01)
+    for dof, value in enumerate(FAR_T, start=1):
+        assert value == pytest.approx(student_t.ppf(1 - 0.00135, dof), abs=0.006), dof
+        assert far({"dof": float(dof)}) == value
+    assert far({}) == far({"dof": 31}) == far({"dof": "x"}) == FAR
 
 
 def test_a_drive_value_from_two_runs_explains_as_far_as_its_t_reaches():

@@ -295,8 +295,9 @@ def _sensitivities(uncertainty, names, runs) -> dict:
     for i, name in enumerate(names):
         low, high = runs[2 * i][2], runs[2 * i + 1][2]
         entry = {"value": nominal[name], "unit": unit(name), "stderr": uncertainty.stderr(name)}
-        if name in uncertainty.drive and uncertainty.drive_parts(name)[3]:
-            entry["dof"] = uncertainty.drive_parts(name)[3]
+        dof = uncertainty.drive_parts(name)[3] if name in uncertainty.drive else 0
+        if dof:
+            entry["dof"] = dof
         for m in METRICS:
             a, b = low[m], high[m]
             entry[m] = (b - a) / 2.0 if math.isfinite(a) and math.isfinite(b) else math.nan
