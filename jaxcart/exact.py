@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import itertools
 import math
 from typing import NamedTuple
 
@@ -112,6 +113,8 @@ class _Friction:
 
     def __init__(self, dry):
         self.dry = dry
+        # Each member's levels as a function of y on plain floats, bound once per run.
+        self._members = [e.exact_kinetic_sides() for e in dry]
         statics = [float(e.static()) for e in dry if e.static() is not None]
         self.static = max(statics) if statics else None
         speeds = [float(e.stribeck()) for e in dry if e.stribeck() is not None]
@@ -122,8 +125,8 @@ class _Friction:
 
     def _sum(self, y):
         right = left = 0.0
-        for e in self.dry:
-            r, lf = e.kinetic_sides(y, math)
+        for sides in self._members:
+            r, lf = sides(y)
             right, left = right + float(r), left + float(lf)
         return max(right, 0.0), max(left, 0.0)
 
@@ -440,6 +443,10 @@ class _VelocityCart:
         if law is not None:
             return law
         each = [e.exact_velocity_pieces(self.drive, v) for e in self.others]
+        if len(each) == 1 and all(a < b for a, b in itertools.pairwise(each[0][0])):
+            # One effect, its breaks in order: its own pieces (as the union below makes them).
+            law = (tuple(each[0][0]), tuple((0.0 + g0, 0.0 + g) for g0, g in each[0][1]))
+            return self._remember(v, law)
         breaks = sorted({b for bs, _ in each for b in bs})
         # A velocity inside each interval of the union tells which piece of each effect acts.
         inner = [0.5 * (lo + hi) for lo, hi in zip(breaks, breaks[1:], strict=False)]
@@ -451,7 +458,9 @@ class _VelocityCart:
                 g0, g = ps[bisect.bisect_right(bs, x)]
                 f0, k = f0 + g0, k + g
             pieces.append((f0, k))
-        law = (tuple(breaks), tuple(pieces))
+        return self._remember(v, (tuple(breaks), tuple(pieces)))
+
+    def _remember(self, v, law):
         if len(self._at) >= 8:  # a sample holds one or two voltages: the last few suffice
             self._at.clear()
         self._at[v] = law

@@ -251,6 +251,12 @@ class Effect:
         level = self.kinetic(y, xp)
         return level, level
 
+    def exact_kinetic_sides(self):
+        """``y -> (right, left)`` [N]: :meth:`kinetic_sides` on Python floats, for the exact
+        simulator, which asks ~10^6 times a run where a level varies; an effect may return a
+        closure with its constants computed once, the same arithmetic (bit for bit)."""
+        return lambda y: self.kinetic_sides(y, math)
+
     def static(self):
         """Static (breakaway) level [N], or None if the effect has none."""
         return None

@@ -68,19 +68,8 @@ class TrackFriction(Effect):
     )
 
     def kinetic(self, y, xp):
-        if xp is math:  # the exact simulator: plain floats, called ~10^6 times a run
-            levels = self.f_track
-            weights, offsets, inv_h = _exact_form(
-                levels if isinstance(levels, tuple) else tuple(levels)
-            )
-            u = y * inv_h
-            num = den = 0.0
-            for c, o in zip(weights, offsets, strict=True):
-                z = u + o  # (y - k_i) / h
-                w = math.exp(-0.5 * z * z)
-                num += c * w
-                den += w
-            return num / den
+        if xp is math:
+            return self.exact_kinetic_sides()(y)[0]
         a = xp.asarray(self.f_track)
         n = a.shape[-1]
         c = xp.asarray(_interpolation(n)) @ a
@@ -88,6 +77,24 @@ class TrackFriction(Effect):
         z = (y - knots) / (2 * SPAN / (n - 1))  # y is a scalar here (each simulator steps one run)
         w = xp.exp(-0.5 * z * z)
         return xp.sum(c * w) / xp.sum(w)
+
+    def exact_kinetic_sides(self):
+        """The exact simulator's levels, on plain floats, the basis bound once per run."""
+        weights, offsets, inv_h = _exact_form(tuple(float(v) for v in self.f_track))
+        pairs, exp = tuple(zip(weights, offsets, strict=True)), math.exp
+
+        def sides(y):
+            u = y * inv_h
+            num = den = 0.0
+            for c, o in pairs:
+                z = u + o  # (y - k_i) / h
+                w = exp(-0.5 * z * z)
+                num += c * w
+                den += w
+            level = num / den
+            return level, level
+
+        return sides
 
 
 @functools.cache
@@ -100,8 +107,8 @@ def _interpolation(n: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=256)
 def _exact_form(levels: tuple) -> tuple:
-    """(the basis weights of ``levels``, -k_i / h, 1 / h [1/m]) as plain floats: the exact
-    simulator asks for the same levels ~10^6 times a run."""
+    """(the basis weights of ``levels``, -k_i / h, 1 / h [1/m]) as plain floats, once per
+    levels (a fit's exact runs share them)."""
     n = len(levels)
     h = 2 * SPAN / (n - 1)
     weights = _interpolation(n) @ np.asarray(levels, dtype=float)
