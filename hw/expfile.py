@@ -235,7 +235,8 @@ class Reader:
         match = _QUANTITY.fullmatch(text)
         factor = None
         if match is not None:
-            factor = 1.0 if match["unit"] in ("", unit) else _TO_SI.get((unit, match["unit"]))
+            si, factor = _TO_SI.get(match["unit"], (unit if not match["unit"] else None, 1.0))
+            factor = factor if si == unit else None
         if factor is None:
             self.fail(f"{field} = {text!r}: give a number in {unit} ({field} = 0.001, say)")
         return float(match["number"]) * factor
@@ -420,19 +421,13 @@ class Reader:
         not a guess. Any other unit is an error that says what to convert it to."""
         renamed, factors = {}, {}
         for name in header:
-            match = _UNIT_HEADER.match(name)
-            if match is None:
+            found = named_unit(name)
+            if found is None or found[0] not in COLUMN_UNITS:
                 continue
-            column = match["name"] or match["stem"]
-            unit = (match["unit"] or match["suffix"]).strip()
-            if column not in COLUMN_UNITS:
-                continue
+            column, unit = found
             want = COLUMN_UNITS[column]
-            if unit in (want, want.lower()):  # "v [v]" too
-                renamed[name] = column
-                continue
-            factor = _TO_SI.get((want, unit))
-            if factor is None:
+            si, factor = _TO_SI.get(unit, (None, None))
+            if si != want:
                 self.fail(
                     f"column {name!r} of {data} is in {unit!r}, a unit the reader does not "
                     f"convert; the format takes {_LONG[column]}: convert it to {want} and name "
@@ -446,6 +441,19 @@ class Reader:
             self.fail(f"{data}: repeated column names in the header {header}; name each once")
         return header, {renamed.get(h, h): v * factors.get(h, 1.0) for h, v in columns.items()}
 
+    def mapped_unit(self, name, variable, field) -> float:
+        """The factor to the format's unit of a column or variable mapped to ``name`` whose own
+        name says its unit ("y [mm]", "t (ms)", "y_mm", "Position [cm]"): 1 where the name says
+        no unit the reader knows. A unit of another quantity (a position in ms) is an error."""
+        found = named_unit(variable)
+        si, factor = _TO_SI.get(found[1], (None, 1.0)) if found else (None, 1.0)
+        if si is not None and si != COLUMN_UNITS[name]:
+            self.fail(
+                f"{field} = {variable!r}: its name says {found[1]}, but {name} is the "
+                f"{_LONG[name]}; map the column that holds it"
+            )
+        return factor
+
     def mapped(self, name, source) -> Signal:
         field = f"[data] {name}"
         if not isinstance(source, str) or ":" not in source:
@@ -458,6 +466,7 @@ class Reader:
                     f"jaxcart (jaxcart.files.read_experiment) or save the data as CSV"
                 )
             values, time = self.mat_reader(self, file, variable, field)
+            values = values * self.mapped_unit(name, variable, field)
             return Signal(values, time, source, lambda i: f"row {i + 1}")
         if file.lower().endswith((".csv", ".txt")):
             header, columns, lines = self.read_csv(file, field)
@@ -466,7 +475,8 @@ class Reader:
                     f"{field}: column {variable!r} missing in {file} (columns: "
                     f"{', '.join(header)}); map one of them"
                 )
-            return Signal(columns[variable], None, source, _line_of(lines))
+            values = columns[variable] * self.mapped_unit(name, variable, field)
+            return Signal(values, None, source, _line_of(lines))
         if file.lower().endswith((".xlsx", ".xls")):
             self.fail(
                 f"{field} = {source!r}: {file} is an Excel workbook; in Excel use File > Save As "
@@ -765,23 +775,45 @@ def _guess(column: str, names) -> str:
     return names[0] if names else "column"
 
 
-#: A column named with its unit: "t [s]", "y (m)", "v[V]", or with it as a suffix: "y_mm",
+#: A column named with its unit: "t [s]", "y (m)", "v[V]", "Cart position [mm]", or with it as
+#: a suffix: "y_mm",
 #: "t_ms" (the suffix one of the units a recording is often written in).
 _UNIT_HEADER = re.compile(
-    r"(?P<name>\w+)\s*[\[(](?P<unit>[^\])]*)[\])]\Z|(?P<stem>[a-z])_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
+    r"(?P<name>\w[\w ]*?)\s*[\[(](?P<unit>[^\])]*)[\])]\Z"
+    r"|(?P<stem>[a-z])_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
 )
 #: A number and its unit, as a string (``"1 ms"``).
 _QUANTITY = re.compile(
     r"\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(?P<unit>[\w/]*)\s*"
 )
-#: Factors to the format's units from those a recording is often written in.
+#: The units a recording is often written in: {unit: (the format's unit, factor to it)}.
 _TO_SI = {
-    ("s", "ms"): 1e-3,
-    ("s", "us"): 1e-6,
-    ("m", "mm"): 1e-3,
-    ("m", "cm"): 1e-2,
-    ("V", "mV"): 1e-3,
+    "s": ("s", 1.0),
+    "ms": ("s", 1e-3),
+    "us": ("s", 1e-6),
+    "m": ("m", 1.0),
+    "mm": ("m", 1e-3),
+    "cm": ("m", 1e-2),
+    "V": ("V", 1.0),
+    "v": ("V", 1.0),
+    "mV": ("V", 1e-3),
 }
+
+
+def named_unit(name: str) -> tuple[str, str] | None:
+    """(the name, its unit) of a column or variable named with its unit ("y [mm]", "t (ms)",
+    "Position [cm]", "y_mm"), else None."""
+    match = _UNIT_HEADER.match(name.strip())
+    if match is None:
+        return None
+    return match["name"] or match["stem"], (match["unit"] or match["suffix"]).strip()
+
+
+def si_factor(name: str) -> float:
+    """The factor that takes a column or variable named with a unit the reader knows ("t
+    [ms]", "y_mm") to the format's unit (s, m, V); 1 for any other name."""
+    found = named_unit(name)
+    return _TO_SI.get(found[1], (None, 1.0))[1] if found else 1.0
 
 
 def _backslash_at(text: str, message: str) -> bool:

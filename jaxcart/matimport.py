@@ -43,7 +43,7 @@ import numpy as np
 
 from hw.atomicio import write_text
 from hw.csvio import CSVError, read_numeric_csv
-from hw.expfile import toml_value
+from hw.expfile import si_factor, toml_value
 from jaxcart import matfile
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
@@ -188,7 +188,9 @@ def read_signals(path: Path) -> list[RawSignal]:
         except matfile.LayoutError:
             continue  # not a signal (a parameter, a text): not the scope's
         block = _text(getattr(obj, "blockName", ""))
+        factor = si_factor(name)  # a variable named with its unit ("y_mm"): in m
         for s in signals:
+            s = dataclasses.replace(s, values=np.asarray(s.values) * factor) if factor != 1 else s
             selector = f"[{s.index}]" if s.count > 1 else ""
             names = tuple(x for x in (name, s.label, block) if x)
             role, why = _role(names, s, many=s.count > 1)
@@ -209,7 +211,7 @@ def _csv_signals(path: Path) -> list[RawSignal]:
         raise UserError(f"{path}: no header line and rows of numbers; not a recording")
     out = []
     for k, name in enumerate(header):
-        column = _Column(table[:, k].copy())
+        column = _Column(table[:, k] * si_factor(name))  # "t [ms]", "y_mm": in s, m, V
         role, why = _role((name,), column, many=False)
         out.append(RawSignal(path, f"{path.name}:{name}", column.values, None, role, why, (name,)))
     if all(s.role != "t" for s in out) and _is_clock(out[0].values):

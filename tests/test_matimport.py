@@ -816,6 +816,32 @@ def test_a_csv_of_named_columns_is_a_raw_recording(tmp_path, capsys):
     assert run.guess.experiment == "p_step" and run.sample_time == pytest.approx(0.001)
 
 
+def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
+    """Columns and variables named with their unit ("t [ms]", "Cart position [mm]", "y_mm")
+    are in s, m and V once read: by the import (the sample time, recognition) and through the
+    experiment file that maps them; a unit of another quantity in a mapped name is one line."""
+    from tuning.commands.main import main
+
+    t, y, v = _p50(2000)
+    _csv(tmp_path / "ms_mm.csv", "t [ms],Cart position [mm],voltage", 1e3 * t, 1e3 * y, v)
+    run = matimport.run_of(tmp_path / "ms_mm.csv")
+    assert run.sample_time == pytest.approx(0.001, rel=1e-12)
+    assert run.guess.experiment == "p_step"
+    assert main(["--no-cache", "import", str(tmp_path / "ms_mm.csv")]) == 0
+    rec = read_experiment(tmp_path / "ms_mm.toml")
+    np.testing.assert_allclose(rec.position, y, rtol=1e-12, atol=1e-15)
+    assert rec.controller.kp == pytest.approx(50.0, rel=1e-3)
+    scipy.io.savemat(tmp_path / "mm.mat", {"y_mm": 1e3 * y, "v": v, "t": t})
+    rec = read_experiment(tmp_path / "mm.mat")
+    np.testing.assert_allclose(rec.position, y, rtol=1e-12, atol=1e-15)
+    (tmp_path / "bad.toml").write_text(
+        'kind = "closed_loop"\nsample_time = 0.001\n[data]\ny = "ms_mm.csv:t [ms]"\n'
+        "[controller]\nkp = 50.0\n"
+    )
+    with pytest.raises(UserError, match=r"its name says ms, but y is the position \[m\]"):
+        read_experiment(tmp_path / "bad.toml")
+
+
 def test_the_lab_takes_a_folder_of_csv_files(tmp_path):
     """A data folder of raw CSV files: each run recognised for its part; a CSV that is no
     recording is listed unused, and the lab goes on."""
