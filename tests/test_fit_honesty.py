@@ -278,7 +278,7 @@ def test_an_edge_is_judged_relative_to_the_range_and_said_wherever_a_value_is_sh
 def test_an_encoder_count_is_found_whatever_the_origin_and_the_digits(realdata):
     """The real P 50 step's positions are whole counts; shifted by 0.2 m (an encoder not
     zeroed where the run starts), or written to 10 significant digits, they still are, and
-    the count is the same (the floor, a run's start within its count and the counts in the
+    the count is the same, saved in single precision too (the floor, a run's start within its count and the counts in the
     loop follow from it: shifted, the real P 50 fitted to 9070 times a floor of 0.001 mm
     where the file as recorded gives 1383 times 0.0066 mm); positions with noise are not
     counts."""
@@ -292,6 +292,9 @@ def test_an_encoder_count_is_found_whatever_the_origin_and_the_digits(realdata):
     assert encoder_count(y + 0.3 * q) == pytest.approx(q, rel=1e-9)
     ten_digits = np.array([float(f"{v:.10g}") for v in y - 0.2])
     assert encoder_count(ten_digits) == pytest.approx(q, rel=1e-6)
+    # Saved in single precision (a scope's float32 .mat): 1.5e-8 m off at 0.4 m, still counts.
+    single = (y - 0.2).astype(np.float32).astype(float)
+    assert encoder_count(single) == pytest.approx(q, rel=1e-4)
     noisy = y + np.random.default_rng(0).normal(0.0, 1e-6, y.size)
     assert encoder_count(noisy) == 0.0
 

@@ -22,7 +22,8 @@ def encoder_count(position) -> float:
     q is the smallest step between samples (or that refined on the steps, then on the
     positions), accepted when it is between 0.1 um and 1 mm, every position is the first one
     plus a whole multiple of it (to 1e-6 of a count, or the text's rounding: positions shifted
-    by an offset, written to 9 digits or to fixed decimals, are still counts), and the
+    by an offset, written to 9 digits, to fixed decimals or in single precision, are still
+    counts), and the
     positions scatter from sample to sample by less than a count (white noise written to
     1 um is not an encoder of 1 um counts)."""
     y = np.asarray(position, dtype=float)
@@ -39,6 +40,10 @@ def encoder_count(position) -> float:
     slack = 10.0 ** (math.floor(math.log10(ymax)) - 8) if ymax > 0 else 0.0
     # Written to fixed decimals ("%.6f": 1 um), a difference is off by up to one unit of them.
     slack = max(slack, _decimal_unit(y))
+    # Saved in single precision (a scope's float32 .mat), a value is off by up to half a unit of
+    # its 24th bit (1.5e-8 m at 0.4 m: a thousandth of a count).
+    if np.array_equal(y, y.astype(np.float32)) and ymax > 0:
+        slack = max(slack, float(np.spacing(np.float32(ymax))))
     # White noise written to a resolution is not an encoder: its samples scatter by many
     # "counts" (an encoder's second differences are 0 or one count: the level 0.6 count at most).
     scatter = noise_level(y)
