@@ -277,11 +277,11 @@ def test_an_edge_is_judged_relative_to_the_range_and_said_wherever_a_value_is_sh
 
 def test_an_encoder_count_is_found_whatever_the_origin_and_the_digits(realdata):
     """The real P 50 step's positions are whole counts; shifted by 0.2 m (an encoder not
-    zeroed where the run starts), or written to 10 significant digits, they still are, and
-    the count is the same, saved in single precision too (the floor, a run's start within its count and the counts in the
-    loop follow from it: shifted, the real P 50 fitted to 9070 times a floor of 0.001 mm
-    where the file as recorded gives 1383 times 0.0066 mm); positions with noise are not
-    counts."""
+    zeroed where the run starts), written to 10 significant digits or saved in single
+    precision, they still are, and the count is the same (the floor, a run's start within its
+    count and the counts in the loop follow from it: shifted, the real P 50 fitted to 9070
+    times a floor of 0.001 mm where the file as recorded gives 1383 times 0.0066 mm);
+    positions with noise are not counts."""
     from jaxcart.files import read_experiment
     from tuning.estimation.engine.noise import encoder_count
 
