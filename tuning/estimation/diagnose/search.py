@@ -560,16 +560,23 @@ class Search:
             [c for c in round1[1:] if c.parts[0] in structures.effect_params()], base.score
         )
         by_name = {c.name: c for c in round1}
-        mass = by_name.get("mass")
-        mass_helped = mass is not None and bool(self.promising([mass], base.score))
+        # Each parameter correction that helped: the mass, and the drive's gain where a tap
+        # beside a driven run tells the two apart (a gain 1.5 % off was left unnamed where only
+        # the mass was paired: an independent simulator's PD step and tap, "not explained").
+        # Without a tap they tie, the swap after the search names the plausible one, and both
+        # paired would fill the batch with ties.
+        motors = {s.motor for s in self.segments}
+        corrections = [
+            by_name[n] for n in PARAM_ERRORS if n in by_name and (n == "mass" or len(motors) == 2)
+        ]
+        fixes = self.promising(corrections, base.score) if corrections else []
         new = []
         top = good[:3]
         for i, a in enumerate(top):
             new += [(a, b) for b in top[i + 1 :]]
             if friction in by_name and not parameters.friction_family(a.name):
                 new.append((a, by_name[friction]))
-            if mass_helped:
-                new.append((a, mass))
+            new += [(a, c) for c in fixes]
         # The batch is padded to round 1's size anyway: the other effects fill it, each with
         # Coulomb friction where it helped (Coulomb conceals them: a delay, a current limit
         # under Coulomb friction help little or nothing alone), those that helped first.
@@ -597,7 +604,7 @@ class Search:
         level = self.fit_round(round2, 2, "pairs") if round2 else []
         # The forward selection extends by the singles that helped (Coulomb always among
         # them, as in the pairs: other effects conceal it).
-        additions = good + ([mass] if mass_helped else [])
+        additions = good + list(fixes)
         if friction in by_name and all(a.name != friction for a in additions):
             additions.append(by_name[friction])
         additions.sort(key=lambda c: c.score)
