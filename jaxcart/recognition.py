@@ -46,6 +46,7 @@ the next by at least 2; otherwise the guess is weak. Units: s, m, V.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -260,12 +261,16 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
                 1,
             )
         )
-    ident = identify_controller(traces, ts, None if limit is None else limit[0])
+    k0 = _rest_before(traces)
+    ident = identify_controller(_from(traces, k0), ts, None if limit is None else limit[0])
     if ident is None:
         return out
     gains, r2, used, step = ident
     law = ", ".join(f"{k} = {gains[k]:.4g}" for k in ("kp", "ki", "kd"))
     text = f"the voltage is a PID of the position, {law} (R^2 = {r2:.4f} over {used} samples)"
+    if k0:
+        text += f" from its step at t = {k0 * ts:.3f} s"
+        settings["late_step"] = k0 * ts
     weight = 3 if r2 > 0.99 else 2 if r2 > 0.95 else 0
     if weight == 0:
         moves = len(_moves(traces.position, ts)) if traces.position is not None else 0
@@ -292,6 +297,32 @@ def _voltage_features(traces: Traces, ts: float, settings: dict) -> list[Evidenc
         out.append(Evidence(text + ": P with a gain the handout does not use", ("p_step",), 1))
         out.append(Evidence("(Part (iii)'s P step uses another gain)", ("p_error",), 1))
     return out
+
+
+#: The fewest samples at rest before a step that count as a scope started early (20 ms).
+REST_BEFORE = 20
+
+
+def _rest_before(traces: Traces) -> int:
+    """The samples before a step where the scope started early: the command at 0 V and the
+    cart at rest where it started (a PID with nothing to do), at least :data:`REST_BEFORE`;
+    else 0. A controller is identified from the step on (the reference then starts there)."""
+    if traces.command is None or traces.position is None:
+        return 0
+    v, y = np.asarray(traces.command, dtype=float), np.asarray(traces.position, dtype=float)
+    moved = np.flatnonzero((np.abs(v) > 1e-3) | (y != y[0]))
+    k0 = int(moved[0]) if moved.size else 0
+    return k0 if REST_BEFORE <= k0 < v.size - REST_BEFORE else 0
+
+
+def _from(traces: Traces, k0: int) -> Traces:
+    """``traces`` from sample ``k0`` on."""
+    if not k0:
+        return traces
+    cut = {f: getattr(traces, f) for f in ("position", "command", "error", "reference")}
+    return dataclasses.replace(
+        traces, **{f: None if a is None else np.asarray(a)[k0:] for f, a in cut.items()}
+    )
 
 
 def identify_controller(traces: Traces, ts: float, v_limit: float | None = None):
@@ -573,7 +604,16 @@ def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence
             )
         )
         return out
-    if len(moves) == 1 and start > 0.1:
+    late = settings.get("late_step")
+    if len(moves) == 1 and late is not None and late <= start <= late + 0.1:
+        # The scope started early: the cart rests until its command steps, then moves once.
+        steps = tuple(k for k, s in EXPERIMENTS.items() if s.step is not None)
+        text = (
+            f"the cart moves at t = {start:.3g} s, as its command steps, and comes to rest: one "
+            "step, not slider moves"
+        )
+        out.append(Evidence(text, steps, 2))
+    elif len(moves) == 1 and start > 0.1:
         out.append(
             Evidence(
                 f"the cart rests {start:.3g} s, then moves once: not a step at t = 0",

@@ -842,6 +842,26 @@ def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
         read_experiment(tmp_path / "bad.toml")
 
 
+def test_a_scope_started_before_the_step_is_the_step(tmp_path):
+    """A P 50 step recorded from 0.5 s before it (the cart at rest, the command at 0 V): the
+    controller is identified from the step on and the run is Part (ii)'s, with strong
+    evidence; the experiment file it writes reads with the step where the data put it. (It
+    was "weak evidence, a tap or a P step", the controller unknown.)"""
+    t, y, v = _p50(2000)
+    rest = 500
+    t = np.arange(2000 + rest) * 0.001
+    y, v = np.concatenate([np.zeros(rest), y]), np.concatenate([np.zeros(rest), v])
+    _csv(tmp_path / "late.csv", "t,y,v", t, y, v)
+    run = matimport.run_of(tmp_path / "late.csv")
+    assert run.guess.experiment == "p_step" and run.guess.confident, run.guess.evidence
+    assert any("from its step at t = 0.500 s" in e.text for e in run.guess.evidence)
+    assert run.guess.step == pytest.approx(0.4, abs=1e-3)
+    rec = read_experiment(matimport.write_imported(run, tmp_path / "late.toml"))
+    assert rec.controller.kp == pytest.approx(50.0, rel=1e-3)
+    r = np.asarray(rec.reference)
+    assert np.all(r[:rest] == 0.0) and np.all(r[rest:] == pytest.approx(0.4, abs=1e-3))
+
+
 def test_the_lab_takes_a_folder_of_csv_files(tmp_path):
     """A data folder of raw CSV files: each run recognised for its part; a CSV that is no
     recording is listed unused, and the lab goes on."""
