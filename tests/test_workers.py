@@ -145,7 +145,8 @@ def test_an_exact_run_in_a_helper_is_the_same_float_for_float(two_helpers):
 
     with jax.enable_x64(True):
         plant = build_plant({"B_eq": 4.6, "f_c": 0.45, "v_sat": 5.0}, where="the test")
-        jobs = [(plant, jc.PID(kp=k), jc.step(0.3, horizon=1.0)) for k in (10.0, 30.0, 50.0, 80.0)]
+        steps = [(plant, jc.PID(kp=k), jc.step(0.3, horizon=1.0)) for k in (10.0, 30.0, 50.0, 80.0)]
+        jobs = [(*job, False) for job in steps]
         here = [exact_position(j) for j in jobs]
         spread = two_helpers.map(exact_position, jobs)
     assert all(np.array_equal(a, b) for a, b in zip(here, spread, strict=True))

@@ -163,6 +163,11 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
             )
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
+    # A plant that models its encoder (quantization in [plant] or a plant file): its controller
+    # reads the counts, and the cart's own position is compared, as the diagnosis does (the
+    # counts' staircase gave a Jacobian only at the count edges: standard errors 200 times too
+    # small, the optimizer at its cap).
+    in_loop = seg.quantization > 0 and parameters.encoder()[0] in plant.structure
     if seg.kind == "tap":
         nuisance = (
             Nuisance("y0", 0.0, parameters.NUISANCE["y0"][0]),
@@ -175,7 +180,9 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
         width = seg.quantization + 8 * sigma
         y0 = seg.experiment.y0
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    return dataclasses.replace(seg, plant=plant, nuisance=nuisance, params=acting)
+    return dataclasses.replace(
+        seg, plant=plant, nuisance=nuisance, params=acting, counts_in_loop=in_loop
+    )
 
 
 def _peaks(recording, plant) -> dict:

@@ -72,6 +72,10 @@ def _cart_position(plant, experiment, command) -> np.ndarray:
 
 def exact_position(job) -> np.ndarray:
     """The exact simulator's position [m] of one recording: ``job`` is (plant, controller or
-    None, experiment)."""
-    plant, controller, experiment = job
-    return np.asarray(simulate_exact(plant, controller, experiment).position)
+    None, experiment, counts_in_loop); where the controller reads the counts, the cart's own
+    position (:func:`_cart_position`), as the diagnosis compares (:func:`exact_run`)."""
+    plant, controller, experiment, counts_in_loop = job
+    res = simulate_exact(plant, controller, experiment)
+    if counts_in_loop and not res.diverged:
+        return _cart_position(plant, experiment, res.command)
+    return np.asarray(res.position)

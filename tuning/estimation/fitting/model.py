@@ -309,9 +309,8 @@ class _Problem:
             for k, seg in enumerate(self.segments):
                 values, nuisance = self.segment_values(theta, k)
                 plant = seg.plant.replace(**smooth_runs.replacements(seg.plant, values))
-                jobs.append(
-                    (plant, seg.controller, dataclasses.replace(seg.experiment, **nuisance))
-                )
+                exp = dataclasses.replace(seg.experiment, **nuisance)
+                jobs.append((plant, seg.controller, exp, seg.counts_in_loop))
         runs = self.executor.map(exact_position, jobs, list(self.sizes) * len(thetas))
         n = len(self.segments)
         return [runs[i : i + n] for i in range(0, len(runs), n)]
