@@ -217,7 +217,7 @@ def test_no_excitation_is_not_diagnosed():
 
 
 def test_controller_mismatch_is_reported_and_inferred(tmp_path):
-    from tuning.estimation.engine.controller_check import check
+    from tuning.estimation.diagnose.controller import check
 
     ran = jc.PID(kp=30.0, kd=2.0, tau=0.005, v_limit=6.0)
     rec = make_recording(jc.handout_plant(B_eq=4.6), ran, jc.step(0.3, horizon=1.0))
@@ -239,7 +239,7 @@ def test_the_replay_tells_whether_the_controller_read_the_counts(tmp_path):
     command from exactly the recorded counts: the replay gives it to 0 V. One fed the exact
     position misses by about kp q / sqrt(12) or more: 40 V/m x 6.6 um = 0.26 mV in the P term,
     the derivative of the counts adding more. The threshold is a tenth of the P term's."""
-    from tuning.estimation.engine.controller_check import check, reads_counts
+    from tuning.estimation.diagnose.controller import check, reads_counts
 
     q = 2.275e-5
     pid = jc.PID(kp=40.0, kd=3.0, ki=20.0, v_limit=6.0)

@@ -61,7 +61,6 @@ from jaxcart.errors import UserError
 from jaxcart.plausibility import check_fit_recordings
 from jaxcart.smoothing import continuation
 from tuning.estimation.engine import parameters, smooth_runs
-from tuning.estimation.engine.controller_check import check as controller_check
 from tuning.estimation.engine.covariance import Covariance, covariance
 from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.least_squares import (
@@ -81,7 +80,7 @@ from tuning.estimation.engine.noise import (
     noise_level,
 )
 from tuning.estimation.engine.parameters import base_name
-from tuning.estimation.engine.segments import Segment, counts_in_loop
+from tuning.estimation.engine.segments import Segment
 from tuning.estimation.engine.segments import prepare as prepare_segment
 from tuning.estimation.fitting.files import fit_table, load_fitted_plant, write_fitted_plant
 from tuning.estimation.fitting.model import Nuisance, _Problem
@@ -164,13 +163,11 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
             )
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
-    # A controller that read the recorded counts (its replay says so, as the hardware's does) or
-    # a plant that models its encoder reads them in the loop, and the cart's own position is
-    # compared, as the diagnosis does (the counts' staircase compared gave a Jacobian only at the
-    # count edges: standard errors 200 times too small; the counts left out biased B_eq and
-    # v_sat by 7 standard errors on an independent simulator's P step).
-    check = controller_check(recording) if seg.kind == "closed_loop" else None
-    (plant,), (seg,) = counts_in_loop([plant], [seg], [bool(check and check["reads_counts"])])
+    # A plant that models its encoder (quantization in [plant] or a plant file): its controller
+    # reads the counts, and the cart's own position is compared, as the diagnosis does (the
+    # counts' staircase gave a Jacobian only at the count edges: standard errors 200 times too
+    # small, the optimizer at its cap).
+    in_loop = seg.quantization > 0 and parameters.encoder()[0] in plant.structure
     if seg.kind == "tap":
         nuisance = (
             Nuisance("y0", 0.0, parameters.NUISANCE["y0"][0]),
@@ -183,7 +180,9 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
         width = seg.quantization + 8 * sigma
         y0 = seg.experiment.y0
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    return dataclasses.replace(seg, plant=plant, nuisance=nuisance, params=acting)
+    return dataclasses.replace(
+        seg, plant=plant, nuisance=nuisance, params=acting, counts_in_loop=in_loop
+    )
 
 
 def _peaks(recording, plant) -> dict:

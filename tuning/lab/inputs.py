@@ -67,7 +67,7 @@ from jaxcart.matimport import (
 from jaxcart.params import TRACK_LENGTH
 from jaxcart.plausibility import time_unit_doubt, warn
 from jaxcart.recognition import EXPERIMENTS
-from tuning.estimation.engine.controller_check import check as controller_check
+from tuning.estimation.diagnose.controller import check as controller_check
 
 INDEX_NAME = "lab.toml"
 #: The sub-folder of a report where :func:`write_used` puts the experiment files of repeats.
@@ -206,7 +206,7 @@ def check_recording(recording):
 def _controller_that_ran(recording):
     """``recording`` with the controller its recorded command shows where the file's
     [controller] does not reproduce that command and the one inferred from it does (as the
-    diagnosis does, :func:`tuning.estimation.engine.controller_check.check`): a P 50 run filed
+    diagnosis does, :func:`tuning.estimation.diagnose.controller.check`): a P 50 run filed
     with kp = 5 is simulated with kp = 50, and the lab says so."""
     checked = controller_check(recording)
     if not checked or checked["consistent"] or checked.get("inferred") is None:

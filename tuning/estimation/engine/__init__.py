@@ -6,9 +6,6 @@
   elements of a vector parameter.
 - :mod:`.segments`: the one :class:`~.segments.Segment` and :func:`~.segments.prepare` (a
   recording as the part fitted: a tap's coasting part, every position the middle of its count).
-- :mod:`.controller_check`: whether a recording's controller reproduces its recorded command,
-  the one that ran where it does not, and whether it read the encoder's counts (then
-  :func:`~.segments.counts_in_loop` puts them in every simulation of it).
 - :mod:`.noise`: the encoder count, the noise floor, the effective number of samples, and the
   widening of standard errors for model error.
 - :mod:`.lm`: the damped least-squares (Levenberg-Marquardt) step.
