@@ -388,10 +388,17 @@ class Reader:
                     f'need in a [data] table (e.g. t = "{data}:t", y = "{data}:y")'
                 )
             if unknown:
+                name = unknown[0]
+                like = _looks_like(name)
+                mapping = (
+                    f'{like} = "{data}:{name}"'
+                    if like
+                    else f't = "{data}:t", y = "{data}:y"; a column such as {name!r} is then '
+                    "left out"
+                )
                 self.fail(
-                    f"column {unknown[0]!r} of {data} is not one of {', '.join(COLUMNS)}; "
-                    f"rename it, or map the columns you need in a [data] table "
-                    f'(e.g. y = "{data}:y", v = "{data}:{unknown[0]}")'
+                    f"column {name!r} of {data} is not one of {', '.join(COLUMNS)}; "
+                    f"rename it, or map the columns you need in a [data] table (e.g. {mapping})"
                 )
             return {
                 name: Signal(values, None, f"{data} column {name}", _line_of(lines))
@@ -762,6 +769,14 @@ _WORDS = {
     "r": ("ref", "set", "r"),
     "e": ("err", "e"),
 }
+
+
+def _looks_like(name: str) -> str | None:
+    """The column of the format that ``name`` starts like (``Voltage`` a v, ``pos_cart`` a
+    y), or None (a current, a speed: no column of the format)."""
+    low = name.lower()
+    words = [(w, c) for c, ws in _WORDS.items() for w in ws if len(w) > 1]
+    return next((c for w, c in words if low.startswith(w)), None)
 
 
 def _guess(column: str, names) -> str:

@@ -528,6 +528,15 @@ def test_csv_saved_differently_matlab_comments_and_units_in_the_header(tmp_path)
     (tmp_path / "run.csv").write_text("Position,Time\n" + body)
     with pytest.raises(UserError, match='map it in a \\[data\\] table \\(t = "run.csv:Time"\\)'):
         read_experiment(_toml(tmp_path, tap))
+    # A column the format has no place for is not offered as the voltage (it was: v = ":current").
+    extra = "".join(f"{a:.17g},{b:.17g},1.0\n" for a, b in zip(t, y, strict=True))
+    (tmp_path / "run.csv").write_text("t,y,current\n" + extra)
+    with pytest.raises(UserError, match="a column such as 'current' is then left out") as err:
+        read_experiment(_toml(tmp_path, tap))
+    assert "v = " not in str(err.value)
+    (tmp_path / "run.csv").write_text("t,y,Voltage\n" + extra)
+    with pytest.raises(UserError, match='map the columns .*v = "run.csv:Voltage"'):
+        read_experiment(_toml(tmp_path, tap))
     counts = "".join(f"{a:.17g},{round(b / 2.275e-5) + 10000}\n" for a, b in zip(t, y, strict=True))
     (tmp_path / "run.csv").write_text("t,y\n" + counts)
     with pytest.raises(UserError, match="encoder counts\\? multiply by 2.275e-05"):
