@@ -35,6 +35,7 @@ from tuning.estimation.diagnose.significance import implausible, significance
 from tuning.estimation.diagnose.structures import (
     PER_RUN,
     Candidate,
+    batchable,
     extend,
     structure,
     swapped_correction,
@@ -511,6 +512,11 @@ def test_the_drives_gain_per_run_is_there_where_the_runs_differ():
     sat = structure(("saturation", PER_RUN), (1, 2))
     gain = structure(("gain",))
     assert extend([sat], [gain], set()) == []  # only from a structure the search reached
+    # Nor paired with it in round 2 (where a tap lets the gain be paired: the real tap, P 50
+    # runs and PD run stopped the lab on the batch's missing gamma_scale@k slots).
+    assert not batchable(("saturation", PER_RUN, "gain"))
+    assert batchable(("saturation", PER_RUN, "mass")) and batchable(("coulomb", "gain"))
+    assert not batchable(("coulomb", "mass", "gain"))
     assert swapped_correction(c.parts, {}, None) is None  # each run's gain is its own
     values = {"B_eq": 1.5, "gamma_scale@1": 1.0003, "gamma_scale@2": 1.0057}
     sig = significance(

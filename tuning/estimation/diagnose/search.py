@@ -596,7 +596,7 @@ class Search:
         seen, round2 = set(), []
         for a, b in new:
             c = structures.pair(a, b)
-            if set(c.parts) in seen or parameters.redundant(c.parts):
+            if set(c.parts) in seen or not structures.batchable(c.parts):
                 continue
             seen.add(frozenset(c.parts))
             round2.append((c, a, b))

@@ -194,9 +194,7 @@ def extend(seeds, additions, seen, kmax=K_MAX, limit=PER_ROUND) -> list:
             parts in seen
             or len(c.parts) == len(a.parts)
             or len(c.free) > kmax
-            or parameters.redundant(parts)
-            or len([p for p in c.parts if p in PARAM_ERRORS]) > 1
-            or {"gain", PER_RUN} <= parts  # (the gain per run: Search.gain_per_run)
+            or not batchable(parts)
         ):
             continue
         seen.add(parts)
@@ -204,6 +202,19 @@ def extend(seeds, additions, seen, kmax=K_MAX, limit=PER_ROUND) -> list:
         if len(out) >= limit:
             break
     return out
+
+
+def batchable(parts) -> bool:
+    """Whether a structure of ``parts`` is one the batch fits: no two parts that do one job
+    (:func:`~tuning.estimation.engine.parameters.redundant`), one parameter correction at
+    most, and not the drive's gain with the drive free per run (that one is
+    :meth:`~.search.Search.gain_per_run`'s alone: the batch's layout has no gain per run)."""
+    parts = frozenset(parts)
+    return (
+        not parameters.redundant(parts)
+        and len([p for p in parts if p in PARAM_ERRORS]) <= 1
+        and not {"gain", PER_RUN} <= parts
+    )
 
 
 def pair_starts(grown, starts_all, base) -> list:
