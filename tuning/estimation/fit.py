@@ -80,7 +80,7 @@ from tuning.estimation.engine.noise import (
     noise_level,
 )
 from tuning.estimation.engine.parameters import base_name
-from tuning.estimation.engine.segments import Segment
+from tuning.estimation.engine.segments import Segment, counts_in_loop
 from tuning.estimation.engine.segments import prepare as prepare_segment
 from tuning.estimation.fitting.files import fit_table, load_fitted_plant, write_fitted_plant
 from tuning.estimation.fitting.model import Nuisance, _Problem
@@ -166,8 +166,9 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
     # A plant that models its encoder (quantization in [plant] or a plant file): its controller
     # reads the counts, and the cart's own position is compared, as the diagnosis does (the
     # counts' staircase gave a Jacobian only at the count edges: standard errors 200 times too
-    # small, the optimizer at its cap).
-    in_loop = seg.quantization > 0 and parameters.encoder()[0] in plant.structure
+    # small, the optimizer at its cap). Counts the plant does not name are not added here: see
+    # docs/diagnose.md, "The encoder in the loop".
+    (plant,), (seg,) = counts_in_loop([plant], [seg], [False])
     if seg.kind == "tap":
         nuisance = (
             Nuisance("y0", 0.0, parameters.NUISANCE["y0"][0]),
@@ -180,9 +181,7 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
         width = seg.quantization + 8 * sigma
         y0 = seg.experiment.y0
         nuisance = (Nuisance("y0", y0 - width / 2, width, bounded=True),) if width > 0 else ()
-    return dataclasses.replace(
-        seg, plant=plant, nuisance=nuisance, params=acting, counts_in_loop=in_loop
-    )
+    return dataclasses.replace(seg, plant=plant, nuisance=nuisance, params=acting)
 
 
 def _peaks(recording, plant) -> dict:

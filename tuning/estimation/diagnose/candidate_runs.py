@@ -163,32 +163,6 @@ def current_peaks(cand, segments, base_plants, values, layout) -> dict:
     return peaks
 
 
-def counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
-    """(base plants, segments), with the encoder's quantization in the loop where the recorded
-    command shows that the controller read the recorded counts (``read_counts``, one per
-    recording: controller.reads_counts), unless the plant models its sensor already.
-
-    Feeding the controller the exact position instead biases its input by half a count (the
-    mean of the floor) and loses the hunting between counts that integral action and friction
-    make, which the search otherwise explains with effects that are not there. Such a
-    simulation records what its controller read, whole counts; the diagnosis compares the
-    cart's position instead (:func:`exact_residuals`), whose forward differences the exact
-    polish needs (docs/diagnose.md, "The encoder in the loop")."""
-
-    plants, segs = [], []
-    for plant, seg, counts in zip(base_plants, segments, read_counts, strict=True):
-        q = seg.quantization
-        sensor, count = parameters.encoder()
-        modelled = sensor in plant.structure  # a plant file's own sensor
-        if counts and q > 0 and not modelled:
-            plant = build_plant({count: q}, base=plant, check=False)
-        if q > 0 and (modelled or counts):
-            seg = dataclasses.replace(seg, counts_in_loop=True)
-        plants.append(plant)
-        segs.append(seg)
-    return plants, segs
-
-
 def polish(
     cand, segments, base_plants, values, layout, iterations=3, memo=None, target=None, weights=None
 ):

@@ -68,7 +68,7 @@ from tuning.estimation.engine.batch import BatchFitter
 from tuning.estimation.engine.covariance import Covariance, covariance, determined
 from tuning.estimation.engine.coverage import Coverage
 from tuning.estimation.engine.noise import RecordingNoise, encoder_count, floor_of, misfits
-from tuning.estimation.engine.segments import prepare, recording_name
+from tuning.estimation.engine.segments import counts_in_loop, prepare, recording_name
 from tuning.estimation.engine.starts import start_values
 
 
@@ -180,9 +180,7 @@ class Search:
             if rec.kind == "tap" and not rec.meta.get("tap", {}).get("motor_connected", False):
                 p = dataclasses.replace(p, motor_connected=False)
             base_plants.append(rec.plant(p) if rec.plant_overrides else p)
-        self.base_plants, self.segments = candidate_runs.counts_in_loop(
-            base_plants, segments, read_counts
-        )
+        self.base_plants, self.segments = counts_in_loop(base_plants, segments, read_counts)
         segments = self.segments
         # What a correct model leaves: the encoder's q / sqrt(12), or the white noise of data
         # that are not whole counts (jaxcart fit's floor).

@@ -33,11 +33,7 @@ class ExactJob(NamedTuple):
 
 def exact_run(job: ExactJob):
     """(exact residual [m], command [V] or None) of one recording, read-only arrays."""
-    exp = job.experiment
-    res = simulate_exact(job.plant, job.controller, exp)
-    pos = np.asarray(res.position, dtype=float)
-    if job.counts_in_loop and not res.diverged:
-        pos = _cart_position(job.plant, exp, res.command)
+    res, pos = _compared(job.plant, job.controller, job.experiment, job.counts_in_loop)
     if not np.all(np.isfinite(pos)):
         pos = np.where(np.isfinite(pos), pos, 1.0)
     u = np.asarray(res.command, dtype=float) if job.motor else None
@@ -74,8 +70,13 @@ def exact_position(job) -> np.ndarray:
     """The exact simulator's position [m] of one recording: ``job`` is (plant, controller or
     None, experiment, counts_in_loop); where the controller reads the counts, the cart's own
     position (:func:`_cart_position`), as the diagnosis compares (:func:`exact_run`)."""
-    plant, controller, experiment, counts_in_loop = job
+    return _compared(*job)[1]
+
+
+def _compared(plant, controller, experiment, counts_in_loop):
+    """(the exact run, the position [m] compared with the recording): what the sensor read,
+    or where the controller reads the counts the cart's own position (:func:`_cart_position`)."""
     res = simulate_exact(plant, controller, experiment)
     if counts_in_loop and not res.diverged:
-        return _cart_position(plant, experiment, res.command)
-    return np.asarray(res.position)
+        return res, _cart_position(plant, experiment, res.command)
+    return res, np.asarray(res.position, dtype=float)

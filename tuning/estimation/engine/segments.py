@@ -14,6 +14,8 @@ from jaxcart.errors import UserError
 from jaxcart.files import signal64
 from jaxcart.parallel import put
 from jaxcart.params import ENCODER_RESOLUTION
+from jaxcart.plantspec import build_plant
+from tuning.estimation.engine import parameters
 from tuning.estimation.engine.noise import encoder_count
 
 
@@ -28,7 +30,7 @@ class Segment:
     quantization: the encoder count found in the data [m] (0: not quantized); motor: the
     motor drives the cart (not a tap); counts_in_loop: the controller reads the recorded
     counts, so the plant's quantization sensor is in the loop and the simulated position is
-    compared, not the reading (the diagnosis's ``candidate_runs.counts_in_loop``).
+    compared, not the reading (:func:`counts_in_loop`).
 
     A fit of fixed structure (:func:`tuning.estimation.fit.fit`) adds its own: ``plant``, the
     plant the recording ran on with the start values; ``nuisance``, the per-recording values
@@ -163,3 +165,29 @@ def initial_state(time, y, start):
     t = time[start : start + k] - time[start]
     coef = np.polyfit(t, y[start : start + k], 2 if k > 5 else 1)
     return float(np.polyval(coef, 0.0)), float(np.polyval(np.polyder(coef), 0.0))
+
+
+def counts_in_loop(base_plants, segments, read_counts) -> tuple[list, list]:
+    """(base plants, segments), with the encoder's quantization in the loop where the recorded
+    command shows that the controller read the recorded counts (``read_counts``, one per
+    recording: controller.reads_counts), unless the plant models its sensor already.
+
+    Feeding the controller the exact position instead biases its input by half a count (the
+    mean of the floor) and loses the hunting between counts that integral action and friction
+    make, which the search otherwise explains with effects that are not there. Such a
+    simulation records what its controller read, whole counts; the diagnosis compares the
+    cart's position instead (:func:`exact_residuals`), whose forward differences the exact
+    polish needs (docs/diagnose.md, "The encoder in the loop")."""
+
+    plants, segs = [], []
+    for plant, seg, counts in zip(base_plants, segments, read_counts, strict=True):
+        q = seg.quantization
+        sensor, count = parameters.encoder()
+        modelled = sensor in plant.structure  # a plant file's own sensor
+        if counts and q > 0 and not modelled:
+            plant = build_plant({count: q}, base=plant, check=False)
+        if q > 0 and (modelled or counts):
+            seg = dataclasses.replace(seg, counts_in_loop=True)
+        plants.append(plant)
+        segs.append(seg)
+    return plants, segs
