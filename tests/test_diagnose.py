@@ -324,7 +324,7 @@ def test_exact_memo_reuses_runs_read_only_and_keeps_the_newest():
     (not a new one), read-only; another value or structure is a new run; the oldest goes."""
     from types import SimpleNamespace
 
-    from tuning.estimation.diagnose.candidate_runs import ExactMemo
+    from tuning.estimation.engine.exact_runs import ExactMemo
 
     memo, runs = ExactMemo(size=2), []
 
@@ -352,7 +352,7 @@ def test_exact_memo_reruns_only_the_recordings_a_value_moves(tmp_path):
     from jaxcart.workers import Helpers
     from tuning.estimation.diagnose import candidate_runs, structures
     from tuning.estimation.diagnose.search import Search
-    from tuning.estimation.engine import parameters
+    from tuning.estimation.engine import exact_runs, parameters
 
     case = BY_NAME["tap + P and PD steps with the drive limit per run"]
     recs = [read_experiment(p) for p in make_case(case, tmp_path)]
@@ -361,7 +361,7 @@ def test_exact_memo_reruns_only_the_recordings_a_value_moves(tmp_path):
     values = dict(search.starts_all)
     values = {k: values.get(k, values.get(parameters.base_name(k))) for k in cand.free}
     with Helpers(1) as helpers:
-        memo = candidate_runs.ExactMemo(executor=helpers)
+        memo = exact_runs.ExactMemo(executor=helpers)
         args = (cand, search.segments, search.base_plants)
         first, _ = candidate_runs.exact_residuals(*args, values, search.layout, memo)
         assert memo.made == 3

@@ -11,10 +11,14 @@ import numpy as np
 
 from jaxcart.exact import simulate_exact
 from jaxcart.plantspec import build_plant
-from jaxcart.workers import SERIAL
 from tuning.estimation.diagnose.structures import PER_RUN, Candidate, params_of, per_run_params
 from tuning.estimation.engine import exact_polish, parameters
-from tuning.estimation.engine.exact_runs import ExactJob, exact_run, read_only
+from tuning.estimation.engine.exact_runs import (
+    ExactJob,
+    ExactMemo,
+    exact_run,
+    read_only,
+)
 
 
 def exact_plants(cand: Candidate, base_plants, values):
@@ -31,70 +35,6 @@ def exact_plants(cand: Candidate, base_plants, values):
             own = {n: parameters.stand_in(n) for n in per_run_params() if n in params_of(cand)}
         plants.append(build_plant(parameters.consistent({**named, **own}), base=p, check=False))
     return plants
-
-
-class ExactMemo:
-    """The last ``size`` exact runs of one diagnosis, by candidate structure and values: the
-    polish re-runs points it has run (a trial it accepted is the next iteration's start, the
-    polished point is re-checked), about a quarter of a diagnosis's exact runs (measured on
-    the built-in P 50 step: 247 runs, 189 distinct). Results are shared: read-only arrays."""
-
-    def __init__(self, size: int = 64, executor=None):
-        self.size = size
-        self.executor = executor or SERIAL  # makes the runs of fill several at a time
-        self.runs: dict = {}
-        self.hits = 0
-        self.made = 0  # single runs simulated (here or by a helper process)
-        # One recording's run by its own plant and start: a parameter that does not act on a
-        # recording (a per-run copy of another run, a drive limit on the unplugged tap) leaves
-        # its run as it was, so a forward difference re-simulates only the runs it moves.
-        self.one: dict = {}
-
-    def segment(self, key, compute):
-        """One recording's exact run, by (index, plant, y0, yd0)."""
-        if key in self.one:
-            self.hits += 1
-            self.one[key] = self.one.pop(key)
-            return self.one[key]
-        return self._store(key, compute())
-
-    def fill(self, jobs) -> None:
-        """Make the runs of ``jobs`` ((key, :class:`ExactJob`) pairs) not stored yet, all at
-        once (the executor's ``map``: several at a time, in helper processes)."""
-        todo = {}
-        for key, job in jobs:
-            if key not in self.one and key not in todo:
-                todo[key] = job
-        sizes = [job.target.size for job in todo.values()]
-        for key, out in zip(todo, self.executor.map(exact_run, todo.values(), sizes), strict=True):
-            self._store(key, out)
-
-    def _store(self, key, out):
-        self.made += 1
-        self.one[key] = out = read_only(out)
-        if len(self.one) > 4 * self.size:
-            del self.one[next(iter(self.one))]
-        return out
-
-    def get(self, cand, values, compute):
-        key = (
-            tuple(cand.parts),
-            tuple(cand.corrections),
-            values_key(values),
-        )
-        if key in self.runs:
-            self.hits += 1
-            self.runs[key] = self.runs.pop(key)  # most recent last
-            return self.runs[key]
-        out = compute()
-        for group in out:
-            for a in group:
-                if a is not None:
-                    a.flags.writeable = False
-        self.runs[key] = out
-        if len(self.runs) > self.size:
-            del self.runs[next(iter(self.runs))]
-        return out
 
 
 def started(experiment, starts, values: dict, i: int):
@@ -194,11 +134,6 @@ def polish(
     out = at(done.x) if done.improved else values
     jac = None if done.jac is None else done.jac / rows[:, None]  # the plain residual's
     return out, jac, names, done.converged
-
-
-def values_key(values: dict) -> tuple:
-    """``values`` as a key (names and floats, sorted)."""
-    return tuple(sorted((k, float(v)) for k, v in values.items()))
 
 
 def smooth_reference(cand, names, values, segments):

@@ -24,7 +24,7 @@ with no repeat, within :data:`~tuning.estimation.engine.noise.MISFIT_RATIO` time
 floor.
 
 The runs are those the diagnosis made already (the search's
-:class:`~.candidate_runs.ExactMemo`, seen through each subset of recordings).
+:class:`~.exact_runs.ExactMemo`, seen through each subset of recordings).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 
 from tuning.estimation.diagnose import candidate_runs, scoring
 from tuning.estimation.diagnose.policy import FLOOR_FACTOR
-from tuning.estimation.engine import parameters
+from tuning.estimation.engine import exact_runs, parameters
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.exact_polish import polish, values_jacobian
 from tuning.estimation.engine.layout import Layout, for_candidates
@@ -196,7 +196,7 @@ def exact_jacobian(search, c) -> np.ndarray:
     """The exact simulator's forward-difference Jacobian of ``c``'s residual (every recording's
     rows, in order) at its values, per unit of each of :func:`_names_of`'s values (memoized on
     ``c`` by its values)."""
-    key = candidate_runs.values_key(c.values)
+    key = exact_runs.values_key(c.values)
     if c.jac_exact[0] == key:
         return c.jac_exact[1]
     names = _names_of(search, c)

@@ -63,7 +63,7 @@ from tuning.estimation.diagnose.policy import (
 )
 from tuning.estimation.diagnose.result import Diagnosis
 from tuning.estimation.diagnose.structures import PARAM_ERRORS, PER_RUN
-from tuning.estimation.engine import parameters
+from tuning.estimation.engine import exact_runs, parameters
 from tuning.estimation.engine.batch import BatchFitter
 from tuning.estimation.engine.covariance import Covariance, covariance, determined
 from tuning.estimation.engine.coverage import Coverage
@@ -204,7 +204,7 @@ class Search:
             segments, self.base_plants, per_recording=per, max_shared=K_MAX, noise=self.noise
         )
         self.layout = self.fitter.layout
-        self.memo = candidate_runs.ExactMemo(executor=executor)
+        self.memo = exact_runs.ExactMemo(executor=executor)
         self.nuis = [n for n in self.layout.names if parameters.base_name(n) in parameters.NUISANCE]
         commands = [
             r.command if s.motor else None for r, s in zip(recordings, segments, strict=True)
@@ -442,7 +442,7 @@ class Search:
         residual; independent, so split over the processes of a distributed run. ``reach``:
         see :meth:`polished`."""
         # A polish that converged at a candidate's values would only repeat itself.
-        todo = [(c, start) for c, start in todo if c.settled != candidate_runs.values_key(start)]
+        todo = [(c, start) for c, start in todo if c.settled != exact_runs.values_key(start)]
 
         def polish(item):  # (values, arrays) as spread gathers them: the flag an array too
             values, arrays, converged = self.polished(*item, reach)
@@ -451,10 +451,9 @@ class Search:
         done = spread(self.processes, todo, polish)
         for (c, _start), (values, arrays) in zip(todo, done, strict=True):
             self.keep(c, values, arrays[:-2], arrays[-2])
-            if bool(arrays[-1]) and candidate_runs.values_key(
-                c.values
-            ) == candidate_runs.values_key(values):
-                c.settled = candidate_runs.values_key(values)
+            settled = exact_runs.values_key(values)
+            if bool(arrays[-1]) and exact_runs.values_key(c.values) == settled:
+                c.settled = settled
 
     def keep(self, c, values, res, jac):
         if self.better(res, c):
@@ -851,7 +850,7 @@ class Search:
         recording predicted by the cart fitted to the others, or each stretch of a single
         recording by the fit to the rest), the same criterion as the in-sample score
         (:func:`~.scoring.score`); computed once per set of values."""
-        key = candidate_runs.values_key(c.values)
+        key = exact_runs.values_key(c.values)
         if c.held_out_key != key:
             residuals, values = crossval.held_out(self, c)
             c.held = {
@@ -878,7 +877,7 @@ class Search:
             sub.rms_exact = scoring.rms(sub.residuals)
             sub.score = scoring.score(sub, sub.residuals, self.noise)
             if converged:
-                sub.settled = candidate_runs.values_key(values)
+                sub.settled = exact_runs.values_key(values)
             self.cands.append(sub)
         else:
             self.polish_all([(sub, start)])

@@ -21,7 +21,7 @@ from jaxcart.smoothing import Smoothing
 from jaxcart.substeps import substeps_per_sample
 from jaxcart.workers import SERIAL
 from tuning.estimation.engine import parameters, smooth_runs
-from tuning.estimation.engine.exact_runs import exact_position
+from tuning.estimation.engine.exact_runs import ExactMemo, exact_position
 from tuning.estimation.engine.layout import Layout, for_fit
 from tuning.estimation.engine.least_squares import LM_DAMPING
 from tuning.estimation.engine.parameters import base_name
@@ -140,6 +140,9 @@ class _Problem:
         self.segments = segments
         self.given = frozenset(given)  # the names whose start values the caller gave
         self.executor = executor or SERIAL
+        # Each recording's run by its plant and start: a forward difference in one recording's
+        # start (or its own drive limit) re-simulates that recording alone.
+        self.memo = ExactMemo(executor=self.executor, run=exact_position)
         self.params = tuple(canonical(p) for p in params)
         self.n_params = len(self.params)
         self.settings = settings
@@ -302,16 +305,19 @@ class _Problem:
         return self.simulate_exact_many([theta])[0]
 
     def simulate_exact_many(self, thetas):
-        """:meth:`simulate_exact` at each of ``thetas``, the runs made several at a time
-        (the executor's ``map``: several at a time)."""
+        """:meth:`simulate_exact` at each of ``thetas``: each recording's run made once for its
+        plant and start (a memo), those not made yet several at a time (the executor's
+        ``map``)."""
         jobs = []
         for theta in thetas:
             for k, seg in enumerate(self.segments):
                 values, nuisance = self.segment_values(theta, k)
                 plant = seg.plant.replace(**smooth_runs.replacements(seg.plant, values))
                 exp = dataclasses.replace(seg.experiment, **nuisance)
-                jobs.append((plant, seg.controller, exp, seg.counts_in_loop))
-        runs = self.executor.map(exact_position, jobs, list(self.sizes) * len(thetas))
+                job = (plant, seg.controller, exp, seg.counts_in_loop)
+                jobs.append(((k, plant, exp.y0, exp.yd0), job))
+        self.memo.fill(jobs, list(self.sizes) * len(thetas))
+        runs = [self.memo.segment(key, lambda job=job: exact_position(job)) for key, job in jobs]
         n = len(self.segments)
         return [runs[i : i + n] for i in range(0, len(runs), n)]
 
