@@ -138,6 +138,14 @@ class FitSettings:
     tap_margin: float = 0.02
     quantization: float | None = None
 
+    @classmethod
+    def warm(cls, **changes) -> FitSettings:
+        """A fit that starts near its answer (a lab part from an earlier part's values, a
+        fold of a joint fit from the joint values): no adam, the last two widths of the
+        continuation, a short Levenberg-Marquardt at each; ``changes`` as the constructor's."""
+        widths = cls.__dataclass_fields__["widths"].default
+        return cls(**{"widths": widths[-2:], "adam_steps": 0, "lm_iterations": 15, **changes})
+
 
 def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segment:
     """A recording as the engine's :class:`Segment` (:func:`~.engine.segments.prepare`: the

@@ -16,20 +16,17 @@ from tuning.estimation.fit import FitSettings
 from tuning.estimation.fit import fit as engine_fit
 from tuning.lab.context import fmt
 
-#: Fit settings for the report: the default continuation for the tap (a real tap needs it),
-#: a short Levenberg-Marquardt polish where the start is already close.
-QUICK_FIT = {"widths": (1e-3, 1e-4), "adam_steps": 0, "lm_iterations": 15}
-
 #: fit(recordings, params, *, initial=None, quick=False) -> FitResult
 FitFunction = Callable[..., object]
 
 
 def fit(recordings, params, *, initial=None, quick=False, per_recording=(), executor=None):
     """Fit ``params`` (names) to ``recordings`` from ``initial`` (name -> value) with the
-    estimation engine; ``quick``: a short polish (:data:`QUICK_FIT`) where the start is close;
+    estimation engine; ``quick``: a short polish (:meth:`FitSettings.warm`) where the start is
+    close (else the default continuation: a real tap needs it);
     ``per_recording``: those of ``params`` free in each recording (the cart's joint fit);
     ``executor``: makes the exact runs (:func:`tuning.estimation.fit.fit`)."""
-    settings = FitSettings(**QUICK_FIT) if quick else FitSettings()
+    settings = FitSettings.warm() if quick else FitSettings()
     return engine_fit(
         recordings,
         params,

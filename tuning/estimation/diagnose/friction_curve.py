@@ -38,7 +38,7 @@ from tuning.estimation.diagnose import track_curve
 from tuning.estimation.engine import parameters
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.engine.segments import recording_name
-from tuning.estimation.fit import fit
+from tuning.estimation.fit import FitSettings, fit
 from tuning.estimation.fitting.names import unit_of
 
 SIDES = ("right", "left")
@@ -312,9 +312,12 @@ def _predicted(rec, others, params, per_run, joint, fixed, executor, fitter) -> 
     determine every value that the joint fit did."""
     own = [n for n in per_run if rec.kind != "tap" or not parameters.is_drive(n)]
     start = {**fixed, **shared_values(joint, params)}
+    # From the joint fit's values, near the fold's own: the continuation that leads a fit from
+    # a poor start is not needed (FitSettings.warm).
+    warm = FitSettings.warm()
     try:
         rest = fitter(others, params, per_recording=per_run, initial=start, progress=False,
-                   executor=executor)  # fmt: skip
+                   executor=executor, settings=warm)  # fmt: skip
     except UserError:  # a value only this recording drives
         return None
     # (Shared values: a run's own, name@k, is numbered anew among the others.)
@@ -322,7 +325,7 @@ def _predicted(rec, others, params, per_run, joint, fixed, executor, fitter) -> 
     if any(not e.identifiable for n, e in rest.params.items() if n in known):
         return None  # the others leave a value this recording alone determines
     pred = fit([rec], own, initial={**start, **shared_values(rest, params)}, progress=False,
-               executor=executor)  # fmt: skip
+               executor=executor, settings=warm)  # fmt: skip
     value = pred.rms_after_exact
     return float(value) if value is not None and np.isfinite(value) else None
 
