@@ -1,6 +1,8 @@
 """The engine's Gauss-Newton on exact residuals (tuning/estimation/engine/exact_polish.py): a
 known optimum on the exact simulator, the bounds, and the forward differences it takes."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -96,3 +98,38 @@ def test_a_fit_that_cannot_reach_its_target_stops_after_the_first_jacobian():
     assert hopeless.jac is not None
     reached = gauss_newton(_each(residual), start, np.full(2, 1e-6), WIDE, 5, target=0.3)
     np.testing.assert_allclose(reached.x, [1.0, -2.0], atol=1e-6)
+
+
+def test_a_fits_exact_runs_move_only_the_recordings_a_value_moves():
+    """fit()'s exact runs go through the engine's memo (engine/exact_runs.ExactMemo): a point
+    that moves one recording's start re-simulates that recording alone, a shared value moves
+    both, and each run equals the exact simulator's own, bit for bit."""
+    from jaxcart.synthetic import make_recording
+    from tuning.estimation.engine.exact_runs import exact_position
+    from tuning.estimation.fit import FitSettings, fit_segment
+    from tuning.estimation.fitting.model import _Problem
+
+    plant = jc.Plant(effects=(jc.Coulomb(f_c=0.4),))
+    recs = [
+        make_recording(plant, jc.PID(kp=50.0), jc.step(0.1 * k, horizon=0.4), seed=k)
+        for k in (1, 2)
+    ]
+    settings = FitSettings()
+    segments = [fit_segment(r, ("B_eq",), {}, settings) for r in recs]
+    problem = _Problem(segments, ("B_eq",), settings)
+    theta = problem.theta0
+    (first,) = problem.simulate_exact_many([theta])
+    assert problem.memo.made == 2
+    start = problem.entries.index("y0@1")
+    moved, shared = theta.copy(), theta.copy()
+    moved[start] += 0.5
+    shared[0] += 1e-3
+    (again, one) = problem.simulate_exact_many([theta, moved])
+    assert problem.memo.made == 3 and one[0] is first[0] and again[1] is first[1]
+    problem.simulate_exact_many([shared])
+    assert problem.memo.made == 5
+    for k, seg in enumerate(segments):
+        values, nuisance = problem.segment_values(moved, k)
+        exp = dataclasses.replace(seg.experiment, **nuisance)
+        job = (seg.plant.replace(**values), seg.controller, exp, seg.counts_in_loop)
+        np.testing.assert_array_equal(one[k], exact_position(job))

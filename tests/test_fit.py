@@ -183,7 +183,8 @@ def test_a_limit_the_run_never_reaches_is_held_where_it_does_not_act():
     identifiable, and it is held where the fit left it (30 V, the top of its range), not at
     its start, 0.7 times the largest command, where it clips the drive: held there, the fit
     lost B_eq and f_c too (not identifiable, 0.067 mm after, ten times the floor); on the
-    independent generator's sine under PD it came out worse than the model before it."""
+    independent generator's sine under PD it came out worse than the model before it. Held
+    where it was, it leaves the others' fit as it is: no refit without it."""
     truth = jc.handout_plant(B_eq=2.0, f_c=0.35)
     rec = make_recording(truth, jc.PID(kp=40.0, kd=3.0), jc.ramp(0.2, horizon=1.5), seed=3)
     peak = float(np.max(np.abs(rec.command)))
@@ -194,6 +195,7 @@ def test_a_limit_the_run_never_reaches_is_held_where_it_does_not_act():
     assert result.params["B_eq"].value == pytest.approx(2.0, rel=0.01)
     assert result.params["f_c"].value == pytest.approx(0.35, rel=0.03)
     assert result.rms_after < 2 * result.noise_floor
+    assert not any("without v_sat" in s["stage"] for s in result.stages)
 
 
 def test_parameter_names():
