@@ -139,12 +139,11 @@ class FitSettings:
     quantization: float | None = None
 
     @classmethod
-    def warm(cls, **changes) -> FitSettings:
+    def warm(cls) -> FitSettings:
         """A fit that starts near its answer (a lab part from an earlier part's values, a
         fold of a joint fit from the joint values): no adam, the last two widths of the
-        continuation, a short Levenberg-Marquardt at each; ``changes`` as the constructor's."""
-        widths = cls.__dataclass_fields__["widths"].default
-        return cls(**{"widths": widths[-2:], "adam_steps": 0, "lm_iterations": 15, **changes})
+        continuation, a short Levenberg-Marquardt at each."""
+        return cls(widths=cls().widths[-2:], adam_steps=0, lm_iterations=15)
 
 
 def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segment:

@@ -144,9 +144,7 @@ class ExactMemo:
             return self.runs[key]
         out = compute()
         for group in out:
-            for a in group:
-                if a is not None:
-                    a.flags.writeable = False
+            read_only(tuple(group))
         self.runs[key] = out
         if len(self.runs) > self.size:
             del self.runs[next(iter(self.runs))]
