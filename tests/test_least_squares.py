@@ -107,3 +107,24 @@ def test_the_compiled_solver_is_driven_alike_and_runs_inside_a_compiled_step(ref
         for _ in range(200):
             carry = step(*carry)
         np.testing.assert_allclose(np.asarray(carry[0]), [reference, reference], rtol=1e-7)
+
+
+def test_a_line_search_that_cannot_descend_within_its_tolerance_stops_without_halving(reference):
+    """At the minimum, a Gauss-Newton step under ``tolerance`` of every naive standard error
+    that does not lower the cost (the exact simulator's noise floor) is a minimum: one trial,
+    not a halving down to ``shortest`` (each trial an exact run of every recording)."""
+    x = reference.copy()
+    r = _residual(x)
+    # A cost a hair above the minimum's, so the Gauss-Newton step (about 0) cannot lower it.
+    tried = []
+
+    def evaluate(xs):
+        tried.append(xs)
+        return _evaluate(xs)[0] + 1e-9, None
+
+    for tolerance, trials in ((0.1, 1), (None, 7)):  # 1, 1/2, ..., 1/64
+        tried.clear()
+        solver = line_search(tolerance=tolerance, shortest=1 / 64)
+        state = minimize(solver, evaluate, solver.init(x, r, _jacobian(x)), 10)
+        assert state.done and state.converged and len(tried) == trials
+        np.testing.assert_array_equal(state.x, x)

@@ -25,6 +25,8 @@ from tuning.estimation.engine.least_squares import gauss_newton_step, line_searc
 #: Secant half-width in a fit's internal units (3 % of a log-fitted parameter) where the exact
 #: output's staircase flattens a forward difference (:func:`jacobian`).
 STAIRCASE = 0.03
+#: A step under this share of every naive standard error ends the polish (converged).
+TOLERANCE = 0.1
 
 
 class Polished(NamedTuple):
@@ -81,7 +83,7 @@ def gauss_newton(
     *,
     max_step: float | None = None,
     shortest: float = 1 / 64,
-    tolerance: float = 1e-2,
+    tolerance: float = TOLERANCE,
     reference=None,
     staircase: float | None = None,
     target: float | None = None,

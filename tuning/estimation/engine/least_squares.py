@@ -250,7 +250,8 @@ def line_search(
     1/2, ... down to ``shortest`` of it, one trial per ask, each clipped to ``bounds``; the
     first that lowers the cost is taken (and needs its Jacobian: ``jac`` None), none is a
     minimum. Converged when a step moves every entry by under ``tolerance`` of its naive
-    standard error. ``init(x, r, jac)``."""
+    standard error, and a minimum where a step that small does not lower the cost (shorter
+    ones are not tried). ``init(x, r, jac)``."""
 
     def init(x, r, jac, damping=1.0):
         return State(np.asarray(x, dtype=float), r, jac, float(r @ r), damping)
@@ -264,21 +265,26 @@ def line_search(
     def tell(state, trials, rs, jacs=None):
         cost = float(rs[0] @ rs[0])
         if math.isfinite(cost) and cost < state.cost:
-            small = tolerance is not None and bool(
-                np.all(
-                    np.abs(trials[0] - state.x) <= tolerance * standard_errors(state.jac, state.r)
-                )
-            )
+            small = _within(trials[0] - state.x, state, tolerance)
             return State(trials[0], rs[0], None, cost, 1.0, state.iterations + 1, small, small)
         t = state.damping / 2
-        if t >= shortest:
+        if t >= shortest and not _within(trials[0] - state.x, state, tolerance):
             return state._replace(damping=t)
-        # No descent along the direction: a minimum.
+        # No descent along the direction, or none within tolerance of a standard error: a
+        # minimum (shorter trials would only move it by less than the tolerance).
         return state._replace(
             damping=1.0, iterations=state.iterations + 1, done=True, converged=True
         )
 
     return Solver(init, ask, tell)
+
+
+def _within(step, state: State, tolerance) -> bool:
+    """Every entry of ``step`` under ``tolerance`` (None: never) of its naive standard error at
+    ``state``."""
+    if tolerance is None:
+        return False
+    return bool(np.all(np.abs(step) <= tolerance * standard_errors(state.jac, state.r)))
 
 
 def minimize(solver: Solver, evaluate, state: State, iterations: int, jacobian=None) -> State:
