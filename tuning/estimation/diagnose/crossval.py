@@ -54,7 +54,7 @@ DAMPING = 1e-3
 SHORTEST = 1 / 8
 #: Gauss-Newton iterations of the driven runs' own fit (:func:`driven_alone`): it frees every
 #: value of theirs, so it may move further from the joint values; the fit stops earlier where
-#: a step falls under a hundredth of a standard error.
+#: a step falls under a tenth of a standard error (exact_polish.TOLERANCE).
 DRIVEN_ITERATIONS = 6
 #: The held-out prediction of a correct model is about its fit; above this many times the fit
 #: the structure misses something that varies from run to run (said in the report).
