@@ -364,3 +364,18 @@ def test_a_value_held_at_a_given_start_says_it_was_given(tap_rec):
     problem = _Problem([seg], ("B_eq", "f_c"), fit.FitSettings(), given={"B_eq": 1.5})
     assert "what the fit was given" in problem.start_source("B_eq")
     assert "typical value" in problem.start_source("f_c")
+
+
+def test_a_fit_at_a_neighbouring_answer_is_the_exact_polish_alone(cl_rec, cl_fit):
+    """FitSettings.exact_only (the lab's driven runs alone from the joint fit's values): from
+    values 3 standard errors off, the exact polish alone reaches the full fit's values (its
+    continuation, adam and Levenberg-Marquardt) within a tenth of a standard error, and no
+    smooth stage runs."""
+    start = {n: e.value + 3 * e.stderr for n, e in cl_fit.params.items()}
+    near = fit.fit([cl_rec], ("B_eq", "f_c"), initial=start, settings=fit.FitSettings.exact_only(),
+                   progress=False)  # fmt: skip
+    assert [s["stage"] for s in near.stages] == ["Gauss-Newton on the exact simulator"]
+    assert near.stages[0]["converged"]
+    for name, e in cl_fit.params.items():
+        assert abs(near.params[name].value - e.value) < 0.1 * e.stderr, name
+        assert near.params[name].stderr == pytest.approx(e.stderr, rel=0.05), name

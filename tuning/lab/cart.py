@@ -28,7 +28,7 @@ from jaxcart.plantspec import write_plant_file
 from tuning.design import uncertainty as cart_uncertainty
 from tuning.design.for_cart import design_for_cart
 from tuning.estimation.engine.parameters import bounds
-from tuning.estimation.fit import Estimate, default_start
+from tuning.estimation.fit import Estimate, FitSettings, default_start
 from tuning.lab import fits
 from tuning.lab.context import Lab, fmt, value
 
@@ -142,7 +142,9 @@ def _diagnosed(diagnosis, tap_b_eq, say):
 
 def _fitted(inputs, runs, tap_b_eq, start, fit, say):
     """(a joint fit of ``runs``, B_eq of the driven runs fitted alone or None): without a
-    diagnosis, in :func:`structure`'s parameters from the parts' values."""
+    diagnosis, in :func:`structure`'s parameters from the parts' values; the driven runs
+    alone from the joint fit's values, by the exact polish alone where every value is shared
+    (:meth:`FitSettings.exact_only`; as a diagnosis re-fits them, ``crossval.driven_alone``)."""
     fit = fit or fits.fit
     driven = [r for r in runs if r.kind != "tap"]
     params, per = structure(inputs)
@@ -150,11 +152,16 @@ def _fitted(inputs, runs, tap_b_eq, start, fit, say):
     many = "s" if len(runs) != 1 else ""
     say(f"the cart: one joint fit of {len(runs)} recording{many} ({', '.join(params)})")
     initial = {k: v for k, v in start.items() if k in params}
-    joint = fit(runs, params, per_recording=per, initial=initial, quick=bool(initial))
+    near = FitSettings.warm() if initial else None
+    joint = fit(runs, params, per_recording=per, initial=initial, settings=near)
     alone = None
     if len(driven) < len(runs) and tap_b_eq is not None:
         say("the cart: the driven runs alone, for B_eq beside the tap's")
-        alone = fit(driven, params, per_recording=per, initial=initial, quick=bool(initial))
+        if per:  # a run's own drive value cannot start where the joint fit put it (one start)
+            alone = fit(driven, params, per_recording=per, initial=initial, settings=near)
+        else:
+            at = {**initial, **{k: e.value for k, e in joint.params.items() if e.identifiable}}
+            alone = fit(driven, params, initial=at, settings=FitSettings.exact_only())
         alone = alone.params["B_eq"]
     return joint, alone
 

@@ -16,23 +16,23 @@ from tuning.estimation.fit import FitSettings
 from tuning.estimation.fit import fit as engine_fit
 from tuning.lab.context import fmt
 
-#: fit(recordings, params, *, initial=None, quick=False) -> FitResult
+#: fit(recordings, params, *, initial=None, settings=None) -> FitResult
 FitFunction = Callable[..., object]
 
 
-def fit(recordings, params, *, initial=None, quick=False, per_recording=(), executor=None):
+def fit(recordings, params, *, initial=None, settings=None, per_recording=(), executor=None):
     """Fit ``params`` (names) to ``recordings`` from ``initial`` (name -> value) with the
-    estimation engine; ``quick``: a short polish (:meth:`FitSettings.warm`) where the start is
-    close (else the default continuation: a real tap needs it);
+    estimation engine; ``settings``: a :class:`FitSettings` (default its continuation: a real
+    tap needs it; :meth:`FitSettings.warm` where the start is close, an earlier part's values;
+    :meth:`FitSettings.exact_only` at a neighbouring fit's answer);
     ``per_recording``: those of ``params`` free in each recording (the cart's joint fit);
     ``executor``: makes the exact runs (:func:`tuning.estimation.fit.fit`)."""
-    settings = FitSettings.warm() if quick else FitSettings()
     return engine_fit(
         recordings,
         params,
         per_recording=per_recording,
         initial=initial,
-        settings=settings,
+        settings=settings or FitSettings(),
         progress=False,
         executor=executor,
     )

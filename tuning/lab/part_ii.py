@@ -14,6 +14,7 @@ import numpy as np
 
 import jaxcart as jc
 from jaxcart.plots import plot_runs, reference_run
+from tuning.estimation.fit import FitSettings
 from tuning.lab import fits
 from tuning.lab.context import V_SAT, fmt, mm, value
 from tuning.lab.model import (
@@ -94,13 +95,13 @@ def compute(rec, model: CartModel, *, fit=fits.fit, say=lambda text: None) -> P5
     refit = refit_c = sim_re = None
     if rec is not None:
         say(f"Part (ii): re-estimating B_eq to fit {source_name(rec)}")
-        refit = fit([rec], ("B_eq",), initial={"B_eq": model.B_eq}, quick=True)
+        refit = fit([rec], ("B_eq",), initial={"B_eq": model.B_eq}, settings=FitSettings.warm())
         b_ii = fits.estimate(refit, "B_eq")
         if b_ii is not None:
             sim_re = exact(plant(rec, coulomb=False, B_eq=b_ii.value), controller, exp)
         if model.f_c > 0:
             initial = {"B_eq": model.B_eq, "f_c": model.f_c}
-            refit_c = fit([rec], ("B_eq",), initial=initial, quick=True)
+            refit_c = fit([rec], ("B_eq",), initial=initial, settings=FitSettings.warm())
     return P50Result(
         rec,
         controller,

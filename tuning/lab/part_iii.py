@@ -18,6 +18,7 @@ import jaxcart as jc
 from jaxcart.errors import UserError
 from tuning.estimation.classic import pcontrol_fc_bounds, ramp_breakaway_fc
 from tuning.estimation.engine.noise import encoder_count
+from tuning.estimation.fit import FitSettings
 from tuning.lab import deadband, fits
 from tuning.lab.context import value
 from tuning.lab.data import ENCODER_PARAM
@@ -70,7 +71,7 @@ def ramp(rec, start: CartModel, *, fit=fits.fit, say=lambda text: None) -> RampR
     say(f"Part (iii): f_c from {source} by the handout's method (breakaway)")
     classic = handout_f_c(rec)
     say(f"Part (iii): fit of f_c to {source} (B_eq held at {start.B_eq:.3f} kg/s)")
-    result = fit([rec], ("f_c",), initial={"B_eq": start.B_eq}, quick=True)
+    result = fit([rec], ("f_c",), initial={"B_eq": start.B_eq}, settings=FitSettings.warm())
     f_fit = fits.estimate(result, "f_c")
     if f_fit is not None:
         model = dataclasses.replace(
