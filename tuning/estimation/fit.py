@@ -151,8 +151,8 @@ class FitSettings:
         the joint fit of every recording): the exact polish alone, the smooth model's
         Jacobian at the start (narrowest width) its reference. The smooth stages of
         :meth:`warm` lead away from an exact optimum to the smooth model's, and the polish back
-        (on a generated student's five driven runs: half the time, the values within 0.003
-        standard errors of the warm fit's)."""
+        (on a generated student's five driven runs: 4.5 s against the warm fit's 7.5 s in one
+        process, the values within 0.003 standard errors of its)."""
         return cls(widths=cls().widths[-1:], adam_steps=0, lm_iterations=0)
 
 
