@@ -137,7 +137,7 @@ SHOWN = [
     Shown(
         "jaxcart fit tap.toml ramp.toml --params B_eq,f_c --out fitted.toml",
         "examples",
-        says=(r"\nB_eq +4\.(59|60)\d* ", r"\nf_c +0\.450\d* ", r"fitted plant: fitted\.toml"),
+        says=(r"\nB_eq +4\.(59|60)\d* ", r"\nf_c +0\.(449|450)\d* ", r"fitted plant: fitted\.toml"),
         writes=("fitted.toml",),
     ),
     Shown(

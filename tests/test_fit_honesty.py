@@ -324,9 +324,11 @@ def test_an_encoder_named_in_the_plant_is_read_in_the_loop_and_the_cart_compared
     encoder named in its [plant] (quantization = q): the fit's controller reads the counts and
     the cart's own position is compared with the recording, as the diagnosis does; the
     optimizer converges and each value lies within 3 of its standard errors of the truth
-    (measured 0.4, 0.4, 0.2; -6.6, 4.1, -7.5 with the encoder not named). (The
-    counts' staircase compared gave the optimizer its cap and v_sat 5.69934 +- 0.000003 V for
-    5.7: 220 standard errors.)"""
+    (measured -1.5, 1.3, 0.8, the same from the handout's start; -6.6, 4.1, -7.5 with the
+    encoder not named). (The counts' staircase compared gave the optimizer its cap and v_sat
+    5.69934 +- 0.000003 V for 5.7: 220 standard errors; the exact polish's differences of 1e-6
+    caught count flips, and from B_eq and f_c read off the data f_c lay 11 standard errors
+    off, its error 3.7e-5 N.)"""
     import jaxcart as jc
     from jaxcart.files import read_experiment
     from tuning.estimation.fit import fit

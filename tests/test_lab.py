@@ -595,6 +595,15 @@ def test_the_b_eq_comparison_says_why_the_driven_runs_give_none():
     text = _agreement_text(cart)
     assert "do not determine it" in text and "not identifiable: 92 %)" in text
     assert "Without a tap" not in text
+    # Run to the edge of a lab cart's range (the real P 50 runs and PD run, each recording
+    # weighed against its own floor: 0.5 kg/s): the bound's value, no standard errors apart.
+    from tuning.lab.cart import JointCart
+
+    edge = Estimate("B_eq", 0.5, 0.078, edge=("lower", 0.5))
+    cart = SimpleNamespace(tap=(1.505, 0.024), driven=edge)
+    assert JointCart.agreement(cart) is None
+    cart.agreement = lambda: None
+    assert "runs to the edge of what a cart of this lab has (0.5 kg/s" in _agreement_text(cart)
 
 
 def test_a_run_filed_with_the_wrong_gain_runs_with_the_one_it_shows(tmp_path, realdata, capsys):

@@ -128,3 +128,50 @@ def test_a_line_search_that_cannot_descend_within_its_tolerance_stops_without_ha
         state = minimize(solver, evaluate, solver.init(x, r, _jacobian(x)), 10)
         assert state.done and state.converged and len(tried) == trials
         np.testing.assert_array_equal(state.x, x)
+
+
+def test_a_weighted_objective_reaches_the_criterions_own_minimum():
+    """``objective`` (a joint fit's: each recording against its own floor): the host solver's
+    reweighted steps reach the minimum of sum_k n log(mse_k + f_k^2) that scipy's minimize
+    finds on that criterion itself, where plain least squares lands elsewhere. Two
+    "recordings" of the curve: one clean (floor 1e-3), one that the model cannot follow (a
+    slow wave of 0.1 added, twice as many samples)."""
+    from scipy.optimize import minimize as scipy_minimize
+
+    t2 = np.linspace(0.0, 2.0, 120)
+    y2 = TRUTH[0] * np.exp(-TRUTH[1] * t2) + TRUTH[2] + 0.1 * np.sin(3.0 * t2)
+    floors = np.array([1e-3, 1e-3])
+
+    def residual(x):
+        return np.concatenate([_residual(x), x[0] * np.exp(-x[1] * t2) + x[2] - y2])
+
+    def jacobian(x):
+        e = np.exp(-x[1] * t2)
+        return np.vstack([_jacobian(x), np.column_stack([e, -x[0] * t2 * e, np.ones_like(t2)])])
+
+    def parts(r):
+        return r[: T.size], r[T.size :]
+
+    def criterion(r):
+        mse = np.array([np.mean(p**2) for p in parts(r)])
+        return float(np.sum(50.0 * np.log(mse + floors**2)))
+
+    def objective(r):
+        mse = np.array([np.mean(p**2) for p in parts(r)])
+        w = 50.0 / (np.array([T.size, t2.size]) * (mse + floors**2))
+        return criterion(r), np.repeat(w / w.max(), [T.size, t2.size])
+
+    def evaluate(xs):
+        return np.stack([residual(x) for x in xs]), np.stack([jacobian(x) for x in xs])
+
+    solver = levenberg_marquardt(dampings=LM_DAMPING, give_up=True, damping_range=(1e-12, 1e10),
+                                 objective=objective)  # fmt: skip
+    state = minimize(solver, evaluate, solver.init(START, residual(START), jacobian(START)), 300)
+    best = scipy_minimize(lambda x: criterion(residual(x)), state.x, method="Nelder-Mead",
+                          options={"xatol": 1e-12, "fatol": 1e-14, "maxiter": 20000}).x  # fmt: skip
+    np.testing.assert_allclose(state.x, best, rtol=1e-6)
+    assert criterion(residual(state.x)) <= criterion(residual(best)) + 1e-9
+    plain = least_squares(residual, START, jac=jacobian, xtol=1e-14, ftol=1e-14).x
+    assert np.max(np.abs(plain - state.x)) > 1e-2  # the weighting is what moves it
+    # The clean recording is fitted near its own noise; plain least squares gives it up.
+    assert np.sqrt(np.mean(_residual(state.x) ** 2)) < 0.5 * np.sqrt(np.mean(_residual(plain) ** 2))

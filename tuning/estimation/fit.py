@@ -60,7 +60,7 @@ from jaxcart import plantspec
 from jaxcart.errors import UserError
 from jaxcart.plausibility import check_fit_recordings
 from jaxcart.smoothing import continuation
-from tuning.estimation.engine import parameters, smooth_runs
+from tuning.estimation.engine import parameters, smooth_runs, starts
 from tuning.estimation.engine.covariance import Covariance, covariance
 from tuning.estimation.engine.exact_polish import polish
 from tuning.estimation.engine.least_squares import (
@@ -171,12 +171,14 @@ def fit_segment(recording, params, values: dict, settings: FitSettings) -> Segme
     plant = with_values(recording.plant(), values)
     canon = [canonical(p) for p in params]
     peaks = _peaks(recording, plant)
-    starts = default_start()
+    declared = default_start()
     for p in canon:  # a fitted effect the plant lacks starts where it acts on these data
         b = base_name(p)
-        if b in starts and b not in plant.param_names() and not _drives_nothing(b, plant):
+        if b in declared and b not in plant.param_names() and not _drives_nothing(b, plant):
             start = (
-                starts[b] if plantspec.param(b).size else parameters.start_for(b, peaks, raw.mean())
+                declared[b]
+                if plantspec.param(b).size
+                else parameters.start_for(b, peaks, raw.mean())
             )
             plant = with_values(plant, {b: start})
     acting = tuple(p for p in canon if base_name(p) in plant.param_names())
@@ -244,8 +246,9 @@ def _levenberg_marquardt(problem, theta, active, width, iterations, tolerance=LM
         # Near the minimum d cost = sum (d theta / stderr)^2 sigma^2 N / n_eff (the stderr that
         # n_eff independent samples support, of the current residual, which whitens as the
         # fit improves).
-        tolerance=lambda r: tolerance**2 / effective_samples(problem.split(r)),
+        tolerance=lambda r: tolerance**2 * problem.cost_per_variance(r),
         free=active.astype(float),
+        objective=problem.objective,
     )
     state = minimize(
         solver,
@@ -275,13 +278,20 @@ def _exact_polish(problem, theta, active, jac, iterations):
         out[idx] = x
         return out
 
+    # Several recordings: each weighed as at the smooth fit's answer (the joint objective's
+    # reweighted least squares, problem.objective), its rows scaled by the square root.
+    rows = np.ones(problem.observed.size)
+    if problem.noise is not None:
+        weights = problem.row_weights(problem.split(problem.exact_residuals(theta)))
+        rows = np.sqrt(weights) if np.all(weights > 0) else rows  # none runs away
+
     def residuals(xs):  # the points' runs made at once, several at a time
         runs = problem.simulate_exact_many([full(x) for x in xs])
-        return [np.concatenate(pos) - problem.observed for pos in runs]
+        return [(np.concatenate(pos) - problem.observed) * rows for pos in runs]
 
     low, high = problem.theta_bounds()
     with np.errstate(over="ignore"):  # a runaway loop's columns: inf, a column that acts
-        reference = np.linalg.norm(jac[:, idx], axis=0)
+        reference = np.linalg.norm(jac[:, idx] * rows[:, None], axis=0)
     done = polish(
         residuals,
         [problem.entries[i] for i in idx],
@@ -290,15 +300,30 @@ def _exact_polish(problem, theta, active, jac, iterations):
         reference=reference,
         bounds=(low[idx], high[idx]),
         slopes=np.ones(idx.size),  # internal units: the staircase's secant over +-STAIRCASE
-        steps=1e-6,  # a relative step of 1e-6 for the logs
+        steps=_difference_step(problem),
         max_step=MAX_STEP,
         shortest=1 / 64,
     )
     theta = theta.copy()
     theta[idx] = done.x
     if done.jac is not None:
-        jac[:, idx] = done.jac
-    return theta, done.r, jac, done.iterations, done.converged
+        jac[:, idx] = done.jac / rows[:, None]
+    return theta, done.r / rows, jac, done.iterations, done.converged
+
+
+#: Forward-difference step of the exact polish, internal units (relative for the logs); and
+#: where a controller reads the encoder's counts in the loop: there every value moves the
+#: output in count flips, and a step of 1e-6 caught a few, each a jump of a count (a P 50 step
+#: of the independent generator: the f_c column 0.295 m per unit at 1e-6, 0.120-0.137 at
+#: 1e-4, 0.127-0.130 at 1e-3 and 1e-2; f_c's standard error 3.7e-5 where it lay 4e-4 off).
+DIFFERENCE_STEP = 1e-6
+COUNTS_DIFFERENCE_STEP = 1e-3
+
+
+def _difference_step(problem) -> float:
+    """The exact polish's forward-difference step for ``problem``'s recordings."""
+    counts = any(s.counts_in_loop for s in problem.segments)
+    return COUNTS_DIFFERENCE_STEP if counts else DIFFERENCE_STEP
 
 
 # ---------------------------------------------------------------- the fit
@@ -323,7 +348,10 @@ def fit(
     recording they act in (a drive that differs from run to run: ``v_sat``, ``i_max``), fitted
     as ``name@k`` for recording ``k`` (:attr:`FitResult.per_recording`); the others are one
     value for every recording (the cart's mechanics); initial: starting (and, for names not
-    fitted, fixed) values {name: value} [SI] applied to every recording's plant; exact: also
+    fitted, fixed) values {name: value} [SI] applied to every recording's plant (B_eq and f_c
+    neither given here nor in a recording's [plant] start where the recordings put them, as
+    a diagnosis's do); several recordings are weighed each against its own noise floor (the
+    diagnosis's criterion, :class:`~tuning.estimation.engine.noise.RecordingNoise`); exact: also
     run the exact simulator before and after; progress: a line per stage on stderr; executor:
     what makes the exact runs several at a time (a :class:`jaxcart.workers.Helpers` the caller
     owns; default: one after the other in this process). Returns a :class:`FitResult`; a
@@ -381,7 +409,8 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
     values0 = {canonical(k): _initial_value(k, v) for k, v in (initial or {}).items()}
     segments = [fit_segment(rec, params, values0, settings) for rec in recordings]
     params = _expand(params, per_recording, segments)
-    problem = _Problem(segments, params, settings, executor, given=values0)
+    read = _read_off(recordings, segments, params, values0)
+    problem = _Problem(segments, params, settings, executor, given=values0, read=read)
     run = _Run(progress)
     active, notes = _acting(problem)
     r0, _ = problem.evaluate(problem.theta0, settings.widths[-1])
@@ -416,6 +445,21 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
             f"{result.rms_after_exact * 1e3:.4g} mm (exact); {result.seconds:.1f} s"
         )
     return result
+
+
+def _read_off(recordings, segments, params, given) -> dict:
+    """Start values of the fitted B_eq and f_c read off the recordings, as a diagnosis starts
+    (:func:`~tuning.estimation.engine.starts.read_off`), where neither the caller nor a
+    recording's [plant] gives them: from the handout's B_eq, a joint fit of the real tap and
+    PD run ended, with each recording weighed against its own floor, where the tap's start
+    speed is 3.4 m/s (0.96 alone) and its position 51 mm off (0.21 mm), the PD run taking the
+    cart."""
+    named = set(given).union(*(r.plant_overrides for r in recordings))
+    wanted = {"B_eq", "f_c"}.intersection(params) - named
+    if not wanted:
+        return {}
+    found = starts.read_off(segments, recordings, [s.plant for s in segments])
+    return {n: v for n, v in found.items() if n in wanted}
 
 
 def _expand(params, per_recording, segments) -> tuple:
@@ -488,9 +532,12 @@ def _optimize(problem, active, settings, run):
     # straight from the start (at most DIRECT_ITERATIONS), and the lower cost there wins.
     cap = min(settings.lm_iterations, DIRECT_ITERATIONS)
     direct = _levenberg_marquardt(problem, problem.theta0.copy(), active, narrow, cap)
-    # Lower by more than 1 %: where both find the same minimum, the continuation's stays.
-    d, c = _rms(direct[1]), _rms(r)
-    if not (math.isfinite(d) and (not math.isfinite(c) or d < 0.99 * c)):
+    # Lower by more than 2 % of the (weighted) sum of squares, 1 % in RMS: where both find the
+    # same minimum, the continuation's stays.
+    d, c = problem.objective(direct[1])[0], problem.objective(r)[0]
+    if not (
+        math.isfinite(d) and (not math.isfinite(c) or c - d > 0.02 * problem.sum_of_squares(r))
+    ):
         return theta, r, jac
     theta, r, jac, n_it, ok = direct
     # The continuation's result is discarded: its stages no longer judge the fit.
@@ -516,7 +563,9 @@ def _identify(problem, theta, r, jac, active, notes, settings, run, polish):
     while True:
         idx = np.flatnonzero(active)
         names = [problem.entries[i] for i in idx]
-        cov = covariance(problem.segments, names, None, jac[:, idx], problem.split(r))
+        parts = problem.split(r)
+        weights = None if problem.noise is None else problem.noise.weights(parts)
+        cov = covariance(problem.segments, names, None, jac[:, idx], parts, weights=weights)
         hac, singular = cov.robust, cov.singular
         # Relative standard errors (for log-scaled parameters the log-space error is that).
         rel = np.sqrt(np.diag(hac)) * np.asarray(

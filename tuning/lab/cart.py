@@ -72,11 +72,13 @@ class JointCart:
 
     def agreement(self) -> tuple[float, float] | None:
         """(difference of the driven runs' B_eq from the tap's [kg/s], in standard errors of
-        the difference), or None without both."""
+        the difference), or None without both, or where the driven runs' fit ran to the edge
+        of a lab cart's range (a value there is the bound's, and its standard error says
+        nothing of the distance)."""
         if self.tap is None or self.driven is None:
             return None
         b = self.driven
-        if b.value is None:
+        if b.value is None or _at_edge(b):
             return None
         diff = b.value - self.tap[0]
         se = math.hypot(b.stderr or 0.0, self.tap[1] or 0.0)
@@ -341,7 +343,16 @@ def _assumed(c: JointCart) -> dict:
 
 def _agreement_text(c: JointCart) -> str:
     agree = c.agreement()
-    if agree is None and c.tap is not None and c.driven is not None:
+    b = c.driven
+    lo, hi = bounds("B_eq")
+    if c.tap is not None and b is not None and b.value is not None and _at_edge(b):
+        return (
+            f"B_eq from the tap (Part (i)) is {fmt(c.tap[0])} ± {fmt(c.tap[1], 2)} kg/s. The "
+            f"driven runs alone do not pin it under this model: their fit runs to the edge of "
+            f"what a cart of this lab has ({fmt(b.value)} kg/s, range {fmt(lo)}-{fmt(hi)} "
+            "kg/s), so B_eq is the tap's to give, and the joint fit above takes it from there."
+        )
+    if agree is None and c.tap is not None and b is not None:
         return (
             f"B_eq from the tap (Part (i)) is {fmt(c.tap[0])} ± {fmt(c.tap[1], 2)} kg/s. The "
             f"driven runs alone do not determine it under this model "
@@ -351,22 +362,19 @@ def _agreement_text(c: JointCart) -> str:
     if agree is None:
         return "Without a tap and a driven run there is no second B_eq to compare."
     diff, sigmas = agree
-    b = c.driven
-
-    lo, hi = bounds("B_eq")
-    if not lo * 1.02 < b.value < hi / 1.02:
-        return (
-            f"B_eq from the tap (Part (i)) is {fmt(c.tap[0])} ± {fmt(c.tap[1], 2)} kg/s. The "
-            f"driven runs alone do not pin it under this model: their fit runs to the edge of "
-            f"what a cart of this lab has ({fmt(b.value)} kg/s, range {fmt(lo)}-{fmt(hi)} "
-            "kg/s), so B_eq is the tap's to give, and the joint fit above takes it from there."
-        )
     verdict = "agree" if sigmas <= 2 else "disagree"
     return (
         f"B_eq from the tap (Part (i)) is {fmt(c.tap[0])} ± {fmt(c.tap[1], 2)} kg/s; from the "
         f"driven runs alone under this model {fmt(b.value)} ± {fmt(b.stderr, 2)} kg/s: they "
         f"{verdict} ({fmt(diff, 2)} kg/s apart, {sigmas:.1f} standard errors)."
     )
+
+
+def _at_edge(estimate) -> bool:
+    """B_eq's ``estimate`` on (or within 2 % of) an edge of a lab cart's range: the bound's
+    value, no estimate."""
+    lo, hi = bounds("B_eq")
+    return estimate.edge is not None or not lo * 1.02 < estimate.value < hi / 1.02
 
 
 def _mm(x) -> str:

@@ -36,13 +36,12 @@ import time as _time
 import numpy as np
 
 from tuning.estimation.diagnose import candidate_runs, scoring
-from tuning.estimation.diagnose.policy import FLOOR_FACTOR
 from tuning.estimation.engine import exact_runs, parameters
 from tuning.estimation.engine.covariance import covariance
 from tuning.estimation.engine.exact_polish import polish, values_jacobian
 from tuning.estimation.engine.layout import Layout, for_candidates
 from tuning.estimation.engine.least_squares import line_search, marquardt_step, minimize
-from tuning.estimation.engine.noise import MISFIT_RATIO, RecordingNoise
+from tuning.estimation.engine.noise import FLOOR_FACTOR, MISFIT_RATIO, RecordingNoise
 
 #: Gauss-Newton iterations of a held-out recording's own values fitted to it (its drive limit,
 #: a tap's start state: one or two values, from the joint fit's, close already).

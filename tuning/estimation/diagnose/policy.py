@@ -9,8 +9,6 @@ from tuning.estimation.engine import parameters
 #: Information criterion: penalty per free parameter (times log n_eff) and per added effect.
 PENALTY_PER_PARAM = 1.0
 PENALTY_PER_EFFECT = 12.0
-#: The encoder floor of the criterion: RMS below FLOOR_FACTOR * q / sqrt(12) explains nothing.
-FLOOR_FACTOR = 1.5
 #: Near-ties: another structure within this many criterion units of the best is named too.
 TIE = 6.0
 #: The smoothing widths of round 1's continuation (times each effect's own), widest first.

@@ -44,7 +44,6 @@ from tuning.estimation.diagnose import (
 from tuning.estimation.diagnose import controller as ctl
 from tuning.estimation.diagnose.policy import (
     DIRECT_WIDTHS,
-    FLOOR_FACTOR,
     ITERATIONS,
     K_MAX,
     LATER_WIDTHS,
@@ -67,7 +66,13 @@ from tuning.estimation.engine import exact_runs, parameters
 from tuning.estimation.engine.batch import BatchFitter
 from tuning.estimation.engine.covariance import Covariance, covariance, determined
 from tuning.estimation.engine.coverage import Coverage
-from tuning.estimation.engine.noise import RecordingNoise, encoder_count, floor_of, misfits
+from tuning.estimation.engine.noise import (
+    FLOOR_FACTOR,
+    RecordingNoise,
+    encoder_count,
+    floor_of,
+    misfits,
+)
 from tuning.estimation.engine.segments import counts_in_loop, prepare, recording_name
 from tuning.estimation.engine.starts import start_values
 

@@ -116,6 +116,7 @@ def levenberg_marquardt(
     trusted=None,
     tolerance: Callable | None = None,
     free=None,
+    objective: Callable | None = None,
 ) -> Solver:
     """Levenberg-Marquardt with Marquardt's diagonal scaling (NumPy, on the host).
 
@@ -125,20 +126,31 @@ def levenberg_marquardt(
     minimum, done). Trials are clipped to ``bounds`` (low, high), each entry's step to
     +-``max_step`` (a trust region; an entry of ``trusted`` whose step was cut rules out
     convergence on that iteration); ``free``: 1 for the entries that move. ``tolerance(r)`` ->
-    f: converged once a step lowers the cost by under f times it (None: never; the caller
-    counts iterations)."""
+    d: converged once a step to the residual ``r`` lowers the cost by under d (None: never;
+    the caller counts iterations). ``objective(r)`` -> (cost, row weights), as
+    :func:`compiled_marquardt` takes it: iteratively reweighted steps, the weights at the
+    accepted point (default: r @ r, weights 1)."""
     dampings = tuple(float(d) for d in dampings)
     low, high = damping_range
+    if objective is None:
+
+        def objective(r):
+            return float(r @ r), None
 
     def init(x, r, jac, damping=1e-3):
-        return State(x, r, jac, float(r @ r), damping)
+        return State(x, r, jac, objective(r)[0], damping)
 
     def raw_steps(state):
         jw = state.jac if free is None else state.jac * free[None, :]  # a held entry's column
+        r = state.r
+        weights = objective(r)[1]
+        if weights is not None:
+            root = np.sqrt(weights)
+            jw, r = jw * root[:, None], r * root
         # A loop that runs away may overflow the normal equations: its trial steps are then
         # not finite, and none decreases the cost.
         with np.errstate(over="ignore", invalid="ignore"):
-            jtj, g = jw.T @ jw, jw.T @ state.r
+            jtj, g = jw.T @ jw, jw.T @ r
         return [_solved(jtj, g, state.damping * d, free) for d in dampings]
 
     def ask(state):
@@ -148,7 +160,7 @@ def levenberg_marquardt(
         return np.stack([np.clip(state.x + s, *bounds) for s in steps])
 
     def tell(state, trials, rs, jacs):
-        costs = np.array([r @ r for r in rs])
+        costs = np.array([objective(r)[0] for r in rs])
         ok = np.isfinite(costs) & (costs < state.cost)
         if not ok.any():
             lam = min(state.damping * dampings[-1] * grow, high)
@@ -160,7 +172,7 @@ def levenberg_marquardt(
         converged = False
         if tolerance is not None:
             cut = _cut(raw_steps(state)[best], max_step, trusted)
-            converged = not cut and state.cost - cost <= tolerance(rs[best]) * cost
+            converged = not cut and state.cost - cost <= tolerance(rs[best])
         # Copies in C order: a row of the evaluation's (k, m, p) block may be strided, and
         # the normal equations' rounding follows the layout (1e-14 in a step).
         return State(

@@ -14,6 +14,9 @@ import numpy as np
 MISFIT_RATIO = 3.0
 #: Smallest noise floor [m]: a smooth model differs from the exact one by about this much.
 FLOOR_MIN = 1e-6
+#: The encoder floor of a joint fit's criterion (:class:`RecordingNoise`): RMS below
+#: FLOOR_FACTOR * q / sqrt(12) explains nothing.
+FLOOR_FACTOR = 1.5
 
 
 def encoder_count(position) -> float:
@@ -206,7 +209,7 @@ class RecordingNoise:
     the tap's 1.2 s of coasting) cannot outvote the others. A joint fit minimises it by least
     squares with the weights :meth:`weights` (iteratively reweighted)."""
 
-    def __init__(self, segments, factor: float = 1.0):
+    def __init__(self, segments, factor: float = FLOOR_FACTOR):
         self.floors = np.array([factor * floor_of([s]) for s in segments])
         runs = [max(count_runs(s.target, s.quantization), 1.0) for s in segments]
         self.n_eff = np.full(len(runs), float(np.mean(runs)))
@@ -226,6 +229,22 @@ class RecordingNoise:
             mse = float(np.mean(r * r)) if r.size else 0.0
             out += nu * math.log(max(mse, f * f) / (f * f)) if math.isfinite(mse) else math.inf
         return out
+
+    def criterion(self, residuals) -> float:
+        """sum_k nu_k log((mse_k + f_k^2) / f_k^2): :meth:`misfit` with its floor smoothed, the
+        cost whose gradient :meth:`weights` are (``jaxcart fit``'s joint objective)."""
+        mse = np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])
+        if not np.all(np.isfinite(mse)):
+            return math.inf
+        f2 = self.floors**2
+        return float(np.sum(self.n_eff * np.log((mse + f2) / f2)))
+
+    def sum_of_squares(self, residuals) -> float:
+        """The weighted sum of squares sum_k nu_k mse_k / (mse_k + f_k^2) whose change is the
+        :meth:`criterion`'s to first order (the weights of :meth:`weights` before their
+        normalisation)."""
+        mse = np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])
+        return float(np.sum(self.n_eff * mse / (mse + self.floors**2)))
 
     def weights(self, residuals) -> np.ndarray:
         """Each recording's weight for its squared residuals in a joint least-squares fit at

@@ -54,14 +54,19 @@ def start_values(segments, recs, base_plants, free) -> dict:
         "held": held_force(segments, recs, base_plants),
     }
     start = {"B_eq": 5.4 if motor else 2.0, "M": 0.94, "gamma_scale": 1.0}
-    found = motion_regression(segments, recs, base_plants)
-    for n, v in found.items():
-        if parameters.plausible(n, v) and v > 0:
-            start[n] = v
+    start.update(read_off(segments, recs, base_plants))
     for n in free:
         if n not in start:
             start[n] = parameters.start_for(n, peaks, ymean)
     return {k: start[k] for k in free}
+
+
+def read_off(segments, recs, base_plants) -> dict:
+    """{"B_eq", "f_c"} [SI] of :func:`motion_regression` that are positive and plausible for a
+    cart of this lab (each left out where it is not): where every fit of the engine starts
+    them unless it is given them."""
+    found = motion_regression(segments, recs, base_plants)
+    return {n: v for n, v in found.items() if parameters.plausible(n, v) and v > 0}
 
 
 def motion_regression(segments, recs, base_plants) -> dict:

@@ -24,6 +24,7 @@ from tuning.estimation.engine import parameters, smooth_runs
 from tuning.estimation.engine.exact_runs import ExactMemo, exact_position
 from tuning.estimation.engine.layout import Layout, for_fit
 from tuning.estimation.engine.least_squares import LM_DAMPING
+from tuning.estimation.engine.noise import RecordingNoise, effective_samples
 from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.fitting.names import (
     _default_start,
@@ -136,9 +137,10 @@ _positions_jit = jax.jit(_positions, static_argnames="static")
 class _Problem:
     """Segments, theta's layout and the compiled residual function."""
 
-    def __init__(self, segments, params, settings, executor=None, given=()):
+    def __init__(self, segments, params, settings, executor=None, given=(), read=None):
         self.segments = segments
         self.given = frozenset(given)  # the names whose start values the caller gave
+        self.read = dict(read or {})  # start values read off the recordings {name: value}
         self.executor = executor or SERIAL
         # Each recording's run by its plant and start: a forward difference in one recording's
         # start (or its own drive limit) re-simulates that recording alone.
@@ -170,6 +172,8 @@ class _Problem:
         self.static = _Static(layout, forms, shape._replace(lengths=tuple(padded)))
         self.sizes = [s.target.size for s in segments]
         self.observed = np.concatenate([s.target for s in segments])
+        # Several recordings: each against its own floor, as a diagnosis weighs them.
+        self.noise = RecordingNoise(segments) if len(segments) > 1 else None
         # On the device once: host leaves would be transferred again at every evaluation.
         self.data = jax.tree.map(
             put,
@@ -202,6 +206,8 @@ class _Problem:
         )
 
     def _start_value(self, p) -> float:
+        if p in self.read:
+            return self.read[p]
         k, base = parameters.recording_of(p), base_name(p)
         segs = self.segments if k is None else [self.segments[k]]
         i = _element(p.split("@")[0])
@@ -219,7 +225,9 @@ class _Problem:
         """Where parameter ``p``'s start value comes from, in words (for a value held)."""
         base = base_name(p)
         declared = default_start().get(base)
-        if base in self.given:
+        if p in self.read:
+            where = "the recordings (the cart's equation of motion fitted to their moving samples)"
+        elif base in self.given:
             where = "what the fit was given (the --plant file, or in jaxcart lab an earlier part)"
         elif base in plantspec.parameter_names() and plantspec.effect_of_param(base) is None:
             where = "the recordings' plant (the handout's appendix, a plant file or [plant])"
@@ -332,6 +340,34 @@ class _Problem:
         except (ImportError, NotImplementedError):
             return False
         return True
+
+    def objective(self, r) -> tuple:
+        """(cost, row weights or None) of the residual ``r`` over every sample: one recording's
+        r @ r; several recordings' :meth:`RecordingNoise.criterion
+        <tuning.estimation.engine.noise.RecordingNoise.criterion>`, each against its own
+        floor, with the weights of its reweighted least squares (with one recording it is a
+        monotone function of r @ r: the same steps)."""
+        if self.noise is None:
+            return float(r @ r), None
+        parts = self.split(r)
+        return self.noise.criterion(parts), self.row_weights(parts)
+
+    def row_weights(self, parts):
+        """Each sample's weight in the joint least squares at the residuals ``parts`` (one
+        array per recording): its recording's, 1 with one recording."""
+        if self.noise is None:
+            return np.ones(sum(self.sizes))
+        w = self.noise.weights(parts)
+        return np.concatenate([np.full(n, wk) for n, wk in zip(self.sizes, w, strict=True)])
+
+    def sum_of_squares(self, r) -> float:
+        """r @ r, or the weighted sum whose change is the :meth:`objective`'s to first order."""
+        return float(r @ r) if self.noise is None else self.noise.sum_of_squares(self.split(r))
+
+    def cost_per_variance(self, r) -> float:
+        """How much the :meth:`objective` rises for a step of one standard error at ``r``
+        (those that its effective samples support): sum of squares / n_eff."""
+        return self.sum_of_squares(r) / effective_samples(self.split(r))
 
     def split(self, r):
         """Per-segment parts of a vector over all samples."""
