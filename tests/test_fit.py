@@ -339,10 +339,13 @@ def test_the_fits_adam_is_optax_adam():
         def evaluate(self, theta, width):
             return a @ theta[:2] - b, np.hstack([a, np.zeros((3, 1))])
 
+        def objective(self, r):
+            return float(r @ r), None
+
     theta0 = np.array([1.0, -2.0, 7.0])
     active = np.array([True, True, False])
     steps, lr = 15, 0.1
-    best, best_cost = adam(Linear(), theta0, active, 0.0, steps, lr)
+    best, best_r = adam(Linear(), theta0, active, 0.0, steps, lr)
     opt = optax.adam(optax.cosine_decay_schedule(lr, steps))
     x = jnp.asarray(theta0[:2])
     state = opt.init(x)
@@ -355,7 +358,7 @@ def test_the_fits_adam_is_optax_adam():
         updates, state = opt.update(jnp.asarray(a.T @ r / cost), state, x)
         x = optax.apply_updates(x, updates)
     np.testing.assert_allclose(best[:2], ref_best, rtol=1e-12, atol=1e-14)
-    assert best[2] == 7.0 and best_cost == pytest.approx(ref_cost, rel=1e-12)
+    assert best[2] == 7.0 and float(best_r @ best_r) == pytest.approx(ref_cost, rel=1e-12)
 
 
 def test_a_value_held_at_a_given_start_says_it_was_given(tap_rec):
@@ -380,3 +383,15 @@ def test_a_fit_at_a_neighbouring_answer_is_the_exact_polish_alone(cl_rec, cl_fit
     for name, e in cl_fit.params.items():
         assert abs(near.params[name].value - e.value) < 0.1 * e.stderr, name
         assert near.params[name].stderr == pytest.approx(e.stderr, rel=0.05), name
+
+
+def test_a_plant_file_with_the_handouts_b_eq_gives_it(tmp_path):
+    """--plant gives B_eq even where the file keeps the handout's 5.4 kg/s (plant_values leaves
+    a value equal to the handout's out): the fit starts there, not where the recordings put it."""
+    import jaxcart as jc
+    from jaxcart.plantspec import write_plant_file
+    from tuning.commands.fit import _initial
+
+    path = tmp_path / "hand.toml"
+    write_plant_file(path, jc.handout_plant(f_c=0.3))
+    assert _initial(str(path)) == pytest.approx({"B_eq": 5.4, "f_c": 0.3})

@@ -231,7 +231,10 @@ def _initial(plant_file) -> dict:
     from jaxcart.plantsource import load_plant
     from jaxcart.plantspec import plant_values
 
-    return plant_values(load_plant(plant_file))
+    plant = load_plant(plant_file)
+    # B_eq too where the file leaves the handout's (plant_values leaves those out): a value
+    # given, not one to read off the recordings.
+    return {"B_eq": float(plant.B_eq), **plant_values(plant)}
 
 
 #: Samples beyond which a fit is said to be long before it starts (each of its ~100

@@ -511,10 +511,9 @@ def _optimize(problem, active, settings, run):
         # Gradient descent where the model is smoothest, to leave a poor start; from there
         # Levenberg-Marquardt converges in a few iterations at each narrower width.
         steps = settings.adam_steps if k == 0 else 0
-        theta, cost = adam(problem, theta, active, width, steps, settings.learning_rate)
-        if cost is not None:
-            rms = math.sqrt(cost / problem.observed.size)
-            run.say(f"width {width:g} m/s: adam {steps} steps, RMS {rms * 1e3:.4g} mm")
+        theta, r_adam = adam(problem, theta, active, width, steps, settings.learning_rate)
+        if r_adam is not None:
+            run.say(f"width {width:g} m/s: adam {steps} steps, RMS {_rms(r_adam) * 1e3:.4g} mm")
         tol = LM_TOLERANCE if width == narrow else LM_TOLERANCE_WIDE
         label = f"Levenberg-Marquardt at width {width:g} m/s"
         theta, r, jac = run.lm(label, problem, theta, active, width, settings.lm_iterations, tol)

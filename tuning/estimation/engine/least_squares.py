@@ -315,26 +315,29 @@ def minimize(solver: Solver, evaluate, state: State, iterations: int, jacobian=N
 def adam(problem, theta, active, width, steps, lr):
     """Adam with a cosine-decayed step (``optax.adam(optax.cosine_decay_schedule(lr, steps))``)
     on the active entries of theta of a smooth fit's ``problem`` (``evaluate(theta, width)`` ->
-    (r, J)): the start of a long fit, where the model is smoothest. Returns (the best point
-    met, its cost)."""
+    (r, J); ``objective(r)`` -> (cost, row weights or None), as :func:`levenberg_marquardt`
+    takes it): the start of a long fit, where the model is smoothest. Returns (the best point
+    met, its residual; None without a step)."""
     if steps <= 0 or not np.any(active):
         return theta, None
     init, update = _adam(float(lr), int(steps))
     state = init(theta[active])
-    best, best_cost = theta.copy(), np.inf
+    best, best_r, best_cost = theta.copy(), None, np.inf
     current = theta.copy()
     for _ in range(steps):
         r, jac = problem.evaluate(current, width)
-        cost = float(r @ r)
+        cost, weights = problem.objective(r)
         if not math.isfinite(cost):
             break
         if cost < best_cost:
-            best, best_cost = current.copy(), cost
-        grad = jac[:, active].T @ r / max(cost, 1e-300)  # scale-free (adam normalizes anyway)
+            best, best_r, best_cost = current.copy(), r, cost
+        # The objective's gradient up to a factor (adam normalizes anyway): J^T W r.
+        wr = r if weights is None else weights * r
+        grad = jac[:, active].T @ wr / max(abs(cost), 1e-300)
         step, state = update(grad, state)
         current = current.copy()
         current[active] += np.asarray(step)
-    return best, best_cost
+    return best, best_r
 
 
 @functools.cache
