@@ -124,8 +124,10 @@ def test_a_run_the_model_cannot_explain_does_not_outvote_a_tap(tmp_path):
     fitted jointly with B_eq and f_c alone. The PD run is then far off (the model has no
     current limit, and the fit says it misfits), but it does not take the cart: B_eq and f_c
     are the truth's and the tap is fitted to its floor. (Summed sample by sample, the PD run's
-    2000 samples outvoted the tap's: B_eq 19 kg/s for 1.5, f_c held, the tap 58 mm off.) With
-    i_max fitted too, both runs are explained."""
+    2000 samples outvoted the tap's: B_eq 19 kg/s for 1.5, f_c held, the tap 58 mm off.) The
+    fit starts where the tap's own motion puts B_eq and f_c (0.2 mm off before the fit; read
+    off both runs together, 6.3 kg/s: 123 mm). With i_max fitted too, both runs are
+    explained."""
     from jaxcart.files import read_experiment
     from tuning.verification import REALISTIC, TrueCart, make_recording
     from tuning.verification import experiments as ex
@@ -145,6 +147,7 @@ def test_a_run_the_model_cannot_explain_does_not_outvote_a_tap(tmp_path):
     assert result.params["B_eq"].value == pytest.approx(1.5, rel=0.01)
     assert result.params["f_c"].value == pytest.approx(0.44, rel=0.01)
     tap, pd = result.segments
+    assert tap.rms_before < 1e-3
     assert tap.rms_after_exact < 1.3 * result.noise_floor
     assert pd.rms_after_exact > 10e-3 and "does not explain" in result.misfit
     limited = fit.fit(recs, ("B_eq", "f_c", "i_max"), progress=False)
