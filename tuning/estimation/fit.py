@@ -279,7 +279,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
         return out
 
     # Several recordings: each weighed as at the smooth fit's answer (the joint objective's
-    # reweighted least squares, problem.objective), its rows scaled by the square root.
+    # reweighted least squares, problem.objective).
     rows = np.ones(problem.observed.size)
     if problem.noise is not None:
         weights = problem.row_weights(problem.split(problem.exact_residuals(theta)))
@@ -287,7 +287,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
 
     def residuals(xs):  # the points' runs made at once, several at a time
         runs = problem.simulate_exact_many([full(x) for x in xs])
-        return [(np.concatenate(pos) - problem.observed) * rows for pos in runs]
+        return [np.concatenate(pos) - problem.observed for pos in runs]
 
     low, high = problem.theta_bounds()
     with np.errstate(over="ignore"):  # a runaway loop's columns: inf, a column that acts
@@ -303,12 +303,13 @@ def _exact_polish(problem, theta, active, jac, iterations):
         steps=_difference_step(problem),
         max_step=MAX_STEP,
         shortest=1 / 64,
+        rows=None if problem.noise is None else rows,
     )
     theta = theta.copy()
     theta[idx] = done.x
     if done.jac is not None:
-        jac[:, idx] = done.jac / rows[:, None]
-    return theta, done.r / rows, jac, done.iterations, done.converged
+        jac[:, idx] = done.jac
+    return theta, done.r, jac, done.iterations, done.converged
 
 
 #: Forward-difference step of the exact polish, internal units (relative for the logs); and

@@ -125,15 +125,14 @@ def polish(
             exact_prefetch(cand, segments, base_plants, [at(x) for x in xs], layout, memo)
         # Through the memo: a difference in a per-run value re-simulates its own run alone.
         parts = [exact_residuals(cand, segments, base_plants, at(x), layout, memo)[0] for x in xs]
-        return [np.concatenate(p) * rows for p in parts]
+        return [np.concatenate(p) for p in parts]
 
     done = exact_polish.polish(
         residuals, names, [values[n] for n in names], iterations,
-        reference=smooth_reference(cand, names, values, segments), target=target,
+        reference=smooth_reference(cand, names, values, segments), target=target, rows=rows,
     )  # fmt: skip
     out = at(done.x) if done.improved else values
-    jac = None if done.jac is None else done.jac / rows[:, None]  # the plain residual's
-    return out, jac, names, done.converged
+    return out, done.jac, names, done.converged
 
 
 def smooth_reference(cand, names, values, segments):

@@ -156,13 +156,17 @@ def _staircase(names, x, reference, slopes) -> dict:
 
 def polish(
     residuals, names, x, iterations, *, reference, bounds=None, slopes=None, steps=None,
-    max_step=None, shortest=0.25, target=None,
+    max_step=None, shortest=0.25, target=None, rows=None,
 ) -> Polished:  # fmt: skip
     """The exact polish of every fit of the engine (``jaxcart fit``'s last step, a diagnosis's
     polish and held-out re-fits): :func:`gauss_newton` on ``residuals`` (vectors of ``names``'
     coordinates -> their residuals) from ``x``, within ``bounds`` ((low, high); default
     :func:`~.parameters.bounds`), the staircase's secants of :func:`_staircase` (``reference``,
-    ``slopes``); ``target``: a cost [m^2] worth fitting for (see :func:`gauss_newton`).
+    ``slopes``, column norms of the residual scaled by ``rows``); ``target``: a cost [m^2] worth
+    fitting for (see :func:`gauss_newton`). ``rows``: each residual's factor, the square root of
+    its recording's weight in a joint fit
+    (:meth:`~tuning.estimation.engine.noise.RecordingNoise.weights`): the least squares of the
+    scaled residuals, whose residual and Jacobian are returned unscaled (None: 1).
 
     The coordinates are the values themselves unless the caller says otherwise: forward
     differences of :func:`difference_steps` (``steps``: others, a number or one per entry),
@@ -178,7 +182,13 @@ def polish(
     x = np.asarray(x, dtype=float)
     if steps is None:
         steps = partial(difference_steps, names)
-    return gauss_newton(
+    if rows is not None:
+        plain = residuals
+
+        def residuals(xs):
+            return [r * rows for r in plain(xs)]
+
+    done = gauss_newton(
         residuals,
         np.clip(x, *bounds),
         steps if callable(steps) else np.broadcast_to(np.asarray(steps, dtype=float), x.shape),
@@ -189,6 +199,10 @@ def polish(
         target=target,
         **_staircase(names, x, reference, slopes),
     )
+    if rows is None:
+        return done
+    jac = None if done.jac is None else done.jac / rows[:, None]
+    return done._replace(r=done.r / rows, jac=jac)
 
 
 def values_jacobian(residuals, names, x, *, reference, slopes=None) -> np.ndarray:
