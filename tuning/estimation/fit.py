@@ -83,7 +83,7 @@ from tuning.estimation.engine.parameters import base_name
 from tuning.estimation.engine.segments import Segment, counts_in_loop
 from tuning.estimation.engine.segments import prepare as prepare_segment
 from tuning.estimation.fitting.files import fit_table, load_fitted_plant, write_fitted_plant
-from tuning.estimation.fitting.model import LM_BATCH, Nuisance, _Problem
+from tuning.estimation.fitting.model import Nuisance, _Problem
 from tuning.estimation.fitting.names import (
     _drives_nothing,
     _initial_value,
@@ -411,7 +411,7 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
     segments = [fit_segment(rec, params, values0, settings) for rec in recordings]
     params = _expand(params, per_recording, segments)
     problem = _Problem(segments, params, settings, executor, given=values0)
-    _start_where_read(problem, _read_off(recordings, segments, params, values0))
+    problem.start_where_read(_read_off(recordings, segments, params, values0))
     run = _Run(progress)
     active, notes = _acting(problem)
     r0, _ = problem.evaluate(problem.theta0, settings.widths[-1])
@@ -449,50 +449,17 @@ def _fit(recordings, params, per_recording, initial, settings, exact, progress, 
 
 
 def _read_off(recordings, segments, params, given) -> list:
-    """Start values of the fitted B_eq and f_c read off the recordings, as a diagnosis starts
-    (:func:`~tuning.estimation.engine.starts.read_off`), where neither the caller nor a
-    recording's [plant] gives them: [every recording's together, then each one's own where it
-    differs] ({name: value} each; [] with none). From the handout's B_eq, a joint fit of the
-    real tap and PD run ended, with each recording weighed against its own floor, where the
-    tap's start speed is 3.4 m/s (0.96 alone) and its position 51 mm off (0.21 mm), the PD
-    run taking the cart."""
+    """The starts of the fitted B_eq and f_c read off the recordings, as a diagnosis starts
+    (:func:`~tuning.estimation.engine.starts.read_off_each`), where neither the caller nor a
+    recording's [plant] gives them. From the handout's B_eq, a joint fit of the real tap and
+    PD run ended, with each recording weighed against its own floor, where the tap's start
+    speed is 3.4 m/s (0.96 alone) and its position 51 mm off (0.21 mm), the PD run taking the
+    cart."""
     named = set(given).union(*(r.plant_overrides for r in recordings))
     wanted = {"B_eq", "f_c"}.intersection(params) - named
     if not wanted:
         return []
-    groups = [(segments, recordings)]
-    if len(segments) > 1:
-        groups += [([s], [r]) for s, r in zip(segments, recordings, strict=True)]
-    out = []
-    for segs, recs in groups:
-        found = starts.read_off(segs, recs, [s.plant for s in segs])
-        found = {n: v for n, v in found.items() if n in wanted}
-        if found and found not in out:
-            out.append(found)
-    return out
-
-
-def _start_where_read(problem, candidates) -> None:
-    """Start ``problem`` at the candidate of :func:`_read_off` whose smooth run has the lowest
-    objective (several recordings: the regression of them together is outvoted by a long run
-    the model cannot follow, as a sum of squares is; an independent generator's tap beside a
-    PD run held back by a 1 A current limit read B_eq 6.3 kg/s together, 1.49 from the tap,
-    for 1.5)."""
-    if not candidates:
-        return
-    thetas = np.repeat(problem.theta0[None, :], len(candidates), axis=0)
-    for theta, found in zip(thetas, candidates, strict=True):
-        for name, value in found.items():
-            theta[problem.params.index(name)] = parameters.to_theta(name, value)
-    best = 0
-    if len(candidates) > 1:
-        width = problem.settings.widths[-1]
-        rs = np.concatenate(
-            [problem.evaluate_batch(thetas[k : k + LM_BATCH], width)[0]
-             for k in range(0, len(thetas), LM_BATCH)]
-        )  # fmt: skip
-        best = int(np.argmin([problem.objective(r)[0] for r in rs]))
-    problem.theta0, problem.read = thetas[best], candidates[best]
+    return starts.read_off_each(segments, recordings, [s.plant for s in segments], wanted)
 
 
 def _expand(params, per_recording, segments) -> tuple:

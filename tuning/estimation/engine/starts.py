@@ -69,6 +69,22 @@ def read_off(segments, recs, base_plants) -> dict:
     return {n: v for n, v in found.items() if parameters.plausible(n, v) and v > 0}
 
 
+def read_off_each(segments, recs, base_plants, names) -> list:
+    """The values of ``names`` (of B_eq, f_c) :func:`read_off` every recording together, then
+    off each one alone where they differ: [{name: value}, ...] ([] where none is read), the
+    starts a fit chooses among by its objective (together, a long run the model cannot follow
+    outvotes a tap as a sum of squares does)."""
+    groups = [(segments, recs, base_plants)]
+    if len(segments) > 1:
+        groups += [([s], [r], [p]) for s, r, p in zip(segments, recs, base_plants, strict=True)]
+    out = []
+    for group in groups:
+        found = {n: v for n, v in read_off(*group).items() if n in names}
+        if found and found not in out:
+            out.append(found)
+    return out
+
+
 def motion_regression(segments, recs, base_plants) -> dict:
     """{"B_eq" [kg/s], "f_c" [N]} from m y'' + (B_eq + B_emf) y' + f_c sign(y') = gamma u
     (u = 0 on a tap) over every recording's moving samples (faster than MOVING, the command

@@ -137,10 +137,10 @@ _positions_jit = jax.jit(_positions, static_argnames="static")
 class _Problem:
     """Segments, theta's layout and the compiled residual function."""
 
-    def __init__(self, segments, params, settings, executor=None, given=(), read=None):
+    def __init__(self, segments, params, settings, executor=None, given=()):
         self.segments = segments
         self.given = frozenset(given)  # the names whose start values the caller gave
-        self.read = dict(read or {})  # start values read off the recordings {name: value}
+        self.read: dict = {}  # start values read off the recordings (start_where_read)
         self.executor = executor or SERIAL
         # Each recording's run by its plant and start: a forward difference in one recording's
         # start (or its own drive limit) re-simulates that recording alone.
@@ -206,8 +206,6 @@ class _Problem:
         )
 
     def _start_value(self, p) -> float:
-        if p in self.read:
-            return self.read[p]
         k, base = parameters.recording_of(p), base_name(p)
         segs = self.segments if k is None else [self.segments[k]]
         i = _element(p.split("@")[0])
@@ -340,6 +338,27 @@ class _Problem:
         except (ImportError, NotImplementedError):
             return False
         return True
+
+    def start_where_read(self, candidates) -> None:
+        """Start at the one of ``candidates`` ({name: value} each, read off the recordings:
+        :func:`~tuning.estimation.engine.starts.read_off_each`) whose smooth run has the lowest
+        :meth:`objective` (an independent generator's tap beside a PD run held back by a 1 A
+        current limit read B_eq 6.3 kg/s together, 1.49 from the tap, for 1.5)."""
+        if not candidates:
+            return
+        thetas = np.repeat(self.theta0[None, :], len(candidates), axis=0)
+        for theta, found in zip(thetas, candidates, strict=True):
+            for name, value in found.items():
+                theta[self.params.index(name)] = parameters.to_theta(name, value)
+        best = 0
+        if len(candidates) > 1:
+            width = self.settings.widths[-1]
+            rs = np.concatenate(
+                [self.evaluate_batch(thetas[k : k + LM_BATCH], width)[0]
+                 for k in range(0, len(thetas), LM_BATCH)]
+            )  # fmt: skip
+            best = int(np.argmin([self.objective(r)[0] for r in rs]))
+        self.theta0, self.read = thetas[best], candidates[best]
 
     def objective(self, r) -> tuple:
         """(cost, row weights or None) of the residual ``r`` over every sample: one recording's
