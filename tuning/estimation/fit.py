@@ -280,10 +280,10 @@ def _exact_polish(problem, theta, active, jac, iterations):
 
     # Several recordings: each weighed as at the smooth fit's answer (the joint objective's
     # reweighted least squares, problem.objective).
-    rows = np.ones(problem.observed.size)
+    rows = None
     if problem.noise is not None:
         weights = problem.row_weights(problem.split(problem.exact_residuals(theta)))
-        rows = np.sqrt(weights) if np.all(weights > 0) else rows  # none runs away
+        rows = np.sqrt(weights) if np.all(weights > 0) else None  # none runs away
 
     def residuals(xs):  # the points' runs made at once, several at a time
         runs = problem.simulate_exact_many([full(x) for x in xs])
@@ -291,7 +291,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
 
     low, high = problem.theta_bounds()
     with np.errstate(over="ignore"):  # a runaway loop's columns: inf, a column that acts
-        reference = np.linalg.norm(jac[:, idx] * rows[:, None], axis=0)
+        reference = np.linalg.norm(jac[:, idx] * (1 if rows is None else rows[:, None]), axis=0)
     done = polish(
         residuals,
         [problem.entries[i] for i in idx],
@@ -303,7 +303,7 @@ def _exact_polish(problem, theta, active, jac, iterations):
         steps=_difference_step(problem),
         max_step=MAX_STEP,
         shortest=1 / 64,
-        rows=None if problem.noise is None else rows,
+        rows=rows,
     )
     theta = theta.copy()
     theta[idx] = done.x

@@ -233,7 +233,7 @@ class RecordingNoise:
     def criterion(self, residuals) -> float:
         """sum_k nu_k log((mse_k + f_k^2) / f_k^2): :meth:`misfit` with its floor smoothed, the
         cost whose gradient :meth:`weights` are (``jaxcart fit``'s joint objective)."""
-        mse = np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])
+        mse = _mse(residuals)
         if not np.all(np.isfinite(mse)):
             return math.inf
         f2 = self.floors**2
@@ -243,14 +243,19 @@ class RecordingNoise:
         """The weighted sum of squares sum_k nu_k mse_k / (mse_k + f_k^2) whose change is the
         :meth:`criterion`'s to first order (the weights of :meth:`weights` before their
         normalisation)."""
-        mse = np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])
+        mse = _mse(residuals)
         return float(np.sum(self.n_eff * mse / (mse + self.floors**2)))
 
     def weights(self, residuals) -> np.ndarray:
         """Each recording's weight for its squared residuals in a joint least-squares fit at
         ``residuals`` [m] (one array each): nu_k / (N_k (mse_k + f_k^2)) [1/m^2], the gradient
         of :meth:`misfit` (with its floor smoothed); one recording's are all equal."""
-        mse = np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])
+        mse = _mse(residuals)
         mse = np.where(np.isfinite(mse), mse, np.inf)
         w = self.n_eff / (self.sizes * (mse + self.floors**2))
         return w / np.max(w) if np.max(w) > 0 else np.ones_like(w)
+
+
+def _mse(residuals) -> np.ndarray:
+    """The mean square [m^2] of each recording's residuals (one array each)."""
+    return np.array([float(np.mean(np.asarray(r, dtype=float) ** 2)) for r in residuals])

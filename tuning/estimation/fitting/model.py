@@ -372,10 +372,8 @@ class _Problem:
         return self.noise.criterion(parts), self.row_weights(parts)
 
     def row_weights(self, parts):
-        """Each sample's weight in the joint least squares at the residuals ``parts`` (one
-        array per recording): its recording's, 1 with one recording."""
-        if self.noise is None:
-            return np.ones(sum(self.sizes))
+        """Each sample's weight in the joint least squares of several recordings at the
+        residuals ``parts`` (one array per recording): its recording's."""
         w = self.noise.weights(parts)
         return np.concatenate([np.full(n, wk) for n, wk in zip(self.sizes, w, strict=True)])
 
