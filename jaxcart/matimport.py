@@ -99,15 +99,19 @@ class Imported:
     problem: str | None = None
     copies: list = field(default_factory=list)
     ignored: list = field(default_factory=list)
+    #: Which of a file's runs, where one file holds several (:func:`runs_in`): the Simulink
+    #: model that saved it ("labcartsat"), else its number of samples; None for the only one.
+    part: str | None = None
 
     @property
     def label(self) -> str:
-        return " + ".join(p.name for p in self.files)
+        files = " + ".join(p.name for p in self.files)
+        return files if self.part is None else f"{files} ({self.part})"
 
     @property
     def stem(self) -> str:
-        """A name for its experiment file: the first file's stem."""
-        return self.files[0].stem
+        """A name for its experiment file: the first file's stem (and its part)."""
+        return self.files[0].stem + ("" if self.part is None else f"-{self.part}")
 
     @property
     def experiment(self) -> str | None:
@@ -135,6 +139,7 @@ class Imported:
         head.append(f"  sample time {self.sample_time:g} s, {when}")
         if self.guess is not None:
             head += ["  " + line for line in self.guess.lines()]
+        head += [f"  warning: {line}" for line in late_start(self)]
         if self.problem:
             head.append(f"  {self.problem}")
         return head
@@ -336,11 +341,26 @@ def scan(
     holds as many samples."""
     named = dict(named or {})
     per_file = {Path(p): read_signals(p) for p in paths}
+    several = {}  # a file that holds several runs: [(part, signals), ...]
+    for path, signals in per_file.items():
+        found = runs_in(signals)
+        if len(found) > 1:
+            several[path] = found
     for path, variable in (chosen or {}).items():
         path = next(p for p in per_file if p.name == Path(path).name)
-        per_file[path] = _choose(path, per_file[path], variable)
+        if path in several:  # the chosen position's run alone
+            several[path] = [
+                (part, picked)
+                for part, signals in several[path]
+                for picked in [_choose(path, signals, variable)]
+                if any(s.why == CHOSEN for s in picked)
+            ]
+        else:
+            per_file[path] = _choose(path, per_file[path], variable)
     anchors, partners, runs = [], [], []
     for path, signals in per_file.items():
+        if path in several:
+            continue
         if any(s.role in ("y", "e") for s in signals):
             anchors.append(path)
         elif signals:
@@ -367,13 +387,50 @@ def scan(
                     f"name and length; map it in an experiment file's [data] table",
                 )
             )
-    for files in groups.values():
-        run = _assemble(files, [s for f in files for s in per_file[f]])
+    found = [(files, [s for f in files for s in per_file[f]], None) for files in groups.values()]
+    found += [([path], signals, part) for path, each in several.items() for part, signals in each]
+    for files, signals, part in found:
+        run = _assemble(files, signals)
+        run.part = part
         if run.problem is None:
             choice = next((named[f.name] for f in files if f.name in named), None)
             run.guess = recognise(_traces(run), choice)
         runs.append(run)
     return runs
+
+
+def runs_in(signals: list[RawSignal]) -> list[tuple[str | None, list[RawSignal]]]:
+    """The runs one file's ``signals`` hold: [(part, signals)], one run (part None) unless
+    they fall into groups of one length and one Simulink model each (the first part of the
+    block name: "labcartsat/cart", "labcartcolint/error") of which two or more hold a position
+    or an error, and every other signal has the length of one such group alone (a workspace
+    saved after two experiments: a P step's 3135 samples and a PI step's 6200). A part is
+    named by its model where the models differ, else by its number of samples."""
+    groups: dict[tuple, list[RawSignal]] = {}
+    for s in signals:
+        groups.setdefault((s.values.size, _model(s)), []).append(s)
+    anchored = {k: g for k, g in groups.items() if any(s.role in ("y", "e") for s in g)}
+    if len(anchored) < 2:
+        return [(None, signals)]
+    for key, group in groups.items():
+        if key in anchored:
+            continue
+        home = [k for k in anchored if k[0] == key[0]]
+        if len(home) != 1:
+            return [(None, signals)]  # a signal of no run's length: one run, as saved
+        anchored[home[0]] = anchored[home[0]] + group
+    models = [m for _, m in anchored]
+    by_model = None not in models and len(set(models)) == len(models)
+    lengths = [n for n, _ in anchored]
+    if not by_model and len(set(lengths)) < len(lengths):
+        return [(None, signals)]  # two runs of one length and model: the user maps them
+    return [(m if by_model else str(n), g) for (n, m), g in sorted(anchored.items())]
+
+
+def _model(s: RawSignal) -> str | None:
+    """The Simulink model that saved ``s`` (its block name's first part), or None."""
+    block = next((x for x in s.names if "/" in x), None)
+    return None if block is None else block.split("/", 1)[0].strip() or None
 
 
 def _assemble(files, signals) -> Imported:
@@ -521,8 +578,10 @@ def _meta(run: Imported, toml_folder) -> dict:
                     f"amplitude = ... [m]"
                 )
             meta["reference"] = {"kind": "step", "amplitude": step}
-            if spec.step is not None and not math.isclose(step, spec.step, rel_tol=0.01):
-                meta["description"] += f"; its step {step:.4g} m, not the handout's"
+        else:  # the reference recorded, or r = y + e
+            step = _first_reference(run)
+        if spec.step is not None and not math.isclose(step, spec.step, rel_tol=0.01):
+            meta["description"] += f"; its step {step:.4g} m, not the handout's"
     meta["notes"] = {
         "imported_from": run.label,
         "recognised_as": guess.experiment,
@@ -531,6 +590,37 @@ def _meta(run: Imported, toml_folder) -> dict:
         "sample_time_assumed": run.time_assumed,
     }
     return meta
+
+
+def _first_reference(run: Imported) -> float:
+    """The reference [m] at the first sample: recorded, or the position plus the error."""
+    if "r" in run.signals:
+        return float(run.signals["r"].values[0])
+    return float(run.signals["y"].values[0] + run.signals["e"].values[0])
+
+
+def late_start(run: Imported) -> list[str]:
+    """A warning where an error scope under integral action starts far below the handout's
+    step: the step is then read as the first error (the cart at rest at 0), but a scope that
+    kept only a run's last samples starts there too, with the integral built up (the real
+    cart's 4.1e.mat: the same samples as 4.1err.mat, whose time starts at t = 15 s)."""
+    guess = run.guess
+    if guess is None or guess.experiment is None or run.problem or "e" not in run.signals:
+        return []
+    spec = EXPERIMENTS[guess.experiment]
+    gains = guess.controller or spec.controller or {}
+    if "y" in run.signals or "r" in run.signals or not gains.get("ki") or spec.step is None:
+        return []
+    e0 = float(run.signals["e"].values[0])
+    if abs(e0) >= spec.step / 4:
+        return []
+    return [
+        f"the error starts at {e0 * 1e3:.3g} mm, not at a step like the handout's "
+        f"{spec.step:g} m: read as a step of {e0 * 1e3:.3g} mm from rest; if the scope "
+        f"started after the step (it kept only the run's last samples), the integral (ki = "
+        f"{gains['ki']:g} V/(m s)) had built up by then, which the simulations start at 0: "
+        "fits of this run would be wrong; record the run from its step"
+    ]
 
 
 def _toml_text(run: Imported, meta: dict) -> str:
@@ -613,12 +703,15 @@ def _choose(path: Path, signals: list[RawSignal], variable: str) -> list[RawSign
     )
 
 
+CHOSEN = "chosen by the user"
+
+
 def _as_position(signals: list[RawSignal], source: str) -> list[RawSignal]:
     """``signals`` with the one of ``source`` the position, chosen by the user."""
     out = []
     for s in signals:
         if s.source == source:
-            s = dataclasses.replace(s, role="y", why="chosen by the user")
+            s = dataclasses.replace(s, role="y", why=CHOSEN)
         elif s.role == "y":
             s = dataclasses.replace(s, role="?", why="another signal is the position")
         out.append(s)
@@ -637,6 +730,18 @@ def run_of(path, experiment: str | None = None) -> Imported:
     named = {path.name: experiment} if experiment else {}
     chosen = {path.name: variable} if variable else None
     runs = scan([path, *siblings(path)], named=named, chosen=chosen)
+    parts = [run for run in runs if path in run.files and run.part is not None]
+    if len(parts) > 1:
+        listed = "; ".join(
+            f"{run.part}: {run.signals['y' if 'y' in run.signals else 'e'].source}"
+            f"{'' if run.experiment is None else ' (' + EXPERIMENTS[run.experiment].what + ')'}"
+            for run in parts
+        )
+        raise UserError(
+            f"{path}: holds {len(parts)} runs ({listed}); choose one by its position "
+            f"(jaxcart fit {path.name}:VARIABLE), or write an experiment file for each with "
+            f"jaxcart import {path.name}"
+        )
     for run in runs:
         if path in run.files:
             if experiment and run.guess is not None and not run.guess.named:

@@ -55,7 +55,7 @@ LAB_VOLTAGE = 6.0
 #: Positions beyond this many track lengths are a unit error, not a cart off its track.
 ABSURD_TRACK_LENGTHS = 5.0
 #: A closed-loop recording with integral action whose clock starts this late [s] may hold
-#: only the end of its run (:func:`_check_integral_start`).
+#: only the end of its run (:func:`check_integral_start`).
 LATE_START = 1.0
 #: Margin on the velocity and acceleration limits before a warning (a lower B_eq than the
 #: nominal, the transient of a step, difference noise).
@@ -119,7 +119,7 @@ def _check_recording(rec) -> list[str]:
     warnings += _check_motion(where, _label(rec, "y"), rec, plant, volts)
     warnings += _check_start_at_rest(where, _label(rec, "y"), rec, plant, volts)
     warnings += _check_tap_ends_at_rest(where, _label(rec, "y"), rec)
-    warnings += _check_integral_start(where, rec)
+    warnings += check_integral_start(where, rec)
     if rec.kind == "open_loop":
         warnings += check_input_units(rec, plant)
     if rec.kind == "closed_loop" and rec.controller is not None:
@@ -280,7 +280,7 @@ def _check_tap_ends_at_rest(where, label, rec) -> list[str]:
     ]
 
 
-def _check_integral_start(where, rec) -> list[str]:
+def check_integral_start(where, rec) -> list[str]:
     """A run under integral action is simulated with its integral at 0 at the first sample: a
     recording whose clock starts :data:`LATE_START` or later may hold only a run's end (a
     scope that kept its last samples), when the integral had built up, which nothing recorded
@@ -413,7 +413,8 @@ def check_distinct(recordings) -> None:
         y = np.asarray(rec.position, dtype=float)
         key = (str(getattr(rec, "kind", "")), float(rec.sample_time), y.size)
         for j, (other_file, other_key, other_y, other_signal) in seen.items():
-            same_file = file is not None and file == other_file
+            # One file may hold several runs (a workspace saved after two experiments).
+            same_file = file is not None and file == other_file and np.array_equal(y, other_y)
             same_data = key == other_key and np.array_equal(y, other_y)
             same_data = same_data and np.array_equal(_signal(rec), other_signal)
             if same_file or same_data:

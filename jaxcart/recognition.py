@@ -516,7 +516,14 @@ def _settling(e, ts: float) -> list[Evidence]:
     q = ENCODER_RESOLUTION
     moves = _moves(e[0] - e, ts)  # the cart's travel
     if not moves:
-        return [Evidence("the error does not change: the cart does not move", (), 1)]
+        span = float(np.ptp(e))
+        if span <= 2 * q:
+            return [Evidence("the error does not change: the cart does not move", (), 1)]
+        text = (
+            f"the error changes by {span * 1e3:.3g} mm in no move of 2 mm faster than "
+            f"{MOVING_SPEED * 1e3:g} mm/s: the cart creeps or rests"
+        )
+        return [Evidence(text, (), 1)]
     for (_, b0), (a1, b1) in zip(moves, moves[1:], strict=False):
         before, after = float(e[a1]), float(e[b1])
         if abs(before) > 3 * q and np.sign(after - before) == -np.sign(before):

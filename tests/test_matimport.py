@@ -407,6 +407,101 @@ def test_copies_in_other_layouts_and_times_are_one_signal(tmp_path):
     )
 
 
+def _pi_scopes(n=3000, ts=0.001, r=0.4):
+    """A PI step's position and error (e = r - y) in whole counts, the cart at rest at 0."""
+    t = np.arange(n) * ts
+    y = np.rint(r * (1 - np.exp(-t / 0.4)) / Q) * Q
+    return t, y, r - y
+
+
+def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
+    """A workspace saved after two experiments (the real cart's lab1_4.1.mat: the P 50 step's
+    Cartposition and v from model labcartsat, 3135 samples, beside the PI step's y, e and
+    Error from labcartcolint, 6200): two runs, each named by its model, each its own
+    experiment file; reading the file alone says which runs it holds and how to choose one,
+    and choosing a run's position reads that run."""
+    from tuning.commands.main import main
+
+    t, y, v = _p50(900)
+    tp, yp, ep = _pi_scopes(1500)
+    scipy.io.savemat(
+        tmp_path / "lab1_4.1.mat",
+        {
+            "Cartposition": _scope(y, t, block="labcartsat/cart"),
+            "v": _scope(v, block="labcartsat/voltage out"),
+            "y": _scope(yp, block="labcartcolint/cart position"),
+            "e": _scope(ep, block="labcartcolint/error out"),
+            "Error": _scope(ep, tp, block="labcartcolint/error"),
+        },
+    )
+    runs = matimport.scan([tmp_path / "lab1_4.1.mat"])
+    assert [(r.part, r.problem) for r in runs] == [("labcartsat", None), ("labcartcolint", None)]
+    p50, pi = runs
+    assert pi.signals["y"].source == "lab1_4.1.mat:y" and "v" not in pi.signals
+    assert p50.signals["y"].source == "lab1_4.1.mat:Cartposition" and "e" not in p50.signals
+    assert p50.guess.experiment == "p_step" and p50.usable()
+    assert (pi.stem, p50.stem) == ("lab1_4.1-labcartcolint", "lab1_4.1-labcartsat")
+    with pytest.raises(UserError) as err:
+        read_experiment(tmp_path / "lab1_4.1.mat")
+    text = str(err.value)
+    assert "holds 2 runs (labcartsat: lab1_4.1.mat:Cartposition (P control k = 50" in text
+    assert "; labcartcolint: lab1_4.1.mat:y" in text and "\n" not in text
+    got = read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:Cartposition")
+    np.testing.assert_array_equal(got.position, y)
+    assert got.command is not None and got.controller.kp == 50.0
+    pi_run = read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:y")
+    np.testing.assert_array_equal(pi_run.position, yp)
+    assert pi_run.reference[0] == pytest.approx(0.4) and pi_run.command is None
+    # One file, two runs: both may be fitted together; one run twice may not.
+    from jaxcart.plausibility import check_distinct
+
+    check_distinct([got, pi_run])
+    with pytest.raises(UserError, match="are the same file"):
+        check_distinct([pi_run, read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:y")])
+    # The command writes each run's experiment file, named by its model.
+    out = tmp_path / "out"
+    assert main(["--no-cache", "import", str(tmp_path / "lab1_4.1.mat"), "--out", str(out)]) == 0
+    assert "lab1_4.1.mat (labcartsat):" in capsys.readouterr().out
+    made = read_experiment(out / "lab1_4.1-labcartsat.toml")
+    np.testing.assert_array_equal(made.position, y)
+    # Two positions of one length and one model stay a question (two.mat above).
+
+
+def test_an_error_scope_that_starts_near_zero_under_integral_action_is_warned(tmp_path):
+    """An error scope alone of a PI run whose first error is 4.3 mm, far below the handout's
+    0.2 m step (the real cart's 4.1e.mat: the last 7.7 s of a run, the same samples as
+    4.1err.mat whose time starts at t = 15 s): read as a step of 4.3 mm from rest, with a
+    warning that a scope started after the step carries a built-up integral; the error that
+    creeps 5 mm without a fast move is said to change; the lab leaves the run out. The same
+    scope from the step has no warning (named PI: its error alone looks like P 10's)."""
+    n = 4000
+    creep = np.rint((0.0043 - 0.0052 * np.clip(np.arange(n) / n - 0.3, 0, None) / 0.7) / Q) * Q
+    scipy.io.savemat(tmp_path / "4.1e.mat", {"e": _scope(creep, block="labcartcolint/error out")})
+    (run,) = matimport.scan([tmp_path / "4.1e.mat"])
+    assert run.guess.experiment == "pi"
+    text = "\n".join(run.lines())
+    assert "warning: the error starts at 4.3 mm, not at a step like the handout's 0.2 m" in text
+    assert "the integral (ki = 15 V/(m s)) had built up" in text
+    assert "the cart creeps or rests" in text and "does not move" not in text
+    assert "warning: the error starts" in run.toml_text()  # kept in the file's comments
+    _, _, e = _pi_scopes(n, r=0.2)
+    scipy.io.savemat(tmp_path / "4.1s.mat", {"e": _scope(e, block="labcartcolint/error out")})
+    (run,) = matimport.scan([tmp_path / "4.1s.mat"], named={"4.1s.mat": "pi"})
+    assert run.guess.experiment == "pi" and "warning" not in "\n".join(run.lines())
+    # The lab leaves such a run out of Part (iv) and the cart's fit, and says why.
+    from tuning.lab.inputs import find_inputs
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    shutil.copy(tmp_path / "4.1e.mat", lab)
+    t, y, v = _p50(900)
+    scipy.io.savemat(lab / "2.1.mat", {"y": _scope(y, t), "v": _scope(v, t)})
+    inputs = find_inputs(lab)
+    assert set(inputs.recordings) == {"p_step"}
+    (why,) = [w for name, w in inputs.unused if name == "4.1e.mat"]
+    assert why.startswith("the error starts at 4.3 mm") and why.endswith("name it in lab.toml")
+
+
 def test_a_non_finite_sample_is_one_line_not_a_traceback(tmp_path, capsys):
     from tuning.commands.main import main
 
@@ -740,14 +835,15 @@ def test_numbered_time_vector_is_time_not_a_voltage(tmp_path):
 
 
 def test_two_runs_in_one_file_advice_maps_them(tmp_path):
-    """Two runs saved in one .mat (y1, v1, y2, v2): choosing y1 leaves two voltages, and the
-    advice is a [data] table (jaxcart import FILE.mat:v1 would take the voltage for the
-    position); following it reads the run."""
+    """Two runs saved in one .mat (y1, v1, y2, v2) of one length and one model: choosing y1
+    leaves two voltages, and the advice is a [data] table (jaxcart import FILE.mat:v1 would
+    take the voltage for the position); following it reads the run. Of two lengths, they are
+    two runs, each named by its length, and choosing y1 reads its run."""
     t, y, v = _p50(1500)
-    t2, y2, v2 = _p50(1800)
+    y2, v2 = 0.5 * y, 0.5 * v
     path = tmp_path / "p50.mat"
     scipy.io.savemat(
-        path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t2), "v2": _scope(v2, t2)}
+        path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t), "v2": _scope(v2, t)}
     )
     run = matimport.run_of(f"{path}:y1")
     assert "look like a voltage" in run.problem
@@ -758,11 +854,18 @@ def test_two_runs_in_one_file_advice_maps_them(tmp_path):
         '[controller]\nkp = 50.0\nv_limit = 6.0\n[reference]\nkind = "step"\namplitude = 0.4\n'
     )
     assert read_experiment(tmp_path / "run1.toml").n_samples == 1500
+    t2, y2, v2 = _p50(1800)
+    scipy.io.savemat(path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t2),
+                            "v2": _scope(v2, t2)})  # fmt: skip
+    assert [r.stem for r in matimport.scan([path])] == ["p50-1500", "p50-1800"]
+    run = matimport.run_of(f"{path}:y1")
+    assert run.problem is None and run.signals["v"].source == "p50.mat:v1"
 
 
 def test_lab_finds_upper_case_mat_and_says_why_no_run_is_used(real_folder, tmp_path):
     """A Windows copy's PART1.1.MAT is the tap (it was left out, unsaid); a folder whose only
-    .mat holds two runs says why, not 'no experiment files found'."""
+    .mat holds two runs of one length says why, not 'no experiment files found'; of two
+    lengths (the tap's array beside a P 50 step's scopes), the lab reads both."""
     from tuning.lab.inputs import find_inputs
 
     (real_folder / "part1.1.mat").rename(real_folder / "PART1.1.MAT")
@@ -773,6 +876,14 @@ def test_lab_finds_upper_case_mat_and_says_why_no_run_is_used(real_folder, tmp_p
     t, y, v = _p50(1500)
     tap = scipy.io.loadmat(real_folder / "PART1.1.MAT")["Cartposition"]
     scipy.io.savemat(lone / "lab1.mat", {"Cartposition": tap, "y": _scope(y, t), "v": _scope(v, t)})
+    inputs = find_inputs(lone)
+    assert {k: Path(r.path).name for k, r in inputs.recordings.items()} == {
+        "tap": "lab1.mat",
+        "p_step": "lab1.mat",
+    }
+    y2 = np.rint(np.interp(np.arange(t.size), np.arange(tap.shape[0]), tap[:, 1]) / Q) * Q
+    scipy.io.savemat(lone / "lab1.mat", {"Cartposition": _scope(y2, t), "y": _scope(y, t),
+                                         "v": _scope(v, t)})  # fmt: skip
     with pytest.raises(UserError, match="no recording can be used: lab1.mat: 2 different signals"):
         find_inputs(lone)
 

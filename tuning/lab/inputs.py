@@ -60,12 +60,13 @@ from jaxcart.matimport import (
     RAW_SUFFIXES,
     data_prefix,
     files_of,
+    late_start,
     read_signals,
     scan,
     split_source,
 )
 from jaxcart.params import TRACK_LENGTH
-from jaxcart.plausibility import time_unit_doubt, warn
+from jaxcart.plausibility import check_integral_start, time_unit_doubt, warn
 from jaxcart.recognition import EXPERIMENTS
 from tuning.estimation.diagnose.controller import check as controller_check
 
@@ -569,6 +570,13 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
         with inputs.reading(run.label):
             recording = check_recording(read_imported(run, quiet=True))
         if recording is None:
+            continue
+        late = late_start(run) or check_integral_start(run.label, recording)
+        if late:  # its integral unknown at the first sample: a model of it would be wrong
+            why = late[0].removeprefix(f"{run.label}: ")
+            why += f"; to use it anyway, name it in {INDEX_NAME}"
+            inputs.unused.append((run.label, why))
+            inputs.offers.append((slot, run, "a run that may have started late"))
             continue
         if slot not in inputs.recordings:
             inputs.recordings[slot] = recording
