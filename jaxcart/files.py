@@ -211,7 +211,9 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
         toml = raw[0].with_suffix(".toml")
         if is_csv(raw[0]) and toml.is_file():  # the data of an experiment file: read that
             raise UserError(f"{raw[0]} is the data of {toml}: give {toml.name}")
-        return read_imported(run_of(path, experiment), raw[0], check=check)
+        # Named with the variable chosen: two runs of one file are two names in a fit.
+        name = raw[0] if raw[1] is None else raw[0].with_name(f"{raw[0].name}:{raw[1]}")
+        return read_imported(run_of(path, experiment), name, check=check)
     _not_found_hint(path)
     return _recording(
         lambda mat_reader: _expfile.read_experiment_data(path, mat_reader=mat_reader), check

@@ -456,7 +456,8 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     from jaxcart.plausibility import check_distinct
 
     check_distinct([got, pi_run])
-    with pytest.raises(UserError, match="are the same file"):
+    assert Path(pi_run.path).name == "lab1_4.1.mat:y"  # its name in a fit's tables
+    with pytest.raises(UserError, match="are identical samples"):
         check_distinct([pi_run, read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:y")])
     # The command writes each run's experiment file, named by its model.
     out = tmp_path / "out"
