@@ -537,6 +537,9 @@ def _settling(e, ts: float) -> list[Evidence]:
     rest = (e.size - 1 - last) * ts
     if rest < 0.2:
         return []  # still moving at the end: nothing settled
+    creep = _creeps_after_rest(e[last + 1 :], ts)
+    if creep is not None:
+        return [creep]
     final = float(np.mean(e[last + 1 :]))
     out = []
     # How far the cart went past the target or where it rests [m]: P 50 and the PI overshoot
@@ -589,6 +592,37 @@ def _settling(e, ts: float) -> list[Evidence]:
         )
     held = ("p_error",) if p10 else ("p_step",) if p50 else ()
     return out + [Evidence(text, held, weight if held else 1)]
+
+
+#: How far [m] a cart must creep on toward e = 0 after a rest of 0.2 s for integral action:
+#: P 10's exponential approach to its band also pauses a count for 0.2 s and more, with
+#: about q tau / 0.2 s left to go (tau its slow time constant: 4 counts, 0.09 mm, on the
+#: built-in P 10 step); the real cart's PI crept 13 mm.
+CREEP = 1e-3
+
+
+def _creeps_after_rest(tail, ts: float) -> Evidence | None:
+    """Integral action where, after the last move, the cart rests (the error constant for
+    0.2 s or more) and then creeps on toward e = 0 by more than :data:`CREEP`, too slowly to
+    count as a move (the real cart's PI step, lab1_4.1.mat: at rest at 19.2 mm for 0.7 s,
+    then on to 6 mm at ~7 mm/s): under P control a cart at rest stays at rest."""
+    q = ENCODER_RESOLUTION
+    bounds = np.flatnonzero(np.diff(tail)) + 1
+    starts = np.concatenate([[0], bounds])
+    ends = np.concatenate([bounds, [tail.size]])
+    after = float(tail[-1])
+    for a, b in zip(starts[:-1], ends[:-1], strict=True):  # the last stretch ends the run
+        before = float(tail[a])
+        if (b - a) * ts < 0.2 or abs(before) <= 3 * q or abs(after - before) <= CREEP:
+            continue
+        if np.sign(after - before) == -np.sign(before):
+            text = (
+                f"the cart rests {(b - a) * ts:.3g} s at e = {before * 1e3:.3g} mm, then creeps "
+                f"on toward e = 0 (to {after * 1e3:.3g} mm) with the reference unchanged: "
+                "integral action (under P control a cart at rest stays at rest)"
+            )
+            return Evidence(text, ("pi",), 3)
+    return None
 
 
 def _motion_features(traces: Traces, ts: float, settings: dict) -> list[Evidence]:

@@ -468,6 +468,24 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     # Two positions of one length and one model stay a question (two.mat above).
 
 
+def test_a_rest_then_a_slow_creep_toward_zero_is_integral_action(tmp_path):
+    """The real cart's PI step (lab1_4.1.mat's y and e, in a file whose name says nothing):
+    after its overshoot it rests 0.7 s at e = 19.2 mm, then creeps on to 6 mm at about 7 mm/s,
+    too slowly to count as a move; under P control a cart at rest stays at rest, so this is
+    integral action (strong), where it was read as P 50's dead band and asked about."""
+    ts = 0.001
+    t = np.arange(6200) * ts
+    fall = 0.0192 + (0.4 - 0.0192) * np.exp(-t / 0.4) * np.cos(2.0 * t)  # to 19.2 mm by 3.4 s
+    e = np.where(t < 3.4, fall, 0.0192)
+    e = np.where(t > 4.1, np.maximum(0.0192 - 0.0066 * (t - 4.1), 0.006), e)
+    e = np.rint(e / Q) * Q
+    scipy.io.savemat(tmp_path / "run7.mat", {"y": _scope(0.4 - e), "e": _scope(e)})
+    (run,) = matimport.scan([tmp_path / "run7.mat"])
+    assert run.guess.experiment == "pi" and run.guess.confident, run.lines()
+    (creep,) = [x for x in run.guess.evidence if "creeps on toward e = 0" in x.text]
+    assert creep.weight == 3 and "rests 0.701 s at e = 19.2 mm" in creep.text
+
+
 def test_an_error_scope_that_starts_near_zero_under_integral_action_is_warned(tmp_path):
     """An error scope alone of a PI run whose first error is 4.3 mm, far below the handout's
     0.2 m step (the real cart's 4.1e.mat: the last 7.7 s of a run, the same samples as
