@@ -795,7 +795,7 @@ def _guess(column: str, names) -> str:
 #: "t_ms" (the suffix one of the units a recording is often written in).
 _UNIT_HEADER = re.compile(
     r"(?P<name>\w[\w ]*?)\s*[\[(](?P<unit>[^\])]*)[\])]\Z"
-    r"|(?P<stem>[a-z])_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
+    r"|(?P<stem>[A-Za-z]\w*?)_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
 )
 #: A number and its unit, as a string (``"1 ms"``).
 _QUANTITY = re.compile(

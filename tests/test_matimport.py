@@ -947,7 +947,8 @@ def test_a_csv_of_named_columns_is_a_raw_recording(tmp_path, capsys):
 
 
 def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
-    """Columns and variables named with their unit ("t [ms]", "Cart position [mm]", "y_mm")
+    """Columns and variables named with their unit ("t [ms]", "Cart position [mm]", "y_mm",
+    "time_ms")
     are in s, m and V once read: by the import (the sample time, recognition) and through the
     experiment file that maps them; a unit of another quantity in a mapped name is one line."""
     from tuning.commands.main import main
@@ -963,6 +964,11 @@ def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
     assert rec.controller.kp == pytest.approx(50.0, rel=1e-3)
     scipy.io.savemat(tmp_path / "mm.mat", {"y_mm": 1e3 * y, "v": v, "t": t})
     rec = read_experiment(tmp_path / "mm.mat")
+    np.testing.assert_allclose(rec.position, y, rtol=1e-12, atol=1e-15)
+    # A whole word before the unit, as a logger writes it (was 1 s a sample, P 50 unstable).
+    _csv(tmp_path / "log.csv", "time_ms,position_mm,voltage_V", 1e3 * t, 1e3 * y, v)
+    rec = read_experiment(tmp_path / "log.csv")
+    assert rec.sample_time == pytest.approx(0.001, rel=1e-12) and not rec.warnings
     np.testing.assert_allclose(rec.position, y, rtol=1e-12, atol=1e-15)
     (tmp_path / "bad.toml").write_text(
         'kind = "closed_loop"\nsample_time = 0.001\n[data]\ny = "ms_mm.csv:t [ms]"\n'
