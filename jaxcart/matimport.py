@@ -139,7 +139,6 @@ class Imported:
         head.append(f"  sample time {self.sample_time:g} s, {when}")
         if self.guess is not None:
             head += ["  " + line for line in self.guess.lines()]
-        head += [f"  warning: {line}" for line in late_start(self)]
         if self.problem:
             head.append(f"  {self.problem}")
         return head
@@ -589,6 +588,9 @@ def _meta(run: Imported, toml_folder) -> dict:
         "strength": "named by the user" if guess.named else "strong" if guess.confident else "weak",
         "sample_time_assumed": run.time_assumed,
     }
+    late = late_start(run)
+    if late:  # every command that reads the file warns (plausibility.check_integral_start)
+        meta["notes"]["late_start"] = late[0]
     return meta
 
 

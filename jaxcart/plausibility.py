@@ -284,13 +284,17 @@ def check_integral_start(where, rec) -> list[str]:
     """A run under integral action is simulated with its integral at 0 at the first sample: a
     recording whose clock starts :data:`LATE_START` or later may hold only a run's end (a
     scope that kept its last samples), when the integral had built up, which nothing recorded
-    says (the cart may even be at rest there, so the moving-start check sees nothing)."""
+    says (the cart may even be at rest there, so the moving-start check sees nothing); or an
+    error scope that the import noted starts far below the handout's step
+    (:func:`jaxcart.matimport.late_start`)."""
     pid = rec.controller
     if rec.kind != "closed_loop" or pid is None or float(pid.ki) == 0.0:
         return []
     t0 = float(np.asarray(rec.time)[0])
-    if not t0 >= LATE_START:
-        return []
+    if not t0 >= LATE_START:  # the clock says nothing: what the import noted, if anything
+        notes = rec.meta.get("notes")
+        late = notes.get("late_start") if isinstance(notes, dict) else None
+        return [f"{where}: {late} (noted by jaxcart import)"] if isinstance(late, str) else []
     data = rec.meta.get("data")
     label = "the data's time" if isinstance(data, dict) and "t" not in data else _label(rec, "t")
     return [

@@ -60,7 +60,6 @@ from jaxcart.matimport import (
     RAW_SUFFIXES,
     data_prefix,
     files_of,
-    late_start,
     read_signals,
     scan,
     split_source,
@@ -571,7 +570,7 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
             recording = check_recording(read_imported(run, quiet=True))
         if recording is None:
             continue
-        late = late_start(run) or check_integral_start(run.label, recording)
+        late = check_integral_start(run.label, recording)
         if late:  # its integral unknown at the first sample: a model of it would be wrong
             why = late[0].removeprefix(f"{run.label}: ")
             why += f"; to use it anyway, name it in {INDEX_NAME}"
