@@ -791,12 +791,20 @@ def _guess(column: str, names) -> str:
 
 
 #: A column named with its unit: "t [s]", "y (m)", "v[V]", "Cart position [mm]", or with it as
-#: a suffix: "y_mm",
-#: "t_ms" (the suffix one of the units a recording is often written in).
+#: a suffix: "y_mm", "t_ms" (the suffix one of the units a recording is often written in),
+#: or after a word that names the suffix's quantity ("time_ms", "position_mm", "voltage_mV";
+#: not "pos_s" or "v_sim_s", where the suffix is no unit).
 _UNIT_HEADER = re.compile(
     r"(?P<name>\w[\w ]*?)\s*[\[(](?P<unit>[^\])]*)[\])]\Z"
-    r"|(?P<stem>[A-Za-z]\w*?)_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
+    r"|(?P<stem>[A-Za-z])_(?P<suffix>s|ms|m|mm|cm|V|mV)\Z"
+    r"|(?P<word>[A-Za-z]\w*?)_(?P<worded>s|ms|m|mm|cm|V|mV)\Z"
 )
+#: The words that name a quantity, by the unit the format takes it in.
+_QUANTITY_WORDS = {
+    "s": ("time", "tout"),
+    "m": ("position", "pos", "cartposition", "cart_position", "error", "err", "reference", "ref"),
+    "V": ("voltage", "volt", "volts", "command"),
+}
 #: A number and its unit, as a string (``"1 ms"``).
 _QUANTITY = re.compile(
     r"\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(?P<unit>[\w/]*)\s*"
@@ -821,6 +829,10 @@ def named_unit(name: str) -> tuple[str, str] | None:
     match = _UNIT_HEADER.match(name.strip())
     if match is None:
         return None
+    if match["word"]:
+        unit = match["worded"]
+        si = _TO_SI[unit][0]
+        return (match["word"], unit) if match["word"].lower() in _QUANTITY_WORDS[si] else None
     return match["name"] or match["stem"], (match["unit"] or match["suffix"]).strip()
 
 

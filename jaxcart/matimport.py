@@ -82,6 +82,8 @@ class RawSignal:
     role: str
     why: str
     names: tuple[str, ...]
+    #: The Simulink model that saved it (its blockName's first part: "labcartsat"), or None.
+    model: str | None = None
 
 
 @dataclass(eq=False)
@@ -111,7 +113,13 @@ class Imported:
     @property
     def stem(self) -> str:
         """A name for its experiment file: the first file's stem (and its part)."""
-        return self.files[0].stem + ("" if self.part is None else f"-{self.part}")
+        part = "" if self.part is None else "-" + re.sub(r"[^\w.-]+", "_", self.part)
+        return self.files[0].stem + part
+
+    @property
+    def anchor(self) -> RawSignal:
+        """Its position, else its error (what FILE.mat:VARIABLE chooses it by)."""
+        return self.signals["y"] if "y" in self.signals else self.signals["e"]
 
     @property
     def experiment(self) -> str | None:
@@ -199,7 +207,16 @@ def read_signals(path: Path) -> list[RawSignal]:
             names = tuple(x for x in (name, s.label, block) if x)
             role, why = _role(names, s, many=s.count > 1)
             out.append(
-                RawSignal(path, f"{path.name}:{name}{selector}", s.values, s.time, role, why, names)
+                RawSignal(
+                    path,
+                    f"{path.name}:{name}{selector}",
+                    s.values,
+                    s.time,
+                    role,
+                    why,
+                    names,
+                    block.split("/", 1)[0].strip() or None if "/" in block else None,
+                )  # fmt: skip
             )
     return out
 
@@ -347,15 +364,11 @@ def scan(
             several[path] = found
     for path, variable in (chosen or {}).items():
         path = next(p for p in per_file if p.name == Path(path).name)
-        if path in several:  # the chosen position's run alone
-            several[path] = [
-                (part, picked)
-                for part, signals in several[path]
-                for picked in [_choose(path, signals, variable)]
-                if any(s.why == CHOSEN for s in picked)
-            ]
+        picked = _choose(path, per_file[path], variable)
+        if path in several:  # the chosen signal's run alone
+            several[path] = [_chosen_part(several[path], per_file[path], picked)]
         else:
-            per_file[path] = _choose(path, per_file[path], variable)
+            per_file[path] = picked
     anchors, partners, runs = [], [], []
     for path, signals in per_file.items():
         if path in several:
@@ -391,6 +404,17 @@ def scan(
     for files, signals, part in found:
         run = _assemble(files, signals)
         run.part = part
+        if (
+            run.problem is None
+            and part is not None
+            and files[0].name in named
+            and not (chosen or {}).get(files[0].name)
+        ):
+            run.problem = (  # which of the file's runs the name is for, only the user knows
+                f"{files[0].name} holds {len(several[files[0]])} runs ("
+                f"{', '.join(m for m, _ in several[files[0]])}); name the one you mean by its "
+                f"position or error, e.g. {run.anchor.source}"
+            )
         if run.problem is None:
             choice = next((named[f.name] for f in files if f.name in named), None)
             run.guess = recognise(_traces(run), choice)
@@ -400,36 +424,46 @@ def scan(
 
 def runs_in(signals: list[RawSignal]) -> list[tuple[str | None, list[RawSignal]]]:
     """The runs one file's ``signals`` hold: [(part, signals)], one run (part None) unless
-    they fall into groups of one length and one Simulink model each (the first part of the
-    block name: "labcartsat/cart", "labcartcolint/error") of which two or more hold a position
-    or an error, and every other signal has the length of one such group alone (a workspace
-    saved after two experiments: a P step's 3135 samples and a PI step's 6200). A part is
-    named by its model where the models differ, else by its number of samples."""
-    groups: dict[tuple, list[RawSignal]] = {}
+    they come from two or more Simulink models (the first part of each blockName:
+    "labcartsat/cart", "labcartcolint/error") of different lengths, each with a position or
+    an error of its own (a workspace saved after two experiments: the real cart's lab1_4.1.mat,
+    a P step's 3135 samples from labcartsat and a PI step's 6200 from labcartcolint). A signal
+    without a model (an N x 2 array) joins the model of its length; anything else keeps the
+    file one run, as saved (two runs of one model or one length are the user's to map). A
+    part is named by its model."""
+    by_model: dict[str, list[RawSignal]] = {}
+    loose = []
     for s in signals:
-        groups.setdefault((s.values.size, _model(s)), []).append(s)
-    anchored = {k: g for k, g in groups.items() if any(s.role in ("y", "e") for s in g)}
-    if len(anchored) < 2:
+        (by_model.setdefault(s.model, []) if s.model else loose).append(s)
+    lengths = {m: {s.values.size for s in g} for m, g in by_model.items()}
+    if len(by_model) < 2 or any(len(n) != 1 for n in lengths.values()):
         return [(None, signals)]
-    for key, group in groups.items():
-        if key in anchored:
-            continue
-        home = [k for k in anchored if k[0] == key[0]]
+    size = {m: next(iter(n)) for m, n in lengths.items()}
+    if len(set(size.values())) != len(size):
+        return [(None, signals)]
+    for s in loose:
+        home = [m for m, n in size.items() if n == s.values.size]
         if len(home) != 1:
-            return [(None, signals)]  # a signal of no run's length: one run, as saved
-        anchored[home[0]] = anchored[home[0]] + group
-    models = [m for _, m in anchored]
-    by_model = None not in models and len(set(models)) == len(models)
-    lengths = [n for n, _ in anchored]
-    if not by_model and len(set(lengths)) < len(lengths):
-        return [(None, signals)]  # two runs of one length and model: the user maps them
-    return [(m if by_model else str(n), g) for (n, m), g in sorted(anchored.items())]
+            return [(None, signals)]  # a signal of no model's length: one run, as saved
+        by_model[home[0]].append(s)
+    if not all(any(s.role in ("y", "e") for s in g) for g in by_model.values()):
+        return [(None, signals)]
+    return sorted(by_model.items(), key=lambda item: (size[item[0]], item[0]))
 
 
-def _model(s: RawSignal) -> str | None:
-    """The Simulink model that saved ``s`` (its block name's first part), or None."""
-    block = next((x for x in s.names if "/" in x), None)
-    return None if block is None else block.split("/", 1)[0].strip() or None
+def _chosen_part(parts, signals, picked) -> tuple[str, list[RawSignal]]:
+    """The part of ``parts`` that holds the signal the user chose (``picked``: the file's
+    ``signals`` with the choice made), with the choice made in it; an error chosen stays the
+    error (its run's position, if recorded, stays the position)."""
+    (mine,) = [k for k, s in enumerate(picked) if s.why == CHOSEN]
+    was = signals[mine]
+    for part, members in parts:
+        if any(m is was for m in members):
+            if was.role == "e":
+                return part, members
+            keep = {id(m) for m in members}
+            return part, [c for c, o in zip(picked, signals, strict=True) if id(o) in keep]
+    raise AssertionError("every signal is in a part")  # pragma: no cover
 
 
 def _assemble(files, signals) -> Imported:
@@ -578,7 +612,7 @@ def _meta(run: Imported, toml_folder) -> dict:
                 )
             meta["reference"] = {"kind": "step", "amplitude": step}
         else:  # the reference recorded, or r = y + e
-            step = _first_reference(run)
+            step = _final_reference(run)
         if spec.step is not None and not math.isclose(step, spec.step, rel_tol=0.01):
             meta["description"] += f"; its step {step:.4g} m, not the handout's"
     meta["notes"] = {
@@ -594,11 +628,12 @@ def _meta(run: Imported, toml_folder) -> dict:
     return meta
 
 
-def _first_reference(run: Imported) -> float:
-    """The reference [m] at the first sample: recorded, or the position plus the error."""
+def _final_reference(run: Imported) -> float:
+    """The reference [m] at the last sample (a step's, wherever it steps): recorded, or the
+    position plus the error."""
     if "r" in run.signals:
-        return float(run.signals["r"].values[0])
-    return float(run.signals["y"].values[0] + run.signals["e"].values[0])
+        return float(run.signals["r"].values[-1])
+    return float(run.signals["y"].values[-1] + run.signals["e"].values[-1])
 
 
 def late_start(run: Imported) -> list[str]:
@@ -613,8 +648,15 @@ def late_start(run: Imported) -> list[str]:
     gains = guess.controller or spec.controller or {}
     if "y" in run.signals or "r" in run.signals or not gains.get("ki") or spec.step is None:
         return []
-    e0 = float(run.signals["e"].values[0])
+    e = np.asarray(run.signals["e"].values, dtype=float)
+    e0 = float(e[0])
     if abs(e0) >= spec.step / 4:
+        return []
+    # A step from rest sets off at once (P 10 drives a 10 mm step at over 20 mm/s); a scope
+    # that starts mid-run finds the cart at rest or creeping (4.1e.mat: 5 mm in 7.7 s).
+    k = max(int(round(0.01 / run.sample_time)), 1)
+    early = e[: max(int(round(0.2 / run.sample_time)), k + 1)]
+    if early.size > k and np.max(np.abs(early[k:] - early[:-k])) / (k * run.sample_time) > 0.02:
         return []
     return [
         f"the error starts at {e0 * 1e3:.3g} mm, not at a step like the handout's "
@@ -735,13 +777,14 @@ def run_of(path, experiment: str | None = None) -> Imported:
     parts = [run for run in runs if path in run.files and run.part is not None]
     if len(parts) > 1:
         listed = "; ".join(
-            f"{run.part}: {run.signals['y' if 'y' in run.signals else 'e'].source}"
-            f"{'' if run.experiment is None else ' (' + EXPERIMENTS[run.experiment].what + ')'}"
+            f"{run.part}: "
+            + (run.problem if run.problem else run.anchor.source)
+            + ("" if run.experiment is None else f" ({EXPERIMENTS[run.experiment].what})")
             for run in parts
         )
         raise UserError(
-            f"{path}: holds {len(parts)} runs ({listed}); choose one by its position "
-            f"(jaxcart fit {path.name}:VARIABLE), or write an experiment file for each with "
+            f"{path}: holds {len(parts)} runs ({listed}); give FILE.mat:VARIABLE, the position "
+            f"or error of the one you mean, or write an experiment file for each with "
             f"jaxcart import {path.name}"
         )
     for run in runs:

@@ -452,19 +452,62 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     pi_run = read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:y")
     np.testing.assert_array_equal(pi_run.position, yp)
     assert pi_run.reference[0] == pytest.approx(0.4) and pi_run.command is None
-    # One file, two runs: both may be fitted together; one run twice may not.
+    # One file, two runs, each read by its file's name (as the lab reads them): both may be
+    # fitted together; one run twice may not.
+    from jaxcart.files import read_imported
     from jaxcart.plausibility import check_distinct
 
-    check_distinct([got, pi_run])
-    assert Path(pi_run.path).name == "lab1_4.1.mat:y"  # its name in a fit's tables
-    with pytest.raises(UserError, match="are identical samples"):
-        check_distinct([pi_run, read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:y")])
+    a, b = (read_imported(r, quiet=True) for r in runs)
+    assert Path(a.path).name == Path(b.path).name == "lab1_4.1.mat"
+    check_distinct([a, b])
+    with pytest.raises(UserError, match="are the same file"):
+        check_distinct([b, read_imported(runs[1], quiet=True)])
+    assert Path(pi_run.path).name == "lab1_4.1.mat:y"  # a chosen run: its name in a fit
     # The command writes each run's experiment file, named by its model.
     out = tmp_path / "out"
     assert main(["--no-cache", "import", str(tmp_path / "lab1_4.1.mat"), "--out", str(out)]) == 0
     assert "lab1_4.1.mat (labcartsat):" in capsys.readouterr().out
     made = read_experiment(out / "lab1_4.1-labcartsat.toml")
     np.testing.assert_array_equal(made.position, y)
+    # Named without saying which run (import --as, lab.toml): a question, not the first run.
+    for run in matimport.scan([tmp_path / "lab1_4.1.mat"], named={"lab1_4.1.mat": "pi"}):
+        assert run.problem.startswith("lab1_4.1.mat holds 2 runs (labcartsat, labcartcolint)")
+    (run,) = matimport.scan(
+        [tmp_path / "lab1_4.1.mat"], named={"lab1_4.1.mat": "pi"}, chosen={"lab1_4.1.mat": "y"}
+    )
+    assert run.part == "labcartcolint" and run.guess.experiment == "pi" and run.problem is None
+    # The error chosen stays the error, and its run's position the position.
+    (run,) = matimport.scan([tmp_path / "lab1_4.1.mat"], chosen={"lab1_4.1.mat": "Error"})
+    assert run.signals["y"].source == "lab1_4.1.mat:y" and run.signals["e"].source.endswith("Error")
+    # A part that is no run says why, in the one line.
+    scipy.io.savemat(
+        tmp_path / "bad.mat",
+        {
+            "Cartposition": _scope(y, t, block="labcartsat/cart"),
+            "y2": _scope(y + 3 * Q, t, block="labcartsat/cart"),
+            "y": _scope(yp, block="labcartcolint/cart position"),
+        },
+    )
+    with pytest.raises(
+        UserError, match=r"holds 2 runs \(labcartsat: bad.mat: 2 different signals look like a pos"
+    ):
+        read_experiment(tmp_path / "bad.mat")
+    # lab.toml names a run of the file by its position; the file alone is the question.
+    from tuning.lab.inputs import find_inputs
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    shutil.copy(tmp_path / "lab1_4.1.mat", lab)
+    (lab / "lab.toml").write_text('[recordings]\npi = "lab1_4.1.mat:y"\n')
+    found = find_inputs(lab)
+    np.testing.assert_array_equal(found.recordings["pi"].position, yp)
+    np.testing.assert_array_equal(found.recordings["pi"].reference, pi_run.reference)
+    (lab / "lab.toml").write_text('[recordings]\npi = "lab1_4.1.mat"\n')
+    with pytest.raises(UserError, match="name the one you mean .*, e.g. lab1_4.1.mat:"):
+        find_inputs(lab)
+    # Headers with a slash are no Simulink blocks: a CSV is one run.
+    _csv(tmp_path / "slash.csv", "position / m,error / m", y, 0.4 - y)
+    assert [r.part for r in matimport.scan([tmp_path / "slash.csv"])] == [None]
     # Two positions of one length and one model stay a question (two.mat above).
 
 
@@ -511,6 +554,11 @@ def test_an_error_scope_that_starts_near_zero_under_integral_action_is_warned(tm
     assert run.guess.experiment == "pi" and "late_start" not in run.meta()["notes"]
     rec = read_experiment(tmp_path / "4.1s.mat", experiment="pi")
     assert not any("the error starts at" in w for w in rec.warnings)
+    # A small step from rest (40 mm, under a quarter of the handout's) sets off at once: no note.
+    _, _, e = _pi_scopes(n, r=0.04)
+    scipy.io.savemat(tmp_path / "4.1m.mat", {"e": _scope(e, block="labcartcolint/error out")})
+    (run,) = matimport.scan([tmp_path / "4.1m.mat"], named={"4.1m.mat": "pi"})
+    assert "late_start" not in run.meta()["notes"]
     # The lab leaves such a run out of Part (iv) and the cart's fit, and says why.
     from tuning.lab.inputs import find_inputs
 
@@ -858,15 +906,14 @@ def test_numbered_time_vector_is_time_not_a_voltage(tmp_path):
 
 
 def test_two_runs_in_one_file_advice_maps_them(tmp_path):
-    """Two runs saved in one .mat (y1, v1, y2, v2) of one length and one model: choosing y1
-    leaves two voltages, and the advice is a [data] table (jaxcart import FILE.mat:v1 would
-    take the voltage for the position); following it reads the run. Of two lengths, they are
-    two runs, each named by its length, and choosing y1 reads its run."""
+    """Two runs saved in one .mat (y1, v1, y2, v2): choosing y1 leaves two voltages, and the
+    advice is a [data] table (jaxcart import FILE.mat:v1 would take the voltage for the
+    position); following it reads the run."""
     t, y, v = _p50(1500)
-    y2, v2 = 0.5 * y, 0.5 * v
+    t2, y2, v2 = _p50(1800)
     path = tmp_path / "p50.mat"
     scipy.io.savemat(
-        path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t), "v2": _scope(v2, t)}
+        path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t2), "v2": _scope(v2, t2)}
     )
     run = matimport.run_of(f"{path}:y1")
     assert "look like a voltage" in run.problem
@@ -877,18 +924,11 @@ def test_two_runs_in_one_file_advice_maps_them(tmp_path):
         '[controller]\nkp = 50.0\nv_limit = 6.0\n[reference]\nkind = "step"\namplitude = 0.4\n'
     )
     assert read_experiment(tmp_path / "run1.toml").n_samples == 1500
-    t2, y2, v2 = _p50(1800)
-    scipy.io.savemat(path, {"y1": _scope(y, t), "v1": _scope(v, t), "y2": _scope(y2, t2),
-                            "v2": _scope(v2, t2)})  # fmt: skip
-    assert [r.stem for r in matimport.scan([path])] == ["p50-1500", "p50-1800"]
-    run = matimport.run_of(f"{path}:y1")
-    assert run.problem is None and run.signals["v"].source == "p50.mat:v1"
 
 
 def test_lab_finds_upper_case_mat_and_says_why_no_run_is_used(real_folder, tmp_path):
     """A Windows copy's PART1.1.MAT is the tap (it was left out, unsaid); a folder whose only
-    .mat holds two runs of one length says why, not 'no experiment files found'; of two
-    lengths (the tap's array beside a P 50 step's scopes), the lab reads both."""
+    .mat holds two runs says why, not 'no experiment files found'."""
     from tuning.lab.inputs import find_inputs
 
     (real_folder / "part1.1.mat").rename(real_folder / "PART1.1.MAT")
@@ -899,14 +939,6 @@ def test_lab_finds_upper_case_mat_and_says_why_no_run_is_used(real_folder, tmp_p
     t, y, v = _p50(1500)
     tap = scipy.io.loadmat(real_folder / "PART1.1.MAT")["Cartposition"]
     scipy.io.savemat(lone / "lab1.mat", {"Cartposition": tap, "y": _scope(y, t), "v": _scope(v, t)})
-    inputs = find_inputs(lone)
-    assert {k: Path(r.path).name for k, r in inputs.recordings.items()} == {
-        "tap": "lab1.mat",
-        "p_step": "lab1.mat",
-    }
-    y2 = np.rint(np.interp(np.arange(t.size), np.arange(tap.shape[0]), tap[:, 1]) / Q) * Q
-    scipy.io.savemat(lone / "lab1.mat", {"Cartposition": _scope(y2, t), "y": _scope(y, t),
-                                         "v": _scope(v, t)})  # fmt: skip
     with pytest.raises(UserError, match="no recording can be used: lab1.mat: 2 different signals"):
         find_inputs(lone)
 
@@ -969,7 +1001,11 @@ def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
     scipy.io.savemat(tmp_path / "mm.mat", {"y_mm": 1e3 * y, "v": v, "t": t})
     rec = read_experiment(tmp_path / "mm.mat")
     np.testing.assert_allclose(rec.position, y, rtol=1e-12, atol=1e-15)
-    # A whole word before the unit, as a logger writes it (was 1 s a sample, P 50 unstable).
+    # A whole word before the unit, as a logger writes it (was 1 s a sample, P 50 unstable);
+    # a suffix after a word of another quantity is no unit.
+    from hw.expfile import named_unit
+
+    assert [named_unit(n) for n in ("pos_s", "v_sim_s", "volt_m")] == [None, None, None]
     _csv(tmp_path / "log.csv", "time_ms,position_mm,voltage_V", 1e3 * t, 1e3 * y, v)
     rec = read_experiment(tmp_path / "log.csv")
     assert rec.sample_time == pytest.approx(0.001, rel=1e-12) and not rec.warnings

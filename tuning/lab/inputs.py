@@ -307,12 +307,12 @@ def find_inputs(folder, *, partial: bool = False) -> Inputs:
         with inputs.reading(path.name, slot):
             inputs.recordings[slot] = _read_experiment(path)
             inputs.how[slot] = f"named in {INDEX_NAME}"
-    for slot, paths in named_raw.items():
+    for slot, (paths, chosen) in named_raw.items():
         with inputs.reading(" + ".join(p.name for p in paths), slot):
-            _use_raw(inputs, slot, paths, index_path)
+            _use_raw(inputs, slot, paths, index_path, chosen)
 
     taken = {p.resolve() for p in named.values()}
-    mapped = {p.resolve() for paths in named_raw.values() for p in paths}
+    mapped = {p.resolve() for paths, _ in named_raw.values() for p in paths}
     guesses: dict[str, list] = {}
     candidates = sorted(p for p in folder.glob("*.toml") if p.name != INDEX_NAME)
     for path in candidates:
@@ -457,7 +457,9 @@ def _read_index(inputs: Inputs, index_path: Path) -> tuple[dict, dict]:
         with inputs.reading(", ".join(map(str, names)), slot if slot in SLOTS else None):
             paths = _named_paths(index_path, slot, names)
             if all(p.suffix.lower() in RAW_SUFFIXES for p in paths):
-                named_raw[slot] = paths
+                chosen = {p.name: v for p, n in zip(paths, names, strict=True)
+                          for v in [(split_source(n) or (None, None))[1]] if v}  # fmt: skip
+                named_raw[slot] = (paths, chosen)
             elif len(paths) == 1:
                 named[slot] = paths[0]
             else:
@@ -478,7 +480,9 @@ def _named_paths(index_path: Path, slot: str, names: list) -> list[Path]:
             f"{index_path}: [recordings] {slot} is not a slot of the lab; use one of "
             f"{', '.join(SLOTS)}"
         )
-    paths = [folder / str(n) for n in names]
+    # "run.mat:y": the run of a workspace that holds several (matimport.runs_in), by its
+    # position or error; the file is checked, the variable when the run is read.
+    paths = [folder / (split_source(n) or (str(n), None))[0] for n in names]
     for n, path in zip(names, paths, strict=True):
         if path.is_dir():
             raise UserError(
@@ -518,10 +522,12 @@ def _raw_csv_files(inputs: Inputs, folder: Path, mapped: set) -> list[Path]:
     return out
 
 
-def _use_raw(inputs: Inputs, slot: str, paths: list, index_path: Path) -> None:
-    """The raw .mat run ``paths`` named as ``slot`` in lab.toml, read as that experiment."""
+def _use_raw(inputs: Inputs, slot: str, paths: list, index_path: Path, chosen: dict) -> None:
+    """The raw .mat run ``paths`` named as ``slot`` in lab.toml, read as that experiment
+    (``chosen``: {file name: variable}, the run of a file that holds several)."""
     named = {p.name: slot for p in paths}
-    runs = [r for r in scan(paths, named=named, one_run=True) if paths[0] in r.files]
+    runs = scan(paths, named=named, chosen=chosen, one_run=True)
+    runs = [r for r in runs if paths[0] in r.files]
     run = runs[0]
     if run.problem or len(run.files) != len(paths):
         why = run.problem or f"its files are not one run ({', '.join(p.name for p in paths)})"
@@ -546,7 +552,8 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
         if not run.usable():
             offered = [s for s in guess.candidates() if s in SLOTS]
             example = (offered or ["p_step"])[0]
-            how = f'in {INDEX_NAME}, e.g. [recordings] {example} = "{run.files[0].name}"'
+            name = run.anchor.source if run.part is not None else run.files[0].name
+            how = f'in {INDEX_NAME}, e.g. [recordings] {example} = "{name}"'
             inputs.unused.append((run.label, guess.question(run.label, how)))
             inputs.offers += [(s, run, "weak evidence") for s in offered]
             continue
@@ -644,6 +651,8 @@ def write_used(inputs: Inputs, out, final=None) -> list[Path]:
         written += _write_repeats(out, final, slot, runs, lines)
     for slot, run, why in inputs.offers:
         files = [data_prefix(final, p.parent) + p.name for p in run.files]
+        if run.part is not None:  # one of a workspace's runs: by its position or error
+            files = [data_prefix(final, run.files[0].parent) + run.anchor.source]
         value = (
             toml_str(files[0]) if len(files) == 1 else "[" + ", ".join(map(toml_str, files)) + "]"
         )
