@@ -47,7 +47,7 @@ from hw.expfile import si_factor, toml_value
 from jaxcart import matfile
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
-from jaxcart.recognition import EXPERIMENTS, Guess, Traces, recognise
+from jaxcart.recognition import EXPERIMENTS, MOVING_SPEED, Guess, Traces, recognise
 
 #: The lab's QUARC sample time [s], for data saved without time.
 ASSUMED_SAMPLE_TIME = 0.001
@@ -102,7 +102,7 @@ class Imported:
     copies: list = field(default_factory=list)
     ignored: list = field(default_factory=list)
     #: Which of a file's runs, where one file holds several (:func:`runs_in`): the Simulink
-    #: model that saved it ("labcartsat"), else its number of samples; None for the only one.
+    #: model that saved it ("labcartsat"); None for the only one.
     part: str | None = None
 
     @property
@@ -652,11 +652,13 @@ def late_start(run: Imported) -> list[str]:
     e0 = float(e[0])
     if abs(e0) >= spec.step / 4:
         return []
-    # A step from rest sets off at once (P 10 drives a 10 mm step at over 20 mm/s); a scope
-    # that starts mid-run finds the cart at rest or creeping (4.1e.mat: 5 mm in 7.7 s).
+    # A step that moves the cart from rest sets it off at once; a scope that starts mid-run
+    # finds it at rest or creeping (4.1e.mat: 5 mm in 7.7 s). (A step too small to move the
+    # cart until its integral has grown looks like a tail: the warning says "if".)
     k = max(int(round(0.01 / run.sample_time)), 1)
     early = e[: max(int(round(0.2 / run.sample_time)), k + 1)]
-    if early.size > k and np.max(np.abs(early[k:] - early[:-k])) / (k * run.sample_time) > 0.02:
+    speed = np.max(np.abs(early[k:] - early[:-k])) / (k * run.sample_time) if early.size > k else 0
+    if speed > MOVING_SPEED:
         return []
     return [
         f"the error starts at {e0 * 1e3:.3g} mm, not at a step like the handout's "
