@@ -223,10 +223,10 @@ def read_experiment(path, *, check: bool = True, experiment: str | None = None) 
 def read_imported(run, path=None, *, check: bool = True, quiet: bool = False) -> Recording:
     """The :class:`Recording` of a run of raw .mat files (a :class:`jaxcart.matimport.Imported`)
     through the experiment file its recognised (or named) experiment implies, held in memory;
-    ``path`` (default: its first file) names it. The guess and its evidence go to stderr
-    unless ``quiet``. A run that is no recording, or whose evidence is weak, is a UserError
-    (one line; the weak one asks the user to name the experiment)."""
-    path = Path(path) if path is not None else run.files[0]
+    ``path`` (default: :attr:`~jaxcart.matimport.Imported.name`) names it. The guess and its
+    evidence go to stderr unless ``quiet``. A run that is no recording, or whose evidence is
+    weak, is a UserError (one line; the weak one asks the user to name the experiment)."""
+    path = Path(path) if path is not None else run.name
     if run.problem:
         raise UserError(run.problem)
     if not run.usable():

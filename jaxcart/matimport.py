@@ -117,6 +117,13 @@ class Imported:
         return self.files[0].stem + part
 
     @property
+    def name(self) -> Path:
+        """What its recording is named by (a fit's tables and nuisances, the lab's lines): the
+        first file, or where the file holds several runs, the position (else error) chosen,
+        ``FILE.mat:VARIABLE``, as :func:`jaxcart.files.read_experiment` names a run chosen so."""
+        return self.files[0] if self.part is None else self.files[0].with_name(self.anchor.source)
+
+    @property
     def anchor(self) -> RawSignal:
         """Its position, else its error (what FILE.mat:VARIABLE chooses it by)."""
         return self.signals["y"] if "y" in self.signals else self.signals["e"]

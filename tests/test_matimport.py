@@ -452,15 +452,18 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     pi_run = read_experiment(f"{tmp_path / 'lab1_4.1.mat'}:y")
     np.testing.assert_array_equal(pi_run.position, yp)
     assert pi_run.reference[0] == pytest.approx(0.4) and pi_run.command is None
-    # One file, two runs, each read by its file's name (as the lab reads them): both may be
-    # fitted together; one run twice may not.
+    # One file, two runs, each read as the lab reads them: named by the position chosen, as
+    # read_experiment names them (two names in a fit's tables and the lab's lines); both may
+    # be fitted together, one run twice may not, named alike or not.
     from jaxcart.files import read_imported
     from jaxcart.plausibility import check_distinct
 
     a, b = (read_imported(r, quiet=True) for r in runs)
-    assert Path(a.path).name == Path(b.path).name == "lab1_4.1.mat"
+    assert Path(a.path).name == "lab1_4.1.mat:Cartposition" and a.path == got.path
+    assert Path(b.path).name == "lab1_4.1.mat:y" == Path(pi_run.path).name
     check_distinct([a, b])
-    with pytest.raises(UserError, match="are the same file"):
+    check_distinct([read_imported(runs[0], tmp_path / "lab1_4.1.mat", quiet=True), b])
+    with pytest.raises(UserError, match="are identical samples"):
         check_distinct([b, read_imported(runs[1], quiet=True)])
     assert Path(pi_run.path).name == "lab1_4.1.mat:y"  # a chosen run: its name in a fit
     # The command writes each run's experiment file, named by its model.
@@ -505,6 +508,18 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     (lab / "lab.toml").write_text('[recordings]\npi = "lab1_4.1.mat"\n')
     with pytest.raises(UserError, match="name the one you mean .*, e.g. lab1_4.1.mat:"):
         find_inputs(lab)
+    # Found without lab.toml, each run goes to its part, named apart: the diagnosis table's
+    # rows find their parts by these names (both runs were lab1_4.1.mat, the PI step's row
+    # said Part (ii)).
+    from types import SimpleNamespace
+
+    from tuning.lab.diagnosis import _part_of
+
+    (lab / "lab.toml").unlink()
+    found = find_inputs(lab)
+    names = {slot: Path(r.path).name for slot, r in found.recordings.items()}
+    assert names == {"p_step": "lab1_4.1.mat:Cartposition", "pi": "lab1_4.1.mat:y"}
+    assert _part_of(SimpleNamespace(inputs=found), "lab1_4.1.mat:y") == "(iv) PI"
     # Headers with a slash are no Simulink blocks: a CSV is one run.
     _csv(tmp_path / "slash.csv", "position / m,error / m", y, 0.4 - y)
     assert [r.part for r in matimport.scan([tmp_path / "slash.csv"])] == [None]

@@ -154,7 +154,7 @@ class Inputs:
             for again in self.repeats.get(slot, []):
                 lines.append(f"    and a repeat: {_shown(again, self.folder)}")
                 run = next(
-                    (r for r in self.imported_repeats.get(slot, []) if r.files[0] == again.path),
+                    (r for r in self.imported_repeats.get(slot, []) if r.name == again.path),
                     None,
                 )
                 lines += [f"      {e.line()}" for e in run.guess.evidence] if run else []
@@ -552,7 +552,7 @@ def _recognise_raw(inputs: Inputs, paths: list) -> None:
         if not run.usable():
             offered = [s for s in guess.candidates() if s in SLOTS]
             example = (offered or ["p_step"])[0]
-            name = run.anchor.source if run.part is not None else run.files[0].name
+            name = run.name.name  # FILE.mat:VARIABLE for one of a workspace's runs
             how = f'in {INDEX_NAME}, e.g. [recordings] {example} = "{name}"'
             inputs.unused.append((run.label, guess.question(run.label, how)))
             inputs.offers += [(s, run, "weak evidence") for s in offered]
