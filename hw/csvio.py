@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 import sys
 import time
 import warnings
@@ -40,10 +41,11 @@ def read_numeric_csv(path, name: str, progress=None):
     byte-order mark dropped, CRLF line ends and a comma at the end of every line (a
     spreadsheet's empty last column) accepted; a header separated by semicolons or tabs (a
     spreadsheet's regional export) reads every comma as a decimal point and every separator as a
-    comma. Raises :class:`CSVError` naming ``name``, the
-    line and the column for a line with the wrong number of fields or a value that is not a
-    number, and naming the cause and the fix for a file that is not CSV text (UTF-16, a
-    workbook, :mod:`hw.textfiles`), has no header line, or is MATLAB's ``save -ascii`` output.
+    comma; names and numbers separated by spaces read as comma-separated ones. Raises
+    :class:`CSVError` naming ``name``, the line and the column for a line with the wrong number
+    of fields or a value that is not a number, and naming the cause and the fix for a file
+    that is not CSV text (UTF-16, a workbook, :mod:`hw.textfiles`), has no header line, or is
+    MATLAB's ``save -ascii`` output.
     ``progress`` (a callable taking a fraction 0-1, or None) defaults to a line on stderr for
     large files.
     """
@@ -65,7 +67,13 @@ def _read_numeric_csv(path, name: str, progress=None):
         if header is None:
             return None, np.empty((0, 0)), np.empty(0, dtype=np.int64)
         sep = next((c for c in ";\t" if len(header) == 1 and c in header[0]), None)
-        if sep is not None:
+        if sep is None and _spaced(header, f, start):
+            # Names and numbers separated by spaces (MATLAB's writematrix with a space, a
+            # logger's text): each run of spaces a comma, as the CSV it stands for.
+            f.seek(0)
+            f = io.BytesIO(_SPACES.sub(b",", _EDGE_SPACES.sub(b"", f.read())))
+            header, lineno, start = _header(f, name)
+        elif sep is not None:
             # A spreadsheet's regional export (fields separated by semicolons, decimal commas)
             # or a tab-separated one: read as the CSV it stands for, every comma a decimal
             # point and every separator a comma (the line numbers stay). In memory: such
@@ -134,6 +142,24 @@ def _header(f, name):
         if not row or not "".join(row).strip() or row[0].lstrip().startswith(COMMENTS):
             continue
         return [h.strip() for h in row], lineno, f.tell()
+
+
+#: Runs of spaces and tabs (between fields), and those at a line's start or end.
+_SPACES = re.compile(rb"[ \t]+")
+_EDGE_SPACES = re.compile(rb"(?m)^[ \t]+|[ \t]+(?=\r?$)")
+
+
+def _spaced(header, f, start) -> bool:
+    """Whether a one-field header is names separated by spaces over lines of as many numbers
+    separated by spaces (the first line after it says; ``f`` is left where it was)."""
+    names = header[0].split() if len(header) == 1 else []
+    if len(names) < 2 or _numbers(names):
+        return False
+    here = f.tell()
+    f.seek(start)
+    first = f.readline().decode("utf-8", "replace").split()
+    f.seek(here)
+    return len(first) == len(names) and _numbers(first)
 
 
 def _numbers(fields) -> bool:

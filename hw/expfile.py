@@ -57,6 +57,9 @@ from hw.textfiles import HEAD, check_decodes, not_text, portable_path
 KINDS = ("tap", "open_loop", "closed_loop")
 #: Suffixes of data files (given where the experiment's TOML is expected, they are said so).
 DATA_SUFFIXES = (".csv", ".txt", ".dat", ".mat", ".xlsx", ".xls", ".tsv")
+#: Suffixes of text tables a [data] table maps columns of ("file.csv:column"; any case): named
+#: columns separated by commas, semicolons, tabs or spaces.
+TEXT_SUFFIXES = (".csv", ".tsv", ".txt")
 COLUMNS = ("t", "y", "v", "r", "e")
 COLUMN_UNITS = {"t": "s", "y": "m", "v": "V", "r": "m", "e": "m"}
 #: Columns of the hardware loop's own timing, allowed in a CSV and ignored as signals.
@@ -475,7 +478,7 @@ class Reader:
             values, time = self.mat_reader(self, file, variable, field)
             values = values * self.mapped_unit(name, variable, field)
             return Signal(values, time, source, lambda i: f"row {i + 1}")
-        if file.lower().endswith((".csv", ".txt")):
+        if file.lower().endswith(TEXT_SUFFIXES):
             header, columns, lines = self.read_csv(file, field)
             if variable not in columns:
                 self.fail(
@@ -489,7 +492,7 @@ class Reader:
                 f"{field} = {source!r}: {file} is an Excel workbook; in Excel use File > Save As "
                 f'> CSV UTF-8 and map its column ("{file.rsplit(".", 1)[0]}.csv:{variable}")'
             )
-        self.fail(f"{field} = {source!r}: the file must be .mat or .csv")
+        self.fail(f"{field} = {source!r}: the file must be .mat or a text table (.csv, .tsv, .txt)")
 
     def data_path(self, name, field) -> Path:
         path = self.folder / name

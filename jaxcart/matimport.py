@@ -43,7 +43,7 @@ import numpy as np
 
 from hw.atomicio import write_text
 from hw.csvio import CSVError, read_numeric_csv
-from hw.expfile import si_factor, toml_value
+from hw.expfile import TEXT_SUFFIXES, si_factor, toml_value
 from jaxcart import matfile
 from jaxcart.errors import UserError
 from jaxcart.params import ENCODER_RESOLUTION
@@ -177,13 +177,14 @@ class Imported:
 # ---------------------------------------------------------------- reading the files
 
 
-#: The suffixes of raw recordings (any case): the scopes' .mat files; CSV (or .txt) files of
-#: named columns without an experiment file.
-RAW_SUFFIXES = (".mat", ".csv", ".txt")
+#: The suffixes of raw recordings (any case): the scopes' .mat files; text tables of named
+#: columns without an experiment file.
+RAW_SUFFIXES = (".mat", *TEXT_SUFFIXES)
 
 
 def is_csv(path) -> bool:
-    return Path(path).suffix.lower() in (".csv", ".txt")
+    """A text table (:data:`hw.expfile.TEXT_SUFFIXES`), not a MATLAB file."""
+    return Path(path).suffix.lower() in TEXT_SUFFIXES
 
 
 def read_signals(path: Path) -> list[RawSignal]:
@@ -714,7 +715,10 @@ def write_imported(run: Imported, toml_path, *, force: bool = False) -> Path:
     return write_text(toml_path, text, force=force)
 
 
-_SOURCE = re.compile(r"(?P<file>.*\.(mat|csv|txt))(?::(?P<variable>[^:/\\]+))?\Z", re.IGNORECASE)
+_SOURCE = re.compile(
+    r"(?P<file>.*\.(" + "|".join(x[1:] for x in RAW_SUFFIXES) + r"))(?::(?P<variable>[^:/\\]+))?\Z",
+    re.IGNORECASE,
+)
 
 
 def split_source(text) -> tuple[Path, str | None]:

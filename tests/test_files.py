@@ -447,6 +447,21 @@ def test_csv_blocks_progress_and_exact_round_trip(tmp_path, monkeypatch, capsys)
         (tmp_path / "regional.csv").write_text(text + f"0,002{sep}x{sep}6\n")
         with pytest.raises(csvio.CSVError, match=r"regional.csv line 5, column y: 'x'"):
             csvio.read_numeric_csv(tmp_path / "regional.csv", "regional.csv")
+    # Names and numbers separated by spaces (MATLAB's writematrix with a space, padded as
+    # save -ascii pads, CRLF): the same, a bad value named as in any other (it was "column
+    # 't y v': '0 0.5 1' is not a number"); where the names and the numbers do not count
+    # alike ("cart position" over two numbers) it is not taken for a spaced table.
+    text = "# exported\r\nt  y v\r\n   0  0.5   1 \r\n 0.001 -2.25e-3 6\r\n"
+    (tmp_path / "spaced.txt").write_text(text, newline="")
+    head, table, lines = csvio.read_numeric_csv(tmp_path / "spaced.txt", "spaced.txt")
+    assert head == ["t", "y", "v"] and lines.tolist() == [3, 4]
+    np.testing.assert_array_equal(table, [[0.0, 0.5, 1.0], [0.001, -2.25e-3, 6.0]])
+    (tmp_path / "spaced.txt").write_text(text + "0.002 x 6\r\n", newline="")
+    with pytest.raises(csvio.CSVError, match=r"spaced.txt line 5, column y: 'x'"):
+        csvio.read_numeric_csv(tmp_path / "spaced.txt", "spaced.txt")
+    (tmp_path / "odd.txt").write_text("time,cart position\n0 1\n")
+    with pytest.raises(csvio.CSVError, match=r"odd.txt line 2: 1 fields, the header has 2"):
+        csvio.read_numeric_csv(tmp_path / "odd.txt", "odd.txt")
 
 
 @pytest.mark.parametrize("cell", ["", " ", "\t", "  \t "])

@@ -1033,6 +1033,42 @@ def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
         read_experiment(tmp_path / "bad.toml")
 
 
+def test_a_table_saved_otherwise_reads_as_its_csv(tmp_path):
+    """The same run saved as a tab-separated .tsv (a logger's export), with semicolons and
+    decimal commas (a European Excel's CSV) and with a byte-order mark and CRLF line ends:
+    each reads as the comma-separated CSV does, through the import's experiment file too, and
+    a lab folder takes the .tsv (it was refused: "not a .mat or .csv file")."""
+    from tuning.commands.main import main
+    from tuning.lab.inputs import find_inputs
+
+    t, y, v = _p50(2000)
+    rows = list(zip(t, y, v, strict=True))
+    (tmp_path / "log.tsv").write_text(
+        "time\tposition\tvoltage\n" + "".join(f"{a:.17g}\t{b:.17g}\t{c:.17g}\n" for a, b, c in rows)
+    )
+    (tmp_path / "eu.csv").write_text(
+        "time;position;voltage\n"
+        + "".join(f"{a:.4f};{b:.7f};{c:.5f}\n".replace(".", ",") for a, b, c in rows)
+    )
+    with open(tmp_path / "bom.csv", "w", encoding="utf-8-sig", newline="\r\n") as f:
+        body = "".join(f"{a:.17g},{b:.17g},{c:.17g}\n" for a, b, c in rows)
+        f.write("time,position,voltage\n" + body)
+    for name in ("log.tsv", "eu.csv", "bom.csv"):
+        got = read_experiment(tmp_path / name)
+        np.testing.assert_allclose(got.position, y, rtol=0, atol=1e-7, err_msg=name)
+        assert got.meta["notes"]["recognised_as"] == "p_step", name
+    out = tmp_path / "o"
+    assert main(["--no-cache", "import", str(tmp_path / "log.tsv"), "--out", str(out)]) == 0
+    rec = read_experiment(tmp_path / "o" / "log.toml")
+    np.testing.assert_array_equal(rec.position, y)
+    assert rec.controller.kp == pytest.approx(50.0, rel=1e-3)
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    shutil.copy(tmp_path / "log.tsv", lab)
+    inputs = find_inputs(lab)
+    np.testing.assert_array_equal(inputs.recordings["p_step"].position, y)
+
+
 def test_a_scope_started_before_the_step_is_the_step(tmp_path):
     """A P 50 step recorded from 0.5 s before it (the cart at rest, the command at 0 V): the
     controller is identified from the step on and the run is Part (ii)'s, with strong

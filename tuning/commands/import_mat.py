@@ -72,7 +72,8 @@ def run(args) -> int:
         found = split_source(text)
         if found is None:
             raise UserError(
-                f"{text}: not a .mat or .csv file; give FILE.mat, FILE.mat:variable or FILE.csv"
+                f"{text}: not a .mat file nor a text table (.csv, .tsv, .txt); give FILE.mat, "
+                "FILE.mat:variable or FILE.csv"
             )
         path, variable = found
         if not path.is_file():

@@ -506,11 +506,12 @@ def _raw_files(meta: dict, folder: Path) -> set:
 
 
 def _raw_csv_files(inputs: Inputs, folder: Path, mapped: set) -> list[Path]:
-    """The CSV files of ``folder`` that no experiment file maps and that read as a table of
-    named columns (another simulator's recordings); any other CSV file is listed unused,
-    with why, and does not stop the lab."""
+    """The CSV (and .tsv) files of ``folder`` that no experiment file maps and that read as a
+    table of named columns (another simulator's recordings); any other is listed unused, with
+    why, and does not stop the lab. (A .txt file is read where lab.toml names it: in a folder
+    it is more often notes.)"""
     out = []
-    for path in files_of(folder, (".csv",)):
+    for path in files_of(folder, (".csv", ".tsv")):
         if path.resolve() in mapped:
             continue
         try:
