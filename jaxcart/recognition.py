@@ -487,7 +487,9 @@ def _error_features(e, ts: float, settings: dict) -> list[Evidence]:
     e = np.asarray(e, dtype=float)
     r = float(e[0])
     if abs(r) < 1e-3:
-        return [Evidence("the recorded error starts at zero: no step at t = 0", (), 1)]
+        # Under a millimetre: no step of the handout's (a tail's last error, say).
+        text = f"the recorded error starts at {r * 1e3:.3g} mm, under 1 mm: no step at t = 0"
+        return [Evidence(text, (), 1)]
     # The cart cannot move faster than JUMP_SPEED: a faster change is the reference's.
     jumps = np.flatnonzero(np.abs(np.diff(e)) > max(1e-3, JUMP_SPEED * ts))
     if jumps.size:

@@ -1132,3 +1132,11 @@ def test_a_scopes_last_samples_are_imported_as_recorded_and_said_so(builtin, tmp
     assert f"its step {step:.4g} m, not the handout's" in toml.read_text()
     (late,) = [w for w in got.warnings if "integral" in w]
     assert "the time starts at t = 5 s" in late and "ki = 15 V/(m s)" in late
+    # A tail under a millimetre (the students' error_section4.mat: 0.96 mm from t = 15 s): no
+    # step to read, said with the error it starts at (it said "starts at zero"), and a question.
+    flat = np.full(2246, 0.956e-3)
+    t15 = 15.0 + np.arange(flat.size) * 0.001
+    scipy.io.savemat(tmp_path / "es4.mat", {"Error": np.column_stack([t15, flat])})
+    (run,) = matimport.scan([tmp_path / "es4.mat"])
+    assert not run.guess.confident
+    assert any("starts at 0.956 mm, under 1 mm: no step" in e.text for e in run.guess.evidence)
