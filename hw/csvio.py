@@ -66,6 +66,7 @@ def _read_numeric_csv(path, name: str, progress=None):
         header, lineno, start = _header(f, name)
         if header is None:
             return None, np.empty((0, 0)), np.empty(0, dtype=np.int64)
+        header, lineno, start = _past_title(f, header, lineno, start, name)
         sep = next((c for c in ";\t" if len(header) == 1 and c in header[0]), None)
         if sep is None and _spaced(header, f, start):
             # Names and numbers separated by spaces (MATLAB's writematrix with a space, a
@@ -84,6 +85,7 @@ def _read_numeric_csv(path, name: str, progress=None):
         _check_header(header, lineno, name)
         if len(header) > 1 and header[-1] == "":  # "t,y,v,": the spreadsheet's empty column
             header = header[:-1]
+        header, lineno, start = _with_units_row(f, header, lineno, start)
         ncols = len(header)
         capacity = _count_lines(f, start)
         table = np.empty((capacity, ncols))
@@ -144,6 +146,19 @@ def _header(f, name):
         return [h.strip() for h in row], lineno, f.tell()
 
 
+def _past_title(f, header, lineno, start, name):
+    """(header, its line's number, where the data start) past a title line: one field (no
+    separator in it) over a line of several names ("P 50 step, run 3" above "t,y,v"); as it
+    was otherwise."""
+    if len(header) != 1 or any(c in header[0] for c in ";\t") or " " not in header[0].strip():
+        return header, lineno, start
+    f.seek(start)
+    names, below, after = _header(f, name)
+    if names is None or len(names) < 2 or _numbers(names):
+        return header, lineno, start
+    return names, lineno + below, after
+
+
 #: Runs of spaces and tabs (between fields), and those at a line's start or end.
 _SPACES = re.compile(rb"[ \t]+")
 _EDGE_SPACES = re.compile(rb"(?m)^[ \t]+|[ \t]+(?=\r?$)")
@@ -160,6 +175,33 @@ def _spaced(header, f, start) -> bool:
     first = f.readline().decode("utf-8", "replace").split()
     f.seek(here)
     return len(first) == len(names) and _numbers(first)
+
+
+#: Units a logger's second header line names (case as written); a line of them under the names
+#: is their units (at least half of its fields among these, none longer than 6 characters).
+_UNITS = frozenset({"s", "ms", "us", "µs", "m", "mm", "cm", "um", "µm", "V", "mV", "A", "mA",
+                    "N", "m/s", "mm/s", "rad", "deg", "-", "1"})  # fmt: skip
+
+
+def _with_units_row(f, header, lineno, start):
+    """(header, its line's number, where the data start) with a units line under the names
+    ("time,position,voltage" over "s,m,V", a logger's export) folded into the names ("time
+    [s]"), so that a unit the reader knows converts (:func:`hw.expfile.si_factor`); as it was
+    where the next line is no such line."""
+    f.seek(start)
+    raw = f.readline()
+    row = next(csv.reader([raw.decode("utf-8", "replace")]), [])
+    units = [u.strip().strip("[]()").strip() for u in row[: len(header)]]
+    if (
+        len(row) < len(header)
+        or _numbers([u for u in units if u not in ("-", "1")])
+        or any(len(u) > 6 for u in units)
+        or sum(u in _UNITS for u in units) * 2 < len(header)
+    ):
+        return header, lineno, start
+    pairs = zip(header, units, strict=True)
+    named = [h if not u or "[" in h or "(" in h else f"{h} [{u}]" for h, u in pairs]
+    return named, lineno + 1, f.tell()
 
 
 def _numbers(fields) -> bool:

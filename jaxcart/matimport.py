@@ -242,11 +242,28 @@ def _csv_signals(path: Path) -> list[RawSignal]:
     for k, name in enumerate(header):
         column = _Column(table[:, k] * si_factor(name))  # "t [ms]", "y_mm": in s, m, V
         role, why = _role((name,), column, many=False)
+        if _is_row_index(name, table[:, k]):  # pandas' to_csv: an unnamed index first
+            role, why = "?", "a row index (0, 1, 2, ...), not a signal"
         out.append(RawSignal(path, f"{path.name}:{name}", column.values, None, role, why, (name,)))
-    if all(s.role != "t" for s in out) and _is_clock(out[0].values):
+    index = _is_row_index(header[0], table[:, 0])  # counts rows, not seconds: 1 kHz assumed
+    if all(s.role != "t" for s in out) and _is_clock(out[0].values) and not index:
         # No column named time: the first, where it ticks at a steady step, as in every CSV.
         out[0] = dataclasses.replace(out[0], role="t", why="the first column, a steady clock")
     return out
+
+
+#: Header names of a row index (pandas writes its index unnamed, or "Unnamed: 0" once read
+#: back and written again).
+_INDEX_NAMES = ("", "index", "idx", "row", "#", "n", "k", "sample", "samples")
+
+
+def _is_row_index(name: str, values) -> bool:
+    """Whether a column is a row index: named as one (:data:`_INDEX_NAMES`, "Unnamed: ...")
+    and counting 0, 1, 2, ... (or from 1)."""
+    low = name.strip().lower()
+    if low not in _INDEX_NAMES and not low.startswith("unnamed"):
+        return False
+    return bool(values[0] in (0.0, 1.0) and np.all(np.diff(values) == 1.0))
 
 
 def _is_clock(values) -> bool:

@@ -459,6 +459,23 @@ def test_csv_blocks_progress_and_exact_round_trip(tmp_path, monkeypatch, capsys)
     (tmp_path / "spaced.txt").write_text(text + "0.002 x 6\r\n", newline="")
     with pytest.raises(csvio.CSVError, match=r"spaced.txt line 5, column y: 'x'"):
         csvio.read_numeric_csv(tmp_path / "spaced.txt", "spaced.txt")
+    # A logger's units line under the names: folded into them, where the reader converts a
+    # unit it knows (it was "column time: 'ms' is not a number"); a second line of names is
+    # no units line and stays an error.
+    (tmp_path / "units.csv").write_text("time,y,volts,\n[ms],mm,V,\n0,0.5,1,\n1,-2.25,6,\n")
+    head, table, lines = csvio.read_numeric_csv(tmp_path / "units.csv", "units.csv")
+    assert head == ["time [ms]", "y [mm]", "volts [V]"] and lines.tolist() == [3, 4]
+    np.testing.assert_array_equal(table, [[0.0, 0.5, 1.0], [1.0, -2.25, 6.0]])
+    from hw.expfile import si_factor
+
+    assert [si_factor(h) for h in head] == [1e-3, 1e-3, 1.0]
+    # A title line above the names (it was "line 2: 3 fields, the header has 1").
+    (tmp_path / "title.csv").write_text("P 50 step - run 3\nt,y,v\n0,0.5,1\n")
+    head, table, lines = csvio.read_numeric_csv(tmp_path / "title.csv", "title.csv")
+    assert head == ["t", "y", "v"] and lines.tolist() == [3] and table.tolist() == [[0, 0.5, 1]]
+    (tmp_path / "names.csv").write_text("t,y,v\nTime,Position,Voltage\n0,0.5,1\n")
+    with pytest.raises(csvio.CSVError, match=r"names.csv line 2, column t: 'Time'"):
+        csvio.read_numeric_csv(tmp_path / "names.csv", "names.csv")
     (tmp_path / "odd.txt").write_text("time,cart position\n0 1\n")
     with pytest.raises(csvio.CSVError, match=r"odd.txt line 2: 1 fields, the header has 2"):
         csvio.read_numeric_csv(tmp_path / "odd.txt", "odd.txt")

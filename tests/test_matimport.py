@@ -1035,9 +1035,10 @@ def test_a_raw_file_in_other_units_by_its_names_is_read_in_si(tmp_path):
 
 def test_a_table_saved_otherwise_reads_as_its_csv(tmp_path):
     """The same run saved as a tab-separated .tsv (a logger's export), with semicolons and
-    decimal commas (a European Excel's CSV) and with a byte-order mark and CRLF line ends:
-    each reads as the comma-separated CSV does, through the import's experiment file too, and
-    a lab folder takes the .tsv (it was refused: "not a .mat or .csv file")."""
+    decimal commas (a European Excel's CSV), with a byte-order mark and CRLF line ends, and
+    in ms and mm with a units line under the names: each reads as the comma-separated CSV
+    does, through the import's experiment file too, and a lab folder takes the .tsv (it was
+    refused: "not a .mat or .csv file")."""
     from tuning.commands.main import main
     from tuning.lab.inputs import find_inputs
 
@@ -1053,7 +1054,11 @@ def test_a_table_saved_otherwise_reads_as_its_csv(tmp_path):
     with open(tmp_path / "bom.csv", "w", encoding="utf-8-sig", newline="\r\n") as f:
         body = "".join(f"{a:.17g},{b:.17g},{c:.17g}\n" for a, b, c in rows)
         f.write("time,position,voltage\n" + body)
-    for name in ("log.tsv", "eu.csv", "bom.csv"):
+    (tmp_path / "units.csv").write_text(
+        "time,position,voltage\nms,mm,V\n"
+        + "".join(f"{1e3 * a:.17g},{1e3 * b:.17g},{c:.17g}\n" for a, b, c in rows)
+    )
+    for name in ("log.tsv", "eu.csv", "bom.csv", "units.csv"):
         got = read_experiment(tmp_path / name)
         np.testing.assert_allclose(got.position, y, rtol=0, atol=1e-7, err_msg=name)
         assert got.meta["notes"]["recognised_as"] == "p_step", name
@@ -1067,6 +1072,17 @@ def test_a_table_saved_otherwise_reads_as_its_csv(tmp_path):
     shutil.copy(tmp_path / "log.tsv", lab)
     inputs = find_inputs(lab)
     np.testing.assert_array_equal(inputs.recordings["p_step"].position, y)
+    # pandas' DataFrame.to_csv: an unnamed index first. It is no signal: it was a second
+    # voltage (a question), and without a time column it was the time, 1 s a sample.
+    for name, head, cols in (("pandas.csv", ",time,position,voltage", (t, y, v)),
+                             ("pandas2.csv", "Unnamed: 0,position,voltage", (y, v))):  # fmt: skip
+        _csv(tmp_path / name, head, np.arange(t.size), *cols)
+        run = matimport.run_of(tmp_path / name)
+        assert run.problem is None and run.sample_time == pytest.approx(0.001), name
+        assert [s.why for s in run.ignored] == ["a row index (0, 1, 2, ...), not a signal"]
+        got = read_experiment(tmp_path / name)
+        np.testing.assert_array_equal(got.position, y)
+        assert got.controller.kp == pytest.approx(50.0, rel=1e-3)
 
 
 def test_a_scope_started_before_the_step_is_the_step(tmp_path):
