@@ -178,7 +178,8 @@ def _spaced(header, f, start) -> bool:
 
 
 #: Units a logger's second header line names (case as written); a line of them under the names
-#: is their units (at least half of its fields among these, none longer than 6 characters).
+#: is their units (at least half of its fields among these and not "-" or "1", a missing value
+#: or a one in a line of data; none longer than 6 characters).
 _UNITS = frozenset({"s", "ms", "us", "µs", "m", "mm", "cm", "um", "µm", "V", "mV", "A", "mA",
                     "N", "m/s", "mm/s", "rad", "deg", "-", "1"})  # fmt: skip
 
@@ -196,7 +197,7 @@ def _with_units_row(f, header, lineno, start):
         len(row) < len(header)
         or _numbers([u for u in units if u not in ("-", "1")])
         or any(len(u) > 6 for u in units)
-        or sum(u in _UNITS for u in units) * 2 < len(header)
+        or sum(u in _UNITS and u not in ("-", "1") for u in units) * 2 < len(header)
     ):
         return header, lineno, start
     pairs = zip(header, units, strict=True)

@@ -473,6 +473,9 @@ def test_csv_blocks_progress_and_exact_round_trip(tmp_path, monkeypatch, capsys)
     (tmp_path / "title.csv").write_text("P 50 step - run 3\nt,y,v\n0,0.5,1\n")
     head, table, lines = csvio.read_numeric_csv(tmp_path / "title.csv", "title.csv")
     assert head == ["t", "y", "v"] and lines.tolist() == [3] and table.tolist() == [[0, 0.5, 1]]
+    (tmp_path / "dash.csv").write_text("t,y,v\n1,-,1\n")  # a missing value: no units line
+    with pytest.raises(csvio.CSVError, match=r"dash.csv line 2, column y: '-'"):
+        csvio.read_numeric_csv(tmp_path / "dash.csv", "dash.csv")
     (tmp_path / "names.csv").write_text("t,y,v\nTime,Position,Voltage\n0,0.5,1\n")
     with pytest.raises(csvio.CSVError, match=r"names.csv line 2, column t: 'Time'"):
         csvio.read_numeric_csv(tmp_path / "names.csv", "names.csv")
