@@ -148,7 +148,7 @@ def _header(f, name):
 
 def _past_title(f, header, lineno, start, name):
     """(header, its line's number, where the data start) past a title line: one field (no
-    separator in it) over a line of several names ("P 50 step, run 3" above "t,y,v"); as it
+    separator in it) over a line of several names ("P 50 step - run 3" above "t,y,v"); as it
     was otherwise."""
     if len(header) != 1 or any(c in header[0] for c in ";\t") or " " not in header[0].strip():
         return header, lineno, start
