@@ -509,8 +509,8 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     with pytest.raises(UserError, match="name the one you mean .*, e.g. lab1_4.1.mat:"):
         find_inputs(lab)
     # Found without lab.toml, each run goes to its part, named apart: the diagnosis table's
-    # rows find their parts by these names (both runs were lab1_4.1.mat, the PI step's row
-    # said Part (ii)).
+    # rows find their parts by these names (both runs were lab1_4.1.mat, and both rows took
+    # the first part found).
     from types import SimpleNamespace
 
     from tuning.lab.diagnosis import _part_of
@@ -520,6 +520,19 @@ def test_a_workspace_of_two_runs_is_two_runs(tmp_path, capsys):
     names = {slot: Path(r.path).name for slot, r in found.recordings.items()}
     assert names == {"p_step": "lab1_4.1.mat:Cartposition", "pi": "lab1_4.1.mat:y"}
     assert _part_of(SimpleNamespace(inputs=found), "lab1_4.1.mat:y") == "(iv) PI"
+    # A run of the workspace offered for a part lab.toml gives another file: the lab.toml
+    # written beside the report names it by its position.
+    from tuning.lab.inputs import write_used
+
+    shutil.copy(lab / "lab1_4.1.mat", lab / "copy.mat")
+    (lab / "lab.toml").write_text('[recordings]\np_step = "copy.mat:Cartposition"\n')
+    found = find_inputs(lab)
+    assert [(s, r.part) for s, r, _ in found.offers] == [("p_step", "labcartsat")]
+    (tmp_path / "report").mkdir()
+    write_used(found, tmp_path / "report", lab)
+    assert (
+        '# p_step = "lab1_4.1.mat:Cartposition"' in (tmp_path / "report" / "lab.toml").read_text()
+    )
     # Headers with a slash are no Simulink blocks: a CSV is one run.
     _csv(tmp_path / "slash.csv", "position / m,error / m", y, 0.4 - y)
     assert [r.part for r in matimport.scan([tmp_path / "slash.csv"])] == [None]

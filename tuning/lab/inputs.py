@@ -652,8 +652,8 @@ def write_used(inputs: Inputs, out, final=None) -> list[Path]:
         written += _write_repeats(out, final, slot, runs, lines)
     for slot, run, why in inputs.offers:
         files = [data_prefix(final, p.parent) + p.name for p in run.files]
-        if run.part is not None:  # one of a workspace's runs: by its position or error
-            files = [data_prefix(final, run.files[0].parent) + run.anchor.source]
+        if run.part is not None:  # one of a workspace's runs: FILE.mat:VARIABLE
+            files = [data_prefix(final, run.name.parent) + run.name.name]
         value = (
             toml_str(files[0]) if len(files) == 1 else "[" + ", ".join(map(toml_str, files)) + "]"
         )
